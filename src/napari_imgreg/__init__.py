@@ -1,0 +1,28 @@
+"""napari-imgreg: register field photographs to textured 3D outcrop models.
+
+Public API (backend, no Qt):
+
+* :class:`Scene` — a textured mesh with its ray engine, georeference and DEM.
+* :func:`render` — colour and per-pixel 3D coordinates from a camera pose.
+* :class:`Intrinsics`, :class:`Pose` — the camera model and ``cam_from_world``.
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from .camera import Intrinsics, Pose, attitude_from_rotation, rotation_from_attitude
+from .errors import InputError
+from .render import RenderResult, render
+from .scene import Scene
+
+__all__ = [
+    "Intrinsics",
+    "InputError",
+    "Pose",
+    "RenderResult",
+    "Scene",
+    "attitude_from_rotation",
+    "render",
+    "rotation_from_attitude",
+]

@@ -1,0 +1,526 @@
+"""Pinhole cameras, poses and the geologist's attitude convention.
+
+Conventions (public contract §1–§2):
+
+* Camera frame: OpenCV, x right, y down, z forward (the view direction).
+* A world point ``X`` maps to camera coordinates ``R @ X + t``; ``R`` is
+  world-to-camera (``cam_from_world``); the camera centre is ``C = -R.T @ t``.
+* Pixel centres are at integer coordinates; the first pixel's centre is (0, 0).
+* Attitude: ``trend_deg`` is the azimuth of the view direction ξ (camera z),
+  clockwise from north (+Y); ``plunge_deg`` is positive downward; ``roll_deg``
+  turns the camera x axis (ρ) downward when positive.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, Mapping
+
+import numpy as np
+
+__all__ = [
+    "Intrinsics",
+    "Pose",
+    "rotation_from_attitude",
+    "attitude_from_rotation",
+    "SENSOR_WIDTHS_MM",
+]
+
+# Sensor widths (mm) of common field cameras, used when EXIF lacks both the
+# 35 mm equivalent focal length and the focal-plane resolution.
+SENSOR_WIDTHS_MM: dict[str, float] = {
+    "FC6310": 13.2,  # DJI Phantom 4 Pro
+    "FC6310S": 13.2,
+    "FC330": 6.17,  # DJI Phantom 4
+    "FC220": 6.17,  # DJI Mavic Pro
+    "L1D-20C": 13.2,  # DJI Mavic 2 Pro (Hasselblad)
+    "FC3170": 6.4,  # DJI Mavic Air 2
+    "FC7303": 6.3,  # DJI Mini 2
+    "Canon EOS 5D Mark III": 36.0,
+    "Canon EOS 6D": 35.8,
+    "NIKON D800": 35.9,
+    "NIKON D7000": 23.6,
+    "ILCE-7RM2": 35.9,  # Sony a7R II
+}
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics with optional OpenCV distortion.
+
+    Parameters
+    ----------
+    width, height : int
+        Image size in pixels.
+    fx, fy : float
+        Focal lengths in pixels.
+    cx, cy : float
+        Principal point in pixels (pixel centres at integers).
+    dist : tuple of float
+        OpenCV distortion ``(k1, k2, p1, p2, k3)``; empty for none.
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, ...] = field(default_factory=tuple)
+
+    # ------------------------------------------------------------------ build
+    @classmethod
+    def from_focal_length_mm(
+        cls,
+        width: int,
+        height: int,
+        focal_length_mm: float,
+        sensor_width_mm: float,
+        sensor_height_mm: float | None = None,
+    ) -> Intrinsics:
+        """Intrinsics from a focal length and the sensor size in millimetres.
+
+        Square pixels are assumed when ``sensor_height_mm`` is not given; the
+        principal point is the image centre.
+        """
+        if focal_length_mm <= 0 or sensor_width_mm <= 0:
+            raise ValueError("focal length and sensor width must be positive")
+        fx = focal_length_mm * width / sensor_width_mm
+        fy = fx if sensor_height_mm is None else focal_length_mm * height / sensor_height_mm
+        return cls(width, height, fx, fy, (width - 1) / 2.0, (height - 1) / 2.0)
+
+    @classmethod
+    def from_35mm_equivalent(cls, width: int, height: int, focal_35mm: float) -> Intrinsics:
+        """Intrinsics from the 35 mm-equivalent focal length.
+
+        The equivalent focal length refers to the 43.27 mm diagonal of a
+        36 × 24 mm frame; it is applied to the image diagonal, which is how
+        camera makers compute it for any aspect ratio.
+        """
+        if focal_35mm <= 0:
+            raise ValueError("35 mm equivalent focal length must be positive")
+        diag_px = math.hypot(width, height)
+        f = focal_35mm * diag_px / math.hypot(36.0, 24.0)
+        return cls(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov_deg: float) -> Intrinsics:
+        """Intrinsics from a horizontal field of view in degrees."""
+        f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        return cls(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+
+    @classmethod
+    def from_exif(cls, exif: Mapping[str, Any], width: int, height: int) -> Intrinsics:
+        """Intrinsics from EXIF tags (names as PIL's ``ExifTags.TAGS``).
+
+        Tried in order: ``FocalLength`` with ``FocalPlaneXResolution`` (the
+        sensor's true pixel pitch), ``FocalLengthIn35mmFilm``, ``FocalLength``
+        with the sensor width of the ``Model`` from :data:`SENSOR_WIDTHS_MM`.
+
+        Raises
+        ------
+        ValueError
+            If no combination of tags gives a focal length in pixels.
+        """
+        focal_mm = _as_float(exif.get("FocalLength"))
+        xres = _as_float(exif.get("FocalPlaneXResolution"))
+        unit = int(_as_float(exif.get("FocalPlaneResolutionUnit")) or 2)
+        exif_width = _as_float(exif.get("ExifImageWidth")) or width
+        if focal_mm and xres:
+            unit_mm = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}.get(unit, 25.4)
+            # FocalPlaneXResolution is pixels per unit of the full-size image.
+            px_per_mm = xres / unit_mm * (width / exif_width)
+            f = focal_mm * px_per_mm
+            return cls(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+        f35 = _as_float(exif.get("FocalLengthIn35mmFilm"))
+        if f35:
+            return cls.from_35mm_equivalent(width, height, f35)
+        model = str(exif.get("Model", "")).strip().strip("\x00")
+        if focal_mm and model in SENSOR_WIDTHS_MM:
+            return cls.from_focal_length_mm(width, height, focal_mm, SENSOR_WIDTHS_MM[model])
+        raise ValueError(
+            "EXIF gives no usable focal length (need FocalLength with "
+            "FocalPlaneXResolution or a known camera Model, or FocalLengthIn35mmFilm)"
+        )
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Intrinsics:
+        """Intrinsics from the contract's ``camera`` block (pixels or millimetres).
+
+        Raises
+        ------
+        KeyError, ValueError
+            If the block has neither pixel intrinsics nor a focal length and
+            sensor width.
+        """
+        width, height = int(d["width"]), int(d["height"])
+        if "fx" in d:
+            fx = float(d["fx"])
+            fy = float(d.get("fy", fx))
+            cx = float(d.get("cx", (width - 1) / 2.0))
+            cy = float(d.get("cy", (height - 1) / 2.0))
+            intr = cls(width, height, fx, fy, cx, cy)
+        elif "focal_length_mm" in d and "sensor_width_mm" in d:
+            intr = cls.from_focal_length_mm(
+                width,
+                height,
+                float(d["focal_length_mm"]),
+                float(d["sensor_width_mm"]),
+                float(d["sensor_height_mm"]) if d.get("sensor_height_mm") else None,
+            )
+        elif "focal_length_35mm" in d:
+            intr = cls.from_35mm_equivalent(width, height, float(d["focal_length_35mm"]))
+        else:
+            raise ValueError(
+                "camera needs fx (pixels) or focal_length_mm with sensor_width_mm"
+            )
+        dist = d.get("dist")
+        if dist:
+            intr = replace(intr, dist=tuple(float(k) for k in dist))
+        return intr
+
+    def to_dict(self) -> dict[str, Any]:
+        """The contract's pixel ``camera`` block."""
+        return {
+            "width": self.width,
+            "height": self.height,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "dist": list(self.dist),
+        }
+
+    # --------------------------------------------------------------- derived
+    @property
+    def K(self) -> np.ndarray:
+        """Camera matrix, shape (3, 3)."""
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
+        )
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        """Distortion as OpenCV wants it, shape (5,) (zeros when none)."""
+        d = np.zeros(5)
+        d[: len(self.dist)] = self.dist[:5]
+        return d
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(k) > 0 for k in self.dist)
+
+    @property
+    def hfov_deg(self) -> float:
+        """Horizontal field of view in degrees."""
+        return math.degrees(2 * math.atan2(self.width / 2.0, self.fx))
+
+    def scaled(self, scale: float) -> Intrinsics:
+        """The same camera at ``scale`` times the resolution.
+
+        Pixel centres stay at integers: a pixel at ``p`` maps to
+        ``(p + 0.5) * scale - 0.5``.
+        """
+        if scale == 1.0:
+            return self
+        w = max(1, int(round(self.width * scale)))
+        h = max(1, int(round(self.height * scale)))
+        sx, sy = w / self.width, h / self.height
+        return Intrinsics(
+            w,
+            h,
+            self.fx * sx,
+            self.fy * sy,
+            (self.cx + 0.5) * sx - 0.5,
+            (self.cy + 0.5) * sy - 0.5,
+            self.dist,
+        )
+
+    # ------------------------------------------------------ project/unproject
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Project camera-frame points to pixels (with distortion).
+
+        Parameters
+        ----------
+        points_cam : (N, 3) array
+            Points in the camera frame, metres.
+
+        Returns
+        -------
+        (N, 2) array
+            Pixel coordinates (x = column, y = row); NaN for points with z <= 0.
+        """
+        p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn = p[:, 0] / z
+            yn = p[:, 1] / z
+        if self.has_distortion:
+            xn, yn = _distort(xn, yn, self.dist_coeffs)
+        uv = np.stack([self.fx * xn + self.cx, self.fy * yn + self.cy], axis=1)
+        uv[z <= 0] = np.nan
+        return uv
+
+    def normalized_rays(self, pixels: np.ndarray) -> np.ndarray:
+        """Undistorted camera-frame ray directions through pixels.
+
+        Parameters
+        ----------
+        pixels : (N, 2) array
+            Pixel coordinates (x, y).
+
+        Returns
+        -------
+        (N, 3) array
+            Directions with z = 1 (not unit length).
+        """
+        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        if self.has_distortion:
+            import cv2
+
+            und = cv2.undistortPoints(
+                px.reshape(-1, 1, 2), self.K, self.dist_coeffs
+            ).reshape(-1, 2)
+            xn, yn = und[:, 0], und[:, 1]
+        else:
+            xn = (px[:, 0] - self.cx) / self.fx
+            yn = (px[:, 1] - self.cy) / self.fy
+        return np.stack([xn, yn, np.ones_like(xn)], axis=1)
+
+    def unproject(self, pixels: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Camera-frame points at the given z-depths behind pixels.
+
+        Parameters
+        ----------
+        pixels : (N, 2) array
+            Pixel coordinates (x, y).
+        depth : (N,) array
+            Depth along the optical axis (camera z), metres.
+
+        Returns
+        -------
+        (N, 3) array
+            Camera-frame points.
+        """
+        return self.normalized_rays(pixels) * np.asarray(depth, dtype=np.float64).reshape(-1, 1)
+
+
+def _distort(xn: np.ndarray, yn: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Apply the OpenCV radial-tangential model to normalised coordinates."""
+    k1, k2, p1, p2, k3 = d[:5]
+    r2 = xn * xn + yn * yn
+    radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+    xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+    return xd, yd
+
+
+def _as_float(value: Any) -> float | None:
+    """EXIF rationals, tuples and strings to float (None when absent/invalid)."""
+    if value is None:
+        return None
+    try:
+        if isinstance(value, tuple) and len(value) == 2:
+            return float(value[0]) / float(value[1]) if float(value[1]) else None
+        return float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+
+
+# ---------------------------------------------------------------- attitude
+def rotation_from_attitude(trend_deg: float, plunge_deg: float, roll_deg: float) -> np.ndarray:
+    """World-to-camera rotation from trend, plunge and roll (contract §2).
+
+    Parameters
+    ----------
+    trend_deg : float
+        Azimuth of the view direction, degrees clockwise from north (+Y).
+    plunge_deg : float
+        Angle of the view direction below the horizontal, positive down.
+    roll_deg : float
+        Rotation about the view direction; positive turns the camera x axis
+        downward (clockwise as the photographer sees it).
+
+    Returns
+    -------
+    (3, 3) array
+        ``R`` whose rows are the camera x, y, z axes in world coordinates.
+
+    Examples
+    --------
+    >>> R = rotation_from_attitude(90.0, 0.0, 0.0)   # looking east
+    >>> np.round(R[2], 6).tolist()
+    [1.0, 0.0, -0.0]
+    """
+    T, P, Ro = (math.radians(a) for a in (trend_deg, plunge_deg, roll_deg))
+    z = np.array([math.sin(T) * math.cos(P), math.cos(T) * math.cos(P), -math.sin(P)])
+    x0 = np.array([math.cos(T), -math.sin(T), 0.0])
+    y0 = np.cross(z, x0)
+    x = math.cos(Ro) * x0 + math.sin(Ro) * y0
+    y = np.cross(z, x)
+    return np.stack([x, y, z])
+
+
+def attitude_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
+    """Trend, plunge and roll in degrees from a world-to-camera rotation.
+
+    The inverse of :func:`rotation_from_attitude`. For a vertical view
+    (plunge ±90°) the trend is that of the roll-0 x axis, so roll is 0.
+
+    Parameters
+    ----------
+    R : (3, 3) array
+        World-to-camera rotation (rows: camera axes in world coordinates).
+
+    Returns
+    -------
+    trend_deg, plunge_deg, roll_deg : float
+        Trend in [0, 360), plunge in [-90, 90], roll in (-180, 180].
+    """
+    R = np.asarray(R, dtype=np.float64)
+    x, z = R[0], R[2]
+    plunge = math.degrees(math.asin(float(np.clip(-z[2], -1.0, 1.0))))
+    horizontal = math.hypot(z[0], z[1])
+    if horizontal < 1e-9:
+        # Vertical view: x0 is undefined from ξ; take the trend for which x is x0.
+        trend = math.degrees(math.atan2(-x[1], x[0])) % 360.0
+        return _wrap360(trend), float(np.sign(-z[2]) * 90.0), 0.0
+    trend = _wrap360(math.degrees(math.atan2(z[0], z[1])))
+    T = math.radians(trend)
+    x0 = np.array([math.cos(T), -math.sin(T), 0.0])
+    y0 = np.cross(z, x0)
+    roll = math.degrees(math.atan2(float(x @ y0), float(x @ x0)))
+    return trend, plunge, roll
+
+
+def _wrap360(angle_deg: float) -> float:
+    a = angle_deg % 360.0
+    return 0.0 if a >= 360.0 - 1e-12 else a
+
+
+# --------------------------------------------------------------------- pose
+@dataclass(frozen=True)
+class Pose:
+    """A camera pose as ``cam_from_world``: ``X_cam = R @ X_world + t``.
+
+    Parameters
+    ----------
+    R : (3, 3) array
+        World-to-camera rotation.
+    t : (3,) array
+        Translation, metres.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+
+    def __post_init__(self) -> None:
+        R = np.asarray(self.R, dtype=np.float64).reshape(3, 3)
+        t = np.asarray(self.t, dtype=np.float64).reshape(3)
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "t", t)
+
+    @classmethod
+    def from_center(cls, R: np.ndarray, center: np.ndarray) -> Pose:
+        """Pose from a rotation and the camera centre in world coordinates."""
+        R = np.asarray(R, dtype=np.float64)
+        return cls(R, -R @ np.asarray(center, dtype=np.float64))
+
+    @classmethod
+    def from_attitude(
+        cls, trend_deg: float, plunge_deg: float, roll_deg: float, center: np.ndarray
+    ) -> Pose:
+        """Pose from trend/plunge/roll (contract §2) and the camera centre."""
+        return cls.from_center(rotation_from_attitude(trend_deg, plunge_deg, roll_deg), center)
+
+    @classmethod
+    def from_rvec_tvec(cls, rvec: np.ndarray, tvec: np.ndarray) -> Pose:
+        """Pose from OpenCV's Rodrigues vector and translation."""
+        import cv2
+
+        R, _ = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
+        return cls(R, np.asarray(tvec, dtype=np.float64).reshape(3))
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> Pose:
+        """Pose from the contract's ``pose`` block (``R`` and ``t``)."""
+        return cls(np.array(d["R"], dtype=np.float64), np.array(d["t"], dtype=np.float64))
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates, shape (3,)."""
+        return -self.R.T @ self.t
+
+    @property
+    def view_direction(self) -> np.ndarray:
+        """Unit view direction ξ (camera z) in world coordinates, shape (3,)."""
+        return self.R[2].copy()
+
+    @property
+    def attitude(self) -> tuple[float, float, float]:
+        """(trend_deg, plunge_deg, roll_deg)."""
+        return attitude_from_rotation(self.R)
+
+    @property
+    def rvec(self) -> np.ndarray:
+        """Rodrigues rotation vector, shape (3,)."""
+        import cv2
+
+        return cv2.Rodrigues(self.R)[0].ravel()
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4 × 4 ``cam_from_world`` matrix."""
+        M = np.eye(4)
+        M[:3, :3] = self.R
+        M[:3, 3] = self.t
+        return M
+
+    def transform(self, points_world: np.ndarray) -> np.ndarray:
+        """World points (N, 3) to camera coordinates (N, 3)."""
+        p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        return p @ self.R.T + self.t
+
+    def inverse_transform(self, points_cam: np.ndarray) -> np.ndarray:
+        """Camera points (N, 3) to world coordinates (N, 3)."""
+        p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        return (p - self.t) @ self.R
+
+    def project(self, intrinsics: Intrinsics, points_world: np.ndarray) -> np.ndarray:
+        """World points (N, 3) to pixels (N, 2); NaN behind the camera."""
+        return intrinsics.project(self.transform(points_world))
+
+    def rays(self, intrinsics: Intrinsics, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World rays through pixels.
+
+        Returns
+        -------
+        origin : (3,) array
+            The camera centre.
+        directions : (N, 3) array
+            Unit directions in world coordinates.
+        """
+        d = intrinsics.normalized_rays(pixels) @ self.R
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return self.center, d
+
+    def with_center(self, center: np.ndarray) -> Pose:
+        return Pose.from_center(self.R, center)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The contract's ``pose`` block."""
+        trend, plunge, roll = self.attitude
+        return {
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+            "position": self.center.tolist(),
+            "trend_deg": trend,
+            "plunge_deg": plunge,
+            "roll_deg": roll,
+        }
+
+    def rotation_error_deg(self, other: Pose) -> float:
+        """Angle of the relative rotation between two poses, degrees."""
+        c = (np.trace(self.R @ other.R.T) - 1.0) / 2.0
+        return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))

@@ -1,0 +1,218 @@
+"""The ``napari-imgreg`` command line (contract §8).
+
+Every command prints a short human summary and writes machine-readable
+output. Exit codes: 0 success, 1 a registration that failed its quality bar,
+2 bad input (one line on stderr naming the file and the problem).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .errors import InputError, input_error
+
+__all__ = ["main"]
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def _scene(mesh: str, georef: str | None, dem: str | None):
+    from .scene import Scene
+
+    return Scene.load(mesh, georef=georef, dem=dem)
+
+
+# ----------------------------------------------------------------- render
+def cmd_render(args: argparse.Namespace) -> int:
+    from ._atomic import atomic_path
+    from .io.photos import save_image
+    from .io.records import load_camera_and_pose
+    from .render import render
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+        raise input_error(out, "output must be .png, .jpg or .tif")
+    if args.depth and Path(args.depth).suffix.lower() != ".npy":
+        raise input_error(args.depth, "depth output must be a .npy file")
+    pose_file = Path(args.pose_file)
+    if not pose_file.exists():
+        raise input_error(pose_file, "no such file")
+    scene = _scene(args.mesh, args.georef, args.dem)
+    intr, pose, kind, notes = load_camera_and_pose(
+        pose_file, scene.georef, scene.dem, scene.terrain_height
+    )
+    t0 = time.perf_counter()
+    result = render(scene, intr, pose, scale=args.scale, mode=args.mode)
+    elapsed = time.perf_counter() - t0
+    save_image(out, result.rgb)
+    if args.depth:
+        with atomic_path(args.depth) as tmp:
+            np.save(tmp, result.depth)
+    if args.xyz:
+        with atomic_path(args.xyz) as tmp:
+            np.save(tmp, result.xyz)
+    trend, plunge, roll = pose.attitude
+    x, y, z = pose.center
+    print(
+        f"rendered {scene.name} ({scene.n_faces:,} triangles) from the {kind} pose "
+        f"at ({x:.1f}, {y:.1f}, {z:.1f}) m, trend {trend:.1f}° plunge {plunge:.1f}° "
+        f"roll {roll:.1f}°"
+    )
+    for note in notes + scene.warnings:
+        print(f"  assumed: {note}")
+    h, w = result.shape
+    print(
+        f"  {w}×{h} px in {elapsed:.2f} s, surface covers {result.coverage:.0%} "
+        f"of the image -> {out}"
+        + (f", depth -> {args.depth}" if args.depth else "")
+    )
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------- demo
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .io.photos import load_photo, save_image
+    from .io.records import prior_for_photo
+    from .render import render
+    from .sample import sample_scene
+    from .scene import Scene
+
+    t0 = time.perf_counter()
+    folder = sample_scene("small")
+    print(f"sample outcrop scene: {folder} ({time.perf_counter() - t0:.1f} s)")
+    scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
+    t1 = time.perf_counter()
+    scene.build_engine()
+    print(
+        f"loaded {scene.n_faces:,} triangles, texture "
+        f"{scene.texture.shape[1]}×{scene.texture.shape[0]} in {t1 - t0:.1f} s; "
+        f"ray engine built in {scene.timings_s['build']:.2f} s"
+    )
+    if args.gui:
+        return _demo_gui(folder)
+    out = Path(args.out)
+    summary = []
+    for photo_path in sorted(folder.glob("IMG_*.jpg")):
+        photo = load_photo(photo_path)
+        prior = prior_for_photo(photo, scene)
+        t = time.perf_counter()
+        result = render(scene, prior.intrinsics, prior.pose)
+        elapsed = time.perf_counter() - t
+        stem = photo_path.stem
+        save_image(out / f"{stem}_prior_render.png", result.rgb)
+        side_by_side = np.concatenate([photo.image, result.rgb], axis=1)
+        save_image(out / f"{stem}_photo_vs_prior.jpg", side_by_side)
+        trend, plunge, roll = prior.pose.attitude
+        print(
+            f"  {photo_path.name}: prior trend {trend:.1f}° plunge {plunge:.1f}° "
+            f"roll {roll:.1f}°, render {result.shape[1]}×{result.shape[0]} in "
+            f"{elapsed:.2f} s -> {out / (stem + '_photo_vs_prior.jpg')}"
+        )
+        summary.append(
+            {"photo": photo_path.name, "render": f"{stem}_prior_render.png",
+             "render_s": round(elapsed, 3), "pose": prior.pose.to_dict(),
+             "assumptions": prior.assumptions}
+        )
+    from ._atomic import atomic_write
+
+    with atomic_write(out / "demo.json") as fh:
+        json.dump({"scene": str(folder), "photos": summary}, fh, indent=2)
+    print(f"wrote {len(summary)} prior renders and side-by-side views to {out}/")
+    return EXIT_OK
+
+
+def _demo_gui(folder: Path) -> int:  # pragma: no cover - interactive
+    import napari
+
+    viewer = napari.Viewer(title="napari-imgreg demo")
+    viewer.open_sample("napari-imgreg", "outcrop_photo")
+    napari.run()
+    return EXIT_OK
+
+
+# ----------------------------------------------------------------- sample
+def cmd_sample(args: argparse.Namespace) -> int:
+    from .sample import generate_outcrop
+
+    t0 = time.perf_counter()
+    out = generate_outcrop(Path(args.out), size=args.size, seed=args.seed)
+    print(f"sample outcrop ({args.size}, seed {args.seed}) written to {out} "
+          f"in {time.perf_counter() - t0:.1f} s")
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------ main
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="napari-imgreg",
+        description="Register field photographs to textured 3D outcrop models.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser(
+        "render",
+        help="render a mesh from a prior (sensor record) or a RESULT.json pose",
+        description="Render colour (and optionally depth / xyz) of MESH from the pose in "
+        "PRIOR_OR_RESULT.json: a sensor record (contract §3) or a registration result (§4).",
+    )
+    p.add_argument("mesh", metavar="MESH", help="OBJ+MTL+image, PLY or GLB/GLTF")
+    p.add_argument("pose_file", metavar="PRIOR_OR_RESULT.json")
+    p.add_argument("--out", required=True, metavar="RENDER.png", help="colour image to write")
+    p.add_argument("--depth", metavar="DEPTH.npy", help="also write z-depth (metres, NaN = no hit)")
+    p.add_argument("--xyz", metavar="XYZ.npy", help="also write per-pixel model coordinates (H, W, 3)")
+    p.add_argument("--dem", help="DEM GeoTIFF or .asc (altitude for priors without one)")
+    p.add_argument("--georef", help="georef.json (default: the one beside MESH, if any)")
+    p.add_argument("--scale", type=float, default=1.0, help="resolution factor (default 1)")
+    p.add_argument(
+        "--mode", default="auto", choices=["auto", "color", "shaded", "color_shaded", "normal"],
+        help="colouring (default: texture or colours, shading for plain meshes)",
+    )
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser(
+        "demo",
+        help="run the main job on the bundled sample scene",
+        description="Generate (once, cached) the sample outcrop, and render each sample photo "
+        "from its sensor prior next to the photo.",
+    )
+    p.add_argument("--out", default="demo_output", help="output folder (default demo_output)")
+    p.add_argument("--gui", action="store_true", help="open napari with the sample loaded")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "sample",
+        help="write the generated sample outcrop scene to a folder",
+        description="Write a generated outcrop (OBJ+MTL+JPEG, georef.json, dem.tif, photos with "
+        "sensor records and ground truth).",
+    )
+    p.add_argument("--out", required=True, help="folder to write")
+    p.add_argument("--size", default="small", choices=["small", "large"])
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_sample)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"napari-imgreg {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Reading and writing: meshes, sensor records, results, images."""

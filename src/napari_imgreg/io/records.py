@@ -1,0 +1,402 @@
+"""Sensor records (``PHOTO.json``, contract §3) and registration results (§4).
+
+A sensor record is what a phone logged for one photo. :func:`prior_from_record`
+turns it into a camera and a prior pose, filling gaps (altitude from the DEM,
+intrinsics from a default) and saying what it assumed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Mapping
+
+import numpy as np
+
+from ..camera import Intrinsics, Pose
+from ..errors import InputError, input_error
+
+if TYPE_CHECKING:
+    from ..geo import DEM, Georef
+
+__all__ = [
+    "DEFAULT_HEIGHT_ABOVE_GROUND_M",
+    "Sigma",
+    "SensorRecord",
+    "Prior",
+    "read_json",
+    "load_sensor_record",
+    "prior_from_record",
+    "load_camera_and_pose",
+]
+
+DEFAULT_HEIGHT_ABOVE_GROUND_M = 1.6
+
+
+@dataclass(frozen=True)
+class Sigma:
+    """Expected error of the prior (contract §3 ``sigma``).
+
+    Attributes
+    ----------
+    position_m : float
+        Horizontal position error, metres.
+    altitude_m : float
+        Vertical position error, metres.
+    angles_deg : float
+        Attitude error, degrees.
+    """
+
+    position_m: float = 5.0
+    altitude_m: float = 10.0
+    angles_deg: float = 5.0
+
+    def to_dict(self) -> dict[str, float]:
+        return {
+            "position_m": self.position_m,
+            "altitude_m": self.altitude_m,
+            "angles_deg": self.angles_deg,
+        }
+
+
+@dataclass
+class SensorRecord:
+    """A parsed ``PHOTO.json``; every block is optional (None when absent).
+
+    Attributes
+    ----------
+    camera : dict or None
+        The ``camera`` block (pixels or millimetres).
+    position : dict or None
+        ``{"x", "y"[, "z"]}`` local metres or ``{"lat", "lon"[, "alt"]}``.
+    orientation : dict or None
+        ``{"trend_deg", "plunge_deg", "roll_deg"}``.
+    sigma : Sigma
+        Expected prior errors (defaults when absent).
+    source : Path or None
+        The file it came from (for messages).
+    """
+
+    camera: dict | None = None
+    position: dict | None = None
+    orientation: dict | None = None
+    sigma: Sigma = field(default_factory=Sigma)
+    source: Path | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.camera is not None:
+            out["camera"] = dict(self.camera)
+        if self.position is not None:
+            out["position"] = dict(self.position)
+        if self.orientation is not None:
+            out["orientation"] = dict(self.orientation)
+        out["sigma"] = self.sigma.to_dict()
+        return out
+
+
+@dataclass
+class Prior:
+    """A camera and its prior pose, with what was assumed to build it.
+
+    Attributes
+    ----------
+    intrinsics : Intrinsics
+    pose : Pose
+        ``cam_from_world`` of the prior.
+    sigma : Sigma
+    assumptions : list of str
+        Plain-language notes ("altitude from DEM + 1.6 m", ...).
+    """
+
+    intrinsics: Intrinsics
+    pose: Pose
+    sigma: Sigma = field(default_factory=Sigma)
+    assumptions: list[str] = field(default_factory=list)
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    """Read a JSON file; one clear :class:`InputError` when missing or invalid."""
+    path = Path(path)
+    if not path.exists():
+        raise input_error(path, "no such file")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise input_error(path, f"invalid JSON at line {exc.lineno}: {exc.msg}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise input_error(path, f"cannot read ({exc})") from None
+
+
+def _number(block: Mapping, key: str, where: str, src: Path | None) -> float:
+    value = block.get(key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise input_error(src, f"field '{where}.{key}' must be a number, got {value!r}")
+    return float(value)
+
+
+def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> SensorRecord:
+    """Validate a sensor-record dict (contract §3) into a :class:`SensorRecord`.
+
+    Raises
+    ------
+    InputError
+        A block is not an object or a field has the wrong type; the message
+        names the file and the field.
+    """
+    src = Path(source) if source is not None else None
+    if not isinstance(data, dict):
+        raise input_error(src, "a sensor record must be a JSON object")
+    blocks: dict[str, dict | None] = {}
+    for key in ("camera", "position", "orientation", "sigma"):
+        block = data.get(key)
+        if block is not None and not isinstance(block, dict):
+            raise input_error(src, f"field '{key}' must be an object")
+        blocks[key] = block
+
+    camera = blocks["camera"]
+    if camera is not None:
+        for key in ("width", "height"):
+            if key in camera:
+                _number(camera, key, "camera", src)
+        for key in ("fx", "fy", "cx", "cy", "focal_length_mm", "sensor_width_mm",
+                    "sensor_height_mm", "focal_length_35mm"):
+            if camera.get(key) is not None:
+                _number(camera, key, "camera", src)
+        if "dist" in camera and not (
+            isinstance(camera["dist"], list)
+            and all(isinstance(k, (int, float)) for k in camera["dist"])
+        ):
+            raise input_error(src, "field 'camera.dist' must be a list of numbers")
+
+    position = blocks["position"]
+    if position is not None:
+        if "lat" in position or "lon" in position:
+            _number(position, "lat", "position", src)
+            _number(position, "lon", "position", src)
+            if position.get("alt") is not None:
+                _number(position, "alt", "position", src)
+        else:
+            _number(position, "x", "position", src)
+            _number(position, "y", "position", src)
+            if position.get("z") is not None:
+                _number(position, "z", "position", src)
+
+    orientation = blocks["orientation"]
+    if orientation is not None:
+        for key in ("trend_deg", "plunge_deg", "roll_deg"):
+            if orientation.get(key) is not None:
+                _number(orientation, key, "orientation", src)
+        plunge = orientation.get("plunge_deg")
+        if plunge is not None and abs(plunge) > 90:
+            raise input_error(src, f"field 'orientation.plunge_deg' must be in [-90, 90], got {plunge}")
+
+    sigma = Sigma()
+    if blocks["sigma"] is not None:
+        s = blocks["sigma"]
+        sigma = Sigma(
+            *(
+                _number(s, key, "sigma", src) if s.get(key) is not None else default
+                for key, default in (
+                    ("position_m", sigma.position_m),
+                    ("altitude_m", sigma.altitude_m),
+                    ("angles_deg", sigma.angles_deg),
+                )
+            )
+        )
+    return SensorRecord(camera, position, orientation, sigma, src)
+
+
+def load_sensor_record(path: str | os.PathLike) -> SensorRecord:
+    """Read and validate ``PHOTO.json`` (contract §3)."""
+    return parse_sensor_record(read_json(path), path)
+
+
+def prior_from_record(
+    record: SensorRecord,
+    georef: Georef | None = None,
+    dem: DEM | None = None,
+    terrain_height=None,
+    image_size: tuple[int, int] | None = None,
+    height_above_ground_m: float = DEFAULT_HEIGHT_ABOVE_GROUND_M,
+) -> Prior:
+    """Camera and prior pose from a sensor record.
+
+    Parameters
+    ----------
+    record : SensorRecord
+    georef : Georef, optional
+        Needed for geodetic positions and for DEM look-ups in CRS coordinates.
+    dem : DEM, optional
+        Gives the altitude when the record has none.
+    terrain_height : callable, optional
+        ``f(x, y) -> z`` in the local frame, used when there is no DEM (e.g.
+        :meth:`Scene.terrain_height`).
+    image_size : (width, height), optional
+        The photo's size, used when the camera block has none.
+    height_above_ground_m : float
+        Camera height above the DEM surface.
+
+    Returns
+    -------
+    Prior
+
+    Raises
+    ------
+    InputError
+        The record lacks what a pose needs (camera, position, orientation),
+        or a geodetic position comes without a georeference.
+    """
+    src = record.source
+    notes: list[str] = []
+    intrinsics = _intrinsics_of(record, image_size, notes)
+
+    if record.position is None:
+        raise input_error(src, "no 'position' block (needs x, y[, z] or lat, lon[, alt])")
+    pos = record.position
+    if "lat" in pos:
+        if georef is None:
+            raise input_error(src, "geodetic position (lat/lon) needs a georef.json")
+        xyz = np.asarray(
+            georef.geodetic_to_local(float(pos["lat"]), float(pos["lon"]), pos.get("alt")),
+            dtype=np.float64,
+        ).reshape(3)
+        x, y = float(xyz[0]), float(xyz[1])
+        z = float(xyz[2]) if pos.get("alt") is not None else None
+    else:
+        x, y = float(pos["x"]), float(pos["y"])
+        z = float(pos["z"]) if pos.get("z") is not None else None
+    if z is None:
+        if dem is not None:
+            ox, oy, oz = (georef.origin if georef is not None else (0.0, 0.0, 0.0))
+            try:
+                ground = float(dem.height_at(x + ox, y + oy)) - oz
+            except ValueError as exc:
+                raise InputError(f"{src}: {exc}") from None
+            notes.append(f"altitude from DEM + {height_above_ground_m:g} m")
+        elif terrain_height is not None:
+            ground = float(terrain_height(x, y))
+            notes.append(f"altitude from the model surface + {height_above_ground_m:g} m")
+        else:
+            raise input_error(src, "no altitude in 'position' and no DEM to take it from")
+        z = ground + height_above_ground_m
+
+    o = record.orientation
+    if o is None or o.get("trend_deg") is None:
+        raise input_error(src, "no 'orientation.trend_deg' (compass heading) in the record")
+    trend = float(o["trend_deg"])
+    plunge = float(o.get("plunge_deg") or 0.0)
+    roll = float(o.get("roll_deg") or 0.0)
+    if o.get("plunge_deg") is None:
+        notes.append("plunge assumed 0° (level camera)")
+    if o.get("roll_deg") is None:
+        notes.append("roll assumed 0°")
+    pose = Pose.from_attitude(trend, plunge, roll, np.array([x, y, z]))
+    return Prior(intrinsics, pose, record.sigma, notes)
+
+
+def _intrinsics_of(
+    record: SensorRecord, image_size: tuple[int, int] | None, notes: list[str]
+) -> Intrinsics:
+    cam = dict(record.camera or {})
+    if image_size is not None:
+        if "width" in cam and (int(cam["width"]), int(cam["height"])) != tuple(image_size):
+            # The photo may have been resized after logging: scale the camera.
+            notes.append(
+                f"camera block is {cam['width']}×{cam['height']}, photo is "
+                f"{image_size[0]}×{image_size[1]}: intrinsics scaled"
+            )
+            base = Intrinsics.from_dict(cam) if _has_focal(cam) else None
+            if base is not None:
+                return base.scaled(image_size[0] / base.width)
+        cam.setdefault("width", image_size[0])
+        cam.setdefault("height", image_size[1])
+    if "width" not in cam or "height" not in cam:
+        raise input_error(record.source, "no camera width/height in the record and no photo")
+    if not _has_focal(cam):
+        notes.append("no focal length: assumed a 65° horizontal field of view (phone camera)")
+        return Intrinsics.from_fov(int(cam["width"]), int(cam["height"]), 65.0)
+    try:
+        return Intrinsics.from_dict(cam)
+    except (KeyError, ValueError) as exc:
+        raise input_error(record.source, f"field 'camera': {exc}") from None
+
+
+def _has_focal(cam: Mapping) -> bool:
+    return "fx" in cam or ("focal_length_mm" in cam and "sensor_width_mm" in cam) or (
+        "focal_length_35mm" in cam
+    )
+
+
+def load_camera_and_pose(
+    path: str | os.PathLike,
+    georef: Georef | None = None,
+    dem: DEM | None = None,
+    terrain_height=None,
+) -> tuple[Intrinsics, Pose, str, list[str]]:
+    """Camera and pose from either a RESULT.json or a sensor record.
+
+    Returns
+    -------
+    intrinsics, pose, kind, notes
+        ``kind`` is ``"result"`` or ``"prior"``.
+    """
+    data = read_json(path)
+    if isinstance(data, dict) and isinstance(data.get("pose"), dict) and "R" in data["pose"]:
+        try:
+            intr = Intrinsics.from_dict(data["camera"])
+            pose = Pose.from_dict(data["pose"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise input_error(path, f"bad 'camera' or 'pose' in result ({exc})") from None
+        R = pose.R
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+            raise input_error(path, "field 'pose.R' is not a rotation matrix")
+        return intr, pose, "result", []
+    record = parse_sensor_record(data, path)
+    prior = prior_from_record(record, georef, dem, terrain_height)
+    return prior.intrinsics, prior.pose, "prior", prior.assumptions
+
+
+def prior_for_photo(
+    photo,
+    scene=None,
+    record_path: str | os.PathLike | None = None,
+    height_above_ground_m: float = DEFAULT_HEIGHT_ABOVE_GROUND_M,
+) -> Prior:
+    """The prior of a photo from its sensor record (the sidecar by default).
+
+    Parameters
+    ----------
+    photo : Photo
+        The photograph (its size fills in a missing camera size; its EXIF a
+        missing focal length).
+    scene : Scene, optional
+        Gives the georeference, the DEM and, without a DEM, the terrain.
+    record_path : path-like, optional
+        Sensor record; defaults to the photo's ``.json`` sidecar.
+    """
+    record_path = Path(record_path) if record_path is not None else photo.sidecar
+    if record_path is None or not record_path.exists():
+        raise input_error(
+            record_path or photo.path, "no sensor record (PHOTO.json) for this photo"
+        )
+    record = load_sensor_record(record_path)
+    if record.camera is not None and not _has_focal(record.camera) and photo.exif:
+        try:
+            intr = Intrinsics.from_exif(photo.exif, *photo.size)
+            record.camera = {**record.camera, **intr.to_dict()}
+        except ValueError:
+            pass
+    prior = prior_from_record(
+        record,
+        georef=getattr(scene, "georef", None),
+        dem=getattr(scene, "dem", None),
+        terrain_height=getattr(scene, "terrain_height", None),
+        image_size=photo.size,
+        height_above_ground_m=height_above_ground_m,
+    )
+    return prior
