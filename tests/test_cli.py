@@ -1,0 +1,114 @@
+"""The command line: outputs, exit codes, one-line errors, atomic writes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from napari_imgreg import Intrinsics, Pose
+from napari_imgreg.cli import main
+
+
+@pytest.fixture
+def wall(tmp_path):
+    """A textured 40 m × 20 m wall in the plane y = 0, and a pose file facing it."""
+    vertices = np.array([[0, 0, 0], [40, 0, 0], [40, 0, 20], [0, 0, 20]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    texture = np.zeros((64, 128, 3), np.uint8)
+    texture[..., 0] = np.linspace(0, 255, 128)[None, :]
+    texture[..., 1] = 120
+    mesh = trimesh.Trimesh(
+        vertices, faces, process=False,
+        visual=trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(texture)),
+    )
+    mesh_path = tmp_path / "wall.obj"
+    mesh.export(mesh_path)
+    record = {
+        "camera": {"width": 160, "height": 120, "fx": 100.0, "fy": 100.0, "cx": 79.5, "cy": 59.5},
+        "position": {"x": 20.0, "y": -30.0, "z": 10.0},
+        "orientation": {"trend_deg": 0.0, "plunge_deg": 0.0, "roll_deg": 0.0},
+    }
+    prior_path = tmp_path / "IMG_0001.json"
+    prior_path.write_text(json.dumps(record))
+    return mesh_path, prior_path
+
+
+def test_render_writes_image_and_depth(wall, tmp_path, capsys):
+    mesh, prior = wall
+    out, depth = tmp_path / "render.png", tmp_path / "depth.npy"
+    code = main(["render", str(mesh), str(prior), "--out", str(out), "--depth", str(depth)])
+    assert code == 0
+    image = np.asarray(Image.open(out))
+    assert image.shape == (120, 160, 3)
+    d = np.load(depth)
+    # The wall is 30 m in front of a level camera: depth is 30 everywhere it is seen.
+    assert np.nanmax(np.abs(d - 30.0)) < 1e-3
+    assert np.isnan(d).any() and np.isfinite(d).any()
+    # Colour follows the texture: red grows eastward (to the right).
+    row = image[60]
+    seen = np.isfinite(d[60])
+    assert np.all(np.diff(row[seen, 0].astype(int)) >= -1)
+    assert "rendered wall" in capsys.readouterr().out
+
+
+def test_render_from_result_json(wall, tmp_path):
+    mesh, _ = wall
+    intr = Intrinsics(80, 60, 50.0, 50.0, 39.5, 29.5)
+    pose = Pose.from_attitude(0.0, 0.0, 0.0, [20.0, -30.0, 10.0])
+    result = tmp_path / "RESULT.json"
+    result.write_text(json.dumps({"status": "registered", "camera": intr.to_dict(),
+                                  "pose": pose.to_dict()}))
+    out = tmp_path / "r.png"
+    assert main(["render", str(mesh), str(result), "--out", str(out)]) == 0
+    assert np.asarray(Image.open(out)).shape == (60, 80, 3)
+
+
+@pytest.mark.parametrize(
+    "case, needle",
+    [
+        ("missing_mesh", "nope.obj: no such file"),
+        ("corrupt_mesh", "broken.obj"),
+        ("missing_prior", "nope.json: no such file"),
+        ("bad_json", "IMG_0001.json: invalid JSON"),
+        ("wrong_field", "field 'orientation.trend_deg' must be a number"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(wall, tmp_path, capsys, case, needle):
+    mesh, prior = wall
+    if case == "missing_mesh":
+        mesh = tmp_path / "nope.obj"
+    elif case == "corrupt_mesh":
+        mesh = tmp_path / "broken.obj"
+        mesh.write_bytes(b"v 1 2\nf 1 2 9\n\x00\xff garbage")
+    elif case == "missing_prior":
+        prior = tmp_path / "nope.json"
+    elif case == "bad_json":
+        prior.write_text("{ oops")
+    elif case == "wrong_field":
+        data = json.loads(prior.read_text())
+        data["orientation"]["trend_deg"] = "north"
+        prior.write_text(json.dumps(data))
+    out = tmp_path / "render.png"
+    out.write_bytes(b"previous render")  # must survive a failed run untouched
+    code = main(["render", str(mesh), str(prior), "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1 and needle in err
+    assert out.read_bytes() == b"previous render"
+    assert not list(tmp_path.glob(".render.png.*"))  # no temporary left behind
+
+
+def test_console_script_help_and_usage_errors():
+    run = subprocess.run([sys.executable, "-m", "napari_imgreg", "render", "--help"],
+                         capture_output=True, text=True)
+    assert run.returncode == 0 and "PRIOR_OR_RESULT.json" in run.stdout
+    run = subprocess.run([sys.executable, "-m", "napari_imgreg", "render"],
+                         capture_output=True, text=True)
+    assert run.returncode == 2
