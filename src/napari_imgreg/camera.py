@@ -69,6 +69,11 @@ class Intrinsics:
     cy: float
     dist: tuple[float, ...] = field(default_factory=tuple)
 
+    def __post_init__(self) -> None:
+        # Hashable and comparable whatever sequence the caller gave (a list
+        # from JSON / to_dict): render caches rays per Intrinsics.
+        object.__setattr__(self, "dist", tuple(float(k) for k in self.dist))
+
     # ------------------------------------------------------------------ build
     @classmethod
     def from_focal_length_mm(
@@ -282,7 +287,11 @@ class Intrinsics:
             und = cv2.undistortPoints(
                 px.reshape(-1, 1, 2), self.K, self.dist_coeffs
             ).reshape(-1, 2)
-            xn, yn = und[:, 0], und[:, 1]
+            # OpenCV stops after 5 fixed-point iterations (~0.3 px off for
+            # wide-angle lenses): polish with Newton steps on _distort.
+            xd = (px[:, 0] - self.cx) / self.fx
+            yd = (px[:, 1] - self.cy) / self.fy
+            xn, yn = _newton_undistort(und[:, 0], und[:, 1], xd, yd, self.dist_coeffs)
         else:
             xn = (px[:, 0] - self.cx) / self.fx
             yn = (px[:, 1] - self.cy) / self.fy
@@ -316,16 +325,41 @@ def _distort(xn: np.ndarray, yn: np.ndarray, d: np.ndarray) -> tuple[np.ndarray,
     return xd, yd
 
 
+def _newton_undistort(x, y, xd, yd, d, iterations: int = 2):
+    """Refine normalised (x, y) so that _distort(x, y) == (xd, yd)."""
+    k1, k2, p1, p2, k3 = d[:5]
+    x = np.array(x, dtype=np.float64)
+    y = np.array(y, dtype=np.float64)
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+        drad = k1 + 2 * k2 * r2 + 3 * k3 * r2 * r2
+        fx, fy = _distort(x, y, d)
+        fx = fx - xd
+        fy = fy - yd
+        a = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+        b = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        c = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+        det = a * c - b * b
+        ok = np.abs(det) > 1e-12
+        det = np.where(ok, det, 1.0)
+        x = x - np.where(ok, (c * fx - b * fy) / det, 0.0)
+        y = y - np.where(ok, (a * fy - b * fx) / det, 0.0)
+    return x, y
+
+
 def _as_float(value: Any) -> float | None:
     """EXIF rationals, tuples and strings to float (None when absent/invalid)."""
     if value is None:
         return None
     try:
         if isinstance(value, tuple) and len(value) == 2:
-            return float(value[0]) / float(value[1]) if float(value[1]) else None
-        return float(value)
+            v = float(value[0]) / float(value[1]) if float(value[1]) else None
+        else:
+            v = float(value)
     except (TypeError, ValueError, ZeroDivisionError):
         return None
+    return v if v is not None and math.isfinite(v) else None
 
 
 # ---------------------------------------------------------------- attitude
@@ -391,6 +425,8 @@ def attitude_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
     x0 = np.array([math.cos(T), -math.sin(T), 0.0])
     y0 = np.cross(z, x0)
     roll = math.degrees(math.atan2(float(x @ y0), float(x @ x0)))
+    if roll <= -180.0:  # keep the documented range (-180, 180]
+        roll += 360.0
     return trend, plunge, roll
 
 

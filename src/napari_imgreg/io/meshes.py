@@ -87,11 +87,14 @@ def load_mesh(path: str | os.PathLike) -> MeshData:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            loaded = trimesh.load(path, process=False, maintain_order=True)
+            loaded = trimesh.load(path, process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise input_error(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from None
 
-    meshes = _triangle_meshes(loaded)
+    try:
+        meshes = _triangle_meshes(loaded)
+    except Exception as exc:  # e.g. face indices past the vertex buffer
+        raise input_error(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from None
     if not meshes:
         raise input_error(path, "contains no triangles (corrupt or empty mesh)")
     notes: list[str] = []
