@@ -187,6 +187,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gui", action="store_true", help="open napari with the sample loaded")
     p.set_defaults(func=cmd_demo)
 
+    from .cli_orient import add_parser as add_orient_parser
+
+    add_orient_parser(sub)
+
     p = sub.add_parser(
         "sample",
         help="write the generated sample outcrop scene to a folder",

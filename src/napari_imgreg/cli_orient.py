@@ -1,0 +1,105 @@
+"""``napari-imgreg orient``: orient a model from phone camera attitudes (contract §7, §8).
+
+Wired into the main command line by :func:`add_parser`; the handler
+:func:`cmd_orient` returns the exit code (0 also when quality flags warn:
+the warnings are printed). Bad input raises
+:class:`~napari_imgreg.errors.InputError`, which the main command turns
+into one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .errors import input_error
+
+__all__ = ["add_parser", "cmd_orient"]
+
+EXIT_OK = 0
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``orient`` sub-command; its handler is :func:`cmd_orient`."""
+    p = subparsers.add_parser(
+        "orient",
+        help="orient a model from the camera attitudes a phone recorded",
+        description="Find the rotation that carries the model's camera orientations "
+        "(ESTIMATED, its arbitrary frame) onto the phone's (MEASURED, true north), report "
+        "per-photo residuals Δξ/Δρ and the quality flags of Corradetti/Tavani et al., and "
+        "optionally rotate a mesh or point cloud. Tables: CSV "
+        "photo,trend_deg,plunge_deg,roll_deg[,x,y,z]; Metashape camera .xml; COLMAP "
+        "images.txt; a folder of photos with DJI gimbal XMP.",
+    )
+    p.add_argument("estimated", metavar="ESTIMATED", help="the model's camera orientations")
+    p.add_argument("measured", metavar="MEASURED", help="the phone's camera attitudes")
+    p.add_argument("--out", required=True, metavar="ORIENTATION.json", help="result to write")
+    p.add_argument(
+        "--method", default="robust", choices=["robust", "lsq", "paper"],
+        help="estimator whose rotation is the result (all three are reported; default robust)",
+    )
+    p.add_argument("--apply", metavar="MESH", help="mesh or point cloud (model frame) to rotate")
+    p.add_argument("--mesh-out", metavar="OUT", help="where to write the rotated --apply mesh")
+    p.add_argument(
+        "--about", default="auto", choices=["auto", "cameras", "origin"],
+        help="rotation centre: the centroid of the model's camera centres or the model "
+        "origin (default: cameras when the table has centres)",
+    )
+    p.add_argument(
+        "--declination", type=float, default=0.0, metavar="DEG",
+        help="magnetic declination, degrees east, added to MEASURED trends (default 0: the "
+        "phone logged true north)",
+    )
+    p.add_argument("--plots", metavar="DIR", help="write the Δξ/Δρ plots (PNG) into DIR")
+    p.set_defaults(func=cmd_orient)
+    return p
+
+
+def cmd_orient(args: argparse.Namespace) -> int:
+    """Run ``orient``: read, estimate, write ORIENTATION.json, print a summary."""
+    from .io.orientation_tables import read_orientation_table
+    from .orient import (
+        MESH_OUT_SUFFIXES,
+        apply_to_mesh_file,
+        orient,
+        save_orientation,
+        save_residual_plots,
+    )
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".json":
+        raise input_error(out, "output must be a .json file")
+    if bool(args.apply) != bool(args.mesh_out):
+        raise input_error(
+            args.apply or args.mesh_out, "--apply MESH and --mesh-out OUT go together"
+        )
+    if args.apply:
+        if not Path(args.apply).exists():
+            raise input_error(args.apply, "no such file")
+        if Path(args.mesh_out).suffix.lower() not in MESH_OUT_SUFFIXES:
+            raise input_error(
+                args.mesh_out, f"output must be one of {', '.join(MESH_OUT_SUFFIXES)}"
+            )
+
+    estimated = read_orientation_table(args.estimated)
+    measured = read_orientation_table(args.measured)
+    result = orient(
+        estimated, measured, method=args.method,
+        center=None if args.about == "auto" else args.about,
+        declination_deg=args.declination,
+    )
+    save_orientation(result, out)
+
+    for line in result.summary_lines():
+        print(line)
+    for note in result.notes:
+        print(f"  note: {note}")
+    if args.apply:
+        written = apply_to_mesh_file(args.apply, args.mesh_out, result.rotation, result.center)
+        print(f"rotated {args.apply} ({written}) -> {args.mesh_out}")
+    if args.plots:
+        print(f"plots -> {save_residual_plots(result, args.plots)}")
+    n_warn = len(result.warnings)
+    warned = f" ({n_warn} quality warning{'s' if n_warn > 1 else ''})" if n_warn else ""
+    print(f"-> {out}{warned}")
+    return EXIT_OK
