@@ -8,7 +8,25 @@ import tempfile
 from pathlib import Path
 from typing import IO, Iterator
 
-__all__ = ["atomic_write", "atomic_path"]
+__all__ = ["atomic_write", "atomic_path", "umask", "file_mode"]
+
+
+def umask() -> int:
+    """The process umask, read without changing it (``os.umask`` would race
+    with other threads); 0o022 where /proc is not available."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    return 0o022
+
+
+def file_mode(target: Path) -> int:
+    """The mode a replaced file keeps, or what a plain ``open()`` would give."""
+    try:
+        return target.stat().st_mode & 0o777
+    except OSError:
+        return 0o666 & ~umask()
 
 
 @contextlib.contextmanager
@@ -29,6 +47,8 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        # mkstemp makes the file private (0600): give it the target's mode.
+        os.chmod(tmp_path, file_mode(target))
         os.replace(tmp_path, target)
     except BaseException:
         with contextlib.suppress(OSError):

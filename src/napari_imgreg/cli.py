@@ -132,7 +132,9 @@ def _demo_gui(folder: Path) -> int:  # pragma: no cover - interactive
     import napari
 
     viewer = napari.Viewer(title="napari-imgreg demo")
+    viewer.open_sample("napari-imgreg", "outcrop_model")
     viewer.open_sample("napari-imgreg", "outcrop_photo")
+    viewer.layers[0].visible = False  # start on the photo; tick the model and press 3D
     napari.run()
     return EXIT_OK
 

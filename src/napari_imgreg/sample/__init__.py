@@ -1,0 +1,560 @@
+"""A generated sample outcrop: a layered cliff photographed from the ground.
+
+Deterministic from a seed and made without network access, it is the test
+case of the package: a textured mesh with its georeference and DEM, photos
+with their phone sensor records, and the ground truth every later measure is
+checked against (true camera poses, check points, bedding and fault planes
+and their traces on the surface).
+
+>>> from napari_imgreg.sample import sample_scene, load_truth   # doctest: +SKIP
+>>> folder = sample_scene("small")                               # doctest: +SKIP
+>>> truth = load_truth(folder / "IMG_0001.jpg")                  # doctest: +SKIP
+
+Folder layout (see :func:`generate_outcrop`)::
+
+    scene.json                 manifest: size, seed, files, photos, survey sun
+    outcrop.obj/.mtl           the model (local ENU metres)
+    outcrop_texture.jpg        its texture: albedo x survey-day shading
+    albedo.png                 reflectance only (for synthesising photos)
+    georef.json, dem.tif       EPSG:32630 frame, 5 m DEM (top surface)
+    geology.json               bedding, beds, fault (the truth)
+    truth_lines.geojson        true 3-D traces of bed boundaries and the fault
+    IMG_0001.jpg               photo (EXIF: camera, focal length, time, GPS)
+    IMG_0001.json              phone sensor record (contract §3): the prior
+    IMG_0001.truth.json        true camera and pose, conditions, check points
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import logging
+import os
+import shutil
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._atomic import atomic_path, atomic_write, umask
+from ..scene import ray_threads
+from ..camera import Intrinsics, Pose
+from .noise import rng_for
+from .outcrop import (
+    SIZES,
+    Outcrop,
+    OutcropSpec,
+    build_geometry,
+    build_texture,
+    dip_from_normal,
+    plane_normal,
+    quantize_vertices,
+    write_model,
+)
+from .photo import (
+    CONDITION_PRESETS,
+    PhotoConditions,
+    camera_intrinsics,
+    make_exif,
+    sample_poses,
+    select_check_points,
+    synthesize_photo,
+)
+
+__all__ = [
+    "GENERATOR_VERSION",
+    "SIZES",
+    "OutcropSpec",
+    "PhotoConditions",
+    "PhotoTruth",
+    "CONDITION_PRESETS",
+    "SceneTruth",
+    "generate_outcrop",
+    "sample_scene",
+    "cache_dir",
+    "load_truth",
+    "plane_normal",
+    "dip_from_normal",
+    "truth_lines",
+]
+
+log = logging.getLogger(__name__)
+
+#: Bump when the generated content changes: cached scenes are keyed by it.
+GENERATOR_VERSION = "3"
+
+# Random stream ids (see noise.rng_for).
+_S_POSES, _S_PHOTO = 4, 100
+
+
+# ----------------------------------------------------------------- truth
+def truth_lines(outcrop: Outcrop, min_length_m: float = 5.0) -> dict[str, Any]:
+    """Where the bed boundaries and the fault meet the exposed rock face.
+
+    The stratigraphic height (and the signed fault distance) is linear in
+    position, and the model is linear along every grid edge, so contouring it
+    on the grid (marching squares, in ``(s, x)`` parameter space) gives points
+    exactly on both the plane and the mesh. Each fault block is contoured on
+    its own, so no trace runs along the fault's offset.
+
+    Returns
+    -------
+    dict
+        GeoJSON FeatureCollection of LineStrings ``[x, y, z]`` (local metres);
+        ``properties.label`` is ``"bed_boundary"`` or ``"fault"``.
+    """
+    from scipy import ndimage
+    from skimage.measure import find_contours
+
+    geo = outcrop.geology
+    X = outcrop.X
+    exposed = outcrop.rock > 0.5
+    h = geo.h_strat(X)
+    fd = geo.fault_distance(X)
+    features: list[dict[str, Any]] = []
+
+    def lines_of(field: np.ndarray, level: float) -> list[np.ndarray]:
+        out = []
+        for c in find_contours(field, level):
+            if len(c) < 3:
+                continue
+            pts = np.stack(
+                [ndimage.map_coordinates(X[..., k], c.T, order=1) for k in range(3)], axis=1
+            )
+            if np.linalg.norm(np.diff(pts, axis=0), axis=1).sum() >= min_length_m:
+                out.append(pts)
+        return out
+
+    for block, sel in (("footwall", fd <= 0), ("hanging_wall", fd > 0)):
+        field = np.where(exposed & sel, h, np.nan)
+        if not np.isfinite(field).any():
+            continue
+        lo, hi = np.nanmin(field), np.nanmax(field)
+        for k, b in enumerate(geo.boundaries):
+            if not lo < b < hi:
+                continue
+            below = "sandstone" if geo.lithology[k] == 0 else "mudstone"
+            above = "sandstone" if geo.lithology[k + 1] == 0 else "mudstone"
+            for pts in lines_of(field, b):
+                features.append(_feature(pts, {
+                    "label": "bed_boundary", "boundary_index": k, "h": float(b),
+                    "below": below, "above": above, "block": block,
+                }))
+    for pts in lines_of(np.where(exposed, fd, np.nan), 0.0):
+        features.append(_feature(pts, {"label": "fault"}))
+    return {"type": "FeatureCollection", "features": features}
+
+
+def _feature(pts: np.ndarray, props: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "type": "Feature",
+        "geometry": {"type": "LineString", "coordinates": np.round(pts, 4).tolist()},
+        "properties": props,
+    }
+
+
+def _make_dem(scene, spec: OutcropSpec, georef):
+    """The top surface sampled by vertical rays on a coarse grid, in CRS heights."""
+    from ..geo import DEM
+
+    lo, hi = scene.bounds
+    cell = spec.dem_cell_m
+    e0, n0, h0 = georef.origin
+    # Cell centres on whole multiples of the cell size in the CRS.
+    es = np.arange(np.ceil((lo[0] + e0) / cell) * cell, hi[0] + e0 + 1e-6, cell)
+    ns = np.arange(np.floor((hi[1] + n0) / cell) * cell, lo[1] + n0 - 1e-6, -cell)
+    E, N = np.meshgrid(es - e0, ns - n0)
+    top = float(hi[2]) + 10.0
+    origins = np.stack([E.ravel(), N.ravel(), np.full(E.size, top)], axis=1)
+    hits = scene.cast_rays(origins, np.tile([0.0, 0.0, -1.0], (E.size, 1)))
+    heights = np.where(hits.hit, top - hits.distance.astype(np.float64), np.nan).reshape(E.shape)
+    return DEM.from_array(heights + h0, float(es[0]), float(ns[0]), cell, cell,
+                          crs=georef.crs, source="dem.tif")
+
+
+def _write_json(path: Path, data: Any, indent: int | None = 1) -> None:
+    with atomic_write(path, encoding="utf-8") as fh:
+        json.dump(data, fh, indent=indent, separators=None if indent else (",", ":"))
+        fh.write("\n")
+
+
+def _clipped_normal(rng: np.random.Generator, sigma: float, size: int | None = None) -> Any:
+    """Gaussian noise clipped at 3 sigma (a sane prior, never a wild outlier)."""
+    return np.clip(rng.normal(0.0, sigma, size), -3 * sigma, 3 * sigma)
+
+
+# -------------------------------------------------------------- generate
+def generate_outcrop(
+    out_dir: str | os.PathLike,
+    size: str = "small",
+    seed: int = 0,
+    spec: OutcropSpec | None = None,
+) -> Path:
+    """Generate the sample outcrop scene into a folder.
+
+    Parameters
+    ----------
+    out_dir : path-like
+        Folder to write (created; existing files of the same names are
+        replaced, each atomically).
+    size : {"small", "large"}
+        Named size (ignored for the numbers when ``spec`` is given, but
+        recorded in ``scene.json``).
+    seed : int
+        Everything random derives from it: same seed, same files.
+    spec : OutcropSpec, optional
+        Full control (other geometry, more photos, ...).
+
+    Returns
+    -------
+    Path
+        ``out_dir``.
+    """
+    from ..geo import Georef
+    from PIL import Image
+
+    t_start = time.perf_counter()
+    spec = spec if spec is not None else OutcropSpec.for_size(size)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    oc = build_geometry(spec, seed)
+    quantize_vertices(oc)
+    timings["geometry"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    build_texture(oc)
+    timings["texture"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    files = write_model(oc, out)
+    georef = Georef(spec.crs, np.asarray(spec.origin, np.float64))
+    georef.save(out / "georef.json")
+    scene = oc.scene("albedo")
+    dem = _make_dem(scene, spec, georef)
+    dem.save_geotiff(out / "dem.tif")
+    _write_json(out / "geology.json", oc.geology.to_dict())
+    _write_json(out / "truth_lines.geojson", truth_lines(oc), indent=None)
+    timings["write_model"] = time.perf_counter() - t0
+    files.update({"georef": "georef.json", "dem": "dem.tif", "geology": "geology.json",
+                  "truth_lines": "truth_lines.geojson"})
+
+    # ---- photos
+    t0 = time.perf_counter()
+    intr = camera_intrinsics(*spec.photo_size, spec.focal_length_mm, spec.sensor_size_mm)
+    prof = oc.profile
+    s_mid = 0.5 * (prof.knots["foot"] + prof.knots["top"])
+    y_mid = float(np.interp(s_mid, prof.s, prof.y))
+    y_south = float(prof.y[0])
+
+    def bay(x: float) -> float:
+        return -spec.bay_depth_m * (2.0 * x / spec.width_m) ** 2
+
+    face_rock = oc.face_rock
+    poses = sample_poses(
+        scene, intr,
+        face_line=lambda x: y_mid + bay(x),
+        ground_y_min=lambda x: y_south + bay(x),
+        face_rock=face_rock,
+        n=spec.n_photos,
+        rng=rng_for(seed, _S_POSES),
+        x_half=spec.width_m / 2.0,
+        distance_m=spec.camera_distance_m,
+        trend_range_deg=spec.trend_range_deg,
+        plunge_range_deg=spec.plunge_range_deg,
+        roll_range_deg=spec.roll_range_deg,
+        height_above_ground_m=spec.height_above_ground_m,
+    )
+    timings["poses"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    diag = float(np.hypot(*spec.sensor_size_mm))
+    f35 = int(round(spec.focal_length_mm * np.hypot(36.0, 24.0) / diag))
+    start = _dt.datetime(2024, 6, 15, 9, 30) + _dt.timedelta(minutes=int(rng_for(seed, 9).integers(0, 240)))
+    vertex_normals = oc.vertex_normals
+
+    def make_photo(k: int) -> dict[str, str]:
+        pose, fractions = poses[k]
+        name = f"IMG_{k + 1:04d}"
+        rng = rng_for(seed, _S_PHOTO + k)  # one stream per photo: order-independent
+        strength = float(rng.uniform(*spec.condition_strength))
+        cond = PhotoConditions.from_rng(
+            rng, strength,
+            survey_sun=(spec.survey_sun_azimuth_deg, spec.survey_sun_elevation_deg),
+            survey_ambient=spec.survey_ambient,
+        )
+        img = synthesize_photo(scene, intr, pose, cond, vertex_normals, spec.supersample)
+        record, prior = _sensor_record(spec, intr, pose, dem, georef, rng)
+        lat, lon, alt = georef.local_to_geodetic(prior["position"])
+        when = start + _dt.timedelta(minutes=4 * k, seconds=int(rng.integers(0, 60)))
+        exif = make_exif(spec.camera_make, spec.camera_model, spec.focal_length_mm, f35,
+                         when.strftime("%Y:%m:%d %H:%M:%S"), lat, lon, alt, intr.width, intr.height)
+        with atomic_path(out / f"{name}.jpg") as tmp:
+            Image.fromarray(img).save(tmp, format="JPEG", quality=cond.jpeg_quality, exif=exif)
+        _write_json(out / f"{name}.json", record)
+        checks = select_check_points(scene, intr, pose, face_rock, spec.n_check_points, rng)
+        prior_pose = Pose.from_attitude(prior["trend_deg"], prior["plunge_deg"], prior["roll_deg"],
+                                        prior["position"])
+        truth = {
+            "photo": f"{name}.jpg",
+            "camera": intr.to_dict(),
+            "pose": pose.to_dict(),
+            "conditions": {**cond.to_dict(), "strength": strength},
+            "check_points": checks,
+            "prior": prior,
+            "prior_error": {
+                "position_m": float(np.linalg.norm(np.asarray(prior["position"]) - pose.center)),
+                "rotation_deg": float(pose.rotation_error_deg(prior_pose)),
+            },
+            "view": fractions,
+        }
+        _write_json(out / f"{name}.truth.json", truth)
+        return {"image": f"{name}.jpg", "sensor": f"{name}.json", "truth": f"{name}.truth.json"}
+
+    # Two photos at a time keep both cores busy through the numpy stages
+    # (the ray casts are threaded already).
+    with ThreadPoolExecutor(max(1, min(2, ray_threads(), len(poses)))) as pool:
+        photos = list(pool.map(make_photo, range(len(poses))))
+    timings["photos"] = time.perf_counter() - t0
+
+    manifest = {
+        "generator": "napari_imgreg.sample",
+        "generator_version": GENERATOR_VERSION,
+        "size": size if size in SIZES and spec == OutcropSpec.for_size(size) else f"{size} (custom spec)",
+        "seed": int(seed),
+        "n_triangles": int(len(oc.faces)),
+        "n_vertices": int(len(oc.vertices)),
+        "grid": list(spec.grid),
+        "texture_size": spec.texture_size,
+        "files": files,
+        "photos": photos,
+        "survey_sun": {"azimuth_deg": spec.survey_sun_azimuth_deg,
+                       "elevation_deg": spec.survey_sun_elevation_deg,
+                       "ambient": spec.survey_ambient},
+        "spec": spec.to_dict(),
+    }
+    _write_json(out / "scene.json", manifest)
+    timings["total"] = time.perf_counter() - t_start
+    log.info("sample outcrop %s (seed %d) written to %s in %.1f s: %s", size, seed, out,
+             timings["total"], {k: round(v, 2) for k, v in timings.items()})
+    return out
+
+
+def _sensor_record(spec: OutcropSpec, intr: Intrinsics, pose: Pose, dem, georef,
+                   rng: np.random.Generator) -> tuple[dict[str, Any], dict[str, Any]]:
+    """What the phone logs: the true pose plus GNSS and compass/tilt noise.
+
+    Horizontal position: sigma ``sigma_position_m`` per axis; altitude: DEM
+    height at the logged position + eye height + ``sigma_altitude_m``;
+    heading sigma ``sigma_heading_deg``, tilt (plunge, roll) ``sigma_tilt_deg``.
+    Noise is clipped at 3 sigma.
+    """
+    c = pose.center
+    xy = c[:2] + _clipped_normal(rng, spec.sigma_position_m, 2)
+    e, n = xy[0] + georef.origin[0], xy[1] + georef.origin[1]
+    ground = float(dem.height_at(e, n, strict=False)) - georef.origin[2]
+    if not np.isfinite(ground):  # off the DEM: a GNSS altitude instead
+        ground = c[2] - spec.height_above_ground_m + float(_clipped_normal(rng, 10.0))
+    z = ground + spec.height_above_ground_m + float(_clipped_normal(rng, spec.sigma_altitude_m))
+    trend, plunge, roll = pose.attitude
+    trend = (trend + float(_clipped_normal(rng, spec.sigma_heading_deg))) % 360.0
+    plunge = plunge + float(_clipped_normal(rng, spec.sigma_tilt_deg))
+    roll = roll + float(_clipped_normal(rng, spec.sigma_tilt_deg))
+    position = [float(xy[0]), float(xy[1]), float(z)]
+    record = {
+        "camera": {
+            "width": intr.width,
+            "height": intr.height,
+            "focal_length_mm": spec.focal_length_mm,
+            "sensor_width_mm": spec.sensor_size_mm[0],
+            "sensor_height_mm": spec.sensor_size_mm[1],
+        },
+        "position": {"x": position[0], "y": position[1], "z": position[2]},
+        "orientation": {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll},
+        "sigma": {
+            "position_m": spec.sigma_position_m,
+            "altitude_m": spec.sigma_altitude_m,
+            "angles_deg": max(spec.sigma_heading_deg, spec.sigma_tilt_deg),
+        },
+    }
+    prior = {"position": position, "trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
+    return record, prior
+
+
+# ------------------------------------------------------------------ cache
+def cache_dir() -> Path:
+    """Where generated sample scenes are kept: ``$NAPARI_IMGREG_CACHE`` or
+    ``~/.cache/napari-imgreg``."""
+    env = os.environ.get("NAPARI_IMGREG_CACHE")
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "napari-imgreg"
+
+
+def sample_scene(size: str = "small", seed: int = 0) -> Path:
+    """The sample scene's folder, generated on first use and cached.
+
+    The scene is generated into a temporary folder beside the cache entry
+    and renamed into place when complete, so a crash or a concurrent caller
+    never leaves (or sees) a half-written scene.
+
+    Parameters
+    ----------
+    size : {"small", "large"}
+    seed : int
+
+    Returns
+    -------
+    Path
+        ``<cache>/outcrop-<size>-seed<seed>-v<GENERATOR_VERSION>``.
+    """
+    if size not in SIZES:
+        raise ValueError(f"size must be one of {SIZES}, not {size!r}")
+    root = cache_dir()
+    target = root / f"outcrop-{size}-seed{int(seed)}-v{GENERATOR_VERSION}"
+    if (target / "scene.json").is_file():
+        return target
+    root.mkdir(parents=True, exist_ok=True)
+    if target.exists():  # not made by us (the rename is atomic): start afresh
+        shutil.rmtree(target, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=root))
+    try:
+        generate_outcrop(tmp, size=size, seed=seed)
+        _share(tmp)
+        try:
+            os.rename(tmp, target)
+        except OSError:
+            if not (target / "scene.json").is_file():
+                raise
+            # Another process finished first; its scene is identical.
+    finally:
+        with contextlib.suppress(OSError):
+            shutil.rmtree(tmp)
+    return target
+
+
+def _share(folder: Path) -> None:
+    """Give the cache folder the permissions ``mkdir`` would (mkdtemp: 0700)."""
+    folder.chmod(0o777 & ~umask())
+
+
+# ----------------------------------------------------------------- loading
+@dataclass
+class PhotoTruth:
+    """Ground truth of one sample photo.
+
+    Attributes
+    ----------
+    photo : Path
+        The image file.
+    intrinsics : Intrinsics
+        The true camera.
+    pose : Pose
+        The true ``cam_from_world``.
+    conditions : PhotoConditions
+        Light and camera conditions the photo was made with.
+    check_xyz : (N, 3) array
+        Surface points seen in the photo, local metres.
+    check_pixels : (N, 2) array
+        Their true pixel positions (column, row).
+    check_surface : list of str
+        ``"rock"`` or ``"ground"`` per check point.
+    prior : dict
+        The logged (noisy) position and attitude.
+    raw : dict
+        The whole truth file.
+    """
+
+    photo: Path
+    intrinsics: Intrinsics
+    pose: Pose
+    conditions: PhotoConditions
+    check_xyz: np.ndarray
+    check_pixels: np.ndarray
+    check_surface: list[str]
+    prior: dict[str, Any]
+    raw: dict[str, Any] = field(repr=False)
+
+
+@dataclass
+class SceneTruth:
+    """Ground truth of a sample scene folder.
+
+    Attributes
+    ----------
+    folder : Path
+    manifest : dict
+        ``scene.json``.
+    geology : dict
+        ``geology.json``.
+    lines : dict
+        ``truth_lines.geojson`` (FeatureCollection).
+    photos : dict of str to PhotoTruth
+        By image file name.
+    """
+
+    folder: Path
+    manifest: dict[str, Any]
+    geology: dict[str, Any]
+    lines: dict[str, Any]
+    photos: dict[str, PhotoTruth]
+
+    @property
+    def mesh(self) -> Path:
+        return self.folder / self.manifest["files"]["mesh"]
+
+
+def load_truth(path: str | os.PathLike) -> PhotoTruth | SceneTruth:
+    """Load ground truth of a sample scene or of one of its photos.
+
+    Parameters
+    ----------
+    path : path-like
+        A scene folder (→ :class:`SceneTruth`), or a photo ``IMG_0001.jpg``,
+        its sensor record ``IMG_0001.json`` or ``IMG_0001.truth.json``
+        (→ :class:`PhotoTruth`).
+    """
+    from ..errors import input_error
+
+    p = Path(path)
+    if p.is_dir():
+        manifest = _read_json(p / "scene.json")
+        files = manifest["files"]
+        photos = {ph["image"]: _photo_truth(p / ph["truth"]) for ph in manifest["photos"]}
+        return SceneTruth(p, manifest, _read_json(p / files["geology"]),
+                          _read_json(p / files["truth_lines"]), photos)
+    name = p.name
+    stem = name[: -len(".truth.json")] if name.endswith(".truth.json") else p.stem
+    truth_path = p.with_name(f"{stem}.truth.json")
+    if not truth_path.is_file():
+        raise input_error(p, f"no ground truth beside it ({truth_path.name} missing)")
+    return _photo_truth(truth_path)
+
+
+def _read_json(path: Path) -> Any:
+    from ..errors import input_error
+
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise input_error(path, "no such file") from None
+    except json.JSONDecodeError as exc:
+        raise input_error(path, f"invalid JSON ({exc})") from None
+
+
+def _photo_truth(path: Path) -> PhotoTruth:
+    d = _read_json(path)
+    cps = d.get("check_points", [])
+    return PhotoTruth(
+        photo=path.with_name(d["photo"]),
+        intrinsics=Intrinsics.from_dict(d["camera"]),
+        pose=Pose.from_dict(d["pose"]),
+        conditions=PhotoConditions.from_dict(d.get("conditions", {})),
+        check_xyz=np.array([c["xyz"] for c in cps], np.float64).reshape(-1, 3),
+        check_pixels=np.array([c["pixel"] for c in cps], np.float64).reshape(-1, 2),
+        check_surface=[c.get("surface", "rock") for c in cps],
+        prior=d.get("prior", {}),
+        raw=d,
+    )

@@ -1,0 +1,327 @@
+"""The generated sample outcrop: files, determinism and ground truth."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from napari_imgreg import Scene, render
+from napari_imgreg.geo import DEM, Georef
+from napari_imgreg.sample import (
+    GENERATOR_VERSION,
+    OutcropSpec,
+    PhotoConditions,
+    PhotoTruth,
+    SceneTruth,
+    dip_from_normal,
+    generate_outcrop,
+    load_truth,
+    sample_scene,
+)
+
+SMALL = OutcropSpec.for_size("small")
+# A coarse grid, tiny texture and photos: cheap to make twice.
+CHEAP = OutcropSpec.for_size(
+    "small", grid=(96, 90), texture_size=256, photo_size=(192, 144), n_photos=2, supersample=1,
+    n_check_points=8,
+)
+
+
+@pytest.fixture(scope="session")
+def small(tmp_path_factory) -> Path:
+    """The small scene, generated once for the whole session."""
+    return generate_outcrop(tmp_path_factory.mktemp("outcrop_small"), "small", seed=0)
+
+
+@pytest.fixture(scope="session")
+def cheap_pair(tmp_path_factory) -> tuple[Path, Path]:
+    a = generate_outcrop(tmp_path_factory.mktemp("cheap_a"), "small", seed=0, spec=CHEAP)
+    b = generate_outcrop(tmp_path_factory.mktemp("cheap_b"), "small", seed=0, spec=CHEAP)
+    return a, b
+
+
+def _obj_vertices(path: Path) -> np.ndarray:
+    lines = [ln for ln in path.read_text().splitlines() if ln.startswith("v ")]
+    return np.array([[float(v) for v in ln.split()[1:4]] for ln in lines])
+
+
+def _vertex_hash(path: Path) -> str:
+    return hashlib.sha256(_obj_vertices(path).tobytes()).hexdigest()
+
+
+# ------------------------------------------------------------ determinism
+def test_same_seed_same_geometry_and_records(cheap_pair, small):
+    from napari_imgreg.sample.outcrop import build_geometry, quantize_vertices
+
+    a, b = cheap_pair
+    assert _vertex_hash(a / "outcrop.obj") == _vertex_hash(b / "outcrop.obj")
+    # The written small model is the generator's geometry for seed 0.
+    g = build_geometry(SMALL, 0)
+    quantize_vertices(g)
+    np.testing.assert_array_equal(_obj_vertices(small / "outcrop.obj"), g.vertices)
+    for name in ("IMG_0001.json", "IMG_0002.json", "IMG_0001.truth.json", "geology.json",
+                 "truth_lines.geojson", "scene.json"):
+        assert (a / name).read_text() == (b / name).read_text(), name
+    assert (a / "IMG_0001.jpg").read_bytes() == (b / "IMG_0001.jpg").read_bytes()
+
+
+def test_other_seed_other_geometry(tmp_path):
+    from napari_imgreg.sample.outcrop import build_geometry
+
+    g0 = build_geometry(CHEAP, 0)
+    g1 = build_geometry(CHEAP, 1)
+    assert g0.X.shape == g1.X.shape
+    assert not np.allclose(g0.X, g1.X)
+    assert not np.array_equal(g0.geology.boundaries[:5], g1.geology.boundaries[:5])
+
+
+# ---------------------------------------------------------------- the model
+def test_manifest_lists_the_files(small):
+    m = json.loads((small / "scene.json").read_text())
+    assert m["seed"] == 0 and m["size"] == "small"
+    assert m["generator_version"] == GENERATOR_VERSION
+    for name in m["files"].values():
+        assert (small / name).is_file(), name
+    assert len(m["photos"]) == SMALL.n_photos
+    for ph in m["photos"]:
+        for name in ph.values():
+            assert (small / name).is_file(), name
+    assert m["survey_sun"]["azimuth_deg"] == SMALL.survey_sun_azimuth_deg
+    assert not list(small.glob(".*")), "temporary files left behind"
+
+
+def test_obj_reloads_with_texture(small):
+    scene = Scene.load(small / "outcrop.obj")
+    assert scene.has_texture and scene.uv is not None
+    assert scene.texture.shape == (SMALL.texture_size, SMALL.texture_size, 3)
+    assert 100_000 <= scene.n_faces <= 150_000
+    assert scene.n_faces == json.loads((small / "scene.json").read_text())["n_triangles"]
+    assert scene.uv.min() >= 0.0 and scene.uv.max() <= 1.0
+    assert scene.georef is not None and scene.georef.crs == "EPSG:32630"
+    # Normals point to the open air: the winding is consistent, the apron's
+    # faces look up, the cliff's look south (toward the cameras).
+    import trimesh
+
+    assert trimesh.Trimesh(scene.vertices, scene.faces, process=False).is_winding_consistent
+    n = scene.face_array("normals")
+    centre = scene.vertices[scene.faces].mean(axis=1)
+    assert (n[centre[:, 1] < -60.0, 2] > 0.8).all()
+    steep = np.abs(n[:, 2]) < 0.5
+    assert n[steep, 1].mean() < -0.7
+    # The texture is the model's: a render sees rock colours, not a flat grey.
+    t = load_truth(small / "IMG_0001.jpg")
+    r = render(scene, t.intrinsics, t.pose, scale=0.25)
+    assert r.coverage > 0.6
+    assert r.rgb[r.mask].std() > 15
+
+
+def test_georef_and_dem_cover_the_cameras(small):
+    georef = Georef.load(small / "georef.json")
+    assert georef.crs == "EPSG:32630"
+    np.testing.assert_allclose(georef.origin, SMALL.origin)
+    dem = DEM.load(small / "dem.tif")
+    assert dem.crs == "EPSG:32630"
+    assert dem.dx == pytest.approx(SMALL.dem_cell_m)
+    for ph in sorted(small.glob("IMG_*.truth.json")):
+        t = load_truth(ph)
+        c = t.pose.center
+        ground = dem.height_at(c[0] + georef.origin[0], c[1] + georef.origin[1])
+        assert np.isfinite(ground)
+        # The camera stands at eye height above the (gentle) apron.
+        assert abs(c[2] + georef.origin[2] - SMALL.height_above_ground_m - ground) < 1.0
+        p = t.prior["position"]
+        assert np.isfinite(dem.height_at(p[0] + georef.origin[0], p[1] + georef.origin[1]))
+
+
+# ------------------------------------------------------------ ground truth
+def test_check_points_project_to_their_pixels(small):
+    scene = Scene.load(small / "outcrop.obj")
+    for ph in sorted(small.glob("IMG_*.jpg")):
+        t = load_truth(ph)
+        assert len(t.check_xyz) >= 20
+        assert t.check_surface.count("rock") >= len(t.check_xyz) // 2
+        uv = t.pose.project(t.intrinsics, t.check_xyz)
+        assert np.abs(uv - t.check_pixels).max() < 0.01
+        inside = ((t.check_pixels >= 0) & (t.check_pixels <= [t.intrinsics.width - 1,
+                                                                t.intrinsics.height - 1]))
+        assert inside.all()
+        r = render(scene, t.intrinsics, t.pose)
+        ij = np.round(t.check_pixels).astype(int)
+        seen = r.xyz[ij[:, 1], ij[:, 0]]
+        assert r.mask[ij[:, 1], ij[:, 0]].all()
+        assert np.linalg.norm(seen - t.check_xyz, axis=1).max() < 0.05
+
+
+def _fit_plane(points: np.ndarray) -> tuple[float, float, float]:
+    """(dip, dip direction, rms) of the least-squares plane through points."""
+    c = points.mean(axis=0)
+    _, s, vt = np.linalg.svd(points - c, full_matrices=False)
+    dip, ddir = dip_from_normal(vt[2])
+    return dip, ddir, float(s[2] / math.sqrt(len(points)))
+
+
+def _angle_diff(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def test_bedding_recovered_from_a_bed_boundary_trace(small):
+    lines = json.loads((small / "truth_lines.geojson").read_text())
+    assert lines["type"] == "FeatureCollection"
+    groups: dict[tuple, list] = {}
+    for f in lines["features"]:
+        assert f["geometry"]["type"] == "LineString"
+        p = f["properties"]
+        if p["label"] == "bed_boundary":
+            assert {p["below"], p["above"]} == {"sandstone", "mudstone"}
+            groups.setdefault((p["boundary_index"], p["block"]), []).extend(f["geometry"]["coordinates"])
+    assert len(groups) >= 6
+    key = max(groups, key=lambda k: len(groups[k]))
+    pts = np.array(groups[key])
+    # The trace must be 3-D (relief, the bay), not a line: the plane is defined.
+    assert np.ptp(pts[:, 1]) > 5.0
+    dip, ddir, rms = _fit_plane(pts)
+    assert dip == pytest.approx(SMALL.bedding_dip_deg, abs=1.0)
+    assert _angle_diff(ddir, SMALL.bedding_dip_direction_deg) < 1.0
+    geology = json.loads((small / "geology.json").read_text())
+    assert geology["bedding"]["dip_deg"] == SMALL.bedding_dip_deg
+    assert geology["bedding"]["dip_direction_deg"] == SMALL.bedding_dip_direction_deg
+    h = np.array(geology["boundaries_h"])
+    assert np.all(np.diff(h) > 0)
+
+
+def test_fault_trace_lies_on_the_fault_plane(small):
+    geology = json.loads((small / "geology.json").read_text())
+    fault = geology["fault"]
+    lines = json.loads((small / "truth_lines.geojson").read_text())
+    pts = np.concatenate([f["geometry"]["coordinates"] for f in lines["features"]
+                          if f["properties"]["label"] == "fault"])
+    dist = (pts - np.array(fault["point"])) @ np.array(fault["normal"])
+    assert np.abs(dist).max() < 1e-3
+    assert fault["throw_m"] == SMALL.fault_throw_m
+    assert geology["fault"]["h_shift"] > 0  # a normal fault brings younger beds down
+
+
+def test_prior_is_noisy_but_sane(small):
+    for ph in sorted(small.glob("IMG_*.jpg")):
+        t = load_truth(ph)
+        rec = json.loads(ph.with_suffix(".json").read_text())
+        assert set(rec) == {"camera", "position", "orientation", "sigma"}
+        assert set(rec["camera"]) == {"width", "height", "focal_length_mm",
+                                      "sensor_width_mm", "sensor_height_mm"}
+        prior_c = np.array([rec["position"][k] for k in "xyz"])
+        o = rec["orientation"]
+        from napari_imgreg import Pose
+
+        prior = Pose.from_attitude(o["trend_deg"], o["plunge_deg"], o["roll_deg"], prior_c)
+        err_pos = np.linalg.norm(prior_c - t.pose.center)
+        err_rot = t.pose.rotation_error_deg(prior)
+        assert 0.01 < err_pos < 25.0
+        assert 0.01 < err_rot < 20.0
+        # The truth is a geologist's photo: looking north-ish and slightly up.
+        trend, plunge, roll = t.pose.attitude
+        assert _angle_diff(trend, 0.0) <= SMALL.trend_range_deg + 1e-6
+        assert SMALL.plunge_range_deg[0] - 1e-6 <= plunge <= SMALL.plunge_range_deg[1] + 1e-6
+        assert abs(roll) <= SMALL.roll_range_deg + 1e-6
+        assert 60.0 <= -t.pose.center[1] <= 160.0
+
+
+def test_photos_have_phone_exif(small):
+    from PIL import Image
+    from PIL.ExifTags import IFD
+
+    georef = Georef.load(small / "georef.json")
+    for ph in sorted(small.glob("IMG_*.jpg")):
+        t = load_truth(ph)
+        with Image.open(ph) as im:
+            assert im.size == SMALL.photo_size
+            exif = im.getexif()
+            sub = exif.get_ifd(IFD.Exif)
+            gps = exif.get_ifd(IFD.GPSInfo)
+            pixels = np.asarray(im.convert("RGB"))
+        assert exif[271] == SMALL.camera_make
+        assert float(sub[37386]) == pytest.approx(SMALL.focal_length_mm)
+        assert sub[41989] == 26
+        assert 60.0 < t.intrinsics.hfov_deg < 70.0
+
+        def deg(v):
+            return float(v[0]) + float(v[1]) / 60 + float(v[2]) / 3600
+
+        lat = deg(gps[2]) * (1 if gps[1] == "N" else -1)
+        lon = deg(gps[4]) * (1 if gps[3] == "E" else -1)
+        local = georef.geodetic_to_local(lat, lon, float(gps[6]))
+        np.testing.assert_allclose(local, t.prior["position"], atol=0.05)
+        # A photo: sky at the top, varied colours, not saturated.
+        top = pixels[:20].reshape(-1, 3).astype(float).mean(axis=0)
+        assert top[2] > top[0]
+        assert pixels.std() > 20 and (pixels == 255).mean() < 0.05
+
+
+def test_load_truth_of_a_folder(small):
+    truth = load_truth(small)
+    assert isinstance(truth, SceneTruth)
+    assert set(truth.photos) == {f"IMG_{k:04d}.jpg" for k in range(1, SMALL.n_photos + 1)}
+    assert isinstance(truth.photos["IMG_0001.jpg"], PhotoTruth)
+    assert truth.mesh.is_file()
+    assert truth.geology["bedding"]["dip_deg"] == SMALL.bedding_dip_deg
+    assert isinstance(load_truth(small / "IMG_0002.truth.json"), PhotoTruth)
+
+
+# ------------------------------------------------------------- conditions
+def test_conditions_strength_controls_the_light():
+    rng = np.random.default_rng(0)
+    same = PhotoConditions.from_rng(rng, 0.0)
+    assert same.sun_azimuth_deg == pytest.approx(150.0, abs=1e-9)
+    assert same.sun_elevation_deg == pytest.approx(40.0)
+    assert same.wet_fraction == 0.0 or same.wet_fraction < 1e-9
+    hard = [PhotoConditions.from_rng(np.random.default_rng(k), 1.0) for k in range(20)]
+    for c in hard:
+        # Raking: the sun skims the south-facing face from the east or west.
+        assert 8.0 <= c.sun_elevation_deg <= 22.0
+        assert min(_angle_diff(c.sun_azimuth_deg, 95.0), _angle_diff(c.sun_azimuth_deg, 265.0)) <= 15.0
+        assert 80 <= c.jpeg_quality <= 90
+    assert any(c.wet_fraction > 0 for c in hard)
+    assert PhotoConditions.from_dict(hard[0].to_dict()) == hard[0]
+
+
+# ------------------------------------------------------------------ cache
+def test_sample_scene_caches_atomically(tmp_path, monkeypatch):
+    import napari_imgreg.sample as sample
+
+    calls = []
+
+    def fake_generate(out_dir, size="small", seed=0, spec=None):
+        calls.append(Path(out_dir))
+        (Path(out_dir) / "scene.json").write_text("{}")
+        return Path(out_dir)
+
+    monkeypatch.setenv("NAPARI_IMGREG_CACHE", str(tmp_path))
+    monkeypatch.setattr(sample, "generate_outcrop", fake_generate)
+    first = sample_scene("small")
+    assert first == tmp_path / f"outcrop-small-seed0-v{GENERATOR_VERSION}"
+    assert (first / "scene.json").is_file()
+    # Generated in a temporary folder beside the cache entry, then renamed.
+    assert calls[0].parent == tmp_path and calls[0] != first
+    assert sample_scene("small") == first
+    assert len(calls) == 1
+    assert [p.name for p in tmp_path.iterdir()] == [first.name]
+    with pytest.raises(ValueError):
+        sample_scene("huge")
+
+
+def test_sample_scene_leaves_nothing_when_generation_fails(tmp_path, monkeypatch):
+    import napari_imgreg.sample as sample
+
+    def failing(out_dir, size="small", seed=0, spec=None):
+        (Path(out_dir) / "outcrop.obj").write_text("half")
+        raise RuntimeError("disk full")
+
+    monkeypatch.setenv("NAPARI_IMGREG_CACHE", str(tmp_path))
+    monkeypatch.setattr(sample, "generate_outcrop", failing)
+    with pytest.raises(RuntimeError):
+        sample_scene("small", seed=3)
+    assert list(tmp_path.iterdir()) == []
