@@ -129,6 +129,7 @@ class Scene:
         mesh_path: str | os.PathLike,
         georef: Georef | str | os.PathLike | None = None,
         dem: DEM | str | os.PathLike | None = None,
+        cache: bool = True,
     ) -> Scene:
         """Load a mesh file (and optionally a georeference and a DEM).
 
@@ -141,6 +142,9 @@ class Scene:
             or the path of ``georef.json`` / a GeoTIFF or ``.asc`` DEM. When
             ``georef`` is None and a ``georef.json`` lies beside the mesh, it
             is used.
+        cache : bool
+            Reuse a binary copy of a large parsed mesh (see
+            :func:`napari_imgreg.io.meshes.load_mesh`).
 
         Raises
         ------
@@ -151,7 +155,7 @@ class Scene:
         from .io.meshes import load_mesh
 
         t0 = time.perf_counter()
-        data = load_mesh(mesh_path)
+        data = load_mesh(mesh_path, cache=cache)
         mesh_path = Path(mesh_path)
         if georef is None and (mesh_path.parent / "georef.json").exists():
             georef = mesh_path.parent / "georef.json"

@@ -19,11 +19,23 @@ import numpy as np
 
 from ..errors import input_error
 
-__all__ = ["MeshData", "load_mesh", "MESH_SUFFIXES"]
+__all__ = ["MeshData", "load_mesh", "MESH_SUFFIXES", "mesh_cache_dir"]
 
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
+
+# Bump when what the loader produces changes: old cache entries are ignored.
+_CACHE_VERSION = 1
+# Meshes smaller than this are parsed every time (parsing is cheap for them).
+_CACHE_MIN_BYTES = 20_000_000
+
+
+def mesh_cache_dir() -> Path:
+    """Where parsed meshes are cached: ``$NAPARI_IMGREG_CACHE/meshes``
+    (default ``~/.cache/napari-imgreg/meshes``)."""
+    root = os.environ.get("NAPARI_IMGREG_CACHE") or Path.home() / ".cache" / "napari-imgreg"
+    return Path(root) / "meshes"
 
 
 @dataclass
@@ -54,7 +66,7 @@ class MeshData:
     warnings: list[str] = field(default_factory=list)
 
 
-def load_mesh(path: str | os.PathLike) -> MeshData:
+def load_mesh(path: str | os.PathLike, cache: bool = True) -> MeshData:
     """Read a surface mesh with its texture or vertex colours.
 
     Parameters
@@ -62,6 +74,12 @@ def load_mesh(path: str | os.PathLike) -> MeshData:
     path : path-like
         OBJ (with MTL and texture image beside it), PLY (vertex colours or
         texture), GLB/GLTF, OFF or STL.
+    cache : bool
+        Keep a binary copy of large parsed meshes (see :func:`mesh_cache_dir`)
+        so the next load of the unchanged files skips parsing: trimesh's OBJ
+        parser needs seconds for a million triangles. The cache entry is keyed
+        by the paths, sizes and modification times of the mesh and of the
+        files beside it that share its name stem or are named in its MTL.
 
     Returns
     -------
@@ -84,6 +102,20 @@ def load_mesh(path: str | os.PathLike) -> MeshData:
         raise input_error(
             path, f"not a mesh format (expected one of {', '.join(MESH_SUFFIXES)})"
         )
+    key = _cache_key(path) if cache and path.stat().st_size >= _CACHE_MIN_BYTES else None
+    if key is not None:
+        cached = _read_cache(key)
+        if cached is not None:
+            return cached
+    data = _parse(path)
+    if key is not None:
+        _write_cache(key, data)
+    return data
+
+
+def _parse(path: Path) -> MeshData:
+    import trimesh
+
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -197,3 +229,66 @@ def _material_colour(material, n: int) -> np.ndarray | None:
                     c = c * 255
                 return np.tile(np.clip(c, 0, 255).astype(np.uint8), (n, 1))
     return None
+
+
+# ------------------------------------------------------------------ cache
+def _companions(path: Path) -> list[Path]:
+    """Files whose change must invalidate a cached parse of ``path``."""
+    out = [path]
+    if path.suffix.lower() == ".obj":
+        try:
+            head = path.open("rb").read(65536).decode("utf-8", "replace")
+        except OSError:
+            head = ""
+        for line in head.splitlines():
+            if line.startswith("mtllib"):
+                mtl = path.parent / line.split(None, 1)[1].strip()
+                if mtl.exists():
+                    out.append(mtl)
+                    for mline in mtl.read_text(errors="replace").splitlines():
+                        parts = mline.split()
+                        if parts and parts[0].lower().startswith("map_"):
+                            tex = path.parent / parts[-1]
+                            if tex.exists():
+                                out.append(tex)
+    return out
+
+
+def _cache_key(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha1(f"v{_CACHE_VERSION}".encode())
+    for p in _companions(path):
+        st = p.stat()
+        h.update(f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+    return h.hexdigest()
+
+
+def _read_cache(key: str) -> MeshData | None:
+    file = mesh_cache_dir() / f"{key}.npz"
+    if not file.exists():
+        return None
+    try:
+        with np.load(file, allow_pickle=False) as z:
+            get = lambda name: z[name] if name in z.files else None  # noqa: E731
+            notes = [str(n) for n in z["warnings"]] if "warnings" in z.files else []
+            return MeshData(z["vertices"], z["faces"], get("uv"), get("texture"),
+                            get("vertex_colors"), notes)
+    except Exception:  # a damaged entry is only a cache miss
+        log.warning("ignoring unreadable mesh cache entry %s", file)
+        return None
+
+
+def _write_cache(key: str, data: MeshData) -> None:
+    from .._atomic import atomic_path
+
+    arrays = {"vertices": data.vertices, "faces": data.faces,
+              "warnings": np.array(data.warnings, dtype=str)}
+    for name in ("uv", "texture", "vertex_colors"):
+        if getattr(data, name) is not None:
+            arrays[name] = getattr(data, name)
+    try:
+        with atomic_path(mesh_cache_dir() / f"{key}.npz") as tmp:
+            np.savez(tmp, **arrays)
+    except OSError as exc:  # a read-only home must not stop the load
+        log.warning("could not cache the parsed mesh: %s", exc)
