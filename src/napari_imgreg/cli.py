@@ -76,6 +76,54 @@ def cmd_render(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# --------------------------------------------------------------- register
+def cmd_register(args: argparse.Namespace) -> int:
+    from ._atomic import atomic_write
+    from .io.photos import load_photo
+    from .io.records import prior_for_photo
+    from .params import RegistrationParams, load_params
+    from .pipeline import register
+
+    photo_path = Path(args.photo)
+    out = Path(args.out) if args.out else photo_path.with_suffix(".result.json")
+    params = load_params(args.params) if args.params else RegistrationParams()
+    scene = _scene(args.mesh, args.georef, args.dem)
+    photo = load_photo(photo_path)
+    prior = prior_for_photo(photo, scene, record_path=args.prior)
+
+    def show(p) -> None:
+        if args.verbose and p.message:
+            print(f"  [{p.fraction:4.0%}] {p.message}")
+
+    reg = register(scene, photo.image, prior, params, photo_path.name, on_progress=show)
+    with atomic_write(out) as fh:
+        json.dump(reg.to_dict(), fh, indent=2)
+    trend, plunge, roll = reg.pose.attitude
+    x, y, z = reg.pose.center
+    m = reg.metrics
+    print(
+        f"{photo_path.name}: {reg.status.upper()} — grade {reg.grade} (Q = {reg.q:+.2f}) "
+        f"after {len(reg.trials)} trial(s) in {reg.timings_s['total']:.1f} s"
+    )
+    print(
+        f"  pose ({x:.2f}, {y:.2f}, {z:.2f}) m, trend {trend:.2f}° plunge {plunge:.2f}° "
+        f"roll {roll:.2f}°; moved {np.linalg.norm(reg.pose.center - prior.pose.center):.1f} m, "
+        f"{reg.pose.rotation_error_deg(prior.pose):.1f}° from the prior"
+    )
+    err = m.get("reprojection_error_px")
+    print(
+        f"  points {m.get('points_photo')}/{m.get('points_render')}, feature inliers "
+        f"{m.get('feature_inliers')}, 3D inliers {m.get('inliers_3d')}, reprojection error "
+        + (f"{err:.2f} px" if err is not None else "–")
+    )
+    for note in prior.assumptions:
+        print(f"  assumed: {note}")
+    for hint in reg.hints:
+        print(f"  hint: {hint}")
+    print(f"  -> {out}")
+    return EXIT_OK if reg.registered else EXIT_FAILED
+
+
 # ------------------------------------------------------------------- demo
 def cmd_demo(args: argparse.Namespace) -> int:
     from .io.photos import load_photo, save_image
@@ -178,6 +226,23 @@ def build_parser() -> argparse.ArgumentParser:
         help="colouring (default: texture or colours, shading for plain meshes)",
     )
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser(
+        "register",
+        help="register a photo to a mesh (writes RESULT.json)",
+        description="Register PHOTO to MESH from its sensor prior: render, match, solve the pose, "
+        "score it, adapt and retry. Exit 0 when registered, 1 when it failed its quality bar.",
+    )
+    p.add_argument("mesh", metavar="MESH")
+    p.add_argument("photo", metavar="PHOTO", help="JPEG, PNG or TIFF")
+    p.add_argument("--prior", metavar="PHOTO.json",
+                   help="sensor record (default: the .json beside the photo, then EXIF/XMP)")
+    p.add_argument("--dem", help="DEM GeoTIFF or .asc")
+    p.add_argument("--georef", help="georef.json (default: the one beside MESH, if any)")
+    p.add_argument("--params", metavar="PARAMS.json", help="registration parameters (any subset)")
+    p.add_argument("--out", metavar="RESULT.json", help="default: PHOTO.result.json beside the photo")
+    p.add_argument("-v", "--verbose", action="store_true", help="print progress")
+    p.set_defaults(func=cmd_register)
 
     p = sub.add_parser(
         "demo",

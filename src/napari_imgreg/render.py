@@ -76,6 +76,44 @@ class RenderResult:
         """Fraction of pixels that see the surface."""
         return float(self.mask.mean())
 
+    def lift(self, pixels: np.ndarray, max_depth_jump: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+        """3D points under sub-pixel positions, by bilinear look-up in ``xyz``.
+
+        Parameters
+        ----------
+        pixels : (N, 2) array
+            Positions (x, y) in this render's pixels.
+        max_depth_jump : float
+            Reject a position whose four neighbouring depths spread more than
+            this fraction of their mean: it straddles an occluding edge, where
+            interpolating would invent a point in mid-air.
+
+        Returns
+        -------
+        points : (N, 3) float64 array
+            Model-frame points (NaN where rejected).
+        valid : (N,) bool array
+        """
+        px = np.asarray(pixels, np.float64).reshape(-1, 2)
+        h, w = self.shape
+        x, y = px[:, 0], px[:, 1]
+        inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+        x0 = np.clip(np.floor(x).astype(int), 0, max(w - 2, 0))
+        y0 = np.clip(np.floor(y).astype(int), 0, max(h - 2, 0))
+        fx = np.clip(x - x0, 0, 1)[:, None]
+        fy = np.clip(y - y0, 0, 1)[:, None]
+        corners = [(y0, x0), (y0, x0 + 1), (y0 + 1, x0), (y0 + 1, x0 + 1)]
+        weights = [(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy]
+        depths = np.stack([self.depth[r, c] for r, c in corners], axis=1)
+        finite = np.isfinite(depths).all(axis=1)
+        smooth = np.zeros(len(px), bool)
+        d = depths[finite]
+        smooth[finite] = (d.max(axis=1) - d.min(axis=1)) <= max_depth_jump * d.mean(axis=1)
+        valid = inside & finite & smooth
+        pts = sum(wgt * self.xyz[r, c].astype(np.float64) for (r, c), wgt in zip(corners, weights))
+        pts = np.where(valid[:, None], pts, np.nan)
+        return pts, valid
+
 
 @functools.lru_cache(maxsize=8)
 def _camera_rays(intrinsics: Intrinsics) -> np.ndarray:

@@ -44,6 +44,7 @@ __all__ = [
     "read_colmap_images",
     "read_photo_attitudes",
     "attitude_from_dji_gimbal",
+    "dji_gimbal_angles",
     "pair_tables",
     "write_orientation_csv",
     "CSV_COLUMNS",
@@ -622,8 +623,8 @@ def read_photo_attitudes(
             raise input_error(path, f"cannot read photo metadata ({exc})") from None
         xmp_text = xmp.decode("utf-8", "replace") if isinstance(xmp, bytes) else xmp
         if not xmp_text:
-            xmp_text = _raw_xmp(path)
-        gimbal = _dji_gimbal(xmp_text or "")
+            xmp_text = raw_xmp(path)
+        gimbal = dji_gimbal_angles(xmp_text or "")
         if gimbal is not None:
             photos.append(path.name)
             attitudes.append(attitude_from_dji_gimbal(*gimbal))
@@ -667,7 +668,7 @@ def read_photo_attitudes(
     return table
 
 
-def _raw_xmp(path: Path, limit: int = 1 << 20) -> str | None:
+def raw_xmp(path: Path, limit: int = 1 << 20) -> str | None:
     """The XMP packet found in the first ``limit`` bytes of a file, if any."""
     try:
         with open(path, "rb") as fh:
@@ -681,7 +682,7 @@ def _raw_xmp(path: Path, limit: int = 1 << 20) -> str | None:
     return head[start : end + len(b"</x:xmpmeta>")].decode("utf-8", "replace")
 
 
-def _dji_gimbal(xmp: str) -> tuple[float, float, float] | None:
+def dji_gimbal_angles(xmp: str) -> tuple[float, float, float] | None:
     """(yaw, pitch, roll) from ``drone-dji:Gimbal*Degree`` (attribute or element form)."""
     values = []
     for tag in _DJI_TAGS:

@@ -361,36 +361,111 @@ def load_camera_and_pose(
     return prior.intrinsics, prior.pose, "prior", prior.assumptions
 
 
+def _dms(value, ref) -> float | None:
+    """EXIF degrees/minutes/seconds (+ N/S/E/W reference) to signed degrees."""
+    try:
+        d, m, sec = (float(v) for v in value)
+    except (TypeError, ValueError):
+        return None
+    deg = d + m / 60.0 + sec / 3600.0
+    if not math.isfinite(deg):
+        return None
+    return -deg if str(ref).strip().upper() in ("S", "W") else deg
+
+
+def record_from_exif(photo) -> tuple[SensorRecord, list[str]]:
+    """A sensor record from the photo's metadata, and where each block came from.
+
+    Camera: EXIF focal length (see :meth:`Intrinsics.from_exif`). Position:
+    EXIF GPS latitude/longitude/altitude. Orientation: DJI XMP gimbal angles
+    (drone photos), else EXIF ``GPSImgDirection`` for the trend only.
+    """
+    from .orientation_tables import attitude_from_dji_gimbal, dji_gimbal_angles
+
+    exif = photo.exif or {}
+    notes: list[str] = []
+    record = SensorRecord(source=photo.path)
+    w, h = photo.size
+    try:
+        record.camera = Intrinsics.from_exif(exif, w, h).to_dict()
+        notes.append("camera from EXIF focal length")
+    except ValueError:
+        pass
+    gps = exif.get("GPSInfo") or {}
+    lat = _dms(gps.get("GPSLatitude"), gps.get("GPSLatitudeRef", "N"))
+    lon = _dms(gps.get("GPSLongitude"), gps.get("GPSLongitudeRef", "E"))
+    if lat is not None and lon is not None:
+        record.position = {"lat": lat, "lon": lon}
+        alt = gps.get("GPSAltitude")
+        try:
+            alt = float(alt) if alt is not None else None
+        except (TypeError, ValueError):
+            alt = None
+        if alt is not None and math.isfinite(alt):
+            below = gps.get("GPSAltitudeRef") in (1, b"\x01")
+            record.position["alt"] = -alt if below else alt
+        notes.append("position from EXIF GPS")
+    gimbal = dji_gimbal_angles(exif.get("XMP") or "")
+    if gimbal is not None:
+        trend, plunge, roll = attitude_from_dji_gimbal(*gimbal)
+        record.orientation = {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
+        notes.append("attitude from DJI gimbal angles (XMP)")
+    elif gps.get("GPSImgDirection") is not None:
+        try:
+            record.orientation = {"trend_deg": float(gps["GPSImgDirection"]) % 360.0}
+            notes.append("trend from EXIF GPSImgDirection")
+        except (TypeError, ValueError):
+            pass
+    return record, notes
+
+
 def prior_for_photo(
     photo,
     scene=None,
     record_path: str | os.PathLike | None = None,
     height_above_ground_m: float = DEFAULT_HEIGHT_ABOVE_GROUND_M,
 ) -> Prior:
-    """The prior of a photo from its sensor record (the sidecar by default).
+    """The prior of a photo: its sensor record, completed from its metadata.
+
+    The sensor record (``record_path``, by default the ``.json`` beside the
+    photo) wins; blocks it lacks come from EXIF/XMP (:func:`record_from_exif`),
+    then from defaults. The prior's ``assumptions`` say which.
 
     Parameters
     ----------
     photo : Photo
-        The photograph (its size fills in a missing camera size; its EXIF a
-        missing focal length).
     scene : Scene, optional
         Gives the georeference, the DEM and, without a DEM, the terrain.
     record_path : path-like, optional
-        Sensor record; defaults to the photo's ``.json`` sidecar.
+        Sensor record; defaults to the photo's sidecar.
+
+    Raises
+    ------
+    InputError
+        Neither a record nor metadata gives a position and a heading.
     """
     record_path = Path(record_path) if record_path is not None else photo.sidecar
-    if record_path is None or not record_path.exists():
-        raise input_error(
-            record_path or photo.path, "no sensor record (PHOTO.json) for this photo"
-        )
-    record = load_sensor_record(record_path)
-    if record.camera is not None and not _has_focal(record.camera) and photo.exif:
-        try:
-            intr = Intrinsics.from_exif(photo.exif, *photo.size)
-            record.camera = {**record.camera, **intr.to_dict()}
-        except ValueError:
-            pass
+    from_exif, exif_notes = record_from_exif(photo)
+    notes: list[str] = []
+    if record_path is not None and record_path.exists():
+        record = load_sensor_record(record_path)
+        for block in ("camera", "position", "orientation"):
+            if getattr(record, block) is None and getattr(from_exif, block) is not None:
+                setattr(record, block, getattr(from_exif, block))
+                notes += [n for n in exif_notes if n.split()[0] in _NOTE_WORDS[block]]
+        if record.camera is not None and not _has_focal(record.camera) and from_exif.camera:
+            record.camera = {**from_exif.camera, **{k: v for k, v in record.camera.items()
+                                                    if k not in ("width", "height")}}
+            notes.append("focal length from EXIF")
+    else:
+        if from_exif.position is None or from_exif.orientation is None:
+            raise input_error(
+                photo.path,
+                "no sensor record (.json beside the photo) and no GPS position and "
+                "compass heading in its EXIF/XMP",
+            )
+        record = from_exif
+        notes += exif_notes
     prior = prior_from_record(
         record,
         georef=getattr(scene, "georef", None),
@@ -399,4 +474,9 @@ def prior_for_photo(
         image_size=photo.size,
         height_above_ground_m=height_above_ground_m,
     )
+    prior.assumptions = notes + prior.assumptions
     return prior
+
+
+_NOTE_WORDS = {"camera": ("camera",), "position": ("position",),
+               "orientation": ("attitude", "trend")}

@@ -1,0 +1,220 @@
+"""Radiometric filters applied to the photo and the render before matching.
+
+Illumination differences (another sun, wet rock, exposure) mostly change the
+luminance channel, which is what keypoint detectors read. Each filter here
+pulls both images toward a common radiometry (Kehl et al. 2018, "Image
+Processing and Adaptations to Radiometric Influences"): gamma, Wallis,
+brightness/contrast and CLAHE. The photo and the render each get their own
+:class:`FilterParams`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "FilterParams",
+    "apply_filters",
+    "to_gray",
+    "gamma_correct",
+    "wallis",
+    "brightness_contrast",
+    "clahe",
+    "gradient_magnitude",
+]
+
+
+@dataclass
+class FilterParams:
+    """Filter settings for one image, applied in the order listed.
+
+    Attributes
+    ----------
+    gamma : float
+        Output = input^(1/gamma) on [0, 1]; > 1 brightens shadows. Range 0.2–5;
+        1 is off.
+    wallis : bool
+        Apply the Wallis filter.
+    wallis_window : int
+        Side of the square window for the local mean and deviation, pixels
+        (odd; 15–151).
+    wallis_target_mean, wallis_target_std : float
+        Grey level (0–255) and deviation the filter pulls each window toward.
+    wallis_brightness : float
+        Brightness forcing constant b in [0, 1]: 1 replaces the local mean by
+        the target, 0 keeps it.
+    wallis_contrast : float
+        Contrast forcing constant c in [0, 1]: 1 gives every window the
+        target deviation, 0 keeps its own.
+    brightness : float
+        Offset added to grey levels (−100–100); 0 is off.
+    contrast : float
+        Gain about mid-grey (0.2–3); 1 is off.
+    clahe : bool
+        Contrast-limited adaptive histogram equalisation.
+    clahe_clip : float
+        CLAHE clip limit (1–10).
+    clahe_tiles : int
+        CLAHE tiles per image side (2–32).
+    """
+
+    gamma: float = 1.0
+    wallis: bool = False
+    wallis_window: int = 41
+    wallis_target_mean: float = 127.0
+    wallis_target_std: float = 50.0
+    wallis_brightness: float = 0.6
+    wallis_contrast: float = 0.9
+    brightness: float = 0.0
+    contrast: float = 1.0
+    clahe: bool = False
+    clahe_clip: float = 2.0
+    clahe_tiles: int = 8
+
+    @property
+    def is_identity(self) -> bool:
+        """True when no filter changes the image."""
+        return (
+            self.gamma == 1.0
+            and not self.wallis
+            and self.brightness == 0.0
+            and self.contrast == 1.0
+            and not self.clahe
+        )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> FilterParams:
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names
+        if unknown:
+            raise KeyError(f"unknown filter parameter(s): {', '.join(sorted(unknown))}")
+        return cls(**d)
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """RGB (H, W, 3) or grey (H, W) uint8 → grey (H, W) uint8 (BT.601 luma)."""
+    if image.ndim == 2:
+        return image
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def gamma_correct(gray: np.ndarray, gamma: float) -> np.ndarray:
+    """Gamma on a uint8 image through a look-up table; ``gamma > 1`` brightens."""
+    if gamma <= 0:
+        raise ValueError("gamma must be positive")
+    lut = np.clip(255.0 * (np.arange(256) / 255.0) ** (1.0 / gamma) + 0.5, 0, 255)
+    return cv2.LUT(gray, lut.astype(np.uint8))
+
+
+def wallis(
+    gray: np.ndarray,
+    window: int = 41,
+    target_mean: float = 127.0,
+    target_std: float = 50.0,
+    brightness: float = 0.6,
+    contrast: float = 0.9,
+    mask: np.ndarray | None = None,
+) -> np.ndarray:
+    """Wallis filter: local mean and deviation pulled toward targets.
+
+    ``out = (g - m) * c s_t / (c s + (1 - c) s_t) + b m_t + (1 - b) m``,
+    with ``m``, ``s`` the mean and deviation in a ``window`` × ``window``
+    neighbourhood (Wallis 1974, as used for matching by Jazayeri & Fraser 2010).
+
+    Parameters
+    ----------
+    gray : (H, W) uint8 array
+    window : int
+        Neighbourhood side in pixels.
+    target_mean, target_std : float
+        Targets (grey levels).
+    brightness, contrast : float
+        Forcing constants b and c in [0, 1].
+    mask : (H, W) bool array, optional
+        Pixels that count (e.g. the render's surface, not its empty sky); the
+        local statistics ignore the rest, which is returned unchanged.
+
+    Returns
+    -------
+    (H, W) uint8 array
+    """
+    g = gray.astype(np.float32)
+    k = (int(window) | 1, int(window) | 1)
+    if mask is None:
+        mean = cv2.blur(g, k)
+        mean_sq = cv2.blur(g * g, k)
+    else:
+        w = mask.astype(np.float32)
+        norm = np.maximum(cv2.blur(w, k), 1e-6)
+        mean = cv2.blur(g * w, k) / norm
+        mean_sq = cv2.blur(g * g * w, k) / norm
+    std = np.sqrt(np.maximum(mean_sq - mean * mean, 0.0))
+    gain = contrast * target_std / (contrast * std + (1.0 - contrast) * target_std + 1e-6)
+    out = (g - mean) * gain + brightness * target_mean + (1.0 - brightness) * mean
+    out = np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    if mask is not None:
+        out[~mask] = gray[~mask]
+    return out
+
+
+def brightness_contrast(gray: np.ndarray, brightness: float, contrast: float) -> np.ndarray:
+    """Linear grey-level change: gain ``contrast`` about mid-grey plus ``brightness``."""
+    lut = np.clip((np.arange(256) - 127.5) * contrast + 127.5 + brightness + 0.5, 0, 255)
+    return cv2.LUT(gray, lut.astype(np.uint8))
+
+
+def clahe(gray: np.ndarray, clip: float = 2.0, tiles: int = 8) -> np.ndarray:
+    """OpenCV's contrast-limited adaptive histogram equalisation."""
+    return cv2.createCLAHE(clipLimit=float(clip), tileGridSize=(int(tiles), int(tiles))).apply(gray)
+
+
+def apply_filters(
+    image: np.ndarray, params: FilterParams, mask: np.ndarray | None = None
+) -> np.ndarray:
+    """Grey image for feature detection, with ``params`` applied.
+
+    Parameters
+    ----------
+    image : (H, W, 3) or (H, W) uint8 array
+    params : FilterParams
+    mask : (H, W) bool array, optional
+        Valid pixels (the render's surface); Wallis statistics ignore the rest.
+
+    Returns
+    -------
+    (H, W) uint8 array
+    """
+    gray = to_gray(image)
+    if params.gamma != 1.0:
+        gray = gamma_correct(gray, params.gamma)
+    if params.wallis:
+        gray = wallis(
+            gray,
+            params.wallis_window,
+            params.wallis_target_mean,
+            params.wallis_target_std,
+            params.wallis_brightness,
+            params.wallis_contrast,
+            mask,
+        )
+    if params.brightness != 0.0 or params.contrast != 1.0:
+        gray = brightness_contrast(gray, params.brightness, params.contrast)
+    if params.clahe:
+        gray = clahe(gray, params.clahe_clip, params.clahe_tiles)
+    return gray
+
+
+def gradient_magnitude(gray: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+    """Gradient magnitude of a Gaussian-smoothed image, float32 (H, W)."""
+    g = gray.astype(np.float32)
+    if sigma > 0:
+        g = cv2.GaussianBlur(g, (0, 0), sigma)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    return cv2.magnitude(gx, gy)

@@ -1,0 +1,144 @@
+"""All registration parameters in one object.
+
+The GUI, the command line's ``--params`` file and the automatic adaptation
+all edit the same :class:`RegistrationParams`.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field, fields, replace
+
+from .errors import input_error
+from .features import FeatureParams
+from .filters import FilterParams
+from .pose import PoseParams
+
+__all__ = ["RegistrationParams", "load_params"]
+
+
+@dataclass
+class RegistrationParams:
+    """Parameters of one registration trial and of the search around it.
+
+    Attributes
+    ----------
+    photo_filters, render_filters : FilterParams
+        Filters for the photo and for the render, separately.
+    features : FeatureParams
+    pose : PoseParams
+    match_width : int
+        Photo and render are matched at this width (pixels; the photo's own
+        when smaller). Poses are always solved at full resolution.
+    max_iterations : int
+        Render → match → pose rounds per trial: each round re-renders from
+        the last estimate, which matches the photo far better than the prior.
+    converged_deg, converged_m : float
+        A trial stops iterating when the pose moves less than this.
+    auto_adapt : bool
+        After a trial, apply the adaptation of the first rule that fires and
+        run another trial.
+    max_trials : int
+        Trials at most (including the first).
+    search_prior : bool
+        When no trial registers, try perturbed priors within the sensor
+        record's ``sigma`` at reduced resolution.
+    n_search : int
+        Perturbed priors to try.
+    verify : bool
+        Call a pose registered only when verified (converged, and the photo
+        and the final render agree). Off, a pose with 7 or more 3D inliers is
+        taken as registered, as a plain SIFT + EPnP pipeline does (the
+        benchmark's baseline).
+    """
+
+    photo_filters: FilterParams = field(default_factory=FilterParams)
+    render_filters: FilterParams = field(default_factory=FilterParams)
+    features: FeatureParams = field(default_factory=FeatureParams)
+    pose: PoseParams = field(default_factory=PoseParams)
+    match_width: int = 1024
+    max_iterations: int = 4
+    converged_deg: float = 0.05
+    converged_m: float = 0.05
+    auto_adapt: bool = True
+    max_trials: int = 4
+    search_prior: bool = True
+    n_search: int = 12
+    verify: bool = True
+
+    @classmethod
+    def baseline(cls) -> RegistrationParams:
+        """The plain pipeline the benchmark compares against: SIFT, ratio test,
+        EPnP, no filters, no re-rendering, no adaptation, no search, no
+        verification."""
+        from .features import FeatureParams
+
+        return cls(
+            features=FeatureParams("SIFT", "SIFT", symmetric=False, geometric_model="none"),
+            max_iterations=1,
+            auto_adapt=False,
+            max_trials=1,
+            search_prior=False,
+            verify=False,
+        )
+
+    def copy(self) -> RegistrationParams:
+        return replace(
+            self,
+            photo_filters=replace(self.photo_filters),
+            render_filters=replace(self.render_filters),
+            features=replace(self.features),
+            pose=replace(self.pose),
+        )
+
+    def to_dict(self) -> dict:
+        out = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            out[f.name] = value.to_dict() if hasattr(value, "to_dict") else value
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str | os.PathLike | None = None) -> RegistrationParams:
+        """Parameters from a (partial) dict; missing fields keep their defaults.
+
+        Raises
+        ------
+        InputError
+            Unknown or ill-typed fields, naming ``source`` and the field.
+        """
+        nested = {
+            "photo_filters": FilterParams,
+            "render_filters": FilterParams,
+            "features": FeatureParams,
+            "pose": PoseParams,
+        }
+        names = {f.name for f in fields(cls)}
+        kwargs = {}
+        for key, value in d.items():
+            if key not in names:
+                raise input_error(source, f"unknown parameter '{key}'")
+            if key in nested:
+                if not isinstance(value, dict):
+                    raise input_error(source, f"field '{key}' must be an object")
+                base = nested[key]().to_dict()
+                try:
+                    kwargs[key] = nested[key].from_dict({**base, **value})
+                except (KeyError, TypeError, ValueError) as exc:
+                    raise input_error(source, f"field '{key}': {exc}") from None
+            else:
+                kwargs[key] = value
+        try:
+            return cls(**kwargs)
+        except (TypeError, ValueError) as exc:
+            raise input_error(source, str(exc)) from None
+
+
+def load_params(path: str | os.PathLike) -> RegistrationParams:
+    """Read a ``--params`` JSON file (any subset of the fields)."""
+    from .io.records import read_json
+
+    data = read_json(path)
+    if not isinstance(data, dict):
+        raise input_error(path, "parameters must be a JSON object")
+    return RegistrationParams.from_dict(data, path)

@@ -1,0 +1,549 @@
+"""Automatic registration of one photo: prior → render → match → pose, iterated.
+
+:func:`register_photo` is a generator: it yields :class:`Progress` records
+(stage, fraction, message) and returns a :class:`Registration`, so the GUI can
+show progress and cancel between steps, and a script can simply call
+:func:`register`.
+
+One *trial* renders the model from the current pose, matches the (filtered)
+photo against the render, lifts the render's matched keypoints to 3D through
+its xyz map and solves the photo's pose with RANSAC EPnP — then renders again
+from the new pose and repeats until the pose stops moving: a render from
+nearly the right pose resembles the photo far more than the prior's render
+does. Trials are scored with the seven metrics; when a trial is not good
+enough, the first heuristic rule that fires adapts the parameters for the next
+one. If nothing registers from the prior, perturbed priors within the sensor
+record's ``sigma`` are tried at reduced resolution and the best is refined.
+
+A pose is reported ``registered`` only when it is also *verified*: the last
+round converged and the matched keypoints of photo and final render coincide
+(small residual flow). Q alone can be high for a wrong but self-consistent
+pose; this check is what keeps wrong poses from being called good.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Generator
+
+import cv2
+import numpy as np
+
+from .camera import Intrinsics, Pose
+from .features import Features, Matches, detect_and_describe, match_features
+from .filters import apply_filters
+from .io.records import Prior
+from .params import RegistrationParams
+from .pose import PoseEstimate, estimate_pose
+from .quality import GRADES, evaluate_rules, grade_of, quality_q
+from .render import RenderResult, render
+from .scene import Scene
+
+__all__ = [
+    "Progress",
+    "Trial",
+    "Registration",
+    "Cancelled",
+    "register_photo",
+    "register",
+    "VERIFY_FLOW_PX",
+    "MIN_VERIFIED_INLIERS",
+]
+
+#: Median residual flow (px at 1632 px width) between the photo's and the final
+#: render's matched keypoints below which a converged pose counts as verified.
+VERIFY_FLOW_PX = 2.5
+#: 3D inliers a verified pose needs at the least.
+MIN_VERIFIED_INLIERS = 15
+
+
+class Cancelled(Exception):
+    """Raised inside :func:`register_photo` when the caller cancels."""
+
+
+@dataclass
+class Progress:
+    """A progress report: ``stage`` name, overall ``fraction`` in [0, 1], ``message``."""
+
+    stage: str
+    fraction: float
+    message: str = ""
+    trial: int | None = None
+
+
+@dataclass
+class Correspondences:
+    """The last round's matches, for drawing (pixels at full resolution).
+
+    Attributes
+    ----------
+    photo_points, render_points : (M, 2) arrays
+        Putative matches (after ratio and symmetry tests).
+    feature_inlier : (M,) bool
+        Passed the geometric verification.
+    lifted : (M,) bool
+        Has a 3D point.
+    pose_inlier : (M,) bool
+        Agrees with the estimated pose.
+    """
+
+    photo_points: np.ndarray
+    render_points: np.ndarray
+    feature_inlier: np.ndarray
+    lifted: np.ndarray
+    pose_inlier: np.ndarray
+
+
+@dataclass
+class Trial:
+    """One trial: its parameters, metrics, score and outcome."""
+
+    index: int
+    params: RegistrationParams
+    metrics: dict
+    q: float
+    grade: str
+    hints: list[str]
+    pose: Pose | None
+    start_pose: Pose
+    rounds: int
+    converged: bool
+    verified: bool
+    residual_flow_px: float
+    adaptation: str = ""
+    origin: str = "prior"
+    seconds: float = 0.0
+    correspondences: Correspondences | None = None
+
+    def to_dict(self) -> dict:
+        return {
+            "index": self.index,
+            "origin": self.origin,
+            "params": self.params.to_dict(),
+            "metrics": self.metrics,
+            "Q": self.q,
+            "grade": self.grade,
+            "hints": self.hints,
+            "rounds": self.rounds,
+            "converged": self.converged,
+            "verified": self.verified,
+            "residual_flow_px": self.residual_flow_px,
+            "adaptation": self.adaptation,
+            "pose": None if self.pose is None else self.pose.to_dict(),
+            "seconds": round(self.seconds, 3),
+        }
+
+
+@dataclass
+class Registration:
+    """The outcome of registering one photo (RESULT.json, contract §4)."""
+
+    status: str
+    photo: str
+    intrinsics: Intrinsics
+    pose: Pose
+    prior: Prior
+    metrics: dict
+    q: float
+    grade: str
+    hints: list[str]
+    trials: list[Trial]
+    timings_s: dict
+    best_trial: int | None = None
+    assumptions: list[str] = field(default_factory=list)
+
+    @property
+    def registered(self) -> bool:
+        return self.status == "registered"
+
+    @property
+    def grade_info(self):
+        return next(g for g in GRADES if g.name == self.grade)
+
+    def to_dict(self) -> dict:
+        return {
+            "status": self.status,
+            "photo": self.photo,
+            "camera": self.intrinsics.to_dict(),
+            "pose": self.pose.to_dict(),
+            "prior": {
+                "pose": self.prior.pose.to_dict(),
+                "sigma": self.prior.sigma.to_dict(),
+                "assumptions": self.prior.assumptions,
+            },
+            "metrics": self.metrics,
+            "quality": {"Q": self.q, "grade": self.grade, "hints": self.hints},
+            "trials": [
+                {"params": t.params.to_dict(), "metrics": t.metrics, "Q": t.q, **{
+                    k: v for k, v in t.to_dict().items() if k not in ("params", "metrics", "Q")
+                }}
+                for t in self.trials
+            ],
+            "best_trial": self.best_trial,
+            "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
+        }
+
+
+# --------------------------------------------------------------------------
+class _Context:
+    """What stays fixed across the trials of one photo (and caches)."""
+
+    def __init__(self, scene: Scene, photo_rgb: np.ndarray, intrinsics: Intrinsics,
+                 params: RegistrationParams, check: Callable[[], None]) -> None:
+        self.scene = scene
+        self.intrinsics = intrinsics
+        self.check = check
+        self.timings = {"render": 0.0, "filter": 0.0, "detect_match": 0.0,
+                        "lift_3d": 0.0, "pose": 0.0}
+        self._photo_rgb = photo_rgb
+        self._photo_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._feature_cache: dict[tuple, Features] = {}
+
+    def photo_at(self, width: int) -> tuple[np.ndarray, float]:
+        """The photo resized to ``width`` (never enlarged) and the scale used."""
+        w = self.intrinsics.width
+        scale = min(1.0, width / w)
+        key = ("rgb", round(scale, 6))
+        if key not in self._photo_cache:
+            if scale == 1.0:
+                img = self._photo_rgb
+            else:
+                size = (int(round(w * scale)), int(round(self.intrinsics.height * scale)))
+                img = cv2.resize(self._photo_rgb, size, interpolation=cv2.INTER_AREA)
+            self._photo_cache[key] = (img, np.array(scale))
+        img, s = self._photo_cache[key]
+        return img, float(s)
+
+    def photo_features(self, params: RegistrationParams, width: int) -> Features:
+        key = (repr(params.photo_filters), repr(params.features), width)
+        if key not in self._feature_cache:
+            img, _ = self.photo_at(width)
+            t0 = time.perf_counter()
+            gray = apply_filters(img, params.photo_filters)
+            t1 = time.perf_counter()
+            feats = detect_and_describe(gray, params.features, color=img)
+            t2 = time.perf_counter()
+            self.timings["filter"] += t1 - t0
+            self.timings["detect_match"] += t2 - t1
+            self._feature_cache[key] = feats
+        return self._feature_cache[key]
+
+
+def _pose_change(a: Pose, b: Pose) -> tuple[float, float]:
+    return a.rotation_error_deg(b), float(np.linalg.norm(a.center - b.center))
+
+
+def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int):
+    """One render → match → lift → pose round. Returns (estimate, metrics, corr, render)."""
+    scale = min(1.0, width / ctx.intrinsics.width)
+    t0 = time.perf_counter()
+    rendered = render(ctx.scene, ctx.intrinsics, pose, scale=scale)
+    ctx.timings["render"] += time.perf_counter() - t0
+    ctx.check()
+    photo_feats = ctx.photo_features(params, width)
+    ctx.check()
+    t0 = time.perf_counter()
+    # Keypoints on the rim of the surface sit on a depth edge: detect inside it.
+    mask = cv2.erode(rendered.mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    gray = apply_filters(rendered.rgb, params.render_filters, mask=rendered.mask)
+    t1 = time.perf_counter()
+    render_feats = detect_and_describe(gray, params.features, mask=mask, color=rendered.rgb)
+    matches = match_features(photo_feats, render_feats, params.features)
+    t2 = time.perf_counter()
+    ctx.timings["filter"] += t1 - t0
+    ctx.timings["detect_match"] += t2 - t1
+    ctx.check()
+
+    inl = matches.inlier
+    photo_pts_small = photo_feats.points[matches.idx_a] if len(matches) else np.zeros((0, 2))
+    render_pts_small = render_feats.points[matches.idx_b] if len(matches) else np.zeros((0, 2))
+    t0 = time.perf_counter()
+    xyz, lifted = rendered.lift(render_pts_small)
+    lifted &= inl
+    ctx.timings["lift_3d"] += time.perf_counter() - t0
+    to_full = lambda p: (p + 0.5) / scale - 0.5  # noqa: E731  pixel-centre convention
+    photo_pts = to_full(photo_pts_small)
+    render_pts = to_full(render_pts_small)
+
+    t0 = time.perf_counter()
+    estimate = estimate_pose(ctx.intrinsics, xyz[lifted], photo_pts[lifted], params.pose)
+    ctx.timings["pose"] += time.perf_counter() - t0
+
+    n_putative = len(matches)
+    n_inl = int(inl.sum())
+    n_3d = int(lifted.sum())
+    pose_inlier = np.zeros(n_putative, bool)
+    if estimate.ok:
+        pose_inlier[np.flatnonzero(lifted)[estimate.inliers]] = True
+    metrics = {
+        "points_photo": len(photo_feats),
+        "points_render": len(render_feats),
+        "putative_matches": n_putative,
+        "feature_inliers": n_inl,
+        "correspondences_3d": n_3d,
+        "inlier_ratio_2d": round(n_inl / n_putative, 4) if n_putative else 0.0,
+        "inliers_3d": estimate.n_inliers if estimate.ok else 0,
+        "inlier_ratio_3d": round(estimate.n_inliers / n_3d, 4) if (n_3d and estimate.ok) else 0.0,
+        "reprojection_error_px": (
+            round(estimate.mean_error_px, 4) if estimate.ok else None
+        ),
+        "render_coverage": round(rendered.coverage, 4),
+    }
+    corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier)
+    return estimate, metrics, corr, rendered
+
+
+def _residual_flow(corr: Correspondences) -> float:
+    """Median distance between matched photo and render keypoints that agree
+    with the pose (pixels): near zero when the render is from the photo's pose."""
+    sel = corr.pose_inlier
+    if sel.sum() < 3:
+        return float("inf")
+    return float(np.median(np.linalg.norm(corr.photo_points[sel] - corr.render_points[sel], axis=1)))
+
+
+def _run_trial(
+    ctx: _Context,
+    index: int,
+    start: Pose,
+    params: RegistrationParams,
+    origin: str,
+    width: int | None = None,
+    max_rounds: int | None = None,
+    report: Callable[[str], None] | None = None,
+) -> Trial:
+    t_start = time.perf_counter()
+    width = width or params.match_width
+    rounds = max_rounds or params.max_iterations
+    pose = start
+    best: tuple[PoseEstimate, dict, Correspondences] | None = None
+    converged = False
+    n_done = 0
+    last_ok_pose: Pose | None = None
+    for k in range(rounds):
+        n_done = k + 1
+        if report:
+            report(f"round {k + 1}/{rounds}")
+        estimate, metrics, corr, _ = _round(ctx, pose, params, width)
+        if not estimate.ok:
+            if best is None:
+                best = (estimate, metrics, corr)
+            break
+        best = (estimate, metrics, corr)
+        d_rot, d_pos = _pose_change(pose, estimate.pose)
+        last_ok_pose = estimate.pose
+        pose = estimate.pose
+        if d_rot < params.converged_deg and d_pos < params.converged_m:
+            converged = True
+            break
+    estimate, metrics, corr = best
+    scale_px = ctx.intrinsics.width / 1632.0
+    flow = _residual_flow(corr)
+    verified = bool(
+        converged
+        and last_ok_pose is not None
+        and metrics["inliers_3d"] >= MIN_VERIFIED_INLIERS
+        and flow <= VERIFY_FLOW_PX * scale_px
+    )
+    metrics = {**metrics, "residual_flow_px": round(flow, 3) if math.isfinite(flow) else None}
+    q = quality_q(metrics, ctx.intrinsics.width)
+    grade = grade_of(q, pose_found=last_ok_pose is not None)
+    if last_ok_pose is not None and not verified and grade.name in ("excellent", "good"):
+        grade = grade_of(min(q, 0.59))  # unverified: at best "fair"
+    hits = evaluate_rules(metrics, params, ctx.intrinsics.width)
+    hints = [h.hint for h in hits]
+    if last_ok_pose is not None and not converged:
+        hints.append("The pose was still moving after the last round: not verified.")
+    elif last_ok_pose is not None and not verified:
+        hints.append(
+            f"Photo and final render disagree (residual flow {flow:.1f} px, "
+            f"{metrics['inliers_3d']} 3D inliers): pose not verified."
+        )
+    return Trial(
+        index=index,
+        params=params.copy(),
+        metrics=metrics,
+        q=q,
+        grade=grade.name,
+        hints=hints,
+        pose=last_ok_pose,
+        start_pose=start,
+        rounds=n_done,
+        converged=converged,
+        verified=verified,
+        residual_flow_px=flow,
+        origin=origin,
+        seconds=time.perf_counter() - t_start,
+        correspondences=corr,
+    )
+
+
+def _trial_rank(t: Trial) -> tuple:
+    return (t.verified, t.pose is not None, t.q, t.metrics.get("inliers_3d", 0))
+
+
+def _perturbed_priors(prior: Prior, n: int, seed: int = 0) -> list[Pose]:
+    """Starting poses spread over the prior's uncertainty (heading first:
+    compass error dominates what a render shows)."""
+    rng = np.random.default_rng(seed)
+    trend, plunge, roll = prior.pose.attitude
+    c = prior.pose.center
+    s_ang = prior.sigma.angles_deg
+    s_pos = prior.sigma.position_m
+    s_alt = prior.sigma.altitude_m
+    poses = []
+    # A deterministic ring of heading offsets, then random draws.
+    for dt in (-1.5, 1.5, -3.0, 3.0):
+        poses.append(Pose.from_attitude(trend + dt * s_ang, plunge, roll, c))
+    while len(poses) < n:
+        dt, dp, dr = rng.normal(0, 1, 3) * np.array([1.5 * s_ang, s_ang, 0.5 * s_ang])
+        dxyz = rng.normal(0, 1, 3) * np.array([s_pos, s_pos, 0.5 * s_alt])
+        poses.append(Pose.from_attitude(trend + dt, plunge + dp, roll + dr, c + dxyz))
+    return poses[:n]
+
+
+def register_photo(
+    scene: Scene,
+    photo_rgb: np.ndarray,
+    prior: Prior,
+    params: RegistrationParams | None = None,
+    photo_name: str = "",
+    cancelled: Callable[[], bool] | None = None,
+) -> Generator[Progress, None, Registration]:
+    """Register a photo to the scene, yielding progress; returns a Registration.
+
+    Parameters
+    ----------
+    scene : Scene
+    photo_rgb : (H, W, 3) uint8 array
+        The photo; its size must match ``prior.intrinsics``.
+    prior : Prior
+        Camera and prior pose (from the sensor record).
+    params : RegistrationParams, optional
+    photo_name : str
+        For RESULT.json.
+    cancelled : callable, optional
+        Polled between steps; when it returns True, :class:`Cancelled` is raised.
+
+    Yields
+    ------
+    Progress
+
+    Returns
+    -------
+    Registration
+        ``status`` "registered" only for a verified pose; otherwise "failed"
+        with the best pose found (or the prior) and hints saying why.
+    """
+    params = (params or RegistrationParams()).copy()
+    intr = prior.intrinsics
+    h, w = photo_rgb.shape[:2]
+    if (w, h) != (intr.width, intr.height):
+        raise ValueError(f"photo is {w}×{h} but the camera is {intr.width}×{intr.height}")
+
+    def check() -> None:
+        if cancelled is not None and cancelled():
+            raise Cancelled()
+
+    t_total = time.perf_counter()
+    ctx = _Context(scene, photo_rgb, intr, params, check)
+    if scene._engine is None:
+        yield Progress("prepare", 0.0, "building the ray-casting engine")
+        scene.build_engine()
+    trials: list[Trial] = []
+    n_budget = max(1, params.max_trials) + (1 if params.search_prior else 0)
+
+    def progress(stage: str, msg: str, done: float) -> Progress:
+        return Progress(stage, min(0.99, done), msg, len(trials) + 1)
+
+    current = params
+    start = prior.pose
+    origin = "prior"
+    for trial_no in range(params.max_trials if params.auto_adapt else 1):
+        yield progress("trial", f"trial {trial_no + 1}: {current.features.name}",
+                       len(trials) / n_budget)
+        trial = _run_trial(ctx, len(trials), start, current, origin)
+        trials.append(trial)
+        check()
+        if trial.verified and trial.grade in ("excellent", "good"):
+            break
+        hits = evaluate_rules(trial.metrics, current, intr.width)
+        if not params.auto_adapt or not hits:
+            break
+        trial.adaptation = f"rule {hits[0].rule}: {hits[0].adaptation}"
+        current = hits[0].apply(current)
+        if trial.pose is not None and trial.metrics.get("inliers_3d", 0) >= 12:
+            start, origin = trial.pose, f"trial {trial.index + 1}"
+
+    best = max(trials, key=_trial_rank)
+    if not best.verified and params.search_prior:
+        # Search the prior's uncertainty at reduced resolution, one round each.
+        candidates = _perturbed_priors(prior, params.n_search)
+        search_width = min(params.match_width, 800)
+        scored = []
+        for k, cand in enumerate(candidates):
+            yield progress("search", f"searching the prior's uncertainty ({k + 1}/{len(candidates)})",
+                           (len(trials) + k / len(candidates)) / n_budget)
+            t = _run_trial(ctx, -1, cand, best.params, "search", width=search_width, max_rounds=2)
+            if t.pose is not None:
+                scored.append(t)
+            check()
+        if scored:
+            lead = max(scored, key=lambda t: (t.metrics.get("inliers_3d", 0), t.q))
+            yield progress("trial", "refining the best start from the search",
+                           (n_budget - 1) / n_budget)
+            trial = _run_trial(ctx, len(trials), lead.pose, best.params, "search")
+            trials.append(trial)
+        best = max(trials, key=_trial_rank)
+
+    if params.verify:
+        status = "registered" if best.verified and best.grade != "failed" else "failed"
+    else:
+        status = "registered" if best.metrics.get("inliers_3d", 0) >= 7 else "failed"
+    pose = best.pose if best.pose is not None else prior.pose
+    hints = list(best.hints)
+    if status == "failed" and not hints:
+        hints = ["No verified pose: try the manual control-point registration."]
+    timings = dict(ctx.timings)
+    timings["total"] = time.perf_counter() - t_total
+    yield Progress("done", 1.0, f"{status} ({best.grade}, Q = {best.q:.2f})")
+    return Registration(
+        status=status,
+        photo=photo_name,
+        intrinsics=intr,
+        pose=pose,
+        prior=prior,
+        metrics=best.metrics,
+        q=best.q,
+        grade=best.grade,
+        hints=hints,
+        trials=trials,
+        timings_s=timings,
+        best_trial=best.index,
+        assumptions=list(prior.assumptions),
+    )
+
+
+def run_to_end(gen: Generator[Progress, None, Any], on_progress=None) -> Any:
+    """Drive a progress generator to its return value."""
+    while True:
+        try:
+            p = next(gen)
+        except StopIteration as stop:
+            return stop.value
+        if on_progress is not None:
+            on_progress(p)
+
+
+def register(
+    scene: Scene,
+    photo_rgb: np.ndarray,
+    prior: Prior,
+    params: RegistrationParams | None = None,
+    photo_name: str = "",
+    on_progress: Callable[[Progress], None] | None = None,
+) -> Registration:
+    """Blocking form of :func:`register_photo`."""
+    return run_to_end(register_photo(scene, photo_rgb, prior, params, photo_name), on_progress)
