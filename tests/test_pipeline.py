@@ -1,0 +1,113 @@
+"""Automatic registration end to end, against the sample scene's ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from skimage.data import astronaut
+
+from napari_imgreg import Scene
+from napari_imgreg.cli import main
+from napari_imgreg.io.photos import load_photo
+from napari_imgreg.io.records import prior_for_photo
+from napari_imgreg.params import RegistrationParams
+from napari_imgreg.pipeline import Cancelled, Progress, register, register_photo
+from napari_imgreg.sample import load_truth, sample_scene
+
+
+@pytest.fixture(scope="module")
+def sample():
+    folder = sample_scene("small")
+    scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
+    scene.build_engine()
+    return folder, scene
+
+
+def _photo(folder, name="IMG_0001"):
+    photo = load_photo(folder / f"{name}.jpg")
+    return photo, load_truth(folder / f"{name}.jpg")
+
+
+@pytest.mark.parametrize("name", ["IMG_0001", "IMG_0003"])
+def test_known_pose_is_recovered(sample, name):
+    folder, scene = sample
+    photo, truth = _photo(folder, name)
+    prior = prior_for_photo(photo, scene)
+    assert prior.pose.rotation_error_deg(truth.pose) > 2.0  # the prior really is off
+    reg = register(scene, photo.image, prior, photo_name=photo.path.name)
+    assert reg.status == "registered" and reg.grade in ("excellent", "good")
+    assert reg.pose.rotation_error_deg(truth.pose) < 0.2
+    assert np.linalg.norm(reg.pose.center - truth.pose.center) < 0.3
+    # The check points land where they are in the photo.
+    proj = reg.pose.project(reg.intrinsics, truth.check_xyz)
+    assert np.median(np.linalg.norm(proj - truth.check_pixels, axis=1)) < 1.5
+
+
+def test_result_follows_the_contract(sample, tmp_path):
+    folder, scene = sample
+    photo, _ = _photo(folder)
+    reg = register(scene, photo.image, prior_for_photo(photo, scene), photo_name="IMG_0001.jpg")
+    d = json.loads(json.dumps(reg.to_dict()))  # serialisable as it is
+    assert d["status"] == "registered" and d["photo"] == "IMG_0001.jpg"
+    assert set(d["camera"]) >= {"width", "height", "fx", "fy", "cx", "cy", "dist"}
+    assert set(d["pose"]) >= {"R", "t", "position", "trend_deg", "plunge_deg", "roll_deg"}
+    assert set(d["metrics"]) >= {
+        "points_photo", "points_render", "feature_inliers", "correspondences_3d",
+        "inlier_ratio_2d", "inliers_3d", "inlier_ratio_3d", "reprojection_error_px"}
+    assert set(d["quality"]) == {"Q", "grade", "hints"}
+    assert d["quality"]["grade"] in ("excellent", "good", "fair", "poor", "failed")
+    assert d["trials"] and {"params", "metrics", "Q"} <= set(d["trials"][0])
+    assert set(d["timings_s"]) >= {"render", "filter", "detect_match", "lift_3d", "pose", "total"}
+
+
+def test_photo_without_overlap_fails_cleanly_with_hints(sample):
+    folder, scene = sample
+    photo, _ = _photo(folder)
+    prior = prior_for_photo(photo, scene)
+    # Another subject altogether: nothing in it is on the model.
+    other = cv2.resize(np.ascontiguousarray(astronaut()), photo.size)
+    params = RegistrationParams(n_search=4, max_trials=2)
+    reg = register(scene, other, prior, params)
+    assert reg.status == "failed" and reg.grade in ("failed", "poor")
+    assert reg.hints and all(isinstance(h, str) and h for h in reg.hints)
+    np.testing.assert_allclose(reg.to_dict()["prior"]["pose"]["R"], prior.pose.R)
+
+
+def test_progress_and_cancel(sample):
+    folder, scene = sample
+    photo, _ = _photo(folder)
+    prior = prior_for_photo(photo, scene)
+    gen = register_photo(scene, photo.image, prior)
+    first = next(gen)
+    assert isinstance(first, Progress) and 0 <= first.fraction <= 1
+    calls = {"n": 0}
+
+    def cancel_soon():
+        calls["n"] += 1
+        return calls["n"] > 2
+
+    with pytest.raises(Cancelled):
+        list(register_photo(scene, photo.image, prior, cancelled=cancel_soon))
+
+
+def test_register_command_exit_codes(sample, tmp_path, capsys):
+    folder, _ = sample
+    out = tmp_path / "RESULT.json"
+    code = main(["register", str(folder / "outcrop.obj"), str(folder / "IMG_0002.jpg"),
+                 "--dem", str(folder / "dem.tif"), "--out", str(out)])
+    assert code == 0 and json.loads(out.read_text())["status"] == "registered"
+    assert "REGISTERED" in capsys.readouterr().out
+    # The result renders back through the render command.
+    assert main(["render", str(folder / "outcrop.obj"), str(out), "--out",
+                 str(tmp_path / "r.png"), "--scale", "0.25"]) == 0
+    code = main(["register", str(folder / "outcrop.obj"), str(tmp_path / "missing.jpg")])
+    assert code == 2 and "missing.jpg: no such file" in capsys.readouterr().err
+    bad = tmp_path / "params.json"
+    bad.write_text('{"features": {"detector": "NOPE"}}')
+    code = main(["register", str(folder / "outcrop.obj"), str(folder / "IMG_0002.jpg"),
+                 "--params", str(bad)])
+    err = capsys.readouterr().err
+    assert code == 2 and "params.json" in err and len(err.strip().splitlines()) == 1
