@@ -1,0 +1,154 @@
+"""RegistrationParams (params.py): dict/JSON round trip, partial files, errors, baseline."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from napari_imgreg.errors import InputError
+from napari_imgreg.features import FeatureParams
+from napari_imgreg.filters import FilterParams
+from napari_imgreg.params import RegistrationParams, load_params
+from napari_imgreg.pose import PoseParams
+
+
+def non_default() -> RegistrationParams:
+    return RegistrationParams(
+        photo_filters=FilterParams(gamma=1.8, wallis=True, wallis_window=61),
+        render_filters=FilterParams(clahe=True, clahe_tiles=4, brightness=-5.0),
+        features=FeatureParams("FAST", "SIFT", max_features=3000, threshold_scale=0.5,
+                               grid=(6, 4), ratio=0.75, symmetric=False,
+                               geometric_model="homography", geometric_threshold_px=4.5),
+        pose=PoseParams(reprojection_error_px=9.0, iterations=800, confidence=0.99, refine=False),
+        match_width=800, max_iterations=2, converged_deg=0.1, converged_m=0.2,
+        auto_adapt=False, max_trials=2, search_prior=False, n_search=5, verify=False,
+    )
+
+
+def test_dict_round_trip():
+    p = non_default()
+    d = p.to_dict()
+    assert set(d) == {"photo_filters", "render_filters", "features", "pose", "match_width",
+                      "max_iterations", "converged_deg", "converged_m", "auto_adapt",
+                      "max_trials", "search_prior", "n_search", "verify"}
+    assert RegistrationParams.from_dict(d) == p
+    assert RegistrationParams.from_dict(RegistrationParams().to_dict()) == RegistrationParams()
+
+
+def test_json_round_trip(tmp_path):
+    p = non_default()
+    path = tmp_path / "params.json"
+    path.write_text(json.dumps(p.to_dict()))  # to_dict is JSON-ready (grid as a list)
+    q = load_params(path)
+    assert q == p and q.features.grid == (6, 4)
+
+
+def test_partial_dicts_keep_the_defaults():
+    d = RegistrationParams()
+    p = RegistrationParams.from_dict({"features": {"detector": "ORB", "descriptor": "ORB"},
+                                      "pose": {"refine": False}, "max_trials": 7})
+    assert (p.features.detector, p.features.descriptor) == ("ORB", "ORB")
+    assert p.features.max_features == d.features.max_features
+    assert p.features.ratio == d.features.ratio
+    assert p.pose.refine is False
+    assert p.pose.reprojection_error_px == d.pose.reprojection_error_px
+    assert p.max_trials == 7
+    assert p.photo_filters == d.photo_filters and p.render_filters == d.render_filters
+    assert p.match_width == d.match_width and p.verify == d.verify
+    assert RegistrationParams.from_dict({}) == d
+
+
+def test_unknown_top_level_field_names_file_and_field(tmp_path):
+    path = tmp_path / "my_params.json"
+    path.write_text(json.dumps({"max_trails": 3}))
+    with pytest.raises(InputError) as err:
+        load_params(path)
+    assert str(path) in str(err.value) and "max_trails" in str(err.value)
+
+
+@pytest.mark.parametrize("section, field", [("features", "nfeatures"), ("pose", "threshold"),
+                                            ("photo_filters", "gama"),
+                                            ("render_filters", "wallis_size")])
+def test_unknown_nested_field_names_file_section_and_field(tmp_path, section, field):
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps({section: {field: 1}}))
+    with pytest.raises(InputError) as err:
+        load_params(path)
+    msg = str(err.value)
+    assert str(path) in msg and section in msg and field in msg
+
+
+@pytest.mark.parametrize("data, words", [
+    ({"features": {"detector": "SURF"}}, ["features", "SURF"]),
+    ({"features": {"detector": "SIFT", "descriptor": "AKAZE"}}, ["features", "AKAZE"]),
+    ({"features": 3}, ["features", "object"]),
+    ({"pose": [1, 2]}, ["pose", "object"]),
+])
+def test_invalid_nested_values_are_input_errors(data, words):
+    with pytest.raises(InputError) as err:
+        RegistrationParams.from_dict(data, "P.json")
+    assert str(err.value).startswith("P.json: ")
+    for w in words:
+        assert w in str(err.value)
+
+
+@pytest.mark.parametrize("data, field", [
+    ({"max_trials": "four"}, "max_trials"),
+    ({"auto_adapt": "yes"}, "auto_adapt"),
+    ({"pose": {"reprojection_error_px": "six"}}, "reprojection_error_px"),
+    ({"photo_filters": {"gamma": "x"}}, "gamma"),
+    ({"features": {"grid": [8]}}, "grid"),
+])
+def test_ill_typed_fields_are_input_errors(data, field):
+    with pytest.raises(InputError, match=field):
+        RegistrationParams.from_dict(data, "P.json")
+
+
+def test_load_params_bad_files(tmp_path):
+    missing = tmp_path / "nope.json"
+    with pytest.raises(InputError, match="nope.json"):
+        load_params(missing)
+    broken = tmp_path / "broken.json"
+    broken.write_text("{ not json")
+    with pytest.raises(InputError, match="broken.json"):
+        load_params(broken)
+    listed = tmp_path / "list.json"
+    listed.write_text("[1, 2]")
+    with pytest.raises(InputError, match="list.json.*object"):
+        load_params(listed)
+
+
+def test_copy_is_deep():
+    p = RegistrationParams()
+    q = p.copy()
+    assert q == p
+    q.features.ratio = 0.5
+    q.photo_filters.wallis = not p.photo_filters.wallis
+    q.render_filters.gamma = 3.0
+    q.pose.reprojection_error_px = 33.0
+    assert p == RegistrationParams()
+
+
+def test_baseline_is_the_plain_pipeline():
+    b = RegistrationParams.baseline()
+    # SIFT detection and description with Lowe's ratio test ...
+    assert (b.features.detector, b.features.descriptor) == ("SIFT", "SIFT")
+    assert b.features.ratio < 1.0
+    # ... no filters on either image ...
+    assert b.photo_filters.is_identity and b.render_filters.is_identity
+    # ... one render → match → pose round, one trial, no adaptation, no search,
+    # no verification.
+    assert b.max_iterations == 1
+    assert b.max_trials == 1 and b.auto_adapt is False
+    assert b.search_prior is False
+    assert b.verify is False
+    # Each call is a fresh object.
+    b.features.ratio = 0.5
+    assert RegistrationParams.baseline().features.ratio != 0.5
+
+
+def test_baseline_differs_from_the_default_pipeline():
+    d, b = RegistrationParams(), RegistrationParams.baseline()
+    assert d != b
+    assert d.auto_adapt and d.search_prior and d.verify and d.max_iterations > 1
