@@ -223,12 +223,15 @@ def _even_selection(
     starts = np.searchsorted(cell_sorted, cell_sorted, side="left")
     rank = np.arange(n) - starts
     per_cell = max(1, n_max // (cols * rows))
-    keep = order[rank < per_cell]
-    if len(keep) < n_max:  # cells with few points leave room: fill by strength
-        rest = np.setdiff1d(np.arange(n), keep)
-        rest = rest[np.argsort(-responses[rest])][: n_max - len(keep)]
-        keep = np.concatenate([keep, rest])
-    return np.sort(keep)
+    # Each cell keeps at most its share; if that is still more than n_max (a
+    # grid finer than n_max cells) the strongest win, so exactly n_max remain.
+    first = order[rank < per_cell]
+    first = first[np.argsort(-responses[first], kind="stable")][:n_max]
+    if len(first) < n_max:  # cells with few points leave room: fill by strength
+        rest = np.setdiff1d(np.arange(n), first)
+        rest = rest[np.argsort(-responses[rest], kind="stable")][: n_max - len(first)]
+        first = np.concatenate([first, rest])
+    return np.sort(first)
 
 
 def detect_and_describe(

@@ -47,8 +47,10 @@ class FilterParams:
         Brightness forcing constant b in [0, 1]: 1 replaces the local mean by
         the target, 0 keeps it.
     wallis_contrast : float
-        Contrast forcing constant c in [0, 1]: 1 gives every window the
-        target deviation, 0 keeps its own.
+        Contrast forcing constant c in (0, 1]: 1 gives every window the
+        target deviation; smaller values mix in the window's own deviation
+        (as c → 0 the gain c·s_t / (c·s + (1 − c)·s_t) goes to 0 and the
+        image flattens to its local mean, so keep c well above 0).
     brightness : float
         Offset added to grey levels (−100–100); 0 is off.
     contrast : float
@@ -135,7 +137,7 @@ def wallis(
     target_mean, target_std : float
         Targets (grey levels).
     brightness, contrast : float
-        Forcing constants b and c in [0, 1].
+        Forcing constants b in [0, 1] and c in (0, 1].
     mask : (H, W) bool array, optional
         Pixels that count (e.g. the render's surface, not its empty sky); the
         local statistics ignore the rest, which is returned unchanged.

@@ -129,9 +129,40 @@ class RegistrationParams:
             else:
                 kwargs[key] = value
         try:
-            return cls(**kwargs)
+            params = cls(**kwargs)
         except (TypeError, ValueError) as exc:
             raise input_error(source, str(exc)) from None
+        _check_types(params, source)
+        return params
+
+
+def _check_types(obj, source, section: str = "") -> None:
+    """InputError when a field's value does not have its default's type."""
+    defaults = type(obj)()
+    for f in fields(obj):
+        value, default = getattr(obj, f.name), getattr(defaults, f.name)
+        name = f"{section}{f.name}"
+        if hasattr(default, "to_dict"):
+            _check_types(value, source, f"{name}.")
+        elif isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise input_error(source, f"field '{name}' must be true or false, got {value!r}")
+        elif isinstance(default, int):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise input_error(source, f"field '{name}' must be an integer, got {value!r}")
+        elif isinstance(default, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise input_error(source, f"field '{name}' must be a number, got {value!r}")
+        elif isinstance(default, str):
+            if not isinstance(value, str):
+                raise input_error(source, f"field '{name}' must be a string, got {value!r}")
+        elif isinstance(default, tuple):
+            if len(value) != len(default) or not all(
+                isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value
+            ):
+                raise input_error(
+                    source, f"field '{name}' must be {len(default)} positive integers, got {list(value)!r}"
+                )
 
 
 def load_params(path: str | os.PathLike) -> RegistrationParams:

@@ -160,6 +160,22 @@ def estimate_pose(
         return none
     inl = np.zeros(n, bool)
     inl[idx.ravel()] = True
+    sv = np.linalg.svd(q3[inl] - q3[inl].mean(axis=0), compute_uv=False)
+    if sv[1] <= 1e-3 * sv[0]:
+        none.reason = "the 2D–3D correspondences are (nearly) collinear: the pose is undetermined"
+        return none
+    # solvePnPRansac re-fits EPnP on all inliers in float32, which flips to the
+    # mirror pose on (near-)planar scenes; SQPnP on the inliers is globally optimal.
+    try:
+        ok_sq, rvec_sq, tvec_sq = cv2.solvePnP(q3[inl], p2[inl], K, dist, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        ok_sq = False
+    if ok_sq:
+        def _count(rv, tv):
+            return int((reprojection_errors(intrinsics, Pose.from_rvec_tvec(rv, tv), q3, p2)
+                        < params.reprojection_error_px).sum())
+        if _count(rvec_sq, tvec_sq) >= _count(rvec, tvec):
+            rvec, tvec = rvec_sq, tvec_sq
     if params.refine and inl.sum() >= 4:
         rvec, tvec = cv2.solvePnPRefineLM(q3[inl], p2[inl], K, dist, rvec, tvec)
         # One more round: points that agree with the refined pose join in.

@@ -70,6 +70,7 @@ def load_photo(path: str | os.PathLike) -> Photo:
             for k, v in raw_exif.get_ifd(ExifTags.IFD.Exif).items():
                 exif[ExifTags.TAGS.get(k, str(k))] = v
             gps = raw_exif.get_ifd(ExifTags.IFD.GPSInfo)
+            exif.pop("GPSInfo", None)  # the IFD offset, not the tags
             if gps:
                 exif["GPSInfo"] = {ExifTags.GPSTAGS.get(k, str(k)): v for k, v in gps.items()}
             xmp = im.info.get("xmp")

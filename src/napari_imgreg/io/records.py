@@ -391,7 +391,9 @@ def record_from_exif(photo) -> tuple[SensorRecord, list[str]]:
         notes.append("camera from EXIF focal length")
     except ValueError:
         pass
-    gps = exif.get("GPSInfo") or {}
+    gps = exif.get("GPSInfo")
+    if not isinstance(gps, Mapping):  # an empty GPS IFD leaves its offset (an int)
+        gps = {}
     lat = _dms(gps.get("GPSLatitude"), gps.get("GPSLatitudeRef", "N"))
     lon = _dms(gps.get("GPSLongitude"), gps.get("GPSLongitudeRef", "E"))
     if lat is not None and lon is not None:
@@ -414,6 +416,8 @@ def record_from_exif(photo) -> tuple[SensorRecord, list[str]]:
         try:
             record.orientation = {"trend_deg": float(gps["GPSImgDirection"]) % 360.0}
             notes.append("trend from EXIF GPSImgDirection")
+            if str(gps.get("GPSImgDirectionRef", "T")).strip().upper().startswith("M"):
+                notes.append("trend is a magnetic heading: declination not applied")
         except (TypeError, ValueError):
             pass
     return record, notes
