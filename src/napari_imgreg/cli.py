@@ -254,8 +254,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gui", action="store_true", help="open napari with the sample loaded")
     p.set_defaults(func=cmd_demo)
 
+    from .cli_interpret import add_parsers as add_interpret_parsers
     from .cli_orient import add_parser as add_orient_parser
 
+    add_interpret_parsers(sub)
     add_orient_parser(sub)
 
     p = sub.add_parser(

@@ -1,0 +1,517 @@
+"""Interpretations drawn on a registered photo, projected onto the surface in 3D.
+
+A line drawn on the photo is densified to about one sample per pixel and one
+ray is cast through each sample with the registered camera (its distortion
+honoured), through the scene's one ray engine. The hits form the 3D trace, so
+it follows the relief. Where a ray misses (sky, a hole in the model) or the
+surface seen jumps in depth between neighbouring samples (an occluding ridge,
+an overhang), the line is split there: the parts are never bridged.
+
+A polygon becomes its projected ring plus the *surface patch*: the visible
+faces inside it, found by one ray per pixel inside the polygon; the facet's
+plane is fitted to the patch's surface points.
+
+Lines from several registered photos merge into one set, each feature keeping
+``properties.source`` (the photo it was drawn on).
+
+Frames: pixels are (x = column, y = row), pixel centres at integers (contract
+§1); 3D points are in the local model frame, metres.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field, replace
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from .camera import Intrinsics, Pose
+from .scene import Scene
+from .structural import DEFAULT_THRESHOLDS, FitThresholds, Measurement, measure_facet, measure_trace
+
+__all__ = [
+    "LABEL_COLORS",
+    "ProjectionParams",
+    "Interpretation",
+    "Feature3D",
+    "ProjectedLine",
+    "densify",
+    "project_polyline",
+    "surface_patch",
+    "project_interpretations",
+    "merge_interpretations",
+    "measure_features",
+    "label_color",
+]
+
+#: Colours of the standard label classes (Kehl et al., Fig. 8); others get one
+#: from :data:`_EXTRA_COLORS` by name.
+LABEL_COLORS: dict[str, str] = {
+    "sandstone": "#ffd400",
+    "mudstone": "#8c8c8c",
+    "fault": "#e31a1c",
+}
+_EXTRA_COLORS = ("#1f78b4", "#33a02c", "#ff7f00", "#6a3d9a", "#b15928", "#a6cee3", "#fb9a99")
+
+
+def label_color(label: str, color: str | None = None) -> str:
+    """The colour of a label: the feature's own, the standard one, or a stable pick."""
+    if color:
+        return color
+    if label in LABEL_COLORS:
+        return LABEL_COLORS[label]
+    # Stable across runs (str hash is salted per process).
+    k = sum(label.encode("utf-8")) % len(_EXTRA_COLORS)
+    return _EXTRA_COLORS[k]
+
+
+@dataclass(frozen=True)
+class ProjectionParams:
+    """How lines are sampled and where they are split.
+
+    Attributes
+    ----------
+    step_px : float
+        Sample spacing along each image segment, pixels (about one per pixel).
+    grazing_deg : float
+        Split between two samples when the 3D step between their hits lies
+        within this angle of the viewing ray: the surface would have to be
+        seen that obliquely to be continuous, so it is an occlusion edge or an
+        overhang.
+    jump_ratio : float
+        Also split where the depth step exceeds this many pixel footprints
+        *and* ``jump_contrast`` times the median step of the neighbouring
+        samples: an isolated jump, not a steep but continuous surface.
+    jump_contrast : float
+    jump_window : int
+        Neighbours on each side for that median.
+    min_part_points : int
+        Parts with fewer samples are dropped (a lone hit is not a line).
+    patch_max_points : int
+        Surface points kept per facet patch (an even subsample) for its plane.
+    """
+
+    step_px: float = 1.0
+    grazing_deg: float = 5.0
+    jump_ratio: float = 3.0
+    jump_contrast: float = 8.0
+    jump_window: int = 5
+    min_part_points: int = 2
+    patch_max_points: int = 20_000
+
+
+@dataclass
+class Interpretation:
+    """One feature drawn on a photo.
+
+    Attributes
+    ----------
+    geometry : {"LineString", "Polygon"}
+    pixels : (N, 2) float array
+        Vertices as pixel (x = column, y = row). A polygon's ring is given
+        open (the first vertex is not repeated).
+    properties : dict
+        At least ``label``; ``color`` optional; others are carried through.
+    """
+
+    geometry: str
+    pixels: np.ndarray
+    properties: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.geometry not in ("LineString", "Polygon"):
+            raise ValueError(f"geometry must be LineString or Polygon, not {self.geometry!r}")
+        px = np.asarray(self.pixels, np.float64).reshape(-1, 2)
+        if self.geometry == "Polygon" and len(px) > 1 and np.array_equal(px[0], px[-1]):
+            px = px[:-1]
+        self.pixels = px
+        self.properties = dict(self.properties)
+        self.properties.setdefault("label", "unlabelled")
+
+    @property
+    def label(self) -> str:
+        return str(self.properties.get("label", "unlabelled"))
+
+    @property
+    def color(self) -> str:
+        return label_color(self.label, self.properties.get("color"))
+
+
+@dataclass
+class Feature3D:
+    """An interpretation on the surface in 3D.
+
+    Attributes
+    ----------
+    id : str
+    kind : {"trace", "facet"}
+        A projected line, or a projected polygon.
+    parts : list of (Mi, 3) float arrays
+        Continuous pieces on the surface, metres. A trace split at gaps and
+        occlusions has several; a facet's are the pieces of its ring.
+    properties : dict
+        ``label``, ``color``, ``source`` and the 2D feature's other properties.
+    ring_complete : bool
+        Facets: the whole ring is on the surface (one closed part).
+    patch_points : (K, 3) array or None
+        Facets: surface points inside the polygon (subsampled), metres.
+    patch_faces : (F,) int array or None
+        Facets: indices of the visible faces inside the polygon.
+    surface_normal : (3,) array or None
+        Mean surface normal under the feature, turned toward the camera.
+    samples : int
+        Rays cast along the line or ring.
+    missed : int
+        Of them, rays that met no surface or fell in dropped pieces.
+    """
+
+    id: str
+    kind: str
+    parts: list[np.ndarray]
+    properties: dict[str, Any]
+    ring_complete: bool = False
+    patch_points: np.ndarray | None = None
+    patch_faces: np.ndarray | None = None
+    surface_normal: np.ndarray | None = None
+    samples: int = 0
+    missed: int = 0
+
+    @property
+    def label(self) -> str:
+        return str(self.properties.get("label", "unlabelled"))
+
+    @property
+    def source(self) -> str:
+        return str(self.properties.get("source", ""))
+
+    @property
+    def color(self) -> str:
+        return label_color(self.label, self.properties.get("color"))
+
+    @property
+    def points(self) -> np.ndarray:
+        """All part vertices, (N, 3) metres."""
+        if not self.parts:
+            return np.zeros((0, 3))
+        return np.concatenate(self.parts)
+
+    @property
+    def n_points(self) -> int:
+        return sum(len(p) for p in self.parts)
+
+    @property
+    def length_m(self) -> float:
+        """Summed length of the parts, metres."""
+        return float(sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in self.parts))
+
+    def measure(self, thresholds: FitThresholds = DEFAULT_THRESHOLDS) -> Measurement:
+        """The feature's contract §6 measurement (see :mod:`napari_imgreg.structural`)."""
+        color = self.properties.get("color")
+        if self.kind == "facet":
+            pts = self.patch_points if self.patch_points is not None and len(self.patch_points) else self.points
+            m = measure_facet(pts, self.id, self.label, self.source, thresholds)
+        else:
+            m = measure_trace(
+                self.parts, self.id, self.label, self.source, self.surface_normal, thresholds
+            )
+        m.color = color
+        return m
+
+
+# ---------------------------------------------------------------- sampling
+def densify(pixels: np.ndarray, step_px: float = 1.0, closed: bool = False) -> np.ndarray:
+    """Samples along a polyline about ``step_px`` apart, every vertex kept.
+
+    Parameters
+    ----------
+    pixels : (N, 2) array
+        Vertices (x, y), pixels.
+    step_px : float
+    closed : bool
+        Also sample the segment from the last vertex back to the first (and
+        end on the first vertex again).
+
+    Returns
+    -------
+    (M, 2) array
+    """
+    p = np.asarray(pixels, np.float64).reshape(-1, 2)
+    if closed and len(p) > 2:
+        p = np.vstack([p, p[:1]])
+    if len(p) < 2:
+        return p.copy()
+    seg = np.diff(p, axis=0)
+    n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / step_px).astype(int))
+    t = np.concatenate([np.arange(k) / k for k in n])
+    start = np.repeat(np.arange(len(seg)), n)
+    out = p[start] + t[:, None] * seg[start]
+    return np.vstack([out, p[-1:]])
+
+
+@dataclass
+class ProjectedLine:
+    """The hits of a densified image polyline.
+
+    Attributes
+    ----------
+    pixels : (M, 2) array
+        The samples (x, y).
+    points : (M, 3) array
+        Surface points, NaN for misses; metres.
+    distance : (M,) array
+        Ray length to the hit, metres (inf for misses).
+    face_id : (M,) int array
+        Hit triangle, -1 for a miss.
+    part : (M,) int array
+        Index of the continuous part each sample belongs to, -1 where the
+        sample is off the surface or in a dropped piece.
+    normals : (M, 3) array
+        Face normals at the hits, turned toward the camera (0 for misses).
+    """
+
+    pixels: np.ndarray
+    points: np.ndarray
+    distance: np.ndarray
+    face_id: np.ndarray
+    part: np.ndarray
+    normals: np.ndarray
+
+    @property
+    def parts(self) -> list[np.ndarray]:
+        """The 3D parts, each (Mi, 3), in order."""
+        return [self.points[self.part == k] for k in range(int(self.part.max(initial=-1)) + 1)]
+
+
+def _breaks(
+    directions: np.ndarray, distance: np.ndarray, hit: np.ndarray, params: ProjectionParams
+) -> np.ndarray:
+    """(M - 1,) bool: is there a depth discontinuity between samples i and i+1?"""
+    r = np.where(hit, distance, 0.0)  # misses are inf: keep them out of the arithmetic
+    r0, r1 = r[:-1], r[1:]
+    d0, d1 = directions[:-1], directions[1:]
+    both = hit[:-1] & hit[1:]
+    # Lateral spacing of the two hits (the pixel footprint), from the angle
+    # between their rays; the depth step against it is cot(step-to-ray angle).
+    cos_a = np.clip(np.einsum("ij,ij->i", d0, d1), -1.0, 1.0)
+    angle = np.arccos(cos_a)
+    r_mean = np.where(both, (r0 + r1) / 2.0, 0.0)
+    lateral = np.maximum(r_mean * angle, 1e-9)
+    ratio = np.where(both, np.abs(r1 - r0) / lateral, 0.0)
+    breaks = ratio > 1.0 / math.tan(math.radians(params.grazing_deg))
+    if len(ratio) > 2 and params.jump_contrast > 0:
+        w = params.jump_window
+        padded = np.pad(np.where(both, ratio, np.nan), w, mode="constant", constant_values=np.nan)
+        windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * w + 1).copy()
+        windows[:, w] = np.nan  # the step itself is not its own neighbour
+        with warnings.catch_warnings():  # all-NaN windows (off the surface) are expected
+            warnings.simplefilter("ignore", RuntimeWarning)
+            local = np.nanmedian(windows, axis=1)
+        local = np.where(np.isfinite(local), local, 0.0)
+        breaks |= (ratio > params.jump_ratio) & (ratio > params.jump_contrast * local)
+    return breaks & both
+
+
+def project_polyline(
+    scene: Scene,
+    intrinsics: Intrinsics,
+    pose: Pose,
+    pixels: np.ndarray,
+    closed: bool = False,
+    params: ProjectionParams = ProjectionParams(),
+) -> ProjectedLine:
+    """Cast an image polyline onto the surface, split where it leaves it.
+
+    Parameters
+    ----------
+    scene : Scene
+        Its ray engine (built once, reused) does the casting.
+    intrinsics : Intrinsics
+        The photo's camera (at the photo's resolution).
+    pose : Pose
+        ``cam_from_world`` of the photo (the registration's).
+    pixels : (N, 2) array
+        Vertices (x = column, y = row).
+    closed : bool
+        A polygon's ring.
+    params : ProjectionParams
+
+    Returns
+    -------
+    ProjectedLine
+    """
+    samples = densify(pixels, params.step_px, closed)
+    if len(samples) == 0:
+        empty = np.zeros((0, 3))
+        return ProjectedLine(samples, empty, np.zeros(0), np.zeros(0, int), np.zeros(0, int), empty)
+    origin, directions = pose.rays(intrinsics, samples)
+    hits = scene.cast_rays(origin, directions)
+    points = scene.surface_points(hits)
+    hit = hits.hit
+    distance = hits.distance.astype(np.float64)
+    normals = np.zeros((len(samples), 3))
+    if hit.any():
+        n = scene.face_array("normals")[hits.face_id[hit]].astype(np.float64)
+        flip = np.einsum("ij,ij->i", n, directions[hit]) > 0
+        n[flip] *= -1
+        normals[hit] = n
+    cut = _breaks(directions, distance, hit, params)
+    # Runs of hit samples not interrupted by a break form the parts.
+    starts = np.concatenate([[True], cut | ~hit[:-1]]) & hit
+    run = np.cumsum(starts) - 1
+    run = np.where(hit, run, -1)
+    part = np.full(len(samples), -1)
+    k = 0
+    for r in range(int(run.max(initial=-1)) + 1):
+        sel = run == r
+        if sel.sum() >= params.min_part_points:
+            part[sel] = k
+            k += 1
+    return ProjectedLine(samples, points, distance, hits.face_id.copy(), part, normals)
+
+
+def surface_patch(
+    scene: Scene,
+    intrinsics: Intrinsics,
+    pose: Pose,
+    ring_pixels: np.ndarray,
+    max_points: int = 20_000,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Visible surface inside an image polygon: one ray per pixel centre inside.
+
+    Parameters
+    ----------
+    ring_pixels : (N, 2) array
+        The polygon (x, y), open or closed.
+    max_points : int
+        Points returned at most (an even subsample); all faces are returned.
+
+    Returns
+    -------
+    points : (K, 3) array
+        Surface points, metres.
+    faces : (F,) int array
+        Unique indices of the faces seen inside the polygon.
+    """
+    from skimage.draw import polygon
+
+    ring = np.asarray(ring_pixels, np.float64).reshape(-1, 2)
+    if len(ring) < 3:
+        return np.zeros((0, 3)), np.zeros(0, int)
+    rows, cols = polygon(ring[:, 1], ring[:, 0], shape=(intrinsics.height, intrinsics.width))
+    if len(rows) == 0:
+        return np.zeros((0, 3)), np.zeros(0, int)
+    pix = np.stack([cols, rows], axis=1).astype(np.float64)
+    origin, directions = pose.rays(intrinsics, pix)
+    hits = scene.cast_rays(origin, directions)
+    ok = hits.hit
+    faces = np.unique(hits.face_id[ok])
+    pts = scene.surface_points(hits)[ok]
+    if len(pts) > max_points:
+        pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(int)]
+    return pts, faces
+
+
+# -------------------------------------------------------------- projection
+def project_interpretations(
+    scene: Scene,
+    intrinsics: Intrinsics,
+    pose: Pose,
+    interpretations: Sequence[Interpretation],
+    source: str = "",
+    params: ProjectionParams = ProjectionParams(),
+    id_prefix: str | None = None,
+) -> list[Feature3D]:
+    """Project the features drawn on one registered photo onto the surface.
+
+    Parameters
+    ----------
+    scene : Scene
+    intrinsics : Intrinsics
+    pose : Pose
+        The photo's registered ``cam_from_world``.
+    interpretations : list of Interpretation
+    source : str
+        The photo's name, recorded as ``properties.source``.
+    params : ProjectionParams
+    id_prefix : str, optional
+        Feature ids are ``"<prefix>:<n>"`` (default: the source's stem), or
+        the 2D feature's ``properties.id`` when it has one.
+
+    Returns
+    -------
+    list of Feature3D
+        One per interpretation, in order (a feature wholly off the surface
+        has no parts).
+    """
+    if scene._engine is None:
+        scene.build_engine()
+    prefix = id_prefix if id_prefix is not None else (source.rsplit(".", 1)[0] or "f")
+    out = []
+    for k, item in enumerate(interpretations):
+        closed = item.geometry == "Polygon"
+        line = project_polyline(scene, intrinsics, pose, item.pixels, closed, params)
+        props = dict(item.properties)
+        props["label"] = item.label
+        props.setdefault("color", item.color)
+        if source:
+            props["source"] = source
+        fid = str(props.pop("id", None) or f"{prefix}:{k + 1}")
+        parts = line.parts
+        on = line.part >= 0
+        normal = None
+        if on.any():
+            nsum = line.normals[on].sum(axis=0)
+            if np.linalg.norm(nsum) > 0:
+                normal = nsum / np.linalg.norm(nsum)
+        feature = Feature3D(
+            id=fid,
+            kind="facet" if closed else "trace",
+            parts=parts,
+            properties=props,
+            surface_normal=normal,
+            samples=len(line.pixels),
+            missed=int((~on).sum()),
+        )
+        if closed:
+            # The ring is whole when every sample is in the one part (the
+            # closing sample repeats the first, so the part closes on itself).
+            feature.ring_complete = len(parts) == 1 and bool(on.all())
+            pts, faces = surface_patch(
+                scene, intrinsics, pose, item.pixels, params.patch_max_points
+            )
+            feature.patch_points, feature.patch_faces = pts, faces
+        out.append(feature)
+    return out
+
+
+def merge_interpretations(*sets: Iterable[Feature3D]) -> list[Feature3D]:
+    """One interpretation set from several photos' projections.
+
+    Features keep their ``properties.source``; an id already used by an
+    earlier feature is made unique by prefixing the source.
+    """
+    seen: set[str] = set()
+    out = []
+    for features in sets:
+        for f in features:
+            fid = f.id
+            if fid in seen:
+                fid = f"{f.source or 'photo'}:{fid}"
+                n = 2
+                while fid in seen:
+                    fid = f"{f.source or 'photo'}:{f.id}#{n}"
+                    n += 1
+                f = replace(f, id=fid)
+            seen.add(fid)
+            out.append(f)
+    return out
+
+
+def measure_features(
+    features: Sequence[Feature3D], thresholds: FitThresholds = DEFAULT_THRESHOLDS
+) -> list[Measurement]:
+    """Contract §6 measurements of projected features (those with points)."""
+    return [f.measure(thresholds) for f in features if f.n_points or (
+        f.patch_points is not None and len(f.patch_points))]

@@ -1,0 +1,784 @@
+"""Structural measurements from 3D traces and facets: lines, planes, stereonets.
+
+Conventions (public contract §6):
+
+* Frame: local ENU metres (+X east, +Y north, +Z up).
+* A line's *plunge* is its angle below the horizontal, positive downward; its
+  *trend* the azimuth of its downward-pointing direction, degrees clockwise
+  from north (+Y), in [0, 360). A horizontal line's trend is given in [0, 180).
+* A plane's *dip* is its angle from the horizontal in [0, 90]; its *dip
+  direction* the azimuth of steepest descent, clockwise from north.
+* Undefined values are ``None`` (an empty CSV cell), never a made-up number.
+
+Vetting of plane fits follows CloudCompare's Compass plugin (Thiele et al.,
+2017): with the covariance eigenvalues ``λ1 ≥ λ2 ≥ λ3`` of the points,
+``planarity = 1 - λ3 / λ2`` (1 for a plane, 0 for a line or a blob) must reach
+0.75, and a plane fitted to a *trace* is rejected when its normal lies within
+10° of the mean surface normal along the trace — such a "plane" is the outcrop
+face the trace was drawn on, not the structure. We add ``collinearity = 1 -
+λ2 / λ1`` and require the trace to leave its best-fit line by a minimum
+*relief*, ``sqrt(λ2 / λ1)``: a nearly straight trace defines no plane, whatever
+its planarity says.
+
+References
+----------
+Thiele, S. T., Grose, L., Samsu, A., Micklethwaite, S., Vollgger, S. A. and
+Cruden, A. R. (2017). Rapid, semi-automatic fracture and contact mapping for
+point clouds, images and geophysical data. *Solid Earth* 8, 1241–1253.
+https://doi.org/10.5194/se-8-1241-2017
+
+Fisher, R. A. (1953). Dispersion on a sphere. *Proc. R. Soc. Lond. A* 217,
+295–305. https://doi.org/10.1098/rspa.1953.0064
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+__all__ = [
+    "FitThresholds",
+    "LineFit",
+    "PlaneFit",
+    "FisherMean",
+    "Measurement",
+    "fit_line",
+    "fit_plane",
+    "plunge_trend",
+    "vector_from_plunge_trend",
+    "dip_dip_direction",
+    "normal_from_dip",
+    "pole_of_plane",
+    "fisher_mean",
+    "measure_trace",
+    "measure_facet",
+    "equal_area",
+    "draw_stereonet",
+    "save_stereonet",
+]
+
+
+@dataclass(frozen=True)
+class FitThresholds:
+    """When a fitted plane is well posed enough to report.
+
+    Attributes
+    ----------
+    min_planarity : float
+        ``1 - λ3/λ2`` must reach this (CloudCompare Compass default 0.75).
+    surface_effect_deg : float
+        A trace's plane is rejected when its normal is within this angle of
+        the mean surface normal along the trace (Compass default 10°).
+    min_relief : float
+        ``sqrt(λ2/λ1)``, the trace's spread off its best-fit line relative to
+        its spread along it, must reach this (0.05: a 20 m trace must bow out
+        by about ±1 m RMS across relief).
+    min_points : int
+        Points a plane needs.
+    """
+
+    min_planarity: float = 0.75
+    surface_effect_deg: float = 10.0
+    min_relief: float = 0.05
+    min_points: int = 5
+
+
+DEFAULT_THRESHOLDS = FitThresholds()
+
+
+# ------------------------------------------------------------- orientations
+def plunge_trend(direction: np.ndarray) -> tuple[float, float]:
+    """Plunge and trend (degrees) of a line from a direction of either sign.
+
+    Parameters
+    ----------
+    direction : (3,) array
+        Any non-zero vector along the line (x east, y north, z up).
+
+    Returns
+    -------
+    plunge_deg : float
+        In [0, 90], positive downward.
+    trend_deg : float
+        In [0, 360) — [0, 180) for a horizontal line.
+
+    Examples
+    --------
+    >>> plunge_trend(np.array([0.0, -1.0, -1.0]))
+    (45.0, 180.0)
+    """
+    d = np.asarray(direction, np.float64)
+    d = d / np.linalg.norm(d)
+    if d[2] > 0:
+        d = -d
+    horizontal = math.hypot(d[0], d[1])
+    plunge = math.degrees(math.atan2(-d[2], horizontal))
+    if horizontal < 1e-12:
+        return 90.0, 0.0
+    trend = math.degrees(math.atan2(d[0], d[1])) % 360.0
+    if plunge < 1e-9:
+        plunge = 0.0
+        trend %= 180.0
+    return float(plunge), float(_wrap(trend))
+
+
+def vector_from_plunge_trend(plunge_deg: float, trend_deg: float) -> np.ndarray:
+    """Unit downward vector (3,) of a line with the given plunge and trend."""
+    p, t = math.radians(plunge_deg), math.radians(trend_deg)
+    return np.array([math.cos(p) * math.sin(t), math.cos(p) * math.cos(t), -math.sin(p)])
+
+
+def dip_dip_direction(normal: np.ndarray) -> tuple[float, float]:
+    """Dip and dip direction (degrees) of a plane from a normal of either sign.
+
+    Parameters
+    ----------
+    normal : (3,) array
+
+    Returns
+    -------
+    dip_deg : float
+        In [0, 90].
+    dip_direction_deg : float
+        Azimuth of steepest descent in [0, 360); 0 for a horizontal plane.
+
+    Examples
+    --------
+    >>> [round(v, 6) for v in dip_dip_direction(normal_from_dip(30.0, 120.0))]
+    [30.0, 120.0]
+    """
+    n = np.asarray(normal, np.float64)
+    n = n / np.linalg.norm(n)
+    if n[2] < 0:
+        n = -n
+    horizontal = math.hypot(n[0], n[1])
+    dip = math.degrees(math.atan2(horizontal, n[2]))
+    if horizontal < 1e-12:
+        return 0.0, 0.0
+    # The upward normal leans toward the dip direction.
+    return float(dip), float(_wrap(math.degrees(math.atan2(n[0], n[1])) % 360.0))
+
+
+def normal_from_dip(dip_deg: float, dip_direction_deg: float) -> np.ndarray:
+    """Upward unit normal (3,) of a plane with the given dip and dip direction."""
+    d, a = math.radians(dip_deg), math.radians(dip_direction_deg)
+    return np.array([math.sin(d) * math.sin(a), math.sin(d) * math.cos(a), math.cos(d)])
+
+
+def pole_of_plane(dip_deg: float, dip_direction_deg: float) -> tuple[float, float]:
+    """Plunge and trend (degrees) of a plane's downward pole."""
+    return 90.0 - dip_deg, (dip_direction_deg + 180.0) % 360.0
+
+
+def _wrap(angle: float) -> float:
+    return 0.0 if angle >= 360.0 - 1e-9 else angle
+
+
+# ---------------------------------------------------------------------- fits
+def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centroid (3,), covariance eigenvalues (3,) descending, axes (3, 3) as rows."""
+    centroid = points.mean(axis=0)
+    centered = points - centroid
+    # SVD of the centred points: right singular vectors are the principal axes.
+    _, s, vt = np.linalg.svd(centered, full_matrices=False)
+    eig = np.zeros(3)
+    eig[: len(s)] = s**2 / max(len(points), 1)
+    axes = np.zeros((3, 3))
+    axes[: len(vt)] = vt
+    if len(vt) < 3:  # two points: complete the frame
+        axes[2] = np.cross(axes[0], axes[1]) if np.any(axes[1]) else 0.0
+    return centroid, eig, axes
+
+
+@dataclass
+class LineFit:
+    """Best-fit 3D line (total least squares).
+
+    Attributes
+    ----------
+    centroid : (3,) array
+        A point on the line, metres.
+    direction : (3,) array
+        Unit direction, pointing down (or along +trend when horizontal).
+    plunge_deg, trend_deg : float
+    rms_m : float
+        RMS perpendicular distance of the points to the line, metres.
+    collinearity : float
+        ``1 - λ2/λ1`` (1 for points on a line); NaN for fewer than 3 points.
+    length_m : float
+        Extent of the points along the line, metres.
+    n_points : int
+    """
+
+    centroid: np.ndarray
+    direction: np.ndarray
+    plunge_deg: float
+    trend_deg: float
+    rms_m: float
+    collinearity: float
+    length_m: float
+    n_points: int
+
+
+@dataclass
+class PlaneFit:
+    """Best-fit plane (total least squares, SVD) and whether it is well posed.
+
+    Attributes
+    ----------
+    centroid : (3,) array
+        A point on the plane, metres.
+    normal : (3,) array
+        Upward unit normal.
+    dip_deg, dip_direction_deg : float
+    rms_m : float
+        RMS distance of the points to the plane, metres.
+    planarity : float
+        ``1 - λ3/λ2`` (Compass): 1 for a plane, 0 for a line or a blob.
+    collinearity : float
+        ``1 - λ2/λ1``: 1 for points on a line.
+    relief : float
+        ``sqrt(λ2/λ1)``: spread across the best-fit line over spread along it.
+    n_points : int
+    ok : bool
+        The fit passed the thresholds.
+    reason : str
+        Why it did not (empty when ``ok``).
+    """
+
+    centroid: np.ndarray
+    normal: np.ndarray
+    dip_deg: float
+    dip_direction_deg: float
+    rms_m: float
+    planarity: float
+    collinearity: float
+    relief: float
+    n_points: int
+    ok: bool = True
+    reason: str = ""
+
+
+def _as_points(points: np.ndarray | Sequence[np.ndarray]) -> np.ndarray:
+    if isinstance(points, np.ndarray):
+        p = points
+    else:
+        parts = [np.asarray(a, np.float64).reshape(-1, 3) for a in points]
+        p = np.concatenate(parts) if parts else np.zeros((0, 3))
+    p = np.asarray(p, np.float64).reshape(-1, 3)
+    return p[np.isfinite(p).all(axis=1)]
+
+
+def fit_line(points: np.ndarray | Sequence[np.ndarray]) -> LineFit | None:
+    """Best-fit 3D line through points (first principal axis).
+
+    Parameters
+    ----------
+    points : (N, 3) array or list of (Ni, 3) arrays
+        Metres; the parts of a split trace may be given as a list.
+
+    Returns
+    -------
+    LineFit or None
+        None with fewer than two distinct points.
+
+    Examples
+    --------
+    >>> t = np.linspace(0, 10, 11)[:, None]
+    >>> fit = fit_line(t * vector_from_plunge_trend(30.0, 250.0))
+    >>> round(fit.plunge_deg, 6), round(fit.trend_deg, 6)
+    (30.0, 250.0)
+    """
+    p = _as_points(points)
+    if len(p) < 2:
+        return None
+    centroid, eig, axes = _principal_axes(p)
+    if eig[0] <= 1e-18:
+        return None
+    d = axes[0]
+    plunge, trend = plunge_trend(d)
+    d = vector_from_plunge_trend(plunge, trend)
+    along = (p - centroid) @ d
+    perp = (p - centroid) - along[:, None] * d
+    collinearity = 1.0 - eig[1] / eig[0] if len(p) >= 3 else math.nan
+    return LineFit(
+        centroid=centroid,
+        direction=d,
+        plunge_deg=plunge,
+        trend_deg=trend,
+        rms_m=float(np.sqrt((perp**2).sum(axis=1).mean())),
+        collinearity=float(collinearity),
+        length_m=float(along.max() - along.min()),
+        n_points=len(p),
+    )
+
+
+def fit_plane(
+    points: np.ndarray | Sequence[np.ndarray],
+    thresholds: FitThresholds = DEFAULT_THRESHOLDS,
+    surface_normal: np.ndarray | None = None,
+    check_relief: bool = True,
+) -> PlaneFit | None:
+    """Best-fit plane through points, vetted as CloudCompare's Compass does.
+
+    Parameters
+    ----------
+    points : (N, 3) array or list of (Ni, 3) arrays
+        Metres.
+    thresholds : FitThresholds
+    surface_normal : (3,) array, optional
+        Mean surface normal where the points were picked (a trace's): a plane
+        within ``thresholds.surface_effect_deg`` of it is rejected.
+    check_relief : bool
+        Require ``relief >= thresholds.min_relief`` (for traces; a facet's
+        points cover an area by construction).
+
+    Returns
+    -------
+    PlaneFit or None
+        None with fewer than three points or when they are all on one line
+        exactly. Otherwise a fit whose ``ok``/``reason`` say whether it passed.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> n = normal_from_dip(40.0, 135.0)
+    >>> a = np.cross(n, [0, 0, 1.0]); a /= np.linalg.norm(a); b = np.cross(n, a)
+    >>> uv = rng.uniform(-5, 5, (200, 2))
+    >>> fit = fit_plane(uv[:, :1] * a + uv[:, 1:] * b)
+    >>> round(fit.dip_deg, 6), round(fit.dip_direction_deg, 6), fit.ok
+    (40.0, 135.0, True)
+    """
+    p = _as_points(points)
+    if len(p) < 3:
+        return None
+    centroid, eig, axes = _principal_axes(p)
+    if eig[1] <= 1e-18 * max(eig[0], 1e-300):
+        return None
+    normal = axes[2]
+    if normal[2] < 0:
+        normal = -normal
+    dip, ddir = dip_dip_direction(normal)
+    dist = (p - centroid) @ normal
+    planarity = 1.0 - eig[2] / eig[1]
+    collinearity = 1.0 - eig[1] / eig[0]
+    relief = math.sqrt(eig[1] / eig[0])
+    reasons = []
+    if len(p) < thresholds.min_points:
+        reasons.append(f"{len(p)} points (< {thresholds.min_points})")
+    if planarity < thresholds.min_planarity:
+        reasons.append(f"planarity {planarity:.2f} < {thresholds.min_planarity:.2f}")
+    if check_relief and relief < thresholds.min_relief:
+        reasons.append(
+            f"too little relief ({relief:.3f} < {thresholds.min_relief:.3f}): nearly straight"
+        )
+    if surface_normal is not None and np.all(np.isfinite(surface_normal)):
+        s = np.asarray(surface_normal, np.float64)
+        s = s / np.linalg.norm(s)
+        angle = math.degrees(math.acos(min(1.0, abs(float(s @ normal)))))
+        if angle < thresholds.surface_effect_deg:
+            reasons.append(
+                f"plane within {angle:.1f}° of the outcrop surface "
+                f"(< {thresholds.surface_effect_deg:.0f}°)"
+            )
+    return PlaneFit(
+        centroid=centroid,
+        normal=normal,
+        dip_deg=dip,
+        dip_direction_deg=ddir,
+        rms_m=float(np.sqrt((dist**2).mean())),
+        planarity=float(planarity),
+        collinearity=float(collinearity),
+        relief=float(relief),
+        n_points=len(p),
+        ok=not reasons,
+        reason="; ".join(reasons),
+    )
+
+
+# --------------------------------------------------------------- measurements
+@dataclass
+class Measurement:
+    """One row of ``MEASUREMENTS.csv`` (contract §6).
+
+    Angles are degrees; ``None`` means undefined (an empty cell).
+
+    Attributes
+    ----------
+    id, label : str
+    kind : {"trace", "facet"}
+    centroid : (3,) array
+        Metres (local frame, or the CRS when the input was georeferenced).
+    n_points : int
+    dip_deg, dip_direction_deg : float or None
+        From the best-fit plane, when it is well posed.
+    plunge_deg, trend_deg : float or None
+        From the best-fit line (traces only).
+    rms_m : float or None
+        RMS distance to the reported plane; for a trace without a plane, to
+        its line.
+    planarity : float or None
+        Compass planarity ``1 - λ3/λ2`` (reported even when the plane is
+        rejected: it says why).
+    collinearity : float or None
+        ``1 - λ2/λ1``.
+    source : str
+        Photo(s) the feature was drawn on.
+    note : str
+        Why a plane was not reported.
+    """
+
+    id: str
+    label: str
+    kind: str
+    centroid: np.ndarray
+    n_points: int
+    dip_deg: float | None = None
+    dip_direction_deg: float | None = None
+    plunge_deg: float | None = None
+    trend_deg: float | None = None
+    rms_m: float | None = None
+    planarity: float | None = None
+    collinearity: float | None = None
+    source: str = ""
+    note: str = ""
+    color: str | None = None
+
+    @property
+    def has_plane(self) -> bool:
+        return self.dip_deg is not None
+
+
+def measure_trace(
+    parts: Sequence[np.ndarray],
+    id: str = "",
+    label: str = "",
+    source: str = "",
+    surface_normal: np.ndarray | None = None,
+    thresholds: FitThresholds = DEFAULT_THRESHOLDS,
+) -> Measurement:
+    """Measure a 3D trace: line → plunge/trend; well-posed plane → dip/dip direction.
+
+    Parameters
+    ----------
+    parts : list of (Ni, 3) arrays
+        The trace's pieces on the surface (metres).
+    surface_normal : (3,) array, optional
+        Mean outcrop-surface normal along the trace (rejects "surface planes").
+    """
+    pts = _as_points(parts)
+    centroid = pts.mean(axis=0) if len(pts) else np.full(3, np.nan)
+    m = Measurement(id, label, "trace", centroid, len(pts), source=source)
+    line = fit_line(pts)
+    if line is None:
+        m.note = "fewer than two points on the surface"
+        return m
+    m.plunge_deg, m.trend_deg = line.plunge_deg, line.trend_deg
+    m.rms_m = line.rms_m
+    m.collinearity = None if math.isnan(line.collinearity) else line.collinearity
+    plane = fit_plane(pts, thresholds, surface_normal=surface_normal, check_relief=True)
+    if plane is None:
+        m.note = "no plane: points on one line"
+        return m
+    m.planarity = plane.planarity
+    if plane.ok:
+        m.dip_deg, m.dip_direction_deg = plane.dip_deg, plane.dip_direction_deg
+        m.rms_m = plane.rms_m
+    else:
+        m.note = "no plane: " + plane.reason
+    return m
+
+
+def measure_facet(
+    points: np.ndarray,
+    id: str = "",
+    label: str = "",
+    source: str = "",
+    thresholds: FitThresholds = DEFAULT_THRESHOLDS,
+) -> Measurement:
+    """Measure a facet: the plane fitted to the surface points inside it.
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        Surface points inside the facet (metres).
+    """
+    pts = _as_points(points)
+    centroid = pts.mean(axis=0) if len(pts) else np.full(3, np.nan)
+    m = Measurement(id, label, "facet", centroid, len(pts), source=source)
+    plane = fit_plane(pts, thresholds, check_relief=False)
+    if plane is None:
+        m.note = "too few surface points for a plane"
+        return m
+    m.planarity, m.collinearity = plane.planarity, plane.collinearity
+    if plane.ok:
+        m.dip_deg, m.dip_direction_deg = plane.dip_deg, plane.dip_direction_deg
+        m.rms_m = plane.rms_m
+    else:
+        m.note = "no plane: " + plane.reason
+    return m
+
+
+# ------------------------------------------------------------- Fisher statistics
+@dataclass
+class FisherMean:
+    """Fisher mean of unit vectors (axial data aligned first).
+
+    Attributes
+    ----------
+    vector : (3,) array
+        Mean unit vector (pointing down for poles).
+    plunge_deg, trend_deg : float
+    n : int
+    resultant : float
+        Length R of the vector sum.
+    kappa : float or None
+        Precision ``(N - 1) / (N - R)``; None for N < 2, inf when all agree.
+    alpha95_deg : float or None
+        Semi-angle of the 95 % confidence cone; None for N < 2.
+    """
+
+    vector: np.ndarray
+    plunge_deg: float
+    trend_deg: float
+    n: int
+    resultant: float
+    kappa: float | None
+    alpha95_deg: float | None
+
+
+def fisher_mean(vectors: np.ndarray, axial: bool = True) -> FisherMean | None:
+    """Fisher (1953) mean direction, precision and α95 of unit vectors.
+
+    Parameters
+    ----------
+    vectors : (N, 3) array
+        Directions (normalised here). Poles to planes are axes: with
+        ``axial`` they are first turned to agree with the principal axis of
+        their orientation tensor, so steep poles on both sides of the
+        horizontal do not cancel.
+
+    Returns
+    -------
+    FisherMean or None
+        None without vectors.
+
+    Examples
+    --------
+    >>> v = np.array([[0, 0, -1.0], [0.01, 0, -1], [0, 0.01, -1]])
+    >>> fm = fisher_mean(v)
+    >>> fm.n, round(fm.plunge_deg, 1), fm.alpha95_deg < 2.0
+    (3, 89.7, True)
+    """
+    v = np.asarray(vectors, np.float64).reshape(-1, 3)
+    v = v[np.isfinite(v).all(axis=1)]
+    if len(v) == 0:
+        return None
+    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    if axial:
+        _, vec = np.linalg.eigh(v.T @ v)
+        principal = vec[:, -1]
+        v = v * np.where(v @ principal < 0, -1.0, 1.0)[:, None]
+    s = v.sum(axis=0)
+    R = float(np.linalg.norm(s))
+    mean = s / R
+    if mean[2] > 0 and axial:
+        mean = -mean
+    plunge, trend = plunge_trend(mean)
+    n = len(v)
+    if n < 2:
+        return FisherMean(mean, plunge, trend, n, R, None, None)
+    spread = n - R
+    if spread <= 1e-12:
+        return FisherMean(mean, plunge, trend, n, R, math.inf, 0.0)
+    kappa = (n - 1) / spread
+    c = 1.0 - spread / R * (20.0 ** (1.0 / (n - 1)) - 1.0)
+    alpha95 = math.degrees(math.acos(max(-1.0, min(1.0, c))))
+    return FisherMean(mean, plunge, trend, n, R, kappa, alpha95)
+
+
+# ---------------------------------------------------------------- stereonets
+def equal_area(plunge_deg: np.ndarray, trend_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower-hemisphere equal-area (Schmidt) projection of lines.
+
+    Parameters
+    ----------
+    plunge_deg, trend_deg : array_like
+        Degrees; plunge positive downward.
+
+    Returns
+    -------
+    x, y : ndarray
+        Position in the unit circle: north up (+y), east right (+x).
+    """
+    p = np.radians(np.asarray(plunge_deg, np.float64))
+    t = np.radians(np.asarray(trend_deg, np.float64))
+    # Lambert azimuthal equal-area, scaled so the primitive circle has radius 1.
+    r = np.sqrt(2.0) * np.sin((np.pi / 2 - p) / 2.0)
+    return r * np.sin(t), r * np.cos(t)
+
+
+def _vectors_to_net(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    v = np.asarray(v, np.float64).reshape(-1, 3)
+    v = v * np.where(v[:, 2] > 0, -1.0, 1.0)[:, None]  # lower hemisphere
+    plunge = np.degrees(np.arcsin(np.clip(-v[:, 2], -1, 1)))
+    trend = np.degrees(np.arctan2(v[:, 0], v[:, 1]))
+    return equal_area(plunge, trend)
+
+
+def _great_circle(dip_deg: float, dip_direction_deg: float, n: int = 181):
+    """Net coordinates of a plane's great circle (strike to strike)."""
+    normal = normal_from_dip(dip_deg, dip_direction_deg)
+    strike = np.radians(dip_direction_deg - 90.0)
+    a = np.array([math.sin(strike), math.cos(strike), 0.0])
+    b = np.cross(normal, a)
+    if b[2] > 0:
+        b = -b
+    t = np.linspace(0.0, np.pi, n)[:, None]
+    return _vectors_to_net(np.cos(t) * a + np.sin(t) * b)
+
+
+def _small_circle(axis: np.ndarray, half_angle_deg: float, n: int = 181):
+    """Net coordinates of a cone about ``axis``; pieces split at the primitive."""
+    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    w = np.cross(axis, u)
+    a = math.radians(half_angle_deg)
+    t = np.linspace(0, 2 * np.pi, n)[:, None]
+    v = math.cos(a) * axis + math.sin(a) * (np.cos(t) * u + np.sin(t) * w)
+    lower = v[:, 2] <= 0
+    pieces, start = [], 0
+    for k in range(1, len(v) + 1):
+        if k == len(v) or lower[k] != lower[start]:
+            seg = v[start:k]
+            if len(seg) > 1:
+                pieces.append(_vectors_to_net(seg))
+            start = k
+    return pieces
+
+
+def _label_colors(labels: Iterable[str], colors: dict[str, str] | None) -> dict[str, str]:
+    import matplotlib
+
+    cycle = matplotlib.rcParams["axes.prop_cycle"].by_key().get("color", ["C0"])
+    out: dict[str, str] = {}
+    for k, label in enumerate(sorted(set(labels))):
+        out[label] = (colors or {}).get(label) or cycle[k % len(cycle)]
+    return out
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
+def draw_stereonet(
+    ax: Axes,
+    measurements: Sequence[Measurement],
+    colors: dict[str, str] | None = None,
+    great_circles: bool = True,
+    title: str | None = None,
+) -> dict[str, FisherMean]:
+    """Draw a lower-hemisphere equal-area stereonet of measurements.
+
+    Poles (dots) and great circles of planes, lineations of traces
+    (triangles), and per label the Fisher mean pole (star) with its α95 cone.
+
+    Parameters
+    ----------
+    ax : matplotlib Axes
+    measurements : list of Measurement
+    colors : dict, optional
+        Colour per label (e.g. ``{"fault": "red"}``); others from the cycle.
+    great_circles : bool
+    title : str, optional
+
+    Returns
+    -------
+    dict
+        Fisher mean of the poles per label (labels with at least one plane).
+    """
+    from matplotlib.patches import Circle
+
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    ax.add_patch(Circle((0, 0), 1.0, fill=False, lw=1.2, color="black"))
+    ax.plot([0], [0], "+", color="grey", ms=6)
+    for ang, text in ((0, "N"), (90, "E"), (180, "S"), (270, "W")):
+        s, c = math.sin(math.radians(ang)), math.cos(math.radians(ang))
+        ax.plot([0.97 * s, 1.03 * s], [0.97 * c, 1.03 * c], color="black", lw=1)
+        ax.text(1.12 * s, 1.12 * c, text, ha="center", va="center", fontsize=9)
+    label_colors = _label_colors([m.label for m in measurements], colors)
+    means: dict[str, FisherMean] = {}
+    handles = []
+    for label, color in label_colors.items():
+        ms = [m for m in measurements if m.label == label]
+        planes = [m for m in ms if m.has_plane]
+        lines = [m for m in ms if m.kind == "trace" and m.plunge_deg is not None]
+        if great_circles:
+            for m in planes:
+                x, y = _great_circle(m.dip_deg, m.dip_direction_deg)
+                ax.plot(x, y, color=color, lw=0.7, alpha=0.6)
+        text = f"{label}"
+        if planes:
+            poles = np.array([pole_of_plane(m.dip_deg, m.dip_direction_deg) for m in planes])
+            x, y = equal_area(poles[:, 0], poles[:, 1])
+            ax.plot(x, y, "o", color=color, ms=4, mec="black", mew=0.4)
+            vec = np.array([vector_from_plunge_trend(p, t) for p, t in poles])
+            fm = fisher_mean(vec)
+            means[label] = fm
+            dip, ddir = dip_dip_direction(fm.vector)
+            text += f": {_count(len(planes), 'plane')}, mean {dip:.0f}°/{ddir:03.0f}°"
+            if fm.alpha95_deg is not None:
+                text += f", α95 {fm.alpha95_deg:.1f}°"
+                for px, py in _small_circle(fm.vector, fm.alpha95_deg):
+                    ax.plot(px, py, color=color, lw=1.2)
+            mx, my = equal_area(fm.plunge_deg, fm.trend_deg)
+            ax.plot([mx], [my], "*", color=color, ms=12, mec="black", mew=0.6)
+        if lines:
+            x, y = equal_area([m.plunge_deg for m in lines], [m.trend_deg for m in lines])
+            ax.plot(x, y, "^", color=color, ms=4, mec="black", mew=0.4, alpha=0.8)
+            text += f"; {_count(len(lines), 'trace')}"
+        handles.append((color, text))
+    for k, (color, text) in enumerate(handles):
+        ax.text(-1.25, -1.25 - 0.11 * k, "■ ", color=color, fontsize=9, va="center")
+        ax.text(-1.12, -1.25 - 0.11 * k, text, fontsize=8, va="center")
+    ax.set_xlim(-1.3, 1.3)
+    ax.set_ylim(-1.3 - 0.11 * max(len(handles) - 1, 0), 1.2)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return means
+
+
+def save_stereonet(
+    path,
+    measurements: Sequence[Measurement],
+    colors: dict[str, str] | None = None,
+    title: str = "Lower hemisphere, equal area",
+) -> Figure:
+    """Draw the stereonet and write it as an image (atomically).
+
+    Parameters
+    ----------
+    path : path-like
+        ``.png`` (or any format matplotlib writes by extension).
+    """
+    from matplotlib.figure import Figure
+
+    from ._atomic import atomic_path
+
+    n_labels = len({m.label for m in measurements})
+    fig = Figure(figsize=(6, 6.3 + 0.3 * n_labels))
+    ax = fig.add_axes([0.02, 0.02, 0.96, 0.92])
+    draw_stereonet(ax, measurements, colors, title=title)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    return fig

@@ -1,0 +1,642 @@
+"""Dock widget: draw interpretations on registered photos, project them onto the
+model in 3D, measure them (backend: :mod:`napari_imgreg.interpret`,
+:mod:`napari_imgreg.structural`).
+
+A *registered photo* is an Image layer whose metadata carries its camera and
+pose: ``metadata["result"]`` (a RESULT.json dict), or ``metadata["intrinsics"]``
+and ``metadata["pose"]`` (contract dicts or :class:`Intrinsics`/:class:`Pose`),
+or ``metadata["imgreg_registration"]`` (a :class:`~napari_imgreg.pipeline.Registration`).
+"Attach RESULT.json…" adds one to any Image layer. The model is a Surface
+layer with ``metadata["imgreg_scene"]`` (the reader and the sample data set it).
+
+Per photo, an interpretation Shapes layer (paths, lines, polygons) is drawn
+over it, one label class at a time (sandstone yellow, mudstone grey, fault
+red, or your own). *Project* casts every interpretation layer onto the model in
+a napari thread worker and shows one 3D layer per photo (togglable), coloured
+by label, with the measurements table and the stereonet.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+from matplotlib.colors import to_hex
+from matplotlib.figure import Figure
+from qtpy.QtCore import Signal
+from qtpy.QtWidgets import (
+    QCheckBox,
+    QComboBox,
+    QFileDialog,
+    QFormLayout,
+    QHBoxLayout,
+    QLabel,
+    QLineEdit,
+    QPushButton,
+    QTableWidget,
+    QTableWidgetItem,
+    QTabWidget,
+    QVBoxLayout,
+    QWidget,
+)
+
+from .._layers import napari_from_pixels, napari_from_world, pixels_from_napari
+from ..camera import Intrinsics, Pose
+from ..errors import InputError
+from ..interpret import (
+    LABEL_COLORS,
+    Feature3D,
+    Interpretation,
+    label_color,
+    merge_interpretations,
+    project_interpretations,
+)
+from ..structural import Measurement, draw_stereonet
+
+if TYPE_CHECKING:
+    import napari
+
+__all__ = ["InterpretWidget", "camera_of_layer", "interpretations_from_shapes"]
+
+log = logging.getLogger(__name__)
+
+#: Metadata keys on the layers this widget makes.
+INTERP_KEY = "imgreg_interpretation_of"  # Shapes layer: name of its photo layer
+PROJECTED_KEY = "imgreg_projected_from"  # 3D layer: name of its photo layer
+_GEOJSON_FILTER = "GeoJSON (*.geojson *.json);;All files (*)"
+_EXPORT_FILTER = "3D GeoJSON (*.geojson);;CSV vertices (*.csv);;OBJ polylines (*.obj);;PLY polylines (*.ply)"
+_LINE_TYPES = ("path", "line")
+_POLYGON_TYPES = ("polygon", "rectangle", "ellipse")
+_TABLE_COLUMNS = ("id", "label", "kind", "dip", "dip dir.", "plunge", "trend", "rms (m)",
+                  "planarity", "source", "note")
+
+
+def camera_of_layer(layer) -> tuple[Intrinsics, Pose, str] | None:
+    """Camera, pose and photo name of a registered photo layer (None if it is not one)."""
+    meta = getattr(layer, "metadata", {}) or {}
+    reg = meta.get("imgreg_registration")
+    if reg is not None and hasattr(reg, "pose"):
+        return reg.intrinsics, reg.pose, reg.photo or layer.name
+    result = meta.get("result")
+    if isinstance(result, dict) and "camera" in result and "pose" in result:
+        try:
+            return (Intrinsics.from_dict(result["camera"]), Pose.from_dict(result["pose"]),
+                    str(result.get("photo") or layer.name))
+        except (KeyError, TypeError, ValueError):
+            return None
+    intr, pose = meta.get("intrinsics"), meta.get("pose")
+    if intr is None or pose is None:
+        return None
+    try:
+        intr = intr if isinstance(intr, Intrinsics) else Intrinsics.from_dict(intr)
+        pose = pose if isinstance(pose, Pose) else Pose.from_dict(pose)
+    except (KeyError, TypeError, ValueError):
+        return None
+    name = Path(str(meta.get("photo_path", ""))).name or layer.name
+    return intr, pose, name
+
+
+def interpretations_from_shapes(layer) -> list[Interpretation]:
+    """The drawn shapes of an interpretation layer as pixel interpretations.
+
+    Paths and lines become LineStrings, polygons (rectangles, ellipses)
+    Polygons; ``features["label"]`` gives the label, the edge colour the colour.
+    """
+    labels = None
+    if "label" in getattr(layer, "features", {}):
+        labels = [str(v) for v in layer.features["label"]]
+    out = []
+    for k, (data, kind) in enumerate(zip(layer.data, layer.shape_type)):
+        px = pixels_from_napari(np.asarray(data)[:, -2:])
+        label = labels[k] if labels is not None and k < len(labels) else "unlabelled"
+        props = {"label": label, "color": to_hex(layer.edge_color[k])}
+        if kind in _LINE_TYPES and len(px) >= 2:
+            out.append(Interpretation("LineString", px, props))
+        elif kind in _POLYGON_TYPES and len(px) >= 3:
+            out.append(Interpretation("Polygon", px, props))
+    return out
+
+
+def _project_all(scene, jobs: list[tuple[Intrinsics, Pose, list[Interpretation], str]]):
+    """Worker body: project each photo's interpretations; one merged set."""
+    sets = [project_interpretations(scene, intr, pose, items, source=source)
+            for intr, pose, items, source in jobs]
+    features = merge_interpretations(*sets)
+    measurements = [f.measure() for f in features if f.n_points or (
+        f.patch_points is not None and len(f.patch_points))]
+    return features, measurements
+
+
+class InterpretWidget(QWidget):
+    """Draw interpretations on registered photos, project them in 3D, measure them.
+
+    Parameters
+    ----------
+    napari_viewer : napari.viewer.Viewer
+    """
+
+    projection_done = Signal(object)  # list of Feature3D
+    projection_failed = Signal(str)
+
+    def __init__(self, napari_viewer: napari.viewer.Viewer, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.viewer = napari_viewer
+        self.features: list[Feature3D] = []
+        self.measurements: list[Measurement] = []
+        self._worker = None
+        self._labels: dict[str, str] = dict(LABEL_COLORS)
+
+        # ---- inputs
+        self.photo_combo = QComboBox()
+        self.photo_combo.setToolTip("A photo layer with a registration (camera and pose)")
+        self.surface_combo = QComboBox()
+        self.surface_combo.setToolTip("The textured model the lines are projected onto")
+        attach = QPushButton("Attach RESULT.json…")
+        attach.setToolTip("Give the chosen Image layer the camera and pose of a registration")
+        self.new_button = QPushButton("New interpretation layer")
+        self.label_combo = QComboBox()
+        for label in self._labels:
+            self.label_combo.addItem(label)
+        self.new_label_edit = QLineEdit()
+        self.new_label_edit.setPlaceholderText("new label, e.g. coal")
+        add_label = QPushButton("Add")
+        load_button = QPushButton("Load GeoJSON…")
+        save_button = QPushButton("Save GeoJSON…")
+        self.project_button = QPushButton("Project onto the model")
+        self.project_button.setToolTip("Cast every interpretation layer onto the model "
+                                       "(runs in the background)")
+
+        form = QFormLayout()
+        photo_row = QHBoxLayout()
+        photo_row.addWidget(self.photo_combo, 1)
+        photo_row.addWidget(attach)
+        form.addRow("Photo", photo_row)
+        form.addRow("Model", self.surface_combo)
+        label_row = QHBoxLayout()
+        label_row.addWidget(self.label_combo, 1)
+        label_row.addWidget(self.new_label_edit, 1)
+        label_row.addWidget(add_label)
+        form.addRow("Label", label_row)
+        io_row = QHBoxLayout()
+        io_row.addWidget(load_button)
+        io_row.addWidget(save_button)
+
+        # ---- results
+        self.status_label = QLabel("Choose a registered photo and draw on it.")
+        self.status_label.setWordWrap(True)
+        self.table = QTableWidget(0, len(_TABLE_COLUMNS))
+        self.table.setHorizontalHeaderLabels(list(_TABLE_COLUMNS))
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QTableWidget.NoEditTriggers)
+        self.figure = Figure(figsize=(4.5, 5.0))
+        self.canvas = FigureCanvasQTAgg(self.figure)
+        self.canvas.setMinimumHeight(380)
+        self.tabs = QTabWidget()
+        self.tabs.addTab(self.table, "Measurements")
+        self.tabs.addTab(self.canvas, "Stereonet")
+
+        self.georef_check = QCheckBox("georeferenced")
+        self.georef_check.setToolTip("Export CRS coordinates (local + georef origin)")
+        export_button = QPushButton("Export 3D…")
+        csv_button = QPushButton("Save measurements…")
+        net_button = QPushButton("Save stereonet…")
+        self.view3d_button = QPushButton("Show in 3D")
+        self.view3d_button.setToolTip("3D canvas, looking at the lines from the photo")
+        self._result_buttons = [export_button, csv_button, net_button, self.view3d_button]
+        for b in self._result_buttons:
+            b.setEnabled(False)
+        out_row = QHBoxLayout()
+        out_row.addWidget(export_button)
+        out_row.addWidget(self.georef_check)
+        out_row2 = QHBoxLayout()
+        out_row2.addWidget(csv_button)
+        out_row2.addWidget(net_button)
+
+        layout = QVBoxLayout(self)
+        layout.addLayout(form)
+        layout.addWidget(self.new_button)
+        layout.addLayout(io_row)
+        layout.addWidget(self.project_button)
+        layout.addWidget(self.status_label)
+        layout.addWidget(self.view3d_button)
+        layout.addWidget(self.tabs, 1)
+        layout.addLayout(out_row)
+        layout.addLayout(out_row2)
+
+        attach.clicked.connect(self._attach_dialog)
+        self.new_button.clicked.connect(lambda: self.new_interpretation_layer())
+        add_label.clicked.connect(self._add_label_clicked)
+        self.label_combo.currentTextChanged.connect(self._label_changed)
+        load_button.clicked.connect(self._load_dialog)
+        save_button.clicked.connect(self._save_dialog)
+        self.project_button.clicked.connect(self.project)
+        export_button.clicked.connect(self._export_dialog)
+        csv_button.clicked.connect(self._save_csv_dialog)
+        net_button.clicked.connect(self._save_stereonet_dialog)
+        self.view3d_button.clicked.connect(lambda: self.show_3d())
+        for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
+            event.connect(self._refresh_layers)
+        self._refresh_layers()
+
+    # ----------------------------------------------------------- layers
+    def _photo_layers(self) -> list:
+        from napari.layers import Image
+
+        return [layer for layer in self.viewer.layers if isinstance(layer, Image)
+                and not layer.name.endswith("render")]
+
+    def _surface_layers(self) -> list:
+        from napari.layers import Surface
+
+        return [layer for layer in self.viewer.layers if isinstance(layer, Surface)
+                and layer.metadata.get("imgreg_scene") is not None]
+
+    def _refresh_layers(self, event=None) -> None:
+        for combo, layers in ((self.photo_combo, self._photo_layers()),
+                              (self.surface_combo, self._surface_layers())):
+            current = combo.currentText()
+            combo.blockSignals(True)
+            combo.clear()
+            names = [layer.name for layer in layers]
+            combo.addItems(names)
+            if current in names:
+                combo.setCurrentText(current)
+            combo.blockSignals(False)
+
+    @property
+    def photo_layer(self):
+        name = self.photo_combo.currentText()
+        return self.viewer.layers[name] if name in self.viewer.layers else None
+
+    @property
+    def scene(self):
+        name = self.surface_combo.currentText()
+        if name in self.viewer.layers:
+            return self.viewer.layers[name].metadata.get("imgreg_scene")
+        return None
+
+    def interpretation_layer(self, photo_layer=None, create: bool = False):
+        """The interpretation Shapes layer of a photo (made when ``create``)."""
+        photo_layer = photo_layer or self.photo_layer
+        if photo_layer is None:
+            return None
+        for layer in self.viewer.layers:
+            if layer.metadata.get(INTERP_KEY) == photo_layer.name:
+                return layer
+        return self.new_interpretation_layer(photo_layer) if create else None
+
+    def new_interpretation_layer(self, photo_layer=None):
+        """Add a Shapes layer over the photo for drawing, in path mode.
+
+        Its data coordinates are the photo's pixels as napari (row, col): the
+        layer takes the photo layer's scale and translation.
+        """
+        photo_layer = photo_layer or self.photo_layer
+        if photo_layer is None:
+            self._fail("Choose a photo layer first.")
+            return None
+        label = self.current_label
+        layer = self.viewer.add_shapes(
+            ndim=2,
+            name=f"{photo_layer.name} interpretation",
+            scale=photo_layer.scale[-2:],
+            translate=photo_layer.translate[-2:],
+            edge_width=3,
+            face_color="transparent",
+            features={"label": np.array([], dtype=object)},
+            feature_defaults={"label": label},
+            metadata={INTERP_KEY: photo_layer.name},
+        )
+        layer.current_edge_color = self._labels[label]
+        layer.current_face_color = "transparent"
+        self._draw_mode(layer)
+        layer.mode = "add_path"
+        self.status_label.setText(
+            f"Drawing {label!r} on {photo_layer.name}: click the vertices, double-click to end "
+            "a line; pick the polygon tool for facets.")
+        return layer
+
+    def _draw_mode(self, layer) -> None:
+        """Drawing happens on the photo, in 2D: leave the 3D canvas, show photo and layer."""
+        if self.viewer.dims.ndisplay != 2:
+            self.viewer.dims.ndisplay = 2
+        photo = self.viewer.layers[layer.metadata[INTERP_KEY]]
+        photo.visible = layer.visible = True
+
+    # ----------------------------------------------------------- labels
+    @property
+    def current_label(self) -> str:
+        return self.label_combo.currentText() or "sandstone"
+
+    def add_label(self, label: str, color: str | None = None) -> None:
+        """Add a user-defined label class (colour picked if not given) and select it."""
+        label = label.strip()
+        if not label:
+            return
+        if label not in self._labels:
+            self._labels[label] = label_color(label, color)
+            self.label_combo.addItem(label)
+        self.label_combo.setCurrentText(label)
+
+    def _add_label_clicked(self) -> None:
+        self.add_label(self.new_label_edit.text())
+        self.new_label_edit.clear()
+
+    def _label_changed(self, label: str) -> None:
+        layer = self.interpretation_layer()
+        if layer is None or not label:
+            return
+        layer.feature_defaults = {"label": label}
+        layer.current_edge_color = self._labels.get(label, label_color(label))
+        # Recolour the selected shapes as well: changing the label relabels them.
+        if layer.selected_data:
+            features = layer.features.copy()
+            for k in layer.selected_data:
+                features.loc[k, "label"] = label
+            layer.features = features
+
+    # ------------------------------------------------------------- I/O
+    def attach_result(self, path: str | Path, layer=None) -> None:
+        """Attach a RESULT.json's camera and pose to an Image layer."""
+        from ..io.records import read_json
+
+        layer = layer or self.photo_layer
+        data = read_json(path)
+        if not isinstance(data, dict) or "camera" not in data or "pose" not in data:
+            raise InputError(f"{path}: not a registration result (no camera and pose)")
+        layer.metadata["result"] = data
+        if camera_of_layer(layer) is None:
+            raise InputError(f"{path}: bad 'camera' or 'pose'")
+        self.status_label.setText(f"{layer.name}: registration from {Path(path).name}.")
+
+    def load_geojson(self, path: str | Path, photo_layer=None):
+        """Add the interpretations of a pixel GeoJSON to the photo's interpretation layer."""
+        from ..io.interpretations import read_interpretations
+
+        items = read_interpretations(path)
+        layer = self.interpretation_layer(photo_layer, create=True)
+        if layer is None:
+            return None
+        self._draw_mode(layer)
+        data, types, colors, labels = [], [], [], []
+        for item in items:
+            data.append(napari_from_pixels(item.pixels))
+            types.append("path" if item.geometry == "LineString" else "polygon")
+            colors.append(item.color)
+            labels.append(item.label)
+            if item.label not in self._labels:
+                self.add_label(item.label, item.color)
+        if data:
+            n0 = len(layer.data)
+            layer.add(data, shape_type=types, edge_color=colors, face_color="transparent",
+                      edge_width=3)
+            features = layer.features.copy()
+            features.loc[n0:, "label"] = labels
+            layer.features = features
+        self.status_label.setText(f"Loaded {len(items)} interpretation(s) from {Path(path).name}.")
+        return layer
+
+    def save_geojson(self, path: str | Path, photo_layer=None) -> int:
+        """Save the photo's interpretation layer as pixel GeoJSON; returns the count."""
+        from ..io.interpretations import write_interpretations
+
+        layer = self.interpretation_layer(photo_layer)
+        items = interpretations_from_shapes(layer) if layer is not None else []
+        write_interpretations(path, items)
+        self.status_label.setText(f"Saved {len(items)} interpretation(s) to {Path(path).name}.")
+        return len(items)
+
+    # ---------------------------------------------------------- project
+    def _jobs(self) -> list[tuple[Intrinsics, Pose, list[Interpretation], str]]:
+        jobs = []
+        for layer in list(self.viewer.layers):
+            photo_name = layer.metadata.get(INTERP_KEY)
+            if photo_name is None or photo_name not in self.viewer.layers:
+                continue
+            camera = camera_of_layer(self.viewer.layers[photo_name])
+            items = interpretations_from_shapes(layer)
+            if camera is None or not items:
+                continue
+            intr, pose, source = camera
+            jobs.append((intr, pose, items, source))
+        return jobs
+
+    def project(self):
+        """Project every interpretation layer in a napari thread worker; returns it."""
+        from napari.qt.threading import create_worker
+
+        scene = self.scene
+        if scene is None:
+            self._fail("Choose the model (a Surface layer opened by napari-imgreg).")
+            return None
+        jobs = self._jobs()
+        if not jobs:
+            self._fail("Nothing to project: draw on a photo that has a registration "
+                       "(Attach RESULT.json…).")
+            return None
+        self.project_button.setEnabled(False)
+        n = sum(len(j[2]) for j in jobs)
+        self.status_label.setText(f"Projecting {n} interpretation(s) from {len(jobs)} photo(s)…")
+        self.status_label.setStyleSheet("")
+        worker = create_worker(_project_all, scene, jobs, _ignore_errors=True)
+        worker.returned.connect(self._on_result)
+        worker.errored.connect(self._on_error)
+        worker.finished.connect(self._on_finished)
+        self._worker = worker
+        worker.start()
+        return worker
+
+    def _on_finished(self) -> None:
+        self._worker = None
+        self.project_button.setEnabled(True)
+
+    def _on_error(self, exc: BaseException) -> None:
+        if isinstance(exc, InputError):
+            self._fail(str(exc))
+        else:
+            log.error("projection failed", exc_info=exc)
+            self._fail(f"{type(exc).__name__}: {exc}")
+
+    def _fail(self, message: str) -> None:
+        self.status_label.setText(message)
+        self.status_label.setStyleSheet("color: #e65100;")
+        self.projection_failed.emit(message)
+
+    def _on_result(self, result: tuple[list[Feature3D], list[Measurement]]) -> None:
+        self.features, self.measurements = result
+        self._show_layers(self.features)
+        self._show_table(self.measurements)
+        self.draw_stereonet()
+        n_parts = sum(len(f.parts) for f in self.features)
+        split = sum(len(f.parts) > 1 for f in self.features)
+        off = sum(not f.parts for f in self.features)
+        planes = sum(m.has_plane for m in self.measurements)
+        self.status_label.setText(
+            f"{len(self.features)} feature(s) on the model as {n_parts} part(s)"
+            + (f"; {split} split where they left the surface" if split else "")
+            + (f"; {off} off the surface" if off else "")
+            + f". {planes} well-posed plane(s).")
+        self.status_label.setStyleSheet("")
+        for b in self._result_buttons:
+            b.setEnabled(True)
+        self.projection_done.emit(self.features)
+
+    # ---------------------------------------------------------- display
+    def _show_layers(self, features: list[Feature3D]) -> None:
+        """One 3D Shapes layer of paths per photo (replaced on each projection)."""
+        surface = self.viewer.layers[self.surface_combo.currentText()]
+        by_source: dict[str, list[Feature3D]] = {}
+        for f in features:
+            by_source.setdefault(f.source, []).append(f)
+        for layer in [lay for lay in self.viewer.layers if PROJECTED_KEY in lay.metadata]:
+            if layer.metadata[PROJECTED_KEY] in by_source:
+                self.viewer.layers.remove(layer)
+        extent = float(np.ptp(surface.vertices, axis=0).max()) if len(surface.vertices) else 100.0
+        width = max(extent / 400.0, 0.05)  # visible at the whole-outcrop zoom
+        for source, feats in by_source.items():
+            paths, colors, labels, ids = [], [], [], []
+            for f in feats:
+                for part in f.parts:
+                    if len(part) >= 2:
+                        paths.append(napari_from_world(part))
+                        colors.append(f.color)
+                        labels.append(f.label)
+                        ids.append(f.id)
+            if not paths:
+                continue
+            self.viewer.add_shapes(
+                paths, shape_type="path", ndim=3, edge_color=colors, edge_width=width,
+                name=f"{source} 3D interpretation",
+                scale=surface.scale, translate=surface.translate,
+                features={"label": labels, "id": ids},
+                metadata={PROJECTED_KEY: source},
+                axis_labels=surface.axis_labels,
+            )
+
+    def show_3d(self, source: str | None = None) -> None:
+        """Switch to the 3D canvas and look at the projected lines as the photo saw them.
+
+        Photos and their 2D interpretation layers are hidden (they live in
+        pixel units, the model in metres); the camera looks along the photo's
+        view direction at the lines' centre, zoomed to their extent.
+        """
+        feats = [f for f in self.features if f.parts and (source is None or f.source == source)]
+        if not feats:
+            return
+        pts = np.concatenate([f.points for f in feats])
+        for layer in self.viewer.layers:
+            if INTERP_KEY in layer.metadata or layer in self._photo_layers():
+                layer.visible = False
+            elif PROJECTED_KEY in layer.metadata or layer.name == self.surface_combo.currentText():
+                layer.visible = True
+        self.viewer.dims.ndisplay = 3
+        view = np.array([0.0, 1.0, -0.3])  # north, a little down, without a photo
+        name = feats[0].source
+        for layer in self._photo_layers():
+            camera = camera_of_layer(layer)
+            if camera is not None and camera[2] == name:
+                view = camera[1].view_direction
+        scene = getattr(self.viewer, "scene", None)  # napari >= 0.9 keeps the camera there
+        cam = scene.camera if scene is not None and hasattr(scene, "camera") else self.viewer.camera
+        cam.center = tuple(napari_from_world(pts.mean(axis=0)))
+        cam.set_view_direction(tuple(napari_from_world(view)), up_direction=(1.0, 0.0, 0.0))
+        extent = float(np.ptp(pts, axis=0).max()) or 10.0
+        canvas = getattr(getattr(self.viewer, "canvas", None), "size", (600, 800))
+        cam.zoom = 0.8 * min(canvas) / extent
+
+    def _show_table(self, measurements: list[Measurement]) -> None:
+        def fmt(v: float | None, d: int = 1) -> str:
+            return "" if v is None else f"{v:.{d}f}"
+
+        self.table.setRowCount(len(measurements))
+        for row, m in enumerate(measurements):
+            cells = [m.id, m.label, m.kind, fmt(m.dip_deg), fmt(m.dip_direction_deg),
+                     fmt(m.plunge_deg), fmt(m.trend_deg), fmt(m.rms_m, 3), fmt(m.planarity, 3),
+                     m.source, m.note]
+            for col, text in enumerate(cells):
+                item = QTableWidgetItem(text)
+                if col == 1:
+                    item.setForeground(_qcolor(m.color or label_color(m.label)))
+                self.table.setItem(row, col, item)
+        self.table.resizeColumnsToContents()
+
+    def draw_stereonet(self) -> None:
+        self.figure.clear()
+        ax = self.figure.add_axes([0.02, 0.02, 0.96, 0.92])
+        colors = {label: c for label, c in self._labels.items()}
+        colors.update({m.label: m.color for m in self.measurements if m.color})
+        draw_stereonet(ax, self.measurements, colors, title="Lower hemisphere, equal area")
+        self.canvas.draw_idle()
+
+    # ---------------------------------------------------------- exports
+    def export(self, path: str | Path, georeferenced: bool | None = None) -> None:
+        """Write the projected set (.geojson, .csv, .obj, .ply)."""
+        from ..io.interpretations import export_features
+
+        scene = self.scene
+        georef = getattr(scene, "georef", None)
+        geo = self.georef_check.isChecked() if georeferenced is None else georeferenced
+        export_features(path, self.features, georef, geo)
+        self.status_label.setText(f"Exported {len(self.features)} feature(s) to {Path(path).name}.")
+
+    def save_measurements(self, path: str | Path) -> None:
+        from ..io.interpretations import write_measurements_csv
+
+        write_measurements_csv(path, self.measurements)
+        self.status_label.setText(f"Saved {len(self.measurements)} measurement(s).")
+
+    def save_stereonet(self, path: str | Path) -> None:
+        from .._atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            self.figure.savefig(tmp, dpi=120)
+
+    # ---------------------------------------------------------- dialogs
+    def _guarded(self, fn, *args) -> None:
+        try:
+            fn(*args)
+        except InputError as exc:
+            self._fail(str(exc))
+
+    def _attach_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Registration result", "", "JSON (*.json)")
+        if path and self.photo_layer is not None:
+            self._guarded(self.attach_result, path)
+
+    def _load_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Interpretations (pixels)", "", _GEOJSON_FILTER)
+        if path:
+            self._guarded(self.load_geojson, path)
+
+    def _save_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save interpretations", "lines.geojson",
+                                              _GEOJSON_FILTER)
+        if path:
+            self._guarded(self.save_geojson, path)
+
+    def _export_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Export 3D interpretations",
+                                              "LINES3D.geojson", _EXPORT_FILTER)
+        if path:
+            self._guarded(self.export, path)
+
+    def _save_csv_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save measurements", "MEASUREMENTS.csv",
+                                              "CSV (*.csv)")
+        if path:
+            self._guarded(self.save_measurements, path)
+
+    def _save_stereonet_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save stereonet", "stereonet.png",
+                                              "PNG (*.png);;SVG (*.svg);;PDF (*.pdf)")
+        if path:
+            self._guarded(self.save_stereonet, path)
+
+
+def _qcolor(color: str) -> Any:
+    from qtpy.QtGui import QColor
+
+    return QColor(to_hex(color))

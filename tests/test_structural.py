@@ -1,0 +1,210 @@
+"""Line and plane fits, orientation conventions, vetting, Fisher statistics, stereonet."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from napari_imgreg.structural import (
+    FitThresholds,
+    dip_dip_direction,
+    equal_area,
+    fisher_mean,
+    fit_line,
+    fit_plane,
+    measure_facet,
+    measure_trace,
+    normal_from_dip,
+    plunge_trend,
+    pole_of_plane,
+    save_stereonet,
+    vector_from_plunge_trend,
+)
+
+
+def _angle_diff(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def _plane_points(dip, ddir, n=400, size=10.0, noise=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    normal = normal_from_dip(dip, ddir)
+    a = np.cross(normal, [0.0, 0.0, 1.0]) if dip > 1e-9 else np.array([1.0, 0, 0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    uv = rng.uniform(-size, size, (n, 2))
+    pts = uv[:, :1] * a + uv[:, 1:] * b + np.array([100.0, -50.0, 20.0])
+    return pts + rng.normal(0, noise, pts.shape) if noise else pts
+
+
+# ------------------------------------------------------------- conventions
+def test_dip_direction_is_the_azimuth_of_steepest_descent():
+    # z falls toward the north (+Y): dips north, dip direction 0.
+    pts = np.array([[0, 0, 0], [10, 0, 0], [0, 10, -10 * math.tan(math.radians(30))],
+                    [10, 10, -10 * math.tan(math.radians(30))], [5, 5, -5 * math.tan(math.radians(30))]])
+    fit = fit_plane(pts, check_relief=False)
+    assert fit.dip_deg == pytest.approx(30.0, abs=1e-9)
+    assert _angle_diff(fit.dip_direction_deg, 0.0) < 1e-9
+    assert dip_dip_direction(np.array([0, 0, -1.0])) == (0.0, 0.0)  # either normal sign
+    assert dip_dip_direction(normal_from_dip(90.0, 250.0)) == pytest.approx((90.0, 250.0))
+
+
+def test_plunge_is_positive_downward_and_trend_clockwise_from_north():
+    assert plunge_trend(np.array([1.0, 0.0, -1.0])) == pytest.approx((45.0, 90.0))
+    assert plunge_trend(np.array([-1.0, 0.0, 1.0])) == pytest.approx((45.0, 90.0))  # same line
+    assert plunge_trend(np.array([0.0, -1.0, 0.0])) == pytest.approx((0.0, 0.0))  # horizontal
+    assert plunge_trend(np.array([0.0, 0.0, 1.0])) == (90.0, 0.0)
+    assert pole_of_plane(30.0, 120.0) == (60.0, 300.0)
+
+
+@pytest.mark.parametrize("dip,ddir", [(0.5, 17.0), (12.0, 200.0), (45.0, 359.5), (65.0, 100.0),
+                                      (89.5, 271.0), (30.0, 0.0)])
+def test_plane_fit_known_orientation_with_noise(dip, ddir):
+    fit = fit_plane(_plane_points(dip, ddir, noise=0.02), check_relief=False)
+    assert fit.ok, fit.reason
+    assert fit.dip_deg == pytest.approx(dip, abs=0.5)
+    if dip > 1.0:
+        assert _angle_diff(fit.dip_direction_deg, ddir) < 0.5
+    assert fit.rms_m == pytest.approx(0.02, rel=0.2)
+    assert fit.planarity > 0.99
+
+
+@pytest.mark.parametrize("plunge,trend", [(0.0, 45.0), (25.0, 250.0), (60.0, 113.0), (88.0, 7.0)])
+def test_line_fit_known_orientation_with_noise(plunge, trend):
+    rng = np.random.default_rng(3)
+    d = vector_from_plunge_trend(plunge, trend)
+    t = rng.uniform(-20, 20, 300)[:, None]
+    pts = t * d + rng.normal(0, 0.03, (300, 3)) + [5.0, 5.0, 5.0]
+    fit = fit_line(pts)
+    assert fit.plunge_deg == pytest.approx(plunge, abs=0.5)
+    expected_trend = trend % 180.0 if plunge == 0.0 else trend
+    if plunge < 89.0:
+        assert _angle_diff(fit.trend_deg, expected_trend) < 0.5 or (
+            plunge < 0.5 and _angle_diff(fit.trend_deg, expected_trend + 180) < 0.5)
+    assert fit.collinearity > 0.99 and fit.length_m > 35.0
+
+
+# ----------------------------------------------------------------- vetting
+def test_collinear_points_give_no_plane():
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 30, 200)[:, None]
+    pts = t * vector_from_plunge_trend(10.0, 80.0) + rng.normal(0, 0.01, (200, 3))
+    fit = fit_plane(pts)
+    assert fit is not None and not fit.ok and "planarity" in fit.reason
+    m = measure_trace([pts], id="t1", label="fault")
+    assert m.plunge_deg == pytest.approx(10.0, abs=0.5)
+    assert m.dip_deg is None and m.dip_direction_deg is None and m.note.startswith("no plane")
+    assert fit_plane(np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2.0]])) is None  # exactly one line
+
+
+def test_blob_has_low_planarity():
+    pts = np.random.default_rng(2).normal(0, 1, (500, 3))
+    fit = fit_plane(pts, check_relief=False)
+    assert fit.planarity < 0.75 and not fit.ok
+
+
+def test_surface_effect_rejects_the_outcrop_face():
+    # A curved trace lying on the face itself: its best plane IS the face.
+    pts = _plane_points(80.0, 180.0, n=200)
+    face_normal = normal_from_dip(80.0, 180.0)
+    fit = fit_plane(pts, surface_normal=face_normal)
+    assert not fit.ok and "outcrop surface" in fit.reason
+    tilted = normal_from_dip(60.0, 180.0)  # 20° away: accepted
+    assert fit_plane(pts, surface_normal=tilted).ok
+
+
+def test_nearly_straight_trace_is_rejected_by_relief():
+    rng = np.random.default_rng(4)
+    x = np.linspace(0, 40, 400)
+    # A 40 m trace bowing by 0.2 m: planar, but the plane is ill-posed.
+    pts = np.stack([x, 0.2 * np.sin(x / 40 * np.pi), 0.1 * x], axis=1)
+    pts += rng.normal(0, 0.001, pts.shape)
+    fit = fit_plane(pts)
+    assert fit.planarity > 0.9 and not fit.ok and "relief" in fit.reason
+    assert fit_plane(pts, FitThresholds(min_relief=0.0)).ok
+
+
+def test_facet_and_trace_measurements():
+    pts = _plane_points(33.0, 210.0, noise=0.01)
+    m = measure_facet(pts, id="f1", label="sandstone", source="IMG_1.jpg")
+    assert m.kind == "facet" and m.has_plane
+    assert m.dip_deg == pytest.approx(33.0, abs=0.5)
+    assert m.plunge_deg is None and m.trend_deg is None
+    assert m.n_points == 400 and np.allclose(m.centroid, pts.mean(axis=0))
+    few = measure_facet(pts[:2])
+    assert few.dip_deg is None and few.planarity is None
+
+
+# ------------------------------------------------------------------ Fisher
+def _fisher_sample(mean, kappa, n, rng):
+    """Fisher-distributed unit vectors (Wood's method) about ``mean``."""
+    w = 1 + np.log(rng.uniform(np.exp(-2 * kappa), 1, n)) / kappa
+    phi = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(1 - w**2)
+    v = np.stack([s * np.cos(phi), s * np.sin(phi), w], 1)
+    mean = mean / np.linalg.norm(mean)
+    z = np.array([0, 0, 1.0])
+    axis = np.cross(z, mean)
+    if np.linalg.norm(axis) < 1e-12:
+        return v * np.sign(mean[2])
+    axis /= np.linalg.norm(axis)
+    ang = math.acos(np.clip(z @ mean, -1, 1))
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    R = np.eye(3) + math.sin(ang) * K + (1 - math.cos(ang)) * K @ K
+    return v @ R.T
+
+
+def test_fisher_mean_recovers_mean_and_alpha95_covers_it():
+    rng = np.random.default_rng(5)
+    true = vector_from_plunge_trend(78.0, 20.0)
+    covered = 0
+    for _ in range(200):
+        v = _fisher_sample(true, 50.0, 20, rng)
+        fm = fisher_mean(v)
+        err = math.degrees(math.acos(min(1.0, abs(float(fm.vector @ true)))))
+        covered += err <= fm.alpha95_deg
+    assert 0.90 <= covered / 200 <= 0.99  # a 95 % cone
+    fm = fisher_mean(_fisher_sample(true, 50.0, 2000, rng))
+    assert fm.kappa == pytest.approx(50.0, rel=0.1)
+
+
+def test_fisher_mean_of_axes_near_horizontal_does_not_cancel():
+    # Poles of vertical planes striking N–S: half point east, half west.
+    rng = np.random.default_rng(6)
+    v = _fisher_sample(np.array([1.0, 0, 0]), 200.0, 40, rng)
+    v[::2] *= -1
+    fm = fisher_mean(v)
+    assert fm.plunge_deg < 3.0 and _angle_diff(fm.trend_deg % 180, 90.0) < 3.0
+    assert fm.alpha95_deg < 3.0
+    single = fisher_mean(v[:1])
+    assert single.alpha95_deg is None and single.kappa is None
+
+
+# --------------------------------------------------------------- stereonet
+def test_equal_area_projection():
+    x, y = equal_area([90.0, 0.0, 0.0], [0.0, 0.0, 90.0])
+    assert np.allclose([x[0], y[0]], 0.0)
+    assert np.allclose([x[1], y[1]], [0.0, 1.0])  # north, on the primitive
+    assert np.allclose([x[2], y[2]], [1.0, 0.0])  # east
+    # Equal area: a 45° plunge sits at radius sqrt(2) sin(22.5°).
+    x, y = equal_area(45.0, 0.0)
+    assert math.hypot(x, y) == pytest.approx(math.sqrt(2) * math.sin(math.radians(22.5)))
+
+
+def test_stereonet_picture(tmp_path):
+    from PIL import Image
+
+    ms = []
+    for k, (dip, ddir) in enumerate([(12, 200), (14, 195), (11, 204), (65, 100), (63, 98)]):
+        label = "sandstone" if dip < 30 else "fault"
+        ms.append(measure_facet(_plane_points(dip, ddir, noise=0.01, seed=k), id=str(k), label=label))
+    ms.append(measure_trace([np.linspace(0, 10, 20)[:, None] * vector_from_plunge_trend(20, 40)],
+                            label="fault"))
+    path = tmp_path / "net.png"
+    fig = save_stereonet(path, ms, colors={"sandstone": "#ffd400", "fault": "#e31a1c"})
+    img = np.asarray(Image.open(path))
+    assert img.shape[0] > 500 and img.shape[1] > 500
+    texts = " ".join(t.get_text() for t in fig.axes[0].texts)
+    assert "sandstone: 3 planes" in texts and "α95" in texts and "1 trace" in texts
