@@ -41,7 +41,9 @@ from napari_imgreg.pipeline import register
 from napari_imgreg.sample import load_truth, sample_scene
 from napari_imgreg.structural import fisher_mean, normal_from_dip
 
-MARK_START, MARK_END = "<!-- bench_interpret:start -->", "<!-- bench_interpret:end -->"
+from _report import markers, write_section  # noqa: E402  (benchmarks/ is on sys.path)
+
+MARK_START, MARK_END = markers("bench_interpret")
 TARGET_MEDIAN_M, TARGET_DIP_DEG, PAPER_MEDIAN_DEG = 0.10, 2.0, 3.65
 MIN_DRAWN_PX = 30.0  # shorter visible stretches are not drawn
 JITTER_PX = 1.5  # a hand-drawn line: each vertex off by this much (σ, pixels)
@@ -289,16 +291,6 @@ def report(result: dict) -> str:
     return "\n".join(lines)
 
 
-def write_report(path: Path, section: str) -> None:
-    text = path.read_text() if path.exists() else "# Benchmarks\n\n"
-    if MARK_START in text and MARK_END in text:
-        before, rest = text.split(MARK_START, 1)
-        after = rest.split(MARK_END, 1)[1]
-        text = before + section + after
-    else:
-        text = text.rstrip() + "\n\n" + section + "\n"
-    with atomic_write(path) as fh:
-        fh.write(text)
 
 
 def main() -> None:
@@ -313,7 +305,7 @@ def main() -> None:
     section = report(result)
     print(section)
     if args.report:
-        write_report(args.report, section)
+        write_section(args.report, section, MARK_START, MARK_END)
     if args.json:
         summary = {sc["size"]: {w: {k: v for k, v in _summary(sc["rows"], w).items() if k != "fisher"}
                                 for w in ("est", "hand", "true")} for sc in result["scenes"]}

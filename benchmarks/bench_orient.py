@@ -34,7 +34,9 @@ from napari_imgreg.orient import (
     simulate_survey,
 )
 
-MARK_START, MARK_END = "<!-- bench_orient:start -->", "<!-- bench_orient:end -->"
+from _report import markers, write_section  # noqa: E402  (benchmarks/ is on sys.path)
+
+MARK_START, MARK_END = markers("bench_orient")
 ESTIMATORS = {
     "paper": estimate_rotation_paper,
     "lsq": estimate_rotation_lsq,
@@ -182,17 +184,6 @@ def report(accuracy: list[dict], diagnostics: list[dict], n_cases: int) -> str:
     return "\n".join(lines)
 
 
-def write_report(path: Path, section: str) -> None:
-    """Replace this benchmark's section of a markdown file (or append it)."""
-    text = path.read_text(encoding="utf-8") if path.exists() else "# Benchmarks\n\n"
-    if MARK_START in text and MARK_END in text:
-        before, rest = text.split(MARK_START, 1)
-        after = rest.split(MARK_END, 1)[1]
-        text = before + section + after
-    else:
-        text = text.rstrip() + "\n\n" + section + "\n"
-    with atomic_write(path, encoding="utf-8") as fh:
-        fh.write(text)
 
 
 def main() -> None:
@@ -206,7 +197,7 @@ def main() -> None:
     section = report(accuracy, diagnostics, args.cases)
     print(section)
     if args.report:
-        write_report(args.report, section)
+        write_section(args.report, section, MARK_START, MARK_END)
     if args.json:
         with atomic_write(args.json) as fh:
             json.dump({"accuracy": accuracy, "diagnostics": diagnostics}, fh, indent=2)

@@ -33,7 +33,9 @@ from napari_imgreg.sample import sample_scene
 PAPER_RENDER_S = 10.757
 PAPER_RAYCAST_S = 103.351
 TARGETS = {"load": 3.0, "build": 2.0, "render": 0.5, "peak_rss_gb": 2.0}
-MARK_START, MARK_END = "<!-- bench_render:start -->", "<!-- bench_render:end -->"
+from _report import markers, write_section  # noqa: E402  (benchmarks/ is on sys.path)
+
+MARK_START, MARK_END = markers("bench_render")
 
 
 def _peak_rss_gb() -> float:
@@ -209,16 +211,6 @@ def report(m: dict) -> str:
     return "\n".join(lines)
 
 
-def write_report(path: Path, section: str) -> None:
-    text = path.read_text() if path.exists() else "# Benchmarks\n\n"
-    if MARK_START in text and MARK_END in text:
-        before, rest = text.split(MARK_START, 1)
-        after = rest.split(MARK_END, 1)[1]
-        text = before + section + after
-    else:
-        text = text.rstrip() + "\n\n" + section + "\n"
-    with atomic_write(path) as fh:
-        fh.write(text)
 
 
 def main() -> None:
@@ -238,7 +230,7 @@ def main() -> None:
     section = report(m)
     print(section)
     if args.report:
-        write_report(args.report, section)
+        write_section(args.report, section, MARK_START, MARK_END)
     if args.json:
         with atomic_write(args.json) as fh:
             json.dump(m, fh, indent=2)
