@@ -177,12 +177,16 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _demo_gui(folder: Path) -> int:  # pragma: no cover - interactive
+    """napari with the sample scene and its photos loaded in the registration workbench."""
     import napari
 
+    from .widgets.workbench import Workbench
+
     viewer = napari.Viewer(title="napari-imgreg demo")
-    viewer.open_sample("napari-imgreg", "outcrop_model")
-    viewer.open_sample("napari-imgreg", "outcrop_photo")
-    viewer.layers[0].visible = False  # start on the photo; tick the model and press 3D
+    workbench = Workbench.add_to_viewer(viewer)
+    workbench.controller.open_scene(
+        folder / "outcrop.obj", dem=folder / "dem.tif", photos=sorted(folder.glob("IMG_*.jpg"))
+    )
     napari.run()
     return EXIT_OK
 

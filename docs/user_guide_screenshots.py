@@ -1,0 +1,183 @@
+"""Screenshots of the user guide, taken from a real napari window.
+
+Drives the registration workbench through the walk-through of
+``docs/user-guide.md`` on the sample outcrop and saves each step's window to
+``docs/images/workbench_*.png``. Needs a display (Xvfb is fine)::
+
+    xvfb-run -a -s "-screen 0 1600x1000x24" .venv/bin/python docs/user_guide_screenshots.py
+
+Look at every image before committing it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+OUT = Path(__file__).parent / "images"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--only", nargs="*", help="names of the shots to take (default: all)")
+    args = parser.parse_args()
+
+    import napari
+    from qtpy.QtWidgets import QApplication
+
+    from napari_imgreg._layers import napari_from_pixels
+    from napari_imgreg.sample import load_truth
+    from napari_imgreg.widgets.workbench import Workbench
+
+    app = QApplication.instance() or QApplication([])
+
+    def pump(seconds: float = 0.3) -> None:
+        end = time.time() + seconds
+        while time.time() < end:
+            app.processEvents()
+            time.sleep(0.01)
+
+    def wait(cond, timeout: float = 120.0) -> None:
+        end = time.time() + timeout
+        while not cond():
+            app.processEvents()
+            time.sleep(0.01)
+            if time.time() > end:
+                raise TimeoutError
+        pump(0.5)
+
+    viewer = napari.Viewer(title="napari-imgreg", show=True)
+    viewer.window._qt_window.resize(1600, 1000)
+    pump(0.5)
+    wb = Workbench.add_to_viewer(viewer)
+    ctrl = wb.controller
+
+    def idle() -> None:
+        wait(lambda: not ctrl.busy)
+
+    def shot(name: str) -> None:
+        if args.only and name not in args.only:
+            return
+        pump(0.8)
+        path = args.out / f"workbench_{name}.png"
+        viewer.screenshot(str(path), canvas_only=False)
+        print("wrote", path)
+
+    # 1. Scene: the sample, photo beside the render from its prior.
+    wb.show_tab("Scene")
+    wb.scene_panel.sample_button.click()
+    wait(lambda: ctrl.current is not None)
+    idle()
+    shot("scene")
+
+    # 2. 3D: the model, the cameras and their view frusta.
+    wb.scene_panel.view_3d_button.click()
+    pump(0.5)
+    cam = ctrl.camera
+    cam.set_view_direction((-0.55, 0.35, 0.75), (1.0, 0.0, 0.0))
+    viewer.fit_to_view(layers=ctrl.layers.layers_3d())
+    cam.zoom *= 1.3
+    shot("3d")
+    wb.scene_panel.view_2d_button.click()
+    idle()
+
+    # 3. Pose: nudges and the DEM map.
+    wb.show_tab("Pose")
+    wb.pose_panel.nudge_buttons["turn left"].click()
+    wb.pose_panel.nudge_buttons["turn left"].click()
+    idle()
+    x, y, _ = ctrl.current.pose.center
+    ctrl.move_on_map(x + 3.0, y + 1.5)
+    ctrl.finish_drag()
+    idle()
+    shot("pose")
+
+    # 4. Filters: Wallis on photo and render, previewed.
+    wb.show_tab("Filters")
+    fp = wb.filters_panel
+    fp.link_check.setChecked(True)
+    fp.preview_check.setChecked(True)
+    fp.photo_editor.wallis_check.setChecked(True)
+    fp.photo_editor.widgets["gamma"].setValue(1.3)
+    idle()
+    shot("filters")
+    fp.preview_check.setChecked(False)
+    fp.photo_editor.reset()
+    fp.render_editor.reset()
+    fp.link_check.setChecked(False)
+    idle()
+
+    # 5. Register: a strict first Run (fair), the hint and the suggestion.
+    wb.show_tab("Register")
+    rp = wb.register_panel
+    rp.threshold_spin.setValue(3.0)
+    rp.max_features_spin.setValue(600)
+    rp.outlier_check.setChecked(True)
+    rp.run_button.click()
+    wait(lambda: bool(ctrl.current.trials) and not ctrl.is_running("registration"))
+    idle()
+    shot("run")
+
+    # 6. Apply the suggestion, Auto: the grade, arrows, history, correspondences.
+    wb.quality.apply_button.click()
+    rp.outlier_check.setChecked(False)
+    rp.auto_button.click()
+    wait(lambda: len(ctrl.current.trials) >= 2 and not ctrl.is_running("registration"))
+    idle()
+    shot("auto")
+
+    # 7. The result: the render from the estimated pose blended over the photo.
+    rp.corr_check.setChecked(False)
+    ctrl.set_blend(opacity=0.5, visible=True)
+    rp.blend_slider.setValue(0.5)
+    cam = ctrl.camera
+    h, w = ctrl.layers.height, ctrl.layers.width
+    cam.center = (cam.center[0], 0.5 * h, 0.5 * w)
+    cam.zoom *= 1.6
+    shot("blend")
+    rp.corr_check.setChecked(True)
+    ctrl.fit_2d()
+
+    # 8. Manual: reference render, pairs from the truth's check points, solve.
+    wb.scene_panel.photo_list.setCurrentRow(1)
+    idle()
+    wb.show_tab("Manual")
+    wb.manual_panel.ref_pose_button.click()
+    wait(lambda: ctrl.current.reference is not None)
+    ps = ctrl.current
+    truth = load_truth(ps.photo.path)
+    ref = ps.reference
+    ref_px = ref.cam_from_world.project(ref.intrinsics, truth.check_xyz)
+    xyz, valid = ref.lift(ref_px)
+    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
+    inside = np.all((photo_px > 20) & (photo_px < [ps.size[0] - 20, ps.size[1] - 20]), axis=1)
+    idx = np.flatnonzero(valid & inside & (np.linalg.norm(xyz - truth.check_xyz, axis=1) < 0.05))
+    idx = idx[np.linspace(0, len(idx) - 1, 8).round().astype(int)]
+    wb.manual_panel.pick_button.click()
+    photo_layer, ref_layer = ctrl.pair_layers()
+    for k in idx:
+        photo_layer.add(napari_from_pixels(photo_px[k]))
+        ref_layer.add(napari_from_pixels(ref_px[k]))
+    viewer.layers.selection.active = ref_layer
+    ref_layer.mode = "pan_zoom"
+    pump(0.5)
+    wb.manual_panel.solve_button.click()
+    wait(lambda: ps.manual_solution is not None and not ctrl.is_running("manual"))
+    idle()
+    rp.corr_check.setChecked(False)  # the pairs, not the scoring's matches
+    ctrl.set_blend(visible=False)
+    shot("manual")
+
+    # 9. The Interpret tab: the interpretation tools docked in the workbench.
+    wb.show_tab("Interpret")
+    shot("interpret")
+
+    viewer.close()
+
+
+if __name__ == "__main__":
+    main()

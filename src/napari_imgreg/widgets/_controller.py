@@ -1,0 +1,1520 @@
+"""The workbench's state and orchestration: one controller per napari viewer.
+
+The controller owns what the docks share — the scene, the photos with their
+priors, pose histories and trials, the registration parameters — and the
+napari layers that show them. It runs every long job (scene and photo
+loading, renders, filters over full images, registration, manual solving and
+scoring) in a napari thread worker, so the viewer never freezes, and turns
+errors into one-line napari notifications.
+
+It orchestrates only: rendering, filtering, registration and manual solving
+are the backend's (:mod:`~napari_imgreg.render`, :mod:`~napari_imgreg.filters`,
+:mod:`~napari_imgreg.pipeline`, :mod:`~napari_imgreg.manual`).
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import logging
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+from qtpy.QtCore import QObject, QTimer, Signal
+
+from .. import manual
+from .._layers import napari_from_pixels, napari_from_world, pixels_from_napari, surface_layer_data
+from ..camera import Intrinsics, Pose
+from ..errors import InputError
+from ..features import FeatureParams
+from ..io.records import Prior
+from ..params import RegistrationParams
+from ..pipeline import Cancelled, Registration, Trial
+from ..quality import evaluate_rules
+
+if TYPE_CHECKING:
+    import napari
+
+    from ..io.photos import Photo
+    from ..render import RenderResult
+    from ..scene import Scene
+
+__all__ = [
+    "WorkbenchController",
+    "PhotoState",
+    "TrialRecord",
+    "WorkbenchError",
+    "controller_for",
+    "one_line",
+    "PREVIEW_WIDTH",
+    "PAIR_COLORS",
+    "CORRESPONDENCE_COLORS",
+]
+
+log = logging.getLogger(__name__)
+
+#: Width (pixels) of the reduced render shown while the pose is being edited.
+PREVIEW_WIDTH = 400
+#: Idle time after the last pose edit before the full-resolution render, ms.
+FULL_RENDER_DELAY_MS = 350
+#: Metadata key of an interpretation layer naming its photo layer (interpret_widget).
+INTERPRETATION_OF = "imgreg_interpretation_of"
+#: Correspondence lines drawn at most (an even sample of them).
+MAX_LINES = 300
+#: Gap between the photo and the render on the canvas, as a fraction of the width.
+GAP = 0.04
+#: Pair colours of the manual control points (matched on photo and reference).
+PAIR_COLORS = (
+    "#e6194b", "#3cb44b", "#ffe119", "#4363d8", "#f58231", "#911eb4", "#46f0f0",
+    "#f032e6", "#bcf60c", "#fabebe", "#008080", "#e6beff", "#9a6324", "#fffac8",
+    "#800000", "#aaffc3", "#808000", "#ffd8b1", "#000075", "#ffffff",
+)
+#: Correspondence line colours: agree with the pose, pass the 2D check only, rejected.
+CORRESPONDENCE_COLORS = {
+    "pose inlier": "#00e676", "feature inlier": "#ffd600", "outlier": "#ff1744",
+}
+
+_CANCELLED = object()
+
+
+class WorkbenchError(Exception):
+    """An error already worded for the user (one line)."""
+
+
+def one_line(exc: BaseException) -> str:
+    """The first line of an error's message, naming its type unless it is bad input."""
+    text = str(exc).strip()
+    first = text.splitlines()[0] if text else ""
+    if isinstance(exc, (InputError, WorkbenchError)):
+        return first or type(exc).__name__
+    return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
+
+
+def _guarded(fn: Callable) -> Callable:
+    """Wrap a job for a worker: cancellation returns a marker, errors become one line."""
+    if inspect.isgeneratorfunction(fn):
+
+        @functools.wraps(fn)
+        def gen(*args, **kwargs):
+            try:
+                return (yield from fn(*args, **kwargs))
+            except Cancelled:
+                return _CANCELLED
+            except Exception as exc:
+                raise WorkbenchError(one_line(exc)) from exc
+
+        return gen
+
+    @functools.wraps(fn)
+    def func(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except Cancelled:
+            return _CANCELLED
+        except Exception as exc:
+            raise WorkbenchError(one_line(exc)) from exc
+
+    return func
+
+
+def _enough_worker_threads(n: int = 6) -> None:
+    """Let napari's worker pool run a registration, a render and a filter at once.
+
+    napari's workers share Qt's global thread pool, sized to the CPU count: on
+    a two-core laptop a registration and a full render would hold the pool
+    and a filter preview would wait for them. The jobs spend their time in
+    NumPy, OpenCV and Embree, which release the GIL.
+    """
+    from qtpy.QtCore import QThreadPool
+
+    pool = QThreadPool.globalInstance()
+    if pool.maxThreadCount() < n:
+        pool.setMaxThreadCount(n)
+
+
+def _in_python_thread(fn: Callable, *args, **kwargs):
+    """Run ``fn`` in a short-lived Python thread and wait for it.
+
+    For jobs that may touch pyproj (georeference, DEM, geodetic priors):
+    pyproj 3.7 keeps per-thread PROJ contexts that can be freed under Qt's
+    worker threads, which Python did not create, and the next use crashes
+    the process (pyproj issues 1509 and 1622). A thread Python starts and
+    ends owns its context for its whole life.
+    """
+    box: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            box["value"] = fn(*args, **kwargs)
+        except BaseException as exc:  # re-raised in the worker
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name="napari-imgreg-io", daemon=True)
+    thread.start()
+    thread.join()
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
+
+
+# ------------------------------------------------------------------ state
+@dataclass(eq=False)
+class TrialRecord:
+    """A trial in the photo's history: from which run, by which action."""
+
+    trial: Trial
+    run: int
+    kind: str  # "Run", "Auto" or "Manual"
+
+    @property
+    def label(self) -> str:
+        t = self.trial
+        if self.kind == "Manual":
+            return "manual pairs"
+        return f"{self.kind} {self.run}: {t.params.features.name} ({t.origin})"
+
+
+@dataclass(eq=False)
+class PhotoState:
+    """One photo of the session and everything done to it.
+
+    Attributes
+    ----------
+    photo : Photo
+    prior : Prior
+        From its sensor record and metadata.
+    record_path : Path
+        The sidecar JSON the pose is saved to.
+    intrinsics : Intrinsics
+        The camera used now (the prior's, or with a solved focal length).
+    history : PoseHistory
+        The current pose and its undo/redo.
+    trials : list of TrialRecord
+    registration : Registration or None
+        The last automatic registration.
+    reference : RenderResult or None
+        The reference render of the manual registration.
+    """
+
+    photo: Photo
+    prior: Prior
+    record_path: Path
+    intrinsics: Intrinsics
+    history: manual.PoseHistory
+    trials: list[TrialRecord] = field(default_factory=list)
+    registration: Registration | None = None
+    manual_solution: manual.ManualSolution | None = None
+    reference: RenderResult | None = None
+    reference_source: str = ""
+    pairs_photo: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    pairs_reference: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    selected_trial: int | None = None
+    runs: int = 0
+
+    @property
+    def name(self) -> str:
+        return self.photo.path.name if self.photo.path is not None else "photo"
+
+    @property
+    def pose(self) -> Pose:
+        return self.history.current
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.intrinsics.width, self.intrinsics.height
+
+
+_CONTROLLERS: weakref.WeakValueDictionary[int, WorkbenchController] = weakref.WeakValueDictionary()
+
+
+def controller_for(viewer: napari.viewer.Viewer) -> WorkbenchController:
+    """The viewer's workbench controller (created on first use).
+
+    Every workbench dock of a viewer, and any dock that wants the current
+    photo, pose or registration (e.g. an interpretation widget), shares it.
+    """
+    ctrl = _CONTROLLERS.get(id(viewer))
+    if ctrl is None or ctrl.viewer is not viewer or ctrl.closed:
+        ctrl = WorkbenchController(viewer)
+        _CONTROLLERS[id(viewer)] = ctrl
+    return ctrl
+
+
+# ------------------------------------------------------------------ layers
+class _Layers:
+    """The napari layers of the workbench, found again if the user renamed them
+    and made anew if deleted."""
+
+    def __init__(self, viewer: napari.viewer.Viewer) -> None:
+        self.viewer = viewer
+        self._refs: dict[str, Any] = {}
+        self.width = 0
+        self.height = 0
+
+    def get(self, key: str):
+        layer = self._refs.get(key)
+        if layer is not None and layer in self.viewer.layers:
+            return layer
+        return None
+
+    def _put(self, key: str, layer) -> Any:
+        self._refs[key] = layer
+        self.order()
+        return layer
+
+    def _add(self, method: str, *args, **kwargs):
+        """``viewer.add_*`` without making the new layer the active one."""
+        active = self.viewer.layers.selection.active
+        layer = getattr(self.viewer, method)(*args, **kwargs)
+        if active is not None and active in self.viewer.layers:
+            self.viewer.layers.selection.active = active
+        return layer
+
+    #: Bottom to top among the workbench's layers (other layers keep their places).
+    ORDER = ("surface", "photo", "photo_filtered", "render", "render_filtered", "reference",
+             "blend", "correspondences", "photo_pairs", "reference_pairs", "cameras", "frusta")
+
+    def order(self) -> None:
+        """Keep the workbench's layers stacked as :attr:`ORDER` says."""
+        layers = self.viewer.layers
+        mine = [layer for key in self.ORDER if (layer := self.get(key)) is not None]
+        slots = sorted(layers.index(layer) for layer in mine)
+        for slot, layer in zip(slots, mine):
+            i = layers.index(layer)
+            if i != slot:
+                layers.move(i, slot)
+
+    @property
+    def offset(self) -> float:
+        """Column of the right-hand image (render, reference) on the canvas."""
+        return self.width * (1.0 + GAP)
+
+    # -- 2D: photo | render side by side
+    def show_photo(self, ps: PhotoState) -> None:
+        """The photo's own Image layer (named after it), the others hidden.
+
+        One layer per photo: what is drawn over a photo (the interpretation
+        tools key their layers by the photo layer's name) stays with it.
+        """
+        image = ps.photo.image
+        self.height, self.width = image.shape[:2]
+        key = f"photo:{ps.photo.path}"
+        layer = self.get(key)
+        if layer is None:
+            name = ps.photo.path.stem if ps.photo.path is not None else "photo"
+            layer = self._put(key, self._add("add_image", image, name=name, rgb=True,
+                                             metadata={"photo_path": str(ps.photo.path)}))
+        previous = self.get("photo")
+        self._refs["photo"] = layer
+        if previous is not None and previous is not layer:
+            previous.visible = False
+        layer.visible = self.viewer.dims.ndisplay == 2
+        self.order()
+        for key in ("photo_filtered", "render_filtered", "correspondences"):
+            if (other := self.get(key)) is not None:
+                other.visible = False
+        # Interpretations drawn on the other photos step back with them.
+        for other in self.viewer.layers:
+            owner = other.metadata.get(INTERPRETATION_OF)
+            if owner is not None:
+                other.visible = owner == layer.name and self.viewer.dims.ndisplay == 2
+
+    def clear_photos(self) -> None:
+        """Remove the photos' layers (a new model was opened)."""
+        for key in [k for k in self._refs if k.startswith("photo:")]:
+            layer = self._refs.pop(key)
+            if layer in self.viewer.layers:
+                self.viewer.layers.remove(layer)
+        self._refs.pop("photo", None)
+
+    def set_camera(self, ps: PhotoState) -> None:
+        """Keep the photo layer's camera and pose current (read by the interpretation tools)."""
+        layer = self.get("photo")
+        if layer is not None:
+            layer.metadata["intrinsics"] = ps.intrinsics
+            layer.metadata["pose"] = ps.pose
+
+    def image_geometry(self, rendered, right: bool = True) -> tuple[tuple, tuple]:
+        """(scale, translate) that lay a reduced image (a RenderResult or an
+        array) over the full-size frame of the photo."""
+        h, w = rendered.shape[:2]
+        sx, sy = w / max(self.width, 1), h / max(self.height, 1)
+        scale = (1.0 / sy, 1.0 / sx)
+        # Pixel i of the reduced image has its centre at full-size (i + 0.5) / s - 0.5.
+        translate = (0.5 / sy - 0.5, 0.5 / sx - 0.5 + (self.offset if right else 0.0))
+        return scale, translate
+
+    def _show_rgb(self, key: str, name: str, image: np.ndarray, scale, translate, **kwargs):
+        layer = self.get(key)
+        if layer is None:
+            layer = self._put(key, self._add("add_image", image, name=name, rgb=True, scale=scale,
+                                             translate=translate, **kwargs))
+        else:
+            _set_geometry(layer, scale, translate)
+            layer.data = image
+        return layer
+
+    def show_render(self, rgb: np.ndarray, blend_opacity: float, blend_visible: bool) -> None:
+        """The render (at the photo's size) right of the photo, and over it for blending."""
+        self._show_rgb("render", "render", rgb, (1.0, 1.0), (0.0, self.offset))
+        self._blend_rgb = rgb
+        blend = self.get("blend")
+        if blend is None:
+            self._show_rgb("blend", "overlay render", rgb, (1.0, 1.0), (0.0, 0.0),
+                           opacity=blend_opacity, visible=blend_visible)
+        elif blend.visible:  # a hidden overlay is brought up to date when shown
+            self._show_rgb("blend", "overlay render", rgb, (1.0, 1.0), (0.0, 0.0))
+
+    def sync_blend(self) -> None:
+        blend, rgb = self.get("blend"), getattr(self, "_blend_rgb", None)
+        if blend is not None and rgb is not None and blend.data is not rgb:
+            blend.data = rgb
+
+    def show_filtered(self, which: str, gray: np.ndarray, scale, translate) -> None:
+        key = f"{which}_filtered"
+        layer = self.get(key)
+        if layer is None:
+            layer = self._put(key, self._add(
+                "add_image", gray, name=f"{which} · filtered", colormap="gray",
+                contrast_limits=(0, 255),
+                scale=scale, translate=translate))
+        else:
+            _set_geometry(layer, scale, translate)
+            layer.data = gray
+            visible = self.viewer.dims.ndisplay == 2
+            if layer.visible != visible:
+                layer.visible = visible
+
+    def hide_filtered(self) -> None:
+        for key in ("photo_filtered", "render_filtered"):
+            if (layer := self.get(key)) is not None:
+                layer.visible = False
+
+    def show_correspondences(self, trial: Trial | None, outliers: bool, visible: bool) -> int:
+        """Lines from photo keypoints to their render matches; returns how many are drawn."""
+        layer = self.get("correspondences")
+        corr = trial.correspondences if trial is not None else None
+        if corr is None or len(corr.photo_points) == 0:
+            if layer is not None:
+                layer.visible = False
+            return 0
+        kind = np.where(corr.pose_inlier, 0, np.where(corr.feature_inlier, 1, 2))
+        keep = kind < 2 if not outliers else np.ones(len(kind), bool)
+        idx = np.flatnonzero(keep)
+        if len(idx) > MAX_LINES:  # an even sample: hundreds of lines hide the images
+            keep = np.zeros(len(kind), bool)
+            keep[idx[np.linspace(0, len(idx) - 1, MAX_LINES).round().astype(int)]] = True
+        start = napari_from_pixels(corr.photo_points[keep])
+        end = napari_from_pixels(corr.render_points[keep]) + np.array([0.0, self.offset])
+        vectors = np.stack([start, end - start], axis=1)
+        palette = np.array([_rgba(c) for c in CORRESPONDENCE_COLORS.values()])
+        colors = palette[kind[keep]]
+        width = max(1.0, self.width / 700)
+        if layer is None:
+            layer = self._put("correspondences", self._add(
+                "add_vectors", vectors, name="correspondences", edge_color=colors, edge_width=width,
+                vector_style="line", visible=visible))
+        else:
+            layer.data = vectors
+            layer.edge_color = colors
+            layer.edge_width = width
+            layer.visible = visible
+        return int(keep.sum())
+
+    def show_reference(self, reference: RenderResult) -> None:
+        scale, translate = self.image_geometry(reference, right=True)
+        layer = self._show_rgb("reference", "reference render", reference.rgb, scale, translate)
+        layer.visible = True
+
+    # -- pairs
+    def pair_layers(self, ref_scale, ref_translate) -> tuple[Any, Any]:
+        size = max(8.0, self.width / 70)
+        out = []
+        for key, name, scale, translate in (
+            ("photo_pairs", "photo pairs", (1.0, 1.0), (0.0, 0.0)),
+            ("reference_pairs", "reference pairs", ref_scale, ref_translate),
+        ):
+            layer = self.get(key)
+            if layer is None:
+                layer = self._put(key, self._add(
+                    "add_points", np.zeros((0, 2)), name=name, size=size, border_color="black",
+                    border_width=0.15, scale=scale, translate=translate,
+                    text={"string": "{pair}", "color": "white", "size": 11,
+                          "anchor": "upper_left", "translation": (-size / 2, size / 2)},
+                    features={"pair": np.zeros(0, int)},
+                ))
+            else:
+                layer.scale, layer.translate = scale, translate
+            out.append(layer)
+        return out[0], out[1]
+
+    # -- 3D
+    def show_surface(self, scene: Scene) -> None:
+        data, kwargs, _ = surface_layer_data(scene, name="outcrop")
+        old = self.get("surface")
+        if old is not None:
+            self.viewer.layers.remove(old)
+        kwargs["visible"] = self.viewer.dims.ndisplay == 3
+        self._put("surface", self._add("add_surface", data, **kwargs))
+
+    def show_cameras(self, centers: np.ndarray, segments: np.ndarray, current: int) -> None:
+        visible = self.viewer.dims.ndisplay == 3
+        pts = napari_from_world(centers) if len(centers) else np.zeros((0, 3))
+        colors = np.array([_rgba("#ff1744") if k == current else _rgba("#ffd600")
+                           for k in range(len(pts))]).reshape(-1, 4)
+        layer = self.get("cameras")
+        if layer is None:
+            layer = self._put("cameras", self._add(
+                "add_points", pts, name="cameras", ndim=3, size=5.0,
+                face_color=colors if len(pts) else "red",
+                visible=visible))
+        else:
+            layer.data = pts
+            if len(pts):
+                layer.face_color = colors
+        seg = (napari_from_world(segments.reshape(-1, 3)).reshape(-1, 2, 3)
+               if len(segments) else None)
+        frusta = self.get("frusta")
+        if seg is None:
+            if frusta is not None:
+                frusta.data = np.zeros((0, 2, 3))
+            return
+        vectors = np.stack([seg[:, 0], seg[:, 1] - seg[:, 0]], axis=1)
+        if frusta is None:
+            self._put("frusta", self._add(
+                "add_vectors", vectors, name="view frusta", ndim=3, edge_color="#ffd600",
+                edge_width=0.6,
+                vector_style="line", visible=visible))
+        else:
+            frusta.data = vectors
+
+    def set_mode_3d(self, three_d: bool) -> None:
+        for key in ("surface", "cameras", "frusta"):
+            if (layer := self.get(key)) is not None:
+                layer.visible = three_d
+        for key in ("photo", "render", "blend", "photo_filtered", "render_filtered",
+                    "correspondences", "reference", "photo_pairs", "reference_pairs"):
+            layer = self.get(key)
+            if layer is None:
+                continue
+            if three_d:
+                layer.metadata["imgreg_visible_2d"] = layer.visible
+                layer.visible = False
+            else:
+                layer.visible = layer.metadata.pop("imgreg_visible_2d", layer.visible)
+
+    def layers_2d(self) -> list:
+        return [layer for key in ("photo", "render") if (layer := self.get(key)) is not None]
+
+    def layers_3d(self) -> list:
+        return [layer for key in ("surface", "cameras") if (layer := self.get(key)) is not None]
+
+
+def _set_geometry(layer, scale, translate) -> None:
+    """Set a layer's scale and translate only when they change (each set
+    makes napari recompute the scene's extent)."""
+    if not np.allclose(layer.scale, scale):
+        layer.scale = scale
+    if not np.allclose(layer.translate, translate):
+        layer.translate = translate
+
+
+def _rgba(color: str) -> np.ndarray:
+    from matplotlib.colors import to_rgba
+
+    return np.array(to_rgba(color), np.float32)
+
+
+# -------------------------------------------------------------- controller
+class WorkbenchController(QObject):
+    """State, layers and jobs of the workbench for one viewer (see module docstring)."""
+
+    scene_changed = Signal()
+    photos_changed = Signal()
+    photo_changed = Signal()
+    pose_changed = Signal(str)  # what changed it
+    params_changed = Signal()
+    trials_changed = Signal()
+    trial_selected = Signal(int)
+    render_shown = Signal(str)  # "preview" or "full"
+    filters_shown = Signal(str)  # "photo" or "render"
+    registration_started = Signal(str)  # "Run" or "Auto"
+    registration_progress = Signal(float, str)
+    registration_finished = Signal(object)  # Registration, or None when cancelled/failed
+    reference_ready = Signal()
+    pairs_changed = Signal()
+    manual_finished = Signal(object)  # ManualSolution or None
+    busy_changed = Signal()
+    status = Signal(str)
+    failed = Signal(str, str)  # job, one-line message
+
+    def __init__(self, viewer: napari.viewer.Viewer) -> None:
+        super().__init__()
+        self.viewer = viewer
+        self.scene: Scene | None = None
+        self.scene_files: dict[str, str] = {}
+        self.terrain: manual.TerrainMap | None = None
+        self.photos: list[PhotoState] = []
+        self.current: PhotoState | None = None
+        self.params = RegistrationParams()
+        self.layers = _Layers(viewer)
+        self.filter_preview = False
+        self.show_outliers = False
+        self.show_correspondences = True
+        self.blend_opacity = 0.5
+        self.blend_visible = False
+        self.last_render: RenderResult | None = None
+        self._shown_full_pose: Pose | None = None
+        self._workers: dict[str, Any] = {}
+        self._pending: dict[str, tuple] = {}
+        self._cancel = False
+        self._closed = False
+        self._docks = 0  # docks using this controller (see attach)
+        self._pairs_busy = False
+        self.latency: dict[str, float] = {}
+        self._cameras_dirty = True
+        self._reduced: dict[str, tuple] = {}  # filter preview: images at the match width
+        self._asked: dict[str, float] = {}  # time of the latest request per job
+        self._full_timer = QTimer(self)
+        self._full_timer.setSingleShot(True)
+        self._full_timer.setInterval(FULL_RENDER_DELAY_MS)
+        self._full_timer.timeout.connect(lambda: self.request_render(full=True))
+        viewer.dims.events.ndisplay.connect(self._on_ndisplay)
+        _enough_worker_threads()
+
+    # ------------------------------------------------------------ workers
+    @property
+    def busy(self) -> bool:
+        """True while any job runs or waits (a render, a filter, a registration...)."""
+        return bool(self._workers) or bool(self._pending) or self._full_timer.isActive()
+
+    def is_running(self, job: str) -> bool:
+        return job in self._workers
+
+    def _start(self, job: str, fn: Callable, *args, on_returned: Callable,
+               on_yielded: Callable | None = None, progress: dict | None = None,
+               on_failed: Callable | None = None, **kwargs):
+        """Run ``fn`` in a napari thread worker named ``job``."""
+        from napari.qt.threading import create_worker
+
+        def release() -> None:
+            # The job is over once it has returned or failed: its result
+            # handlers may start the next job of the same name.
+            if self._workers.get(job) is worker:
+                del self._workers[job]
+                self.busy_changed.emit()
+
+        def returned(value):
+            release()
+            if self._closed:
+                return
+            if value is _CANCELLED:
+                self.status.emit(f"{job}: cancelled")
+                on_returned(None)
+                return
+            on_returned(value)
+
+        def errored(exc):
+            release()
+            msg = one_line(exc)
+            log.debug("%s failed: %s", job, msg, exc_info=exc)
+            if not self._closed:
+                self.status.emit(f"{job} failed: {msg}")
+                self.failed.emit(job, msg)
+                if on_failed is not None:
+                    on_failed(msg)
+
+        def finished():
+            release()
+            self.busy_changed.emit()
+            if job not in self._workers:
+                pending = self._pending.pop(job, None)
+                if pending is not None and not self._closed:
+                    pending[0]()
+
+        def aborted():
+            returned(_CANCELLED)
+
+        connect = {"returned": returned, "errored": errored, "finished": finished}
+        if on_yielded is not None:
+            connect["yielded"] = on_yielded
+        if inspect.isgeneratorfunction(fn):
+            connect["aborted"] = aborted  # quit() between two yields
+        extra = {"_progress": progress} if progress else {}
+        worker = create_worker(_guarded(fn), *args, _connect=connect, _start_thread=False,
+                               **extra, **kwargs)
+        self._workers[job] = worker
+        self.busy_changed.emit()
+        worker.start()
+        return worker
+
+    def _notify_error(self, message: str) -> None:
+        from napari.utils.notifications import show_error
+
+        self.status.emit(message)
+        show_error(message)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def attach(self, widget: QObject) -> None:
+        """A dock uses this controller; when the last one is gone, it shuts down."""
+        self._docks += 1
+        widget.destroyed.connect(self._detach)
+
+    def _detach(self, *_args) -> None:
+        self._docks -= 1
+        if self._docks <= 0:
+            self.shutdown()
+
+    def shutdown(self) -> None:
+        """Stop timers and ignore late results (no dock shows this controller any more)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._full_timer.stop()
+        self._cancel = True
+        for worker in list(self._workers.values()):
+            worker.quit()
+        try:
+            self.viewer.dims.events.ndisplay.disconnect(self._on_ndisplay)
+        except (TypeError, ValueError, RuntimeError):  # pragma: no cover
+            pass
+
+    # -------------------------------------------------------------- scene
+    def open_scene(self, mesh: str | Path, dem: str | Path | None = None,
+                   georef: str | Path | None = None, photos: list | None = None) -> None:
+        """Load a mesh (or a DSM as GeoTIFF/.asc), optionally a DEM and georeference,
+        in a worker; then add ``photos``."""
+        from ..scene import Scene
+
+        def job(mesh, dem, georef):
+            return _in_python_thread(load, mesh, dem, georef)
+
+        def load(mesh, dem, georef):
+            path = Path(mesh)
+            if path.suffix.lower() in (".tif", ".tiff", ".asc"):
+                from ..geo import Georef
+
+                g = Georef.load(georef) if georef else None
+                scene = Scene.from_dem(path, georef=g)
+                if dem:
+                    from ..geo import DEM
+
+                    scene.dem = DEM.load(dem)
+            else:
+                scene = Scene.load(path, georef=georef or None, dem=dem or None)
+            scene.build_engine()
+            return scene, manual.terrain_map(scene)
+
+        def done(value):
+            if value is None:
+                return
+            scene, terrain = value
+            self.scene, self.terrain = scene, terrain
+            self.scene_files = {"mesh": str(mesh), "dem": str(dem or ""),
+                                "georef": str(georef or "")}
+            self.photos, self.current = [], None
+            self.layers.clear_photos()
+            self.layers.show_surface(scene)
+            self.scene_changed.emit()
+            self.photos_changed.emit()
+            self.status.emit(f"opened {scene.name}: {scene.n_faces:,} triangles"
+                             + (", DEM" if scene.dem is not None else "")
+                             + (f", {scene.georef.crs}" if scene.georef is not None else ""))
+            for w in scene.warnings:
+                self.status.emit(w)
+            if photos:
+                self.add_photos(photos)
+
+        self.status.emit(f"opening {Path(mesh).name}…")
+        self._start("open scene", job, mesh, dem, georef, on_returned=done,
+                    progress={"desc": f"Opening {Path(mesh).name}"})
+
+    def open_sample(self) -> None:
+        """The generated sample outcrop with its DEM and its photos."""
+        from ..sample import sample_scene
+
+        def job():
+            return _in_python_thread(sample_scene, "small")
+
+        def done(folder):
+            if folder is None:
+                return
+            self.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif",
+                            photos=sorted(folder.glob("IMG_*.jpg")))
+
+        self._start("sample", job, on_returned=done, progress={"desc": "Sample scene"})
+
+    # ------------------------------------------------------------- photos
+    def add_photos(self, paths: list) -> None:
+        """Load photos and their priors (sensor record, else EXIF/XMP) in a worker."""
+        if self.scene is None:
+            self._notify_error(
+                "Open a model first: the prior's altitude comes from its DEM or surface.")
+            return
+        scene = self.scene
+        paths = [Path(p) for p in paths]
+
+        def job():
+            return _in_python_thread(load)
+
+        def load():
+            from ..io.photos import load_photo
+            from ..io.records import prior_for_photo
+
+            loaded, errors = [], []
+            for p in paths:
+                try:
+                    photo = load_photo(p)
+                    prior = prior_for_photo(photo, scene)
+                except Exception as exc:  # one bad photo does not stop the others
+                    errors.append(one_line(exc))
+                    continue
+                loaded.append((photo, prior))
+            return loaded, errors
+
+        def done(value):
+            if value is None:
+                return
+            loaded, errors = value
+            known = {ps.photo.path for ps in self.photos}
+            for photo, prior in loaded:
+                if photo.path in known:
+                    continue
+                self.photos.append(PhotoState(
+                    photo=photo, prior=prior, record_path=photo.sidecar,
+                    intrinsics=prior.intrinsics, history=manual.PoseHistory(prior.pose)))
+                self.photos[-1].history._current_label = "prior"
+            for msg in errors:
+                self._notify_error(msg)
+            self.photos_changed.emit()
+            if self.current is None and self.photos:
+                self.select_photo(0)
+            self._update_cameras()
+
+        self._start("load photos", job, on_returned=done,
+                    progress={"desc": f"Loading {len(paths)} photo(s)"})
+
+    def select_photo(self, index: int) -> None:
+        """Make a photo current: show it, its pose's render, its pairs and trials."""
+        if not 0 <= index < len(self.photos):
+            return
+        if self.current is not None:
+            self._store_pairs()
+        self.current = ps = self.photos[index]
+        self.layers.show_photo(ps)
+        self.layers.set_camera(ps)
+        self._shown_full_pose = None
+        self.last_render = None
+        if (ref := self.layers.get("reference")) is not None:
+            ref.visible = ps.reference is not None
+            if ps.reference is not None:
+                self.layers.show_reference(ps.reference)
+        self._restore_pairs()
+        self.photo_changed.emit()
+        self.pose_changed.emit("photo")
+        self.trials_changed.emit()
+        if ps.selected_trial is not None:
+            self.select_trial(ps.selected_trial)
+        else:
+            self.layers.show_correspondences(None, False, False)
+        self.request_render(full=False)  # quick first look (and warms the preview camera)
+        self.request_render(full=True)
+        self._update_cameras()
+        if self.viewer.dims.ndisplay == 2:
+            self.fit_2d()
+
+    # --------------------------------------------------------------- pose
+    def set_pose(self, pose: Pose, label: str, continuing: bool = False) -> None:
+        """Change the current photo's pose (an undoable edit unless ``continuing``)."""
+        ps = self.current
+        if ps is None:
+            return
+        if continuing:
+            ps.history.replace(pose)
+        else:
+            ps.history.push(pose, label)
+        self._pose_edited(label)
+
+    def nudge(self, label: str = "nudge", **amounts: float) -> None:
+        """Turn/move the camera by small amounts (see :func:`manual.nudge_pose`)."""
+        if self.current is None:
+            return
+        self.set_pose(manual.nudge_pose(self.current.pose, **amounts), label)
+
+    def move_on_map(self, x: float, y: float, continuing: bool = False,
+                    height: float | None = None) -> bool:
+        """Move the camera to map point (x, y), keeping its height above the terrain."""
+        ps = self.current
+        if ps is None or self.scene is None:
+            return False
+        h = height if height is not None else self.height_above_ground()
+        if h is None:
+            h = 1.6
+        try:
+            pose = manual.pose_at_ground(ps.pose, x, y, h, self.scene.terrain_height)
+        except (InputError, ValueError) as exc:
+            self._notify_error(f"({x:.1f}, {y:.1f}) is outside the terrain: {one_line(exc)}")
+            return False
+        self.set_pose(pose, "moved on the map", continuing=continuing)
+        return True
+
+    def turn_toward(self, x: float, y: float) -> None:
+        if self.current is not None:
+            self.set_pose(manual.turn_toward(self.current.pose, x, y), "turned on the map")
+
+    def height_above_ground(self) -> float | None:
+        if self.current is None or self.scene is None:
+            return None
+        return manual.height_above_ground(self.current.pose, self.scene.terrain_height)
+
+    def finish_drag(self) -> None:
+        """A drag ended: render at full resolution now."""
+        self._full_timer.stop()
+        self.request_render(full=True)
+
+    def undo(self) -> None:
+        if self.current is not None and self.current.history.undo() is not None:
+            self._pose_edited("undo")
+
+    def redo(self) -> None:
+        if self.current is not None and self.current.history.redo() is not None:
+            self._pose_edited("redo")
+
+    def reset_to_prior(self) -> None:
+        if self.current is not None:
+            self.set_pose(self.current.prior.pose, "prior")
+
+    def _pose_edited(self, label: str) -> None:
+        if self.current is not None:
+            self.layers.set_camera(self.current)
+        self.request_render(full=False)
+        self._full_timer.start()
+        self._cameras_dirty = True  # redrawn in 3D, not on every nudge
+        self.pose_changed.emit(label)
+
+    def save_record(self) -> Path | None:
+        """Save the current pose (and a solved camera) into the photo's sensor record."""
+        ps = self.current
+        if ps is None:
+            return None
+        camera = ps.intrinsics if ps.intrinsics != ps.prior.intrinsics else None
+        try:
+            manual.save_pose_to_record(ps.record_path, ps.pose, camera=camera)
+        except (InputError, OSError) as exc:
+            self._notify_error(one_line(exc))
+            return None
+        self.status.emit(f"pose saved to {ps.record_path.name}")
+        return ps.record_path
+
+    # ------------------------------------------------------------- render
+    def request_render(self, full: bool, since: float | None = None) -> None:
+        """Render the current pose in a worker, reduced (``full=False``, shown at
+        the photo's size) or at full resolution; a request made while one runs
+        waits, and a newer one replaces it."""
+        ps, scene = self.current, self.scene
+        if ps is None or scene is None or self._closed:
+            return
+        job = "render" if full else "preview"
+        self._asked[job] = time.perf_counter()
+        if job in self._workers:
+            if job not in self._pending:
+                self._pending[job] = (lambda t=time.perf_counter(): self.request_render(full, t),)
+            return
+        pose, intr = ps.pose, ps.intrinsics
+        scale = 1.0 if full else min(1.0, PREVIEW_WIDTH / intr.width)
+        t0 = since if since is not None else time.perf_counter()
+
+        def job_fn():
+            import cv2
+
+            from ..render import render
+
+            result = render(scene, intr, pose, scale=scale)
+            rgb = result.rgb
+            if scale < 1.0:  # shown at the photo's size: the layers keep their geometry
+                rgb = cv2.resize(rgb, (intr.width, intr.height), interpolation=cv2.INTER_LINEAR)
+            return result, rgb
+
+        def done(value):
+            if value is None or self.current is not ps:
+                return
+            result, rgb = value
+            current = ps.pose
+            if full:
+                if result.cam_from_world is not current:
+                    return  # the pose moved on; its own full render follows
+                self._shown_full_pose = current
+                self.last_render = result
+            elif self._shown_full_pose is current:
+                return  # the full render of this pose is already shown
+            self.layers.show_render(rgb, self.blend_opacity, self.blend_visible)
+            # Shown this long after the latest edit (t0: the oldest one served).
+            self.latency[job] = time.perf_counter() - max(t0, self._asked.get(job, t0))
+            if full:
+                if self.filter_preview:
+                    self.request_filter_preview("render", result)
+                if self._cameras_dirty and self.viewer.dims.ndisplay == 3:
+                    self._update_cameras()
+            self.render_shown.emit("full" if full else "preview")
+
+        self._start(job, job_fn, on_returned=done)
+
+    # ------------------------------------------------------------ filters
+    def set_filter_preview(self, on: bool) -> None:
+        self.filter_preview = bool(on)
+        if on:
+            self.request_filter_preview("photo")
+            self.request_filter_preview("render")
+        else:
+            self.layers.hide_filtered()
+
+    def request_filter_preview(self, which: str, rendered: RenderResult | None = None,
+                               since: float | None = None) -> None:
+        """Filter the photo or the shown render (full image) in a worker and show it."""
+        ps = self.current
+        if ps is None or not self.filter_preview or self._closed:
+            return
+        job = f"filter {which}"
+        self._asked[job] = time.perf_counter()
+        if job in self._workers:
+            if job not in self._pending:
+                self._pending[job] = (lambda t=time.perf_counter(): self.request_filter_preview(
+                    which, since=t),)
+            return
+        if which == "photo":
+            image, mask = ps.photo.image, None
+            params = replace(self.params.photo_filters)
+        else:
+            rendered = rendered or self.last_render
+            if rendered is None:
+                return
+            image, mask = rendered.rgb, rendered.mask
+            params = replace(self.params.render_filters)
+        width = self.params.match_width
+        t0 = since if since is not None else time.perf_counter()
+        cache = self._reduced
+
+        def job_fn():
+            from ..filters import apply_filters
+
+            # The reduced image does not change while a slider moves: reduce once.
+            key = (which, id(image), width)
+            if cache.get(which, (None,))[0] != key:
+                cache[which] = (key, *manual.reduce_for_matching(image, width, mask))
+            _, small, small_mask = cache[which]
+            return apply_filters(small, params, mask=small_mask)
+
+        def done(gray):
+            if gray is None or self.current is not ps or not self.filter_preview:
+                return
+            geometry = self.layers.image_geometry(gray, right=which != "photo")
+            self.layers.show_filtered(which, gray, *geometry)
+            # Shown this long after the latest edit (t0: the oldest one served).
+            self.latency[job] = time.perf_counter() - max(t0, self._asked.get(job, t0))
+            self.filters_shown.emit(which)
+
+        self._start(job, job_fn, on_returned=done)
+
+    def filters_edited(self, which: str) -> None:
+        """The photo's or the render's filter parameters changed."""
+        if self.filter_preview:
+            self.request_filter_preview(which)
+
+    # ------------------------------------------------------- registration
+    def run_registration(self, auto: bool) -> None:
+        """Register the current photo from its current pose: one trial (Run) or
+        trials adapted by the rules (Auto), in a worker with progress and Cancel."""
+        ps, scene = self.current, self.scene
+        if ps is None or scene is None:
+            self._notify_error("Load a scene and a photo first.")
+            return
+        if self.is_running("registration"):
+            return
+        try:
+            FeatureParams.from_dict(self.params.features.to_dict())
+        except (KeyError, ValueError, TypeError) as exc:
+            self._notify_error(one_line(exc))
+            return
+        params = self.params.copy()
+        params.auto_adapt = auto
+        if not auto:
+            params.search_prior = False
+            params.max_trials = 1
+        prior = Prior(ps.intrinsics, ps.pose, ps.prior.sigma, list(ps.prior.assumptions))
+        image, name = ps.photo.image, ps.name
+        kind = "Auto" if auto else "Run"
+        self._cancel = False
+
+        def job():
+            from ..pipeline import register_photo
+
+            return (yield from register_photo(scene, image, prior, params, photo_name=name,
+                                              cancelled=lambda: self._cancel))
+
+        state = {"pbar": None}
+
+        def progress(p):
+            self.registration_progress.emit(float(p.fraction), p.message)
+            worker = self._workers.get("registration")
+            pbar = getattr(worker, "pbar", None)
+            if pbar is not None:
+                pbar.n = int(round(100 * p.fraction))
+                pbar.set_description(f"{name}: {p.message}")
+                pbar.update(0)
+
+        def done(reg):
+            if reg is None:
+                self.registration_progress.emit(0.0, "cancelled")
+                self.registration_finished.emit(None)
+                return
+            self._registration_done(ps, reg, kind)
+
+        def failed(msg):
+            self.registration_finished.emit(None)
+
+        self.registration_started.emit(kind)
+        self.status.emit(f"{kind}: registering {name}…")
+        worker = self._start("registration", job, on_returned=done, on_yielded=progress,
+                             on_failed=failed,
+                             progress={"total": 100, "desc": f"Registering {name}"})
+        state["pbar"] = getattr(worker, "pbar", None)
+
+    def cancel_registration(self) -> None:
+        """Stop the running registration (or manual scoring) at its next step."""
+        self._cancel = True  # polled by the pipeline between steps
+        self.status.emit("cancelling…")
+
+    def _registration_done(self, ps: PhotoState, reg: Registration, kind: str) -> None:
+        ps.runs += 1
+        ps.registration = reg
+        first = len(ps.trials)
+        for t in reg.trials:
+            ps.trials.append(TrialRecord(t, ps.runs, kind))
+        best = first + next((k for k, t in enumerate(reg.trials) if t.index == reg.best_trial), 0)
+        if reg.registered and ps is self.current:
+            ps.history.push(reg.pose, f"{kind} {ps.runs} ({reg.grade})")
+            self.set_blend(visible=True)
+            self._pose_edited("registration")
+        ps.selected_trial = best
+        self.trials_changed.emit()
+        if ps is self.current:
+            self.select_trial(best)
+        secs = reg.timings_s.get("total", 0.0)
+        self.status.emit(f"{ps.name}: {reg.status} ({reg.grade}, Q = {reg.q:.2f}) "
+                         f"after {len(reg.trials)} trial(s) in {secs:.1f} s")
+        self.registration_progress.emit(1.0, f"{reg.status} ({reg.grade})")
+        self.registration_finished.emit(reg)
+
+    # -------------------------------------------------------------- trials
+    def select_trial(self, index: int) -> None:
+        """Show a trial's metrics and correspondences (does not change the pose)."""
+        ps = self.current
+        if ps is None or not 0 <= index < len(ps.trials):
+            return
+        ps.selected_trial = index
+        self.redraw_correspondences()
+        self.trial_selected.emit(index)
+
+    def redraw_correspondences(self) -> None:
+        ps = self.current
+        if ps is None or ps.selected_trial is None or not ps.trials:
+            return
+        trial = ps.trials[ps.selected_trial].trial
+        self.layers.show_correspondences(trial, self.show_outliers, self.show_correspondences)
+
+    def restore_trial(self, index: int) -> None:
+        """Go back to a trial: its pose (or its start when it found none) and its parameters."""
+        ps = self.current
+        if ps is None or not 0 <= index < len(ps.trials):
+            return
+        rec = ps.trials[index]
+        self.params = self._keep_run_settings(rec.trial.params)
+        self.params_changed.emit()
+        pose = rec.trial.pose if rec.trial.pose is not None else rec.trial.start_pose
+        ps.history.push(pose, f"trial {index + 1} restored")
+        self._pose_edited("restore")
+        self.select_trial(index)
+        self.status.emit(f"restored trial {index + 1} ({rec.label})")
+
+    def _keep_run_settings(self, params: RegistrationParams) -> RegistrationParams:
+        """A trial's parameters with this session's run settings (Run/Auto decide those)."""
+        new = params.copy()
+        for name in ("auto_adapt", "max_trials", "search_prior", "n_search", "verify"):
+            setattr(new, name, getattr(self.params, name))
+        return new
+
+    def suggestion(self, index: int | None = None):
+        """The first rule that fires for a trial (default: the selected one), or None."""
+        ps = self.current
+        if ps is None or not ps.trials:
+            return None
+        index = ps.selected_trial if index is None else index
+        if index is None:
+            return None
+        trial = ps.trials[index].trial
+        hits = evaluate_rules(trial.metrics, trial.params, ps.intrinsics.width)
+        return hits[0] if hits else None
+
+    def apply_suggestion(self, index: int | None = None) -> bool:
+        """Take the selected trial's parameters with the rule's adaptation applied."""
+        ps = self.current
+        hit = self.suggestion(index)
+        if ps is None or hit is None:
+            return False
+        index = ps.selected_trial if index is None else index
+        self.params = self._keep_run_settings(hit.apply(ps.trials[index].trial.params))
+        self.params_changed.emit()
+        self.status.emit(f"parameters adapted (rule {hit.rule}): {hit.adaptation}")
+        return True
+
+    # -------------------------------------------------------------- manual
+    def make_reference(self, source: str = "pose") -> None:
+        """Render the reference image for manual pairs: from the current pose, or
+        from the current 3D view (``source="view"``) of the napari camera."""
+        ps, scene = self.current, self.scene
+        if ps is None or scene is None:
+            self._notify_error("Load a scene and a photo first.")
+            return
+        if source == "view":
+            if self.viewer.dims.ndisplay != 3:
+                self._notify_error(
+                    "Switch to the 3D view and fly to a viewpoint like the photo's first.")
+                return
+            intr, pose = self.camera_from_3d_view()
+        else:
+            intr, pose = ps.intrinsics, ps.pose
+
+        def job():
+            from ..render import render
+
+            return render(scene, intr, pose)
+
+        def done(result):
+            if result is None or self.current is not ps:
+                return
+            ps.reference, ps.reference_source = result, source
+            if self.viewer.dims.ndisplay == 3:
+                self.show_2d()
+            self.layers.show_reference(result)
+            ref = self.pair_layers()[1]
+            with ref.events.data.blocker():
+                ref.data = np.zeros((0, 2))
+            self._restyle_pairs()
+            self.reference_ready.emit()
+            self.pairs_changed.emit()
+            where = "3D view" if source == "view" else "current pose"
+            self.status.emit(f"reference rendered from the {where}:"
+                             " pick the same points on the photo and on the reference")
+
+        self._start("reference", job, on_returned=done, progress={"desc": "Reference render"})
+
+    def camera_from_3d_view(self) -> tuple[Intrinsics, Pose]:
+        """The camera that sees what the 3D view shows (photo's size and focal length)."""
+        from .._layers import world_from_napari
+
+        ps = self.current
+        cam = self.camera
+        visible = self.canvas_px() / cam.zoom
+        intr = ps.intrinsics
+        return manual.camera_from_view(
+            world_from_napari(np.asarray(cam.center, float)),
+            world_from_napari(np.asarray(cam.view_direction, float)),
+            world_from_napari(np.asarray(cam.up_direction, float)),
+            visible_height=visible, width=intr.width, height=intr.height,
+            fov_deg=cam.perspective or None, intrinsics=intr,
+        )
+
+    def pair_layers(self):
+        ps = self.current
+        if ps is not None and ps.reference is not None:
+            scale, translate = self.layers.image_geometry(ps.reference, right=True)
+        else:
+            scale, translate = (1.0, 1.0), (0.0, self.layers.offset)
+        photo, ref = self.layers.pair_layers(scale, translate)
+        for layer in (photo, ref):
+            if not layer.metadata.get("imgreg_connected"):
+                layer.events.data.connect(self._on_pairs_data)
+                layer.metadata["imgreg_connected"] = True
+        return photo, ref
+
+    def start_picking(self) -> None:
+        """Put the photo's pair layer in add mode; clicks alternate photo → reference."""
+        photo, ref = self.pair_layers()
+        target = photo if len(photo.data) <= len(ref.data) else ref
+        self.viewer.layers.selection.active = target
+        target.mode = "add"
+
+    def pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Complete pairs: photo pixels (N, 2) and reference pixels (N, 2), (x, y)."""
+        photo, ref = self.layers.get("photo_pairs"), self.layers.get("reference_pairs")
+        if photo is None or ref is None:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        n = min(len(photo.data), len(ref.data))
+        return pixels_from_napari(np.asarray(photo.data[:n], float)), \
+            pixels_from_napari(np.asarray(ref.data[:n], float))
+
+    def pair_points_3d(self) -> tuple[np.ndarray, np.ndarray]:
+        """3D points under the reference picks (N, 3) and whether each has one."""
+        ps = self.current
+        _, ref_px = self.pairs()
+        if ps is None or ps.reference is None or not len(ref_px):
+            return np.full((len(ref_px), 3), np.nan), np.zeros(len(ref_px), bool)
+        return ps.reference.lift(ref_px)
+
+    def delete_pair(self, index: int) -> None:
+        photo, ref = self.pair_layers()
+        self._pairs_busy = True
+        try:
+            for layer in (photo, ref):
+                if index < len(layer.data):
+                    layer.data = np.delete(np.asarray(layer.data), index, axis=0)
+        finally:
+            self._pairs_busy = False
+        self._restyle_pairs()
+        self.pairs_changed.emit()
+
+    def clear_pairs(self) -> None:
+        photo, ref = self.pair_layers()
+        self._pairs_busy = True
+        try:
+            photo.data = np.zeros((0, 2))
+            ref.data = np.zeros((0, 2))
+        finally:
+            self._pairs_busy = False
+        self._restyle_pairs()
+        self.pairs_changed.emit()
+
+    def _on_pairs_data(self, event) -> None:
+        from napari.layers.base._base_constants import ActionType
+
+        if self._pairs_busy:
+            return
+        action = getattr(event, "action", None)
+        if action not in (ActionType.ADDED, ActionType.REMOVED, ActionType.CHANGED):
+            return
+        photo, ref = self.pair_layers()
+        source = event.source
+        other = ref if source is photo else photo
+        self._pairs_busy = True
+        try:
+            if action == ActionType.REMOVED:
+                # Deleting a point deletes its pair, so numbering stays matched.
+                idx = [i for i in (event.data_indices or ()) if 0 <= i < len(other.data)]
+                if idx:
+                    other.data = np.delete(np.asarray(other.data), idx, axis=0)
+            elif action == ActionType.ADDED and source.mode == "add":
+                # Alternate: the next click goes to the image that lacks its partner.
+                if len(photo.data) > len(ref.data):
+                    nxt = ref
+                elif len(ref.data) > len(photo.data):
+                    nxt = photo
+                else:
+                    nxt = photo
+                if nxt is not source:
+                    self.viewer.layers.selection.active = nxt
+                    nxt.mode = "add"
+        finally:
+            self._pairs_busy = False
+        self._restyle_pairs()
+        self.pairs_changed.emit()
+
+    def _restyle_pairs(self) -> None:
+        photo, ref = self.pair_layers()
+        self._pairs_busy = True
+        try:
+            for layer in (photo, ref):
+                n = len(layer.data)
+                numbers = np.arange(1, n + 1)
+                layer.features = {"pair": numbers}
+                if n:
+                    layer.face_color = np.array([_rgba(PAIR_COLORS[k % len(PAIR_COLORS)])
+                                                 for k in range(n)])
+                layer.feature_defaults = {"pair": n + 1}
+                layer.refresh_text()
+        finally:
+            self._pairs_busy = False
+
+    def _store_pairs(self) -> None:
+        ps = self.current
+        photo, ref = self.layers.get("photo_pairs"), self.layers.get("reference_pairs")
+        if ps is None or photo is None or ref is None:
+            return
+        ps.pairs_photo = np.asarray(photo.data, float).copy()
+        ps.pairs_reference = np.asarray(ref.data, float).copy()
+
+    def _restore_pairs(self) -> None:
+        ps = self.current
+        if self.layers.get("photo_pairs") is None and not len(ps.pairs_photo):
+            return
+        photo, ref = self.pair_layers()
+        self._pairs_busy = True
+        try:
+            photo.data = ps.pairs_photo
+            ref.data = ps.pairs_reference
+        finally:
+            self._pairs_busy = False
+        self._restyle_pairs()
+        self.pairs_changed.emit()
+
+    def solve_manual(self, solve_focal: bool = False) -> None:
+        """Solve the photo's pose from the pairs and score it, in a worker."""
+        ps, scene = self.current, self.scene
+        if ps is None or scene is None or ps.reference is None:
+            self._notify_error("Make a reference render and pick pairs first.")
+            return
+        photo_px, _ = self.pairs()
+        xyz, valid = self.pair_points_3d()
+        if int(valid.sum()) < manual.MIN_PAIRS:
+            self._notify_error(f"{int(valid.sum())} pairs with a 3D point: pick at least "
+                               f"{manual.MIN_PAIRS} (the reference point must lie on the model)")
+            return
+        intr, initial, image = ps.intrinsics, ps.pose, ps.photo.image
+        params = self.params.copy()
+        self._cancel = False
+
+        def job():
+            sol = manual.solve_manual(intr, photo_px, xyz, initial=initial, solve_focal=solve_focal)
+            trial = None
+            if sol.ok:
+                trial = manual.score_pose(scene, image, sol.intrinsics, sol.pose, params,
+                                          cancelled=lambda: self._cancel)
+            return sol, trial
+
+        def done(value):
+            if value is None:
+                self.manual_finished.emit(None)
+                return
+            sol, trial = value
+            ps.manual_solution = sol
+            if not sol.ok:
+                self._notify_error(f"manual registration: {sol.reason}")
+                self.manual_finished.emit(sol)
+                return
+            if sol.focal_solved:
+                ps.intrinsics = sol.intrinsics
+            ps.trials.append(TrialRecord(trial, ps.runs, "Manual"))
+            ps.selected_trial = len(ps.trials) - 1
+            if ps is self.current:
+                ps.history.push(sol.pose, f"manual ({sol.n_inliers} pairs)")
+                self.set_blend(visible=True)
+                self._pose_edited("manual")
+            self.trials_changed.emit()
+            if ps is self.current:
+                self.select_trial(ps.selected_trial)
+            focal = f", focal {sol.intrinsics.fx:.1f} px" if sol.focal_solved else ""
+            self.status.emit(f"manual pose from {sol.n_inliers}/{len(photo_px)} pairs: RMS "
+                             f"{sol.rms_px:.2f} px{focal}; {trial.grade} (Q = {trial.q:.2f})")
+            self.manual_finished.emit(sol)
+
+        self._start("manual", job, on_returned=done,
+                    on_failed=lambda m: self.manual_finished.emit(None),
+                    progress={"desc": "Manual registration"})
+
+    # --------------------------------------------------------------- views
+    @property
+    def camera(self):
+        """The viewer's camera model (``viewer.scene.camera`` from napari 0.9 on)."""
+        scene = getattr(self.viewer, "scene", None)
+        if scene is not None and hasattr(scene, "camera"):
+            return scene.camera
+        return self.viewer.camera
+
+    def canvas_px(self) -> float:
+        """The canvas' smaller side, pixels."""
+        canvas = getattr(self.viewer, "canvas", None)
+        size = canvas.size if canvas is not None else (600, 800)
+        return float(np.min(size))
+
+    def _on_ndisplay(self, event=None) -> None:
+        three_d = self.viewer.dims.ndisplay == 3
+        if three_d and self._cameras_dirty:
+            self._update_cameras()
+        self.layers.set_mode_3d(three_d)
+
+    def show_3d(self, from_pose: bool = False) -> None:
+        """The model and the cameras in 3D (optionally seen from the current pose)."""
+        self.viewer.dims.ndisplay = 3
+        if from_pose and self.current is not None:
+            self.fly_to_pose()
+        elif self.layers.layers_3d():
+            self.viewer.fit_to_view(layers=self.layers.layers_3d())
+
+    def show_2d(self) -> None:
+        self.viewer.dims.ndisplay = 2
+        self.fit_2d()
+
+    def fit_2d(self) -> None:
+        """Fit the photo and the render side by side to the canvas."""
+        if self.viewer.dims.ndisplay != 2 or not self.layers.width:
+            return
+        h, w = self.layers.height, self.layers.offset + self.layers.width
+        canvas = getattr(self.viewer, "canvas", None)
+        ch, cw = canvas.size if canvas is not None else (600, 800)
+        cam = self.camera
+        center = tuple(cam.center)
+        cam.center = (center[0], (h - 1) / 2.0, (w - 1) / 2.0) if len(center) == 3 else \
+            ((h - 1) / 2.0, (w - 1) / 2.0)
+        cam.zoom = 0.95 * min(ch / h, cw / w)
+
+    def fly_to_pose(self) -> None:
+        """Set the 3D view to look from the current photo's pose."""
+        ps = self.current
+        if ps is None:
+            return
+        if self.viewer.dims.ndisplay != 3:
+            self.viewer.dims.ndisplay = 3
+        depth = 50.0
+        if self.last_render is not None:
+            d = self.last_render.depth
+            if np.isfinite(d).any():
+                depth = float(np.nanmedian(d))
+        view = manual.view_from_camera(ps.intrinsics, ps.pose, depth, self.canvas_px())
+        cam = self.camera
+        cam.perspective = view["fov_deg"]
+        cam.center = tuple(napari_from_world(view["center"]))
+        cam.set_view_direction(tuple(napari_from_world(view["view_direction"])),
+                               tuple(napari_from_world(view["up_direction"])))
+        cam.zoom = view["zoom"]
+
+    def _update_cameras(self) -> None:
+        if self.scene is None or not self.photos:
+            return
+        centers = np.array([ps.pose.center for ps in self.photos])
+        size = float(np.linalg.norm(np.diff(self.scene.bounds, axis=0)))
+        segs = np.concatenate([manual.frustum_segments(ps.intrinsics, ps.pose, 0.1 * size)
+                               for ps in self.photos])
+        current = self.photos.index(self.current) if self.current in self.photos else -1
+        self.layers.show_cameras(centers, segs, current)
+        self._cameras_dirty = False
+
+    # -------------------------------------------------------------- display
+    def set_blend(self, opacity: float | None = None, visible: bool | None = None) -> None:
+        if opacity is not None:
+            self.blend_opacity = float(opacity)
+        if visible is not None:
+            self.blend_visible = bool(visible)
+        if (blend := self.layers.get("blend")) is not None:
+            blend.opacity = self.blend_opacity
+            if self.blend_visible:
+                self.layers.sync_blend()
+            blend.visible = self.blend_visible
+
+    def set_correspondence_display(self, visible: bool | None = None,
+                                   outliers: bool | None = None) -> None:
+        if visible is not None:
+            self.show_correspondences = bool(visible)
+        if outliers is not None:
+            self.show_outliers = bool(outliers)
+        layer = self.layers.get("correspondences")
+        if layer is not None and not self.show_correspondences:
+            layer.visible = False
+        else:
+            self.redraw_correspondences()

@@ -1,0 +1,311 @@
+"""The metrics panel: seven metrics coloured superior/normal/inferior with trend
+arrows, Q and the five-grade banner, the rules' hint and suggested
+adaptation, and the trial history (Kehl et al. 2018, Figs. 5 and 6)."""
+
+from __future__ import annotations
+
+import html
+
+from qtpy.QtCore import Qt
+from qtpy.QtGui import QColor
+from qtpy.QtWidgets import (
+    QAbstractItemView,
+    QBoxLayout,
+    QGroupBox,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QPushButton,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from ..manual import metric_trend
+from ..quality import GRADES, METRICS, REFERENCE_WIDTH_PX, classify
+from ._controller import WorkbenchController
+
+__all__ = ["QualityPanel", "CLASS_COLORS", "TREND_ARROWS"]
+
+#: Backgrounds of a metric's class: superior (+1), normal (0), inferior (−1).
+CLASS_COLORS = {1: "#2e7d32", 0: "#8d8d3a", -1: "#c62828"}
+CLASS_NAMES = {1: "superior", 0: "normal", -1: "inferior"}
+#: Compact metric names for the table (the full label is the tooltip).
+SHORT_LABELS = {
+    "points_photo": "points, photo", "points_render": "points, render",
+    "feature_inliers": "feature inliers", "correspondences_3d": "in 3D",
+    "inlier_ratio_2d": "inlier ratio 2D", "inliers_3d": "3D inliers",
+    "inlier_ratio_3d": "inlier ratio 3D", "reprojection_error_px": "reproj. error",
+}
+#: Arrow and colour of a metric's trend against the previous trial.
+TREND_ARROWS = {1: ("▲", "#00e676"), -1: ("▼", "#ff5252"), 0: ("=", "#bdbdbd")}
+
+
+def _grade_range(k: int) -> str:
+    """The Q range of grade ``k``, short enough for the legend chips."""
+    g = GRADES[k]
+    if k == 0:
+        return f"≥ {g.q_min:g}"
+    upper = GRADES[k - 1].q_min
+    if g.q_min == float("-inf"):
+        return f"< {upper:g}"
+    return f"{g.q_min:g} … {upper:g}"
+
+
+def _fmt(key: str, value) -> str:
+    if value is None or value != value:
+        return "—"
+    if key.startswith("inlier_ratio"):
+        return f"{value:.2f}"
+    if key == "reprojection_error_px":
+        return f"{value:.2f} px"
+    return f"{int(value):,}"
+
+
+class QualityPanel(QWidget):
+    """How good the selected trial is, why, what to change, and every trial so far."""
+
+    def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.ctrl = controller
+        self.banner = QLabel("No trial yet: Run or Auto (Register tab), or solve manual pairs.")
+        self.banner.setWordWrap(True)
+        self.banner.setAlignment(Qt.AlignCenter)
+        self.banner.setMinimumHeight(48)
+        self._style_banner(None)
+        legend = QHBoxLayout()
+        legend.setSpacing(2)
+        self.legend_labels: list[QLabel] = []
+        for k, g in enumerate(GRADES):
+            rng = html.escape(f"Q {_grade_range(k)}")
+            chip = QLabel(f"{g.name}<br><span style='font-size:9px'>{rng}</span>")
+            chip.setAlignment(Qt.AlignCenter)
+            chip.setToolTip(g.text)
+            chip.setProperty("grade", g.name)
+            chip.setStyleSheet(f"background:{g.color}; color:#111; padding:2px; border-radius:3px;")
+            legend.addWidget(chip, 1)
+            self.legend_labels.append(chip)
+
+        self.table = QTableWidget(len(METRICS), 4)
+        self.table.setHorizontalHeaderLabels(["metric", "value", "", "inferior | superior"])
+        self.table.setWordWrap(False)
+        self.table.verticalHeader().setDefaultSectionSize(24)
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QAbstractItemView.NoEditTriggers)
+        self.table.setSelectionMode(QAbstractItemView.NoSelection)
+        self.table.horizontalHeader().setSectionResizeMode(0, QHeaderView.Stretch)
+        for c in (1, 2, 3):
+            self.table.horizontalHeader().setSectionResizeMode(c, QHeaderView.ResizeToContents)
+        for r, m in enumerate(METRICS):
+            item = QTableWidgetItem(SHORT_LABELS.get(m.key, m.label))
+            item.setToolTip(f"{m.label}; weight {m.weight:g}")
+            self.table.setItem(r, 0, item)
+        self.table.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.table.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.table.setFixedHeight(self.table.verticalHeader().length()
+                                  + self.table.horizontalHeader().sizeHint().height()
+                                  + 2 * self.table.frameWidth() + 2)
+
+        self.hint_label = QLabel("")
+        self.hint_label.setWordWrap(True)
+        self.hint_label.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        self.hint_label.setStyleSheet(
+            "background:#1b5e20; color:#e8f5e9; padding:6px; border-radius:4px;")
+        self.adapt_label = QLabel("")
+        self.adapt_label.setWordWrap(True)
+        self.adapt_label.setStyleSheet(
+            "background:#006064; color:#e0f7fa; padding:6px; border-radius:4px;")
+        self.apply_button = QPushButton("Apply suggested parameters")
+        self.apply_button.setEnabled(False)
+
+        self.history = QTableWidget(0, 7)
+        self.history.setHorizontalHeaderLabels(
+            ["#", "trial", "Q", "grade", "3D inl.", "error", "✓"])
+        self.history.verticalHeader().setVisible(False)
+        self.history.setEditTriggers(QAbstractItemView.NoEditTriggers)
+        self.history.setSelectionBehavior(QAbstractItemView.SelectRows)
+        self.history.setSelectionMode(QAbstractItemView.SingleSelection)
+        self.history.horizontalHeader().setSectionResizeMode(1, QHeaderView.Stretch)
+        self.history.setMinimumHeight(120)
+        self.restore_button = QPushButton("Restore trial (pose and parameters)")
+        self.restore_button.setEnabled(False)
+
+        # Two columns when the dock is wide (under the canvas), one when narrow (a side).
+        left, right = QWidget(), QWidget()
+        ll, rl = QVBoxLayout(left), QVBoxLayout(right)
+        for lay in (ll, rl):
+            lay.setContentsMargins(0, 0, 0, 0)
+        ll.addWidget(self.banner)
+        ll.addLayout(legend)
+        ll.addWidget(self.table)
+        ll.addStretch(1)
+        rl.addWidget(self.hint_label)
+        rl.addWidget(self.adapt_label)
+        rl.addWidget(self.apply_button)
+        hist_box = QGroupBox("Trials")
+        hl = QVBoxLayout(hist_box)
+        hl.addWidget(self.history, 1)
+        hl.addWidget(self.restore_button)
+        rl.addWidget(hist_box, 1)
+        self._columns = QBoxLayout(QBoxLayout.Direction.TopToBottom, self)
+        self._columns.addWidget(left, 1)
+        self._columns.addWidget(right, 1)
+        self.hint_label.hide()
+        self.adapt_label.hide()
+
+        self.apply_button.clicked.connect(lambda: controller.apply_suggestion())
+        self.restore_button.clicked.connect(self.restore_selected)
+        self.history.itemSelectionChanged.connect(self._row_chosen)
+        self.history.itemDoubleClicked.connect(lambda _item: self.restore_selected())
+        controller.trials_changed.connect(self.refresh_history)
+        controller.trial_selected.connect(self.show_trial)
+        controller.photo_changed.connect(self._photo_changed)
+        self.refresh_history()
+
+    def resizeEvent(self, event) -> None:  # noqa: N802 (Qt)
+        wide = self.width() >= 700
+        self._columns.setDirection(QBoxLayout.Direction.LeftToRight if wide
+                                   else QBoxLayout.Direction.TopToBottom)
+        super().resizeEvent(event)
+
+    # ------------------------------------------------------------ history
+    def refresh_history(self) -> None:
+        ps = self.ctrl.current
+        records = ps.trials if ps is not None else []
+        self.history.blockSignals(True)
+        self.history.setRowCount(len(records))
+        for r, rec in enumerate(records):
+            t = rec.trial
+            err = t.metrics.get("reprojection_error_px")
+            cells = [str(r + 1), rec.label, f"{t.q:.2f}", t.grade,
+                     str(t.metrics.get("inliers_3d", 0)),
+                     f"{err:.2f}" if err is not None else "—",
+                     "✓" if t.verified else ""]
+            for c, text in enumerate(cells):
+                item = QTableWidgetItem(text)
+                if c == 3:
+                    g = next(g for g in GRADES if g.name == t.grade)
+                    item.setBackground(QColor(g.color))
+                    item.setForeground(QColor("#111111"))
+                self.history.setItem(r, c, item)
+        self.history.resizeColumnsToContents()
+        self.history.horizontalHeader().setSectionResizeMode(1, QHeaderView.Stretch)
+        if ps is not None and ps.selected_trial is not None and ps.selected_trial < len(records):
+            self.history.selectRow(ps.selected_trial)
+        self.history.blockSignals(False)
+        self.restore_button.setEnabled(bool(records) and self._selected_row() is not None)
+        if not records:
+            self.show_trial(None)
+
+    def _selected_row(self) -> int | None:
+        rows = self.history.selectionModel().selectedRows() if self.history.selectionModel() else []
+        return rows[0].row() if rows else None
+
+    def _row_chosen(self) -> None:
+        row = self._selected_row()
+        self.restore_button.setEnabled(row is not None)
+        if row is not None:
+            self.ctrl.select_trial(row)
+
+    def restore_selected(self) -> None:
+        row = self._selected_row()
+        if row is not None:
+            self.ctrl.restore_trial(row)
+
+    def _photo_changed(self) -> None:
+        self.refresh_history()
+        ps = self.ctrl.current
+        if ps is None or ps.selected_trial is None:
+            self.show_trial(None)
+
+    # ------------------------------------------------------------ a trial
+    def _style_banner(self, grade) -> None:
+        if grade is None:
+            self.banner.setStyleSheet("background:#424242; color:#eeeeee; padding:6px; "
+                                      "border-radius:4px; font-size:13px;")
+        else:
+            self.banner.setStyleSheet(f"background:{grade.color}; color:#111111; padding:6px; "
+                                      "border-radius:4px; font-size:15px; font-weight:bold;")
+
+    def show_trial(self, index: int | None) -> None:
+        """Show a trial of the current photo (None: nothing yet)."""
+        ps = self.ctrl.current
+        if ps is None or index is None or not 0 <= index < len(ps.trials):
+            self._style_banner(None)
+            self.banner.setText("No trial yet: Run or Auto (Register tab), or solve manual pairs.")
+            for r in range(len(METRICS)):
+                for c in (1, 2, 3):
+                    self.table.setItem(r, c, QTableWidgetItem(""))
+            self.hint_label.hide()
+            self.adapt_label.hide()
+            self.apply_button.setEnabled(False)
+            for chip in self.legend_labels:
+                chip.setText(chip.text().replace("<b>", "").replace("</b>", ""))
+            return
+        rec = ps.trials[index]
+        t = rec.trial
+        prev = ps.trials[index - 1].trial if index > 0 else None
+        width = ps.intrinsics.width
+        grade = next(g for g in GRADES if g.name == t.grade)
+        self._style_banner(grade)
+        verified = "verified" if t.verified else "not verified"
+        self.banner.setText(f"{grade.name.upper()} · Q = {t.q:.2f} — {grade.text}"
+                            "<br><span style='font-size:11px; font-weight:normal'>"
+                            f"trial {index + 1}: "
+                            f"{html.escape(rec.label)}, {verified}</span>")
+        for chip, g in zip(self.legend_labels, GRADES):
+            chip.setStyleSheet(f"background:{g.color}; color:#111; padding:2px; border-radius:3px;"
+                               + (" border:3px solid white;" if g is grade else ""))
+        for r, m in enumerate(METRICS):
+            value = t.metrics.get(m.key)
+            cls = classify(m, value, width)
+            item = QTableWidgetItem(_fmt(m.key, value))
+            item.setBackground(QColor(CLASS_COLORS[cls]))
+            item.setForeground(QColor("#ffffff"))
+            item.setToolTip(CLASS_NAMES[cls])
+            item.setData(Qt.UserRole, cls)
+            self.table.setItem(r, 1, item)
+            if prev is None:
+                arrow = QTableWidgetItem("")
+                arrow.setData(Qt.UserRole, None)
+            else:
+                trend = metric_trend(m, value, prev.metrics.get(m.key))
+                symbol, colour = TREND_ARROWS[trend]
+                arrow = QTableWidgetItem(symbol)
+                arrow.setForeground(QColor(colour))
+                arrow.setToolTip(f"previous trial: {_fmt(m.key, prev.metrics.get(m.key))}")
+                arrow.setData(Qt.UserRole, trend)
+            arrow.setTextAlignment(Qt.AlignCenter)
+            self.table.setItem(r, 2, arrow)
+            s = width / REFERENCE_WIDTH_PX if m.scales_with_width else 1.0
+            lo, hi = m.inferior * s, m.superior * s
+            if m.lower_is_better:
+                limits = f"> {lo:.1f} | ≤ {hi:.1f}"
+            elif m.key.startswith("inlier_ratio"):
+                limits = f"< {lo:g} | ≥ {hi:g}"
+            else:
+                limits = f"< {lo:,.0f} | ≥ {hi:,.0f}"
+            self.table.setItem(r, 3, QTableWidgetItem(limits))
+        if t.hints:
+            self.hint_label.setText("<br>".join(f"• {html.escape(h)}" for h in t.hints))
+            self.hint_label.show()
+        else:
+            self.hint_label.hide()
+        hit = self.ctrl.suggestion(index)
+        if hit is not None:
+            self.adapt_label.setText(f"Suggested for the next trial (rule {hit.rule}): "
+                                     f"{html.escape(hit.adaptation)}")
+            self.adapt_label.show()
+        else:
+            self.adapt_label.hide()
+        self.apply_button.setEnabled(hit is not None)
+        self.history.blockSignals(True)
+        self.history.selectRow(index)
+        self.history.blockSignals(False)
+        self.restore_button.setEnabled(True)
+
+    # ------------------------------------------------------ for tests
+    def metric_cell(self, key: str, column: int = 1) -> QTableWidgetItem:
+        row = next(r for r, m in enumerate(METRICS) if m.key == key)
+        return self.table.item(row, column)

@@ -1,0 +1,227 @@
+"""The registration workbench: napari docks for the whole photo-to-model workflow.
+
+Two docks share one :class:`~._controller.WorkbenchController` per viewer:
+
+* **Registration workbench** (tabs): *Scene* (model, DEM, georeference,
+  photos with their sensor records, 2D/3D views), *Pose* (values, nudges, the
+  DEM map, undo, save to the sensor record), *Filters* (gamma, Wallis,
+  brightness/contrast, CLAHE for photo and render, live preview), *Register*
+  (detector–descriptor, parameters, Run / Auto / Cancel, correspondences,
+  render over the photo), *Manual* (reference render, paired control points,
+  solve) and *Interpret* (a place for the interpretation tools).
+* **Registration quality** (under the canvas): the seven metrics, Q and grade,
+  hints, suggested parameters and the trial history.
+
+The canvas shows the photo on the left and the render from the current pose
+on the right (2D), or the textured model with the cameras (3D).
+
+>>> from napari_imgreg.widgets.workbench import Workbench   # doctest: +SKIP
+>>> workbench = Workbench.add_to_viewer(viewer)              # doctest: +SKIP
+>>> workbench.controller.open_sample()                       # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from qtpy.QtCore import QTimer
+from qtpy.QtWidgets import QLabel, QScrollArea, QTabWidget, QVBoxLayout, QWidget
+
+from ._controller import WorkbenchController, controller_for
+from ._panels import FiltersPanel, ManualPanel, PosePanel, RegisterPanel, ScenePanel
+from ._quality import QualityPanel
+
+if TYPE_CHECKING:
+    import napari
+
+__all__ = ["Workbench", "QualityDock", "WORKBENCH_NAME", "QUALITY_NAME", "INTERPRET_TAB"]
+
+WORKBENCH_NAME = "Registration workbench"
+QUALITY_NAME = "Registration quality"
+INTERPRET_TAB = "Interpret"
+
+
+def _scrolled(widget: QWidget) -> QScrollArea:
+    """A page that scrolls down, never sideways (it follows the dock's width)."""
+    from qtpy.QtCore import Qt
+
+    area = QScrollArea()
+    area.setWidgetResizable(True)
+    area.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    area.setWidget(widget)
+    return area
+
+
+class Workbench(QWidget):
+    """The tabbed workbench dock (see the module docstring).
+
+    Parameters
+    ----------
+    napari_viewer : napari.viewer.Viewer
+    dock_quality : bool
+        Dock the quality panel too when the workbench is shown (as opening
+        it from the Plugins menu does).
+    """
+
+    def __init__(self, napari_viewer: napari.viewer.Viewer, dock_quality: bool = True,
+                 parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.viewer = napari_viewer
+        self.controller: WorkbenchController = controller_for(napari_viewer)
+        self.scene_panel = ScenePanel(self.controller)
+        self.pose_panel = PosePanel(self.controller)
+        self.filters_panel = FiltersPanel(self.controller)
+        self.register_panel = RegisterPanel(self.controller)
+        self.manual_panel = ManualPanel(self.controller)
+        self.interpret_placeholder = QLabel(
+            "Interpretation tools (draw traces and polygons on the registered photo, "
+            "project them onto the model, measure) dock here when installed.")
+        self.interpret_placeholder.setWordWrap(True)
+        self.tabs = QTabWidget()
+        for panel, name in ((self.scene_panel, "Scene"), (self.pose_panel, "Pose"),
+                            (self.filters_panel, "Filters"), (self.register_panel, "Register"),
+                            (self.manual_panel, "Manual"),
+                            (self.interpret_placeholder, INTERPRET_TAB)):
+            self.tabs.addTab(_scrolled(panel), name)
+        self.status_label = QLabel("")
+        self.status_label.setWordWrap(True)
+        self.status_label.setStyleSheet("color: #bdbdbd; font-size: 11px;")
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(2, 2, 2, 2)
+        layout.addWidget(self.tabs, 1)
+        layout.addWidget(self.status_label)
+        self.quality: QualityPanel | None = None
+        self.interpret_widget: QWidget | None = None
+        self.controller.status.connect(self.status_label.setText)
+        self.controller.attach(self)
+        self._try_interpret_widget()
+        if dock_quality:
+            QTimer.singleShot(0, self._dock_quality)
+
+    # ----------------------------------------------------------- docking
+    @classmethod
+    def add_to_viewer(cls, viewer: napari.viewer.Viewer) -> Workbench:
+        """Dock the workbench (right) and the quality panel (under the canvas)."""
+        workbench = cls(viewer, dock_quality=False)
+        viewer.window.add_dock_widget(workbench, name=WORKBENCH_NAME, area="right")
+        workbench._dock_quality()
+        return workbench
+
+    def _dock_quality(self):
+        """Dock the quality panel under the canvas; returns its dock (None if it was there)."""
+        if self.quality is not None:
+            return None
+        existing = _find_dock(self.viewer, QUALITY_NAME)
+        if existing is not None:
+            self.quality = existing.panel if isinstance(existing, QualityDock) else existing
+            return None
+        dock = QualityDock(self.viewer)
+        self.quality = dock.panel
+        # Under the canvas, where the side-by-side photo and render leave room; the
+        # workbench keeps the right column's full height.
+        qdock = self.viewer.window.add_dock_widget(dock, name=QUALITY_NAME, area="bottom")
+        _right_column_full_height(qdock)
+        QTimer.singleShot(0, lambda: _grow(qdock, 0.4))
+        return qdock
+
+    def add_tab(self, widget: QWidget, name: str) -> None:
+        """Add a page (e.g. the interpretation tools); replaces the placeholder of
+        the same name."""
+        for i in range(self.tabs.count()):
+            if self.tabs.tabText(i) == name:
+                self.tabs.removeTab(i)
+                break
+        self.tabs.addTab(_scrolled(widget), name)
+
+    def _try_interpret_widget(self) -> None:
+        """Dock the interpretation widget in its tab when the module is there."""
+        try:
+            from . import interpret_widget  # noqa: F401  (built separately)
+        except ImportError:
+            return
+        cls = getattr(interpret_widget, "InterpretWidget", None)
+        if cls is None:
+            return
+        try:
+            widget = cls(self.viewer)
+        except Exception as exc:  # pragma: no cover - the other widget's problem, not ours
+            import logging
+
+            logging.getLogger(__name__).warning("interpretation tools not docked: %s", exc)
+            return
+        self.add_tab(widget, INTERPRET_TAB)
+        self.interpret_widget = widget
+        self.controller.photo_changed.connect(self._interpret_follows_photo)
+        self._interpret_follows_photo()
+
+    def _interpret_follows_photo(self) -> None:
+        """The interpretation tools work on the photo chosen here."""
+        combo = getattr(getattr(self, "interpret_widget", None), "photo_combo", None)
+        layer = self.controller.layers.get("photo")
+        if combo is None or layer is None:
+            return
+        i = combo.findText(layer.name)
+        if i >= 0:
+            combo.setCurrentIndex(i)
+
+    def show_tab(self, name: str) -> None:
+        for i in range(self.tabs.count()):
+            if self.tabs.tabText(i) == name:
+                self.tabs.setCurrentIndex(i)
+                return
+        raise KeyError(name)
+
+
+class QualityDock(QWidget):
+    """The quality panel as a dock of its own (shares the viewer's controller)."""
+
+    def __init__(self, napari_viewer: napari.viewer.Viewer, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.viewer = napari_viewer
+        self.controller = controller_for(napari_viewer)
+        self.controller.attach(self)
+        self.panel = QualityPanel(self.controller)
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(2, 2, 2, 2)
+        layout.addWidget(_scrolled(self.panel))
+
+
+def _main_window(dock):
+    """The QMainWindow holding a dock (its Qt parent; napari keeps its own reference private)."""
+    from qtpy.QtWidgets import QMainWindow
+
+    window = dock.parentWidget() if dock is not None else None
+    return window if isinstance(window, QMainWindow) else None
+
+
+def _right_column_full_height(dock) -> None:
+    """Let the right dock column (the workbench) run down past the bottom docks."""
+    from qtpy.QtCore import Qt
+
+    window = _main_window(dock)
+    if window is not None:
+        window.setCorner(Qt.Corner.BottomRightCorner, Qt.DockWidgetArea.RightDockWidgetArea)
+
+
+def _grow(dock, fraction: float) -> None:
+    """Give a bottom dock ``fraction`` of the height it shares with the canvas."""
+    from qtpy.QtCore import Qt
+
+    try:
+        window = _main_window(dock)
+        if window is None:
+            return
+        height = window.centralWidget().height() + dock.height()
+        window.resizeDocks([dock], [int(height * fraction)], Qt.Orientation.Vertical)
+    except (TypeError, RuntimeError):  # pragma: no cover - layout is cosmetic; dock gone
+        pass
+
+
+def _find_dock(viewer: napari.viewer.Viewer, name: str):
+    docks = getattr(viewer.window, "dock_widgets", None)
+    if docks is None:
+        return None
+    try:
+        return docks.get(name) if hasattr(docks, "get") else None
+    except Exception:  # pragma: no cover
+        return None

@@ -1,0 +1,328 @@
+"""Manual registration and the workbench's pose tools (backend, no Qt)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from napari_imgreg import Scene
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.io.photos import load_photo
+from napari_imgreg.io.records import load_sensor_record, prior_for_photo, prior_from_record
+from napari_imgreg.manual import (
+    MIN_PAIRS,
+    PoseHistory,
+    camera_from_view,
+    filtered_for_matching,
+    frustum_segments,
+    height_above_ground,
+    metric_trend,
+    nudge_pose,
+    pose_at_ground,
+    save_pose_to_record,
+    score_pose,
+    solve_manual,
+    terrain_map,
+    turn_toward,
+    view_from_camera,
+)
+from napari_imgreg.quality import METRICS
+from napari_imgreg.render import render
+from napari_imgreg.sample import load_truth, sample_scene
+
+INTR = Intrinsics(1200, 900, 1000.0, 1000.0, 599.5, 449.5)
+TRUTH = Pose.from_attitude(12.0, 4.0, -2.0, np.array([3.0, -60.0, 2.5]))
+
+
+def _points(rng, n):
+    """Points on a rough cliff about 60 m north of the camera (depth variety)."""
+    x = rng.uniform(-25, 35, n)
+    z = rng.uniform(-2, 25, n)
+    y = rng.uniform(-8, 8, n)
+    return np.c_[x, y, z]
+
+
+def _pixels(pose, intr, pts, noise=0.0, rng=None):
+    px = pose.project(intr, pts)
+    if noise:
+        px = px + rng.normal(0, noise, px.shape)
+    return px
+
+
+# ---------------------------------------------------------------- pose edits
+def test_nudge_turns_and_moves_in_the_geologists_frame():
+    pose = Pose.from_attitude(90.0, 10.0, 2.0, np.array([1.0, 2.0, 3.0]))
+    turned = nudge_pose(pose, d_trend=1.5, d_plunge=-2.0, d_roll=0.5)
+    np.testing.assert_allclose(turned.attitude, (91.5, 8.0, 2.5), atol=1e-9)
+    np.testing.assert_allclose(turned.center, pose.center, atol=1e-12)
+    moved = nudge_pose(pose, forward=2.0, right=1.0, up=-0.5)
+    # Trend 90° looks east: forward is +x, right is -y (south), up is +z.
+    np.testing.assert_allclose(moved.center, [3.0, 1.0, 2.5], atol=1e-9)
+    np.testing.assert_allclose(moved.attitude, pose.attitude, atol=1e-9)
+    steep = nudge_pose(Pose.from_attitude(0.0, 89.0, 0.0, np.zeros(3)), d_plunge=5.0)
+    assert steep.attitude[1] == pytest.approx(90.0)
+
+
+def test_map_moves_keep_height_above_ground_and_turn_toward_a_point():
+    def ground(x, y):
+        return 0.1 * x + 5.0
+
+    pose = Pose.from_attitude(30.0, 0.0, 0.0, np.array([0.0, 0.0, 6.6]))
+    assert height_above_ground(pose, ground) == pytest.approx(1.6)
+    moved = pose_at_ground(pose, 20.0, -4.0, 1.6, ground)
+    np.testing.assert_allclose(moved.center, [20.0, -4.0, 8.6])
+    np.testing.assert_allclose(moved.R, pose.R)
+    looking = turn_toward(moved, 20.0 + 10.0, -4.0 - 10.0)  # south-east
+    assert looking.attitude[0] == pytest.approx(135.0)
+
+    def outside(x, y):
+        raise ValueError("outside the DEM")
+
+    assert height_above_ground(pose, outside) is None
+    with pytest.raises(ValueError):
+        pose_at_ground(pose, 1e6, 0, 1.6, outside)
+
+
+def test_pose_history_undo_redo_and_drags():
+    p = [Pose.from_attitude(float(k), 0.0, 0.0, np.zeros(3)) for k in range(5)]
+    h = PoseHistory(p[0])
+    assert not h.can_undo and h.undo() is None
+    h.push(p[1], "trend +1°")
+    h.push(p[2], "map")
+    h.replace(p[3])  # the same drag continues
+    assert h.current is p[3] and len(h) == 2 and h.undo_label == "map"
+    assert h.undo() is p[1] and h.label == "trend +1°"
+    assert h.redo() is p[3]
+    h.undo()
+    h.push(p[4], "nudge")  # a new edit clears the redo stack
+    assert not h.can_redo
+    assert h.undo() is p[1] and h.undo() is p[0] and not h.can_undo
+    small = PoseHistory(p[0], limit=2)
+    for q in p[1:]:
+        small.push(q)
+    assert len(small) == 2
+
+
+# --------------------------------------------------------------- the map
+@pytest.fixture(scope="module")
+def sample():
+    folder = sample_scene("small")
+    scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
+    scene.build_engine()
+    return folder, scene
+
+
+def test_terrain_map_of_a_dem_is_in_the_local_frame(sample):
+    _, scene = sample
+    tmap = terrain_map(scene)
+    assert tmap.source == "DEM"
+    rows, cols = tmap.heights.shape
+    xmin, xmax, ymin, ymax = tmap.extent
+    dx, dy = tmap.spacing
+    r, c = rows // 2, cols // 3
+    x, y = xmin + c * dx, ymax - r * dy
+    assert tmap.heights[r, c] == pytest.approx(scene.terrain_height(x, y), abs=1e-6)
+    shade = tmap.hillshade()
+    assert shade.shape == (rows, cols) and np.nanmin(shade) >= 0 and np.nanmax(shade) <= 1
+    left, right, bottom, top = tmap.image_extent
+    assert left < xmin and right > xmax and bottom < ymin and top > ymax
+
+
+def test_terrain_map_without_a_dem_samples_the_model(make_quad):
+    plane = make_quad([10.0, 20.0, 3.0], [1, 0, 0], [0, 1, 0], 30.0, 15.0)
+    tmap = terrain_map(plane, max_cells=50)
+    assert tmap.source == "model"
+    inside = np.isfinite(tmap.heights)
+    assert inside.mean() > 0.9
+    np.testing.assert_allclose(tmap.heights[inside], 3.0, atol=1e-4)
+    xmin, xmax, ymin, ymax = tmap.extent
+    assert xmin == pytest.approx(-20.0) and ymax == pytest.approx(35.0)
+
+
+# ------------------------------------------------ viewer camera <-> camera
+def test_view_and_camera_round_trip():
+    view = view_from_camera(INTR, TRUTH, distance=60.0, canvas_px=800)
+    intr, pose = camera_from_view(
+        view["center"], view["view_direction"], view["up_direction"],
+        visible_height=800 / view["zoom"], width=INTR.width, height=INTR.height,
+        fov_deg=view["fov_deg"],
+    )
+    assert pose.rotation_error_deg(TRUTH) < 1e-9
+    np.testing.assert_allclose(pose.center, TRUTH.center, atol=1e-9)
+    assert intr.fy == pytest.approx(INTR.fy)
+    # An orthographic viewer: the focal length comes from the photo's camera.
+    intr2, pose2 = camera_from_view(
+        view["center"], view["view_direction"], view["up_direction"] + 0.3 * view["view_direction"],
+        visible_height=60.0 * INTR.height / INTR.fy, width=600, height=450, intrinsics=INTR,
+    )
+    assert intr2.fy == pytest.approx(500.0) and pose2.rotation_error_deg(TRUTH) < 1e-9
+    np.testing.assert_allclose(pose2.center, TRUTH.center, atol=1e-9)
+
+
+def test_frustum_segments_start_at_the_camera():
+    segs = frustum_segments(INTR, TRUTH, depth=10.0)
+    assert segs.shape == (8, 2, 3)
+    np.testing.assert_allclose(segs[:4, 0], np.tile(TRUTH.center, (4, 1)))
+    depths = TRUTH.transform(segs[:4, 1])[:, 2]
+    np.testing.assert_allclose(depths, 10.0)
+    # The base is closed: each side ends where the next starts.
+    np.testing.assert_allclose(segs[4:, 1], np.roll(segs[4:, 0], -1, axis=0))
+
+
+# ----------------------------------------------------------- solve_manual
+@pytest.mark.parametrize("n", [4, 5, 8])
+def test_exact_pairs_give_the_pose(n):
+    rng = np.random.default_rng(n)
+    pts = _points(rng, n)
+    prior = nudge_pose(TRUTH, d_trend=4.0, d_plunge=-2.0, forward=3.0)
+    sol = solve_manual(INTR, _pixels(TRUTH, INTR, pts), pts, initial=prior)
+    assert sol.ok, sol.reason
+    assert sol.pose.rotation_error_deg(TRUTH) < 1e-3
+    assert np.linalg.norm(sol.pose.center - TRUTH.center) < 1e-3
+    assert sol.inliers.all() and sol.rms_px < 1e-3
+    assert sol.method == ("ransac-epnp" if n >= 6 else "pnp")
+
+
+def test_a_mispicked_pair_is_set_aside_and_shown():
+    rng = np.random.default_rng(3)
+    pts = _points(rng, 10)
+    px = _pixels(TRUTH, INTR, pts, noise=0.7, rng=rng)
+    px[4] += (60.0, -35.0)  # the user clicked the wrong boulder
+    sol = solve_manual(INTR, px, pts)
+    assert sol.ok and not sol.inliers[4] and sol.inliers.sum() == 9
+    assert sol.errors_px[4] > 50 and np.all(sol.errors_px[sol.inliers] < 3)
+    assert sol.pose.rotation_error_deg(TRUTH) < 0.5  # 0.7 px noise on 9 points
+
+
+def test_pairs_without_3d_points_are_ignored_and_too_few_fail_cleanly():
+    rng = np.random.default_rng(5)
+    pts = _points(rng, 6)
+    px = _pixels(TRUTH, INTR, pts)
+    pts[[1, 2, 3]] = np.nan  # clicked on the sky of the reference render
+    sol = solve_manual(INTR, px, pts)
+    assert not sol.ok and sol.pose is None
+    assert "3 usable pairs" in sol.reason and "without a 3D point" in sol.reason
+    assert np.isnan(sol.errors_px).all()
+    line = np.c_[np.linspace(-10, 10, 6), np.zeros(6), np.linspace(0, 10, 6)]
+    sol = solve_manual(INTR, _pixels(TRUTH, INTR, line), line)
+    assert not sol.ok and "line" in sol.reason
+    with pytest.raises(ValueError):
+        solve_manual(INTR, px[:3], pts)
+    assert MIN_PAIRS == 4
+
+
+def test_focal_length_is_solved_from_six_or_more_pairs():
+    rng = np.random.default_rng(11)
+    true_intr = Intrinsics(1200, 900, 1180.0, 1180.0, 599.5, 449.5)
+    pts = _points(rng, 12)
+    px = _pixels(TRUTH, true_intr, pts, noise=0.3, rng=rng)
+    guess = Intrinsics(1200, 900, 900.0, 900.0, 599.5, 449.5)  # a wrong focal length
+    fixed = solve_manual(guess, px, pts)
+    solved = solve_manual(guess, px, pts, solve_focal=True)
+    assert solved.ok and solved.focal_solved
+    assert solved.intrinsics.fx == pytest.approx(1180.0, rel=0.01)
+    assert solved.rms_px < 0.6 < fixed.rms_px
+    assert solved.pose.rotation_error_deg(TRUTH) < 0.5
+    few = solve_manual(guess, px[:5], pts[:5], solve_focal=True)
+    assert few.ok and not few.focal_solved and few.intrinsics == guess
+
+
+def test_truth_pairs_through_a_reference_render_recover_the_sample_pose(sample):
+    """The GUI test's recipe without the GUI: reference render from the prior,
+    check points projected into it and into the photo, lifted, solved."""
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0002.jpg")
+    truth = load_truth(photo.path)
+    prior = prior_for_photo(photo, scene)
+    reference = render(scene, prior.intrinsics, prior.pose)
+    ref_px = prior.pose.project(reference.intrinsics, truth.check_xyz)
+    xyz, valid = reference.lift(ref_px)
+    seen = valid & (np.linalg.norm(xyz - truth.check_xyz, axis=1) < 0.05)
+    assert seen.sum() >= 8
+    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
+    sol = solve_manual(prior.intrinsics, photo_px[seen][:8], xyz[seen][:8], initial=prior.pose)
+    assert sol.ok
+    assert sol.pose.rotation_error_deg(truth.pose) < 0.05
+    assert np.linalg.norm(sol.pose.center - truth.pose.center) < 0.05
+
+
+# ----------------------------------------------------------- filter preview
+def test_filter_preview_is_what_the_detector_reads():
+    from napari_imgreg.filters import FilterParams, apply_filters
+
+    rng = np.random.default_rng(2)
+    big = (rng.random((1224, 1632, 3)) * 255).astype(np.uint8)
+    params = FilterParams(gamma=1.4, wallis=True)
+    out = filtered_for_matching(big, params, 1024)
+    assert out.shape == (768, 1024) and out.dtype == np.uint8
+    import cv2
+
+    small = cv2.resize(big, (1024, 768), interpolation=cv2.INTER_AREA)
+    np.testing.assert_array_equal(out, apply_filters(small, params))
+    # A photo narrower than the match width is filtered as it is.
+    np.testing.assert_array_equal(filtered_for_matching(small, params, 2048),
+                                  apply_filters(small, params))
+    mask = np.zeros((1224, 1632), bool)
+    mask[:, :800] = True
+    masked = filtered_for_matching(big, params, 1024, mask=mask)
+    assert masked.shape == (768, 1024)
+
+
+# ----------------------------------------------------------- score_pose
+def test_score_pose_grades_the_true_pose_above_the_prior(sample):
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    truth = load_truth(photo.path)
+    prior = prior_for_photo(photo, scene)
+    good = score_pose(scene, photo.image, truth.intrinsics, truth.pose)
+    assert good.verified and good.grade in ("excellent", "good"), good.hints
+    assert good.origin == "manual" and good.pose is truth.pose and good.rounds == 0
+    assert good.metrics["reprojection_error_px"] < 2.0
+    assert set(m.key for m in METRICS) <= set(good.metrics)
+    c = good.correspondences
+    assert len(c.photo_points) == good.metrics["putative_matches"]
+    assert c.pose_inlier.sum() == good.metrics["inliers_3d"]
+    bad = score_pose(scene, photo.image, prior.intrinsics, prior.pose)
+    assert not bad.verified and bad.grade not in ("excellent", "good")
+    assert bad.q < good.q
+    assert any("not verified" in h for h in bad.hints)
+
+
+def test_metric_trend_knows_which_way_is_better():
+    count = next(m for m in METRICS if m.key == "inliers_3d")
+    error = next(m for m in METRICS if m.key == "reprojection_error_px")
+    assert metric_trend(count, 40, 20) == 1 and metric_trend(count, 10, 20) == -1
+    assert metric_trend(error, 0.8, 2.0) == 1 and metric_trend(error, 3.0, 2.0) == -1
+    assert metric_trend(count, 20, 20) == 0
+    assert metric_trend(error, None, 2.0) == -1 and metric_trend(error, 1.0, None) == 1
+    assert metric_trend(error, None, None) == 0
+
+
+# ------------------------------------------------------------ sidecar
+def test_pose_is_saved_to_the_sensor_record_keeping_the_rest(tmp_path):
+    path = tmp_path / "IMG_0001.json"
+    original = {
+        "camera": {"width": 1200, "height": 900, "fx": 1000.0},
+        "position": {"x": 0.0, "y": 0.0},
+        "orientation": {"trend_deg": 10.0},
+        "sigma": {"position_m": 3.0, "altitude_m": 2.0, "angles_deg": 4.0},
+        "note": "logged by FieldMove",
+    }
+    path.write_text(json.dumps(original))
+    path.chmod(0o640)
+    save_pose_to_record(path, TRUTH)
+    data = json.loads(path.read_text())
+    assert data["note"] == "logged by FieldMove" and data["camera"] == original["camera"]
+    assert data["sigma"] == original["sigma"]
+    prior = prior_from_record(load_sensor_record(path))
+    assert prior.pose.rotation_error_deg(TRUTH) < 1e-9
+    np.testing.assert_allclose(prior.pose.center, TRUTH.center, atol=1e-9)
+    assert (path.stat().st_mode & 0o777) == 0o640  # the file keeps its mode
+    assert [p.name for p in tmp_path.iterdir()] == ["IMG_0001.json"]  # no temp files left
+    save_pose_to_record(path, TRUTH, camera=INTR)
+    assert json.loads(path.read_text())["camera"]["fx"] == 1000.0
+    new = tmp_path / "new.json"
+    save_pose_to_record(new, TRUTH)
+    assert json.loads(new.read_text())["orientation"]["trend_deg"] == pytest.approx(12.0)

@@ -1,0 +1,460 @@
+"""The registration workbench driven as a user would, in a real napari viewer
+(run under Xvfb): load the sample, nudge and move the pose, filter, register,
+restore a trial, and register manually from control points."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from qtpy.QtCore import QPoint, Qt
+
+from napari_imgreg._layers import napari_from_pixels
+from napari_imgreg.filters import apply_filters
+from napari_imgreg.io.records import load_sensor_record, prior_from_record
+from napari_imgreg.quality import GRADES, METRICS
+from napari_imgreg.sample import load_truth
+from napari_imgreg.widgets._controller import GAP, controller_for
+from napari_imgreg.widgets._quality import CLASS_COLORS
+from napari_imgreg.widgets.workbench import INTERPRET_TAB, QUALITY_NAME, Workbench
+
+LOAD_S = 90_000  # ms: the first run on a fresh machine generates the sample scene
+
+
+@pytest.fixture
+def workbench(make_napari_viewer, qtbot):
+    viewer = make_napari_viewer()
+    wb = Workbench.add_to_viewer(viewer)
+    yield wb
+    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
+
+
+def _idle(wb, qtbot, timeout=30_000):
+    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=timeout)
+
+
+def _load_sample(wb, qtbot):
+    wb.scene_panel.sample_button.click()
+    qtbot.waitUntil(lambda: wb.controller.current is not None, timeout=LOAD_S)
+    _idle(wb, qtbot)
+    return wb.controller
+
+
+def _map_point(canvas, x, y) -> QPoint:
+    """Widget coordinates of the map point (x, y) (matplotlib: physical pixels, y up)."""
+    canvas.draw()
+    px, py = canvas.ax.transData.transform((x, y))
+    dpr = canvas.device_pixel_ratio
+    return QPoint(int(round(px / dpr)), int(round((canvas.figure.bbox.height - py) / dpr)))
+
+
+# ------------------------------------------------------------------ scene
+def test_sample_shows_photo_beside_render_and_model_with_cameras_in_3d(workbench, qtbot):
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    viewer = wb.viewer
+    assert controller_for(viewer) is ctrl
+    assert wb.scene_panel.photo_list.count() == 3
+    assert "IMG_0001.jpg" in wb.scene_panel.prior_label.text()
+    assert "DEM" in wb.scene_panel.scene_label.text()
+    photo, render = ctrl.layers.get("photo"), ctrl.layers.get("render")
+    assert photo.data.shape == (768, 1024, 3) and render.data.shape == (768, 1024, 3)
+    assert render.translate[1] == pytest.approx(1024 * (1 + GAP))  # side by side
+    assert ctrl.last_render is not None and ctrl.last_render.shape == (768, 1024)
+    assert wb.quality is viewer.window.dock_widgets[QUALITY_NAME].panel
+    assert wb.tabs.tabText(wb.tabs.count() - 1) == INTERPRET_TAB
+    from napari_imgreg.widgets.interpret_widget import InterpretWidget
+
+    assert isinstance(wb.tabs.widget(wb.tabs.count() - 1).widget(), InterpretWidget)
+
+    wb.scene_panel.view_3d_button.click()
+    assert viewer.dims.ndisplay == 3
+    surface, cameras = ctrl.layers.get("surface"), ctrl.layers.get("cameras")
+    assert surface.visible and cameras.visible and not photo.visible
+    assert len(cameras.data) == 3 and len(ctrl.layers.get("frusta").data) == 3 * 8
+    wb.scene_panel.view_2d_button.click()
+    assert viewer.dims.ndisplay == 2 and photo.visible and not surface.visible
+
+    with qtbot.waitSignal(ctrl.render_shown, timeout=20_000,
+                          check_params_cb=lambda kind: kind == "full"):
+        wb.scene_panel.photo_list.setCurrentRow(2)
+    assert ctrl.current.name == "IMG_0003.jpg"
+    assert wb.interpret_widget.photo_combo.currentText() == "IMG_0003"  # follows the photo
+    assert not ctrl.layers.get(f"photo:{ctrl.photos[0].photo.path}").visible
+    assert ctrl.last_render.cam_from_world is ctrl.current.pose
+
+
+# ------------------------------------------------------------------- pose
+def test_pose_nudges_map_moves_undo_and_save_to_the_sensor_record(workbench, qtbot, tmp_path):
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    # A copy of a photo and its sensor record: saving must not touch the cached sample.
+    folder = ctrl.current.photo.path.parent
+    for name in ("IMG_0002.jpg", "IMG_0002.json"):
+        shutil.copy(folder / name, tmp_path / name)
+    ctrl.add_photos([tmp_path / "IMG_0002.jpg"])
+    qtbot.waitUntil(lambda: len(ctrl.photos) == 4, timeout=20_000)
+    wb.scene_panel.photo_list.setCurrentRow(3)
+    _idle(wb, qtbot)
+    ps = ctrl.current
+    assert ps.photo.path == tmp_path / "IMG_0002.jpg"
+    panel = wb.pose_panel
+    wb.show_tab("Pose")
+    t0, p0, r0 = ps.pose.attitude
+    before = ctrl.layers.get("render").data.copy()
+
+    # Nudge: the reduced render comes first, the full one when the edits stop.
+    with qtbot.waitSignal(ctrl.render_shown, timeout=10_000,
+                          check_params_cb=lambda kind: kind == "preview"):
+        panel.nudge_buttons["turn right"].click()
+    assert ps.pose.attitude[0] == pytest.approx((t0 + 1.0) % 360)
+    assert not np.array_equal(ctrl.layers.get("render").data, before)
+    with qtbot.waitSignal(ctrl.render_shown, timeout=10_000,
+                          check_params_cb=lambda kind: kind == "full"):
+        pass
+    assert ctrl.last_render.cam_from_world is ps.pose
+    assert panel.trend_spin.value() == pytest.approx((t0 + 1.0) % 360, abs=0.01)
+    fine = next(b for b in panel.step_group.buttons() if b.property("step") == "fine")
+    fine.click()
+    panel.nudge_buttons["look down"].click()
+    assert ps.pose.attitude[1] == pytest.approx(p0 + 0.1)
+    trend_before = ps.pose.attitude[0]
+    panel.roll_spin.setValue(r0 + 2.0)  # typed (arrows/Enter) like any value
+    assert ps.pose.attitude[2] == pytest.approx(round(r0 + 2.0, 2))
+    assert ps.pose.attitude[0] == pytest.approx(trend_before, abs=1e-9)  # the others untouched
+
+    # Click on the DEM map: the camera moves there, keeping its height above the DEM.
+    agl = ctrl.height_above_ground()
+    x, y = ps.pose.center[0] + 12.0, ps.pose.center[1] - 6.0
+    canvas = panel.map
+    qtbot.mouseClick(canvas, Qt.LeftButton, pos=_map_point(canvas, x, y))
+    cell = max(np.diff(canvas.ax.get_xlim())[0], np.diff(canvas.ax.get_ylim())[0]) / 200
+    assert np.allclose(ps.pose.center[:2], (x, y), atol=3 * cell)
+    ground = ctrl.scene.terrain_height(*ps.pose.center[:2])
+    assert ps.pose.center[2] == pytest.approx(ground + agl, abs=1e-6)
+    assert panel.agl_spin.value() == pytest.approx(agl, abs=0.01)
+    moved = ps.pose
+    # Drag: one undo step for the whole drag.
+    a, b = _map_point(canvas, x, y), _map_point(canvas, x - 10.0, y + 5.0)
+    qtbot.mousePress(canvas, Qt.LeftButton, pos=a)
+    qtbot.mouseMove(canvas, pos=QPoint((a.x() + b.x()) // 2, (a.y() + b.y()) // 2))
+    qtbot.mouseMove(canvas, pos=b)
+    qtbot.mouseRelease(canvas, Qt.LeftButton, pos=b)
+    assert np.allclose(ps.pose.center[:2], (x - 10.0, y + 5.0), atol=3 * cell)
+    panel.undo_button.click()
+    assert ps.pose is moved
+    panel.redo_button.click()
+    assert ps.pose is not moved
+    # Shift-click turns the camera toward the point.
+    target = ps.pose.center[:2] + np.array([30.0, 30.0])
+    qtbot.mouseClick(canvas, Qt.LeftButton, Qt.ShiftModifier, pos=_map_point(canvas, *target))
+    assert ps.pose.attitude[0] == pytest.approx(45.0, abs=1.0)
+
+    # Save into the sensor record (atomically; sigma and camera kept).
+    original = json.loads((tmp_path / "IMG_0002.json").read_text())
+    panel.save_button.click()
+    saved = json.loads((tmp_path / "IMG_0002.json").read_text())
+    assert saved["sigma"] == original["sigma"] and saved["camera"] == original["camera"]
+    prior = prior_from_record(load_sensor_record(tmp_path / "IMG_0002.json"))
+    assert prior.pose.rotation_error_deg(ps.pose) < 1e-5  # acos resolution
+    np.testing.assert_allclose(prior.pose.center, ps.pose.center, atol=1e-6)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["IMG_0002.jpg", "IMG_0002.json"]
+    panel.prior_button.click()
+    assert ps.pose is ps.prior.pose
+
+
+# ---------------------------------------------------------------- filters
+def test_filter_sliders_preview_photo_and_render(workbench, qtbot):
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    panel = wb.filters_panel
+    wb.show_tab("Filters")
+    with qtbot.waitSignals([ctrl.filters_shown, ctrl.filters_shown], timeout=10_000):
+        panel.preview_check.setChecked(True)
+    photo_f, render_f = ctrl.layers.get("photo_filtered"), ctrl.layers.get("render_filtered")
+    assert photo_f.visible and render_f.visible
+    photo = ctrl.current.photo.image
+    with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000,
+                          check_params_cb=lambda which: which == "photo"):
+        panel.photo_editor.widgets["gamma"].setValue(1.8)
+    assert ctrl.params.photo_filters.gamma == pytest.approx(1.8)
+    np.testing.assert_array_equal(photo_f.data, apply_filters(photo, ctrl.params.photo_filters))
+    assert ctrl.params.match_width >= photo.shape[1]  # else the preview is at the match width
+    panel.tabs.setCurrentIndex(1)
+    with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000,
+                          check_params_cb=lambda which: which == "render"):
+        panel.render_editor.wallis_check.setChecked(True)
+    assert ctrl.params.render_filters.wallis and not ctrl.params.photo_filters.wallis
+    rendered = ctrl.last_render
+    np.testing.assert_array_equal(
+        render_f.data, apply_filters(rendered.rgb, ctrl.params.render_filters, mask=rendered.mask))
+    assert panel.render_editor.widgets["wallis_window"].isEnabled()
+    # Linked: an edit of one applies to both.
+    panel.link_check.setChecked(True)
+    with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000):
+        panel.photo_editor.clahe_check.setChecked(True)
+    assert ctrl.params.render_filters.clahe
+    assert ctrl.params.render_filters.gamma == pytest.approx(1.8)
+    _idle(wb, qtbot)
+    panel.preview_check.setChecked(False)
+    assert not photo_f.visible and not render_f.visible
+
+
+# ----------------------------------------------------------- registration
+def test_run_apply_suggestion_auto_to_good_and_restore_an_earlier_trial(workbench, qtbot):
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    ps = ctrl.current
+    truth = load_truth(ps.photo.path)
+    reg_panel, quality = wb.register_panel, wb.quality
+    wb.show_tab("Register")
+    wb.pose_panel.nudge_buttons["turn left"].click()  # the geologist's own correction
+    wb.pose_panel.nudge_buttons["turn left"].click()
+    _idle(wb, qtbot)
+
+    # A first Run with a too strict detector: few points, the rules say why.
+    reg_panel.threshold_spin.setValue(3.0)
+    reg_panel.max_features_spin.setValue(600)
+    assert reg_panel.preset_combo.currentText() == "(custom)"
+    with qtbot.waitSignal(ctrl.registration_finished, timeout=60_000) as run:
+        reg_panel.run_button.click()
+        assert not reg_panel.run_button.isEnabled() and reg_panel.cancel_button.isEnabled()
+    first = run.args[0]
+    assert first is not None and len(first.trials) == 1
+    t1 = ps.trials[0].trial
+    assert t1.grade not in ("excellent", "good")
+    assert quality.history.rowCount() == 1
+    assert t1.grade.upper() in quality.banner.text()
+    points = quality.metric_cell("points_photo")
+    assert points.background().color().name() == CLASS_COLORS[-1]  # inferior: too few
+    assert "Too few salient points" in quality.hint_label.text()
+    assert "threshold" in quality.adapt_label.text() and quality.apply_button.isEnabled()
+    assert reg_panel.progress.value() == 100
+
+    # Apply the suggestion: the rule's adaptation lands in the parameters and the GUI.
+    quality.apply_button.click()
+    assert ctrl.params.features.threshold_scale == pytest.approx(1.5)
+    assert reg_panel.threshold_spin.value() == pytest.approx(1.5)
+    assert reg_panel.max_features_spin.value() == 900
+
+    # Auto: good or better, the pose applied, correspondences drawn, the render blended.
+    with qtbot.waitSignal(ctrl.registration_finished, timeout=90_000) as auto:
+        reg_panel.auto_button.click()
+    reg = auto.args[0]
+    assert reg.registered and reg.grade in ("excellent", "good")
+    best = ps.trials[ps.selected_trial].trial
+    assert best.grade in ("excellent", "good") and best.verified
+    assert ps.pose.rotation_error_deg(truth.pose) < 0.2
+    assert np.linalg.norm(ps.pose.center - truth.pose.center) < 0.3
+    grade = next(g for g in GRADES if g.name == best.grade)
+    assert grade.name.upper() in quality.banner.text()
+    assert grade.color in quality.banner.styleSheet()
+    arrows = [quality.metric_cell(m.key, 2).data(Qt.UserRole) for m in METRICS]
+    assert arrows[0] == 1  # more photo points than the strict first trial: ▲ better
+    assert quality.metric_cell("points_photo", 2).text() == "▲"
+    assert quality.history.rowCount() == len(ps.trials) >= 2
+    lines = ctrl.layers.get("correspondences")
+    assert lines.visible and len(lines.data) > 20
+    assert ctrl.layers.get("blend").visible and reg_panel.blend_check.isChecked()
+    _idle(wb, qtbot)
+    reg_panel.outlier_check.setChecked(True)
+    assert len(ctrl.layers.get("correspondences").data) >= len(lines.data)
+
+    # The photo layer carries the registered camera for the interpretation tools.
+    from napari_imgreg.widgets.interpret_widget import camera_of_layer
+
+    intr, pose, _ = camera_of_layer(ctrl.layers.get("photo"))
+    assert pose is ps.pose and intr == ps.intrinsics
+
+    # Restore the first trial: its parameters and its pose come back (undoable).
+    registered_pose = ps.pose
+    quality.history.selectRow(0)
+    assert t1.grade.upper() in quality.banner.text()
+    quality.restore_button.click()
+    assert ctrl.params.features.threshold_scale == pytest.approx(3.0)
+    assert reg_panel.threshold_spin.value() == pytest.approx(3.0)
+    assert ctrl.params.features.max_features == 600
+    expected = t1.pose if t1.pose is not None else t1.start_pose
+    assert ps.pose is expected and "trial 1 restored" in ps.history.label
+    wb.pose_panel.undo_button.click()
+    assert ps.pose is registered_pose
+
+
+def test_cancel_stops_a_registration(workbench, qtbot):
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    ctrl.params.features.max_features = 30_000  # slow enough to be cancelled
+    with qtbot.waitSignal(ctrl.registration_finished, timeout=60_000) as finished:
+        wb.register_panel.auto_button.click()
+        qtbot.waitUntil(lambda: ctrl.is_running("registration"), timeout=5000)
+        wb.register_panel.cancel_button.click()
+    assert finished.args[0] is None
+    assert ctrl.current.trials == []
+    _idle(wb, qtbot)
+    assert wb.register_panel.run_button.isEnabled()
+
+
+def test_errors_become_one_line_messages(workbench, qtbot, tmp_path):
+    wb = workbench
+    ctrl = wb.controller
+    with qtbot.waitSignal(ctrl.status, timeout=2000) as status:
+        ctrl.add_photos([tmp_path / "x.jpg"])  # no model yet
+    assert "Open a model first" in status.args[0]
+    with qtbot.waitSignal(ctrl.failed, timeout=20_000) as failed:
+        ctrl.open_scene(tmp_path / "missing.obj")
+    job, message = failed.args
+    assert job == "open scene" and "missing.obj" in message and "\n" not in message
+    assert message in wb.status_label.text()
+
+
+# ----------------------------------------------------------------- manual
+def _truth_pairs(ctrl, n=8):
+    """Check points seen in both images: the photo's pixels by the true pose, the
+    reference's by the reference render's own pose."""
+    ps = ctrl.current
+    truth = load_truth(ps.photo.path)
+    ref = ps.reference
+    ref_px = ref.cam_from_world.project(ref.intrinsics, truth.check_xyz)
+    xyz, valid = ref.lift(ref_px)
+    seen = valid & (np.linalg.norm(xyz - truth.check_xyz, axis=1) < 0.05)
+    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
+    inside = np.all((photo_px >= 0) & (photo_px < [ps.size[0] - 1, ps.size[1] - 1]), axis=1)
+    idx = np.flatnonzero(seen & inside)[:n]
+    assert len(idx) == n
+    return truth, photo_px[idx], ref_px[idx]
+
+
+def test_manual_pairs_from_the_truth_recover_the_pose(workbench, qtbot):
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    wb.scene_panel.photo_list.setCurrentRow(1)
+    _idle(wb, qtbot)
+    panel = wb.manual_panel
+    wb.show_tab("Manual")
+    assert not panel.solve_button.isEnabled()
+    with qtbot.waitSignal(ctrl.reference_ready, timeout=20_000):
+        panel.ref_pose_button.click()
+    assert ctrl.layers.get("reference").visible
+    truth, photo_px, ref_px = _truth_pairs(ctrl)
+    assert ctrl.current.pose.rotation_error_deg(truth.pose) > 2.0  # the prior is off
+
+    # Click alternately on the photo and the reference (the widget switches layers).
+    panel.pick_button.click()
+    viewer = wb.viewer
+    photo_layer, ref_layer = ctrl.layers.get("photo_pairs"), ctrl.layers.get("reference_pairs")
+    for p, r in zip(photo_px, ref_px):
+        assert viewer.layers.selection.active is photo_layer and photo_layer.mode == "add"
+        photo_layer.add(napari_from_pixels(p))
+        assert viewer.layers.selection.active is ref_layer and ref_layer.mode == "add"
+        ref_layer.add(napari_from_pixels(r))
+    assert panel.table.rowCount() == 8
+    assert [panel.table.item(i, 3).text() for i in range(8)] == ["✓"] * 8
+    assert list(ref_layer.features["pair"]) == list(range(1, 9))
+    np.testing.assert_array_equal(photo_layer.face_color, ref_layer.face_color)  # colour-matched
+    # A wrong extra pair, deleted from the table; deleting a point deletes its pair.
+    photo_layer.add([100.0, 100.0])
+    ref_layer.add([5.0, 5.0])
+    assert panel.table.rowCount() == 9
+    panel.table.selectRow(8)
+    panel.delete_button.click()
+    assert len(photo_layer.data) == len(ref_layer.data) == 8
+    photo_layer.add([50.0, 60.0])
+    ref_layer.add([40.0, 30.0])
+    photo_layer.selected_data = {8}
+    photo_layer.remove_selected()
+    assert len(photo_layer.data) == len(ref_layer.data) == 8
+
+    assert panel.solve_button.isEnabled()
+    with qtbot.waitSignal(ctrl.manual_finished, timeout=60_000) as solved:
+        panel.solve_button.click()
+    sol = solved.args[0]
+    assert sol.ok and sol.inliers.all()
+    pose = ctrl.current.pose
+    assert pose.rotation_error_deg(truth.pose) < 0.5
+    assert np.linalg.norm(pose.center - truth.pose.center) < 0.5
+    assert all(panel.table.item(i, 4).text().endswith("px") for i in range(8))
+    rec = ctrl.current.trials[-1]
+    assert rec.kind == "Manual" and rec.trial.grade in ("excellent", "good")
+    assert "manual pairs" in wb.quality.banner.text()
+    assert "RMS" in panel.result_label.text()
+
+    # Six or more pairs can solve the focal length as well.
+    panel.focal_check.setChecked(True)
+    with qtbot.waitSignal(ctrl.manual_finished, timeout=60_000) as solved:
+        panel.solve_button.click()
+    sol = solved.args[0]
+    assert sol.focal_solved and sol.intrinsics.fx == pytest.approx(truth.intrinsics.fx, rel=0.02)
+    assert "focal length" in panel.result_label.text()
+
+
+def test_reference_from_the_3d_view_sees_what_the_view_shows(workbench, qtbot):
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    panel = wb.manual_panel
+    panel.fly_button.click()  # the 3D view looks from the photo's pose
+    assert wb.viewer.dims.ndisplay == 3
+    with qtbot.waitSignal(ctrl.reference_ready, timeout=20_000):
+        panel.ref_view_button.click()
+    assert wb.viewer.dims.ndisplay == 2  # back to picking
+    ref = ctrl.current.reference
+    assert ctrl.current.reference_source == "view"
+    assert ref.cam_from_world.rotation_error_deg(ctrl.current.pose) < 0.05
+    assert np.linalg.norm(ref.cam_from_world.center - ctrl.current.pose.center) < 0.5
+    assert ref.coverage > 0.5
+
+
+# ------------------------------------------------------------ entry points
+def test_plugin_menu_docks_the_workbench_with_its_quality_panel(make_napari_viewer, qtbot):
+    from npe2 import PluginManifest
+
+    manifest = PluginManifest.from_distribution("napari-imgreg")
+    names = {w.display_name for w in manifest.contributions.widgets}
+    assert {"Registration workbench", "Registration quality", "Orient model"} <= names
+    viewer = make_napari_viewer()
+    _, wb = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration workbench")
+    assert isinstance(wb, Workbench)
+    qtbot.waitUntil(lambda: wb.quality is not None, timeout=5000)
+    assert viewer.window.dock_widgets[QUALITY_NAME].panel is wb.quality
+    assert wb.quality.ctrl is wb.controller
+
+
+def test_demo_gui_opens_the_sample_in_the_workbench(make_napari_viewer, qtbot, monkeypatch):
+    import napari
+
+    from napari_imgreg.cli import _demo_gui
+    from napari_imgreg.sample import sample_scene
+
+    viewers = []
+
+    def viewer_factory(**kwargs):
+        viewers.append(make_napari_viewer())
+        return viewers[-1]
+
+    monkeypatch.setattr(napari, "Viewer", viewer_factory)
+    monkeypatch.setattr(napari, "run", lambda: None)
+    assert _demo_gui(sample_scene("small")) == 0
+    wb = viewers[0].window.dock_widgets["Registration workbench"]
+    qtbot.waitUntil(lambda: wb.controller.current is not None, timeout=LOAD_S)
+    _idle(wb, qtbot)
+    assert len(wb.controller.photos) == 3 and wb.controller.scene.dem is not None
+    assert wb.controller.layers.get("render") is not None
+
+
+def test_closing_the_docks_and_opening_the_workbench_again(workbench, qtbot):
+    wb = workbench
+    viewer = wb.viewer
+    old = wb.controller
+    quality = viewer.window.dock_widgets[QUALITY_NAME]
+    viewer.window.remove_dock_widget(wb)
+    viewer.window.remove_dock_widget(quality)
+    # Deleted docks let their controller go: a workbench opened again starts afresh.
+    wb.deleteLater()
+    quality.deleteLater()
+    qtbot.waitUntil(lambda: old.closed, timeout=5000)
+    again = Workbench.add_to_viewer(viewer)
+    assert again.controller is not old and not again.controller.closed
+    assert viewer.window.dock_widgets[QUALITY_NAME].panel is again.quality
+    ctrl = _load_sample(again, qtbot)
+    assert ctrl.current is not None and ctrl.layers.get("render") is not None
