@@ -177,17 +177,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _demo_gui(folder: Path) -> int:  # pragma: no cover - interactive
-    """napari with the sample scene and its photos loaded in the registration workbench."""
-    import napari
+    from .widgets.demo import open_demo  # the only path of the CLI that needs Qt
 
-    from .widgets.workbench import Workbench
-
-    viewer = napari.Viewer(title="napari-imgreg demo")
-    workbench = Workbench.add_to_viewer(viewer)
-    workbench.controller.open_scene(
-        folder / "outcrop.obj", dem=folder / "dem.tif", photos=sorted(folder.glob("IMG_*.jpg"))
-    )
-    napari.run()
+    open_demo(folder)
     return EXIT_OK
 
 
