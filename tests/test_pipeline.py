@@ -93,6 +93,33 @@ def test_progress_and_cancel(sample):
         list(register_photo(scene, photo.image, prior, cancelled=cancel_soon))
 
 
+def test_progress_reports_each_round(sample):
+    folder, scene = sample
+    photo, _ = _photo(folder)
+    prior = prior_for_photo(photo, scene)
+    reports = []
+    register(scene, photo.image, prior, on_progress=reports.append)
+    rounds = [p for p in reports if p.stage == "trial"]
+    assert len(rounds) >= 2 and all("round" in p.message for p in rounds)
+    fractions = [p.fraction for p in reports]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def test_adaptation_stops_when_the_rule_has_nothing_left_to_change(sample):
+    folder, scene = sample
+    photo, _ = _photo(folder)
+    prior = prior_for_photo(photo, scene)
+    # No points at all (a blank photo): rule 1 asks for more points, but the
+    # detector is already at its most sensitive, so another trial would repeat this one.
+    blank = np.full_like(photo.image, 128)
+    params = RegistrationParams(max_trials=5, search_prior=False)
+    params.features.threshold_scale = 0.05
+    params.features.max_features = 30_000
+    reg = register(scene, blank, prior, params)
+    assert reg.status == "failed" and len(reg.trials) == 1
+    assert "nothing left to adapt" in reg.trials[0].adaptation
+
+
 def test_register_command_exit_codes(sample, tmp_path, capsys):
     folder, _ = sample
     out = tmp_path / "RESULT.json"

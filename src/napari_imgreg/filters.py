@@ -24,6 +24,8 @@ __all__ = [
     "brightness_contrast",
     "clahe",
     "gradient_magnitude",
+    "illumination_invariant",
+    "INVARIANT_ALPHA",
 ]
 
 
@@ -220,3 +222,66 @@ def gradient_magnitude(gray: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
     return cv2.magnitude(gx, gy)
+
+
+#: Weight of the blue channel in :func:`illumination_invariant`, from a
+#: camera's peak spectral sensitivities λ_B < λ_G < λ_R through
+#: ``1/λ_G = α/λ_B + (1 − α)/λ_R`` — 0.46 for typical phone sensors
+#: (470, 540, 620 nm).
+INVARIANT_ALPHA = 0.464
+
+
+def illumination_invariant(
+    image: np.ndarray,
+    mask: np.ndarray | None = None,
+    alpha: float = INVARIANT_ALPHA,
+    spread: float = 40.0,
+) -> np.ndarray:
+    """The illumination-invariant grey image of a colour image (Maddern et al. 2014).
+
+    ``I = log G − α log B − (1 − α) log R``: the log-responses' weights sum to
+    zero, so shading (a common factor of the three channels: relief, cast
+    shadow, exposure) cancels, and for a Planckian illuminant (sun, sky) the
+    colour temperature cancels too. What is left is the surface's
+    chromaticity: bed colours, staining, lichen — the same under any sun.
+    The result is standardised (mean 127, ``spread`` grey levels per standard
+    deviation, statistics over ``mask``), which also removes the photo's white
+    balance and gamma (an offset and a gain of ``I``).
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8 array
+        RGB.
+    mask : (H, W) bool array, optional
+        Pixels that count for the statistics (the render's surface); the rest
+        is set to mid-grey.
+    alpha : float
+        Blue weight (:data:`INVARIANT_ALPHA`).
+    spread : float
+        Grey levels per standard deviation of ``I``.
+
+    Returns
+    -------
+    (H, W) uint8 array
+
+    References
+    ----------
+    W. Maddern, A. Stewart, C. McManus, B. Upcroft, W. Churchill, P. Newman,
+    "Illumination invariant imaging: applications in robust vision-based
+    localisation, mapping and classification for autonomous vehicles", ICRA
+    2014 Workshop on Visual Place Recognition in Changing Environments.
+    """
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError("illumination_invariant needs an RGB image")
+    lut = np.log(np.arange(256, dtype=np.float32) + 1.0)  # +1: no log(0) in black pixels
+    r, g, b = (cv2.LUT(image[..., k], lut) for k in range(3))
+    inv = g - alpha * b - (1.0 - alpha) * r
+    sel = inv[mask] if mask is not None else inv
+    if sel.size == 0:
+        return np.full(image.shape[:2], 127, np.uint8)
+    mu, sd = float(sel.mean()), float(sel.std())
+    out = 127.0 + spread * (inv - mu) / max(sd, 1e-6)
+    out = np.clip(out + 0.5, 0, 255).astype(np.uint8)
+    if mask is not None:
+        out[~mask] = 127
+    return out

@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 
 from .camera import Intrinsics, Pose
-from .features import Features, Matches, detect_and_describe, match_features
-from .filters import apply_filters
+from .features import Features, Matches, detect_and_describe, match_features, match_guided
+from .filters import apply_filters, illumination_invariant
 from .io.records import Prior
 from .params import RegistrationParams
 from .pose import PoseEstimate, estimate_pose
@@ -57,6 +57,17 @@ __all__ = [
 VERIFY_FLOW_PX = 2.5
 #: 3D inliers a verified pose needs at the least.
 MIN_VERIFIED_INLIERS = 15
+#: A trial has converged when the new estimate moves the inlier points by less
+#: than this in the image (median, px at 1632 px width) — or moves less than
+#: ``converged_deg`` and ``converged_m``. Far from the camera a rotation and a
+#: translation nearly cancel in the image, so the angle/metre test alone can
+#: keep a pose that no longer changes what it shows "moving" for rounds.
+CONVERGED_SHIFT_PX = 0.5
+#: A start pose whose camera is less than this above the model's surface is
+#: lifted to eye height above it (see :func:`_above_ground`).
+MIN_GROUND_CLEARANCE_M = 0.5
+#: Eye height used when a start pose is lifted.
+EYE_HEIGHT_M = 1.6
 
 
 class Cancelled(Exception):
@@ -87,6 +98,8 @@ class Correspondences:
         Has a 3D point.
     pose_inlier : (M,) bool
         Agrees with the estimated pose.
+    xyz : (M, 3) array, optional
+        The render keypoints' 3D points (NaN where not lifted).
     """
 
     photo_points: np.ndarray
@@ -94,6 +107,7 @@ class Correspondences:
     feature_inlier: np.ndarray
     lifted: np.ndarray
     pose_inlier: np.ndarray
+    xyz: np.ndarray | None = None
 
 
 @dataclass
@@ -216,7 +230,10 @@ class _Context:
         img, s = self._photo_cache[key]
         return img, float(s)
 
-    def photo_features(self, params: RegistrationParams, width: int) -> Features:
+    def photo_features(self, params: RegistrationParams, width: int,
+                       invariant: bool = False) -> Features:
+        """The photo's features at ``width`` (cached); with ``invariant``, the
+        illumination-invariant channel's keypoints too (channel 1)."""
         key = (repr(params.photo_filters), repr(params.features), width)
         if key not in self._feature_cache:
             img, _ = self.photo_at(width)
@@ -228,29 +245,82 @@ class _Context:
             self.timings["filter"] += t1 - t0
             self.timings["detect_match"] += t2 - t1
             self._feature_cache[key] = feats
-        return self._feature_cache[key]
+        feats = self._feature_cache[key]
+        if not invariant:
+            return feats
+        ikey = ("invariant",) + key
+        if ikey not in self._feature_cache:
+            img, _ = self.photo_at(width)
+            t0 = time.perf_counter()
+            inv = illumination_invariant(img)
+            t1 = time.perf_counter()
+            self._feature_cache[ikey] = detect_and_describe(inv, params.features)
+            self.timings["filter"] += t1 - t0
+            self.timings["detect_match"] += time.perf_counter() - t1
+        return Features.concat([feats, self._feature_cache[ikey]])
+
+
+def _above_ground(scene: Scene, pose: Pose) -> tuple[Pose, float]:
+    """The pose with its camera lifted to eye height when it sits (nearly) in the ground.
+
+    A prior altitude from a coarse DEM plus GNSS noise (or a GNSS altitude
+    with σ ≈ 10 m) often puts the camera a metre or more *below* the model's
+    surface. A render from there shows the underside of the terrain or a
+    close-up of grass: nothing matches, however good the matcher (in the
+    benchmark a third of the ground-level priors were below the surface, and
+    every one of them failed from the prior). The surface under the camera is
+    found by a ray cast down from 30 m above it; the horizontal position and
+    the attitude are kept. Returns the pose and the lift in metres (0 when
+    unchanged).
+    """
+    c = pose.center
+    top = c + np.array([0.0, 0.0, 30.0])
+    hits = scene.cast_rays(top[None], np.array([[0.0, 0.0, -1.0]]))
+    if not hits.hit[0]:
+        return pose, 0.0
+    ground = float(top[2] - hits.distance[0])
+    if c[2] - ground >= MIN_GROUND_CLEARANCE_M:
+        return pose, 0.0
+    lift = ground + EYE_HEIGHT_M - float(c[2])
+    return pose.with_center(np.array([c[0], c[1], ground + EYE_HEIGHT_M])), lift
 
 
 def _pose_change(a: Pose, b: Pose) -> tuple[float, float]:
     return a.rotation_error_deg(b), float(np.linalg.norm(a.center - b.center))
 
 
-def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int):
-    """One render → match → lift → pose round. Returns (estimate, metrics, corr, render)."""
+def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
+           near: bool = False):
+    """One render → match → lift → pose round. Returns (estimate, metrics, corr, render).
+
+    ``near``: the render is from a pose estimated in this trial, so it looks
+    much like the photo: the luminance features suffice (the invariant
+    channel is for distant starts), and with ``guided_radius_px`` > 0 they
+    are matched only near the same place (:func:`match_guided`).
+    """
+    fp = params.features
+    guided = near and fp.guided_radius_px > 0
+    invariant = fp.invariant_channel and not near
     scale = min(1.0, width / ctx.intrinsics.width)
     t0 = time.perf_counter()
     rendered = render(ctx.scene, ctx.intrinsics, pose, scale=scale)
     ctx.timings["render"] += time.perf_counter() - t0
     ctx.check()
-    photo_feats = ctx.photo_features(params, width)
+    photo_feats = ctx.photo_features(params, width, invariant)
     ctx.check()
     t0 = time.perf_counter()
     # Keypoints on the rim of the surface sit on a depth edge: detect inside it.
     mask = cv2.erode(rendered.mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     gray = apply_filters(rendered.rgb, params.render_filters, mask=rendered.mask)
+    inv = illumination_invariant(rendered.rgb, rendered.mask) if invariant else None
     t1 = time.perf_counter()
-    render_feats = detect_and_describe(gray, params.features, mask=mask, color=rendered.rgb)
-    matches = match_features(photo_feats, render_feats, params.features)
+    render_feats = detect_and_describe(gray, fp, mask=mask, color=rendered.rgb)
+    if inv is not None:
+        render_feats = Features.concat([render_feats, detect_and_describe(inv, fp, mask=mask)])
+    if guided:
+        matches = match_guided(photo_feats, render_feats, fp)
+    else:
+        matches = match_features(photo_feats, render_feats, fp)
     t2 = time.perf_counter()
     ctx.timings["filter"] += t1 - t0
     ctx.timings["detect_match"] += t2 - t1
@@ -291,8 +361,21 @@ def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int):
         ),
         "render_coverage": round(rendered.coverage, 4),
     }
-    corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier)
+    corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier, xyz)
     return estimate, metrics, corr, rendered
+
+
+def _image_shift(intr: Intrinsics, a: Pose, b: Pose, corr: Correspondences) -> float:
+    """Median distance (pixels) by which the pose-inlier 3D points move in the
+    image from pose ``a`` to pose ``b``: how much a pose change *shows*.
+
+    Far from the camera, a rotation and a translation can nearly cancel in
+    the image; the change in angle and metres then overstates what moved.
+    """
+    if corr.xyz is None or corr.pose_inlier.sum() < 3:
+        return float("inf")
+    pts = corr.xyz[corr.pose_inlier]
+    return float(np.median(np.linalg.norm(a.project(intr, pts) - b.project(intr, pts), axis=1)))
 
 
 def _residual_flow(corr: Correspondences) -> float:
@@ -312,8 +395,8 @@ def _run_trial(
     origin: str,
     width: int | None = None,
     max_rounds: int | None = None,
-    report: Callable[[str], None] | None = None,
-) -> Trial:
+) -> Generator[tuple[int, int], None, Trial]:
+    """Run one trial; yields (round, rounds) before each round, returns the Trial."""
     t_start = time.perf_counter()
     width = width or params.match_width
     rounds = max_rounds or params.max_iterations
@@ -324,18 +407,23 @@ def _run_trial(
     last_ok_pose: Pose | None = None
     for k in range(rounds):
         n_done = k + 1
-        if report:
-            report(f"round {k + 1}/{rounds}")
-        estimate, metrics, corr, _ = _round(ctx, pose, params, width)
+        yield k, rounds
+        # After a round that found a pose, the next render is close to the
+        # photo: luminance features suffice.
+        estimate, metrics, corr, _ = _round(ctx, pose, params, width,
+                                            near=last_ok_pose is not None)
         if not estimate.ok:
             if best is None:
                 best = (estimate, metrics, corr)
             break
         best = (estimate, metrics, corr)
         d_rot, d_pos = _pose_change(pose, estimate.pose)
+        shift = _image_shift(ctx.intrinsics, pose, estimate.pose, corr)
         last_ok_pose = estimate.pose
         pose = estimate.pose
-        if d_rot < params.converged_deg and d_pos < params.converged_m:
+        if (d_rot < params.converged_deg and d_pos < params.converged_m) or (
+            shift < CONVERGED_SHIFT_PX * ctx.intrinsics.width / 1632.0
+        ):
             converged = True
             break
     estimate, metrics, corr = best
@@ -384,12 +472,15 @@ def _trial_rank(t: Trial) -> tuple:
     return (t.verified, t.pose is not None, t.q, t.metrics.get("inliers_3d", 0))
 
 
-def _perturbed_priors(prior: Prior, n: int, seed: int = 0) -> list[Pose]:
+def _perturbed_priors(prior: Prior, n: int, seed: int = 0,
+                      start: Pose | None = None) -> list[Pose]:
     """Starting poses spread over the prior's uncertainty (heading first:
-    compass error dominates what a render shows)."""
+    compass error dominates what a render shows), around ``start`` (default:
+    the prior's pose)."""
     rng = np.random.default_rng(seed)
-    trend, plunge, roll = prior.pose.attitude
-    c = prior.pose.center
+    start = start if start is not None else prior.pose
+    trend, plunge, roll = start.attitude
+    c = start.center
     s_ang = prior.sigma.angles_deg
     s_pos = prior.sigma.position_m
     s_alt = prior.sigma.altitude_m
@@ -453,18 +544,37 @@ def register_photo(
         yield Progress("prepare", 0.0, "building the ray-casting engine")
         scene.build_engine()
     trials: list[Trial] = []
+    assumptions = list(prior.assumptions)
+    start_prior, lift = _above_ground(scene, prior.pose)
+    if lift > 0:
+        assumptions.append(
+            f"prior camera {EYE_HEIGHT_M - lift:+.1f} m above the model surface: "
+            f"lifted to {EYE_HEIGHT_M:g} m above it"
+        )
     n_budget = max(1, params.max_trials) + (1 if params.search_prior else 0)
 
     def progress(stage: str, msg: str, done: float) -> Progress:
         return Progress(stage, min(0.99, done), msg, len(trials) + 1)
 
     current = params
-    start = prior.pose
+    start = start_prior
     origin = "prior"
+
+    def rounds_of(gen, label: str, base: float | None = None, span: float = 1.0):
+        # Relay a trial's rounds as progress (the trial spans ``span`` budget
+        # units from ``base``, default: after the trials so far); returns the trial.
+        base = len(trials) if base is None else base
+        while True:
+            try:
+                k, n = next(gen)
+            except StopIteration as stop:
+                return stop.value
+            yield progress("trial", f"{label}, round {k + 1}/{n}", (base + span * k / n) / n_budget)
+
     for trial_no in range(params.max_trials if params.auto_adapt else 1):
-        yield progress("trial", f"trial {trial_no + 1}: {current.features.name}",
-                       len(trials) / n_budget)
-        trial = _run_trial(ctx, len(trials), start, current, origin)
+        trial = yield from rounds_of(
+            _run_trial(ctx, len(trials), start, current, origin),
+            f"trial {trial_no + 1}: {current.features.name}")
         trials.append(trial)
         check()
         if trial.verified and trial.grade in ("excellent", "good"):
@@ -472,29 +582,36 @@ def register_photo(
         hits = evaluate_rules(trial.metrics, current, intr.width)
         if not params.auto_adapt or not hits:
             break
+        adapted = hits[0].apply(current)
+        if adapted == current:
+            # The rule's parameter is at its limit: another trial would repeat this one.
+            trial.adaptation = f"rule {hits[0].rule}: nothing left to adapt"
+            break
         trial.adaptation = f"rule {hits[0].rule}: {hits[0].adaptation}"
-        current = hits[0].apply(current)
+        current = adapted
         if trial.pose is not None and trial.metrics.get("inliers_3d", 0) >= 12:
             start, origin = trial.pose, f"trial {trial.index + 1}"
 
     best = max(trials, key=_trial_rank)
     if not best.verified and params.search_prior:
         # Search the prior's uncertainty at reduced resolution, one round each.
-        candidates = _perturbed_priors(prior, params.n_search)
+        candidates = [_above_ground(scene, c)[0]
+                      for c in _perturbed_priors(prior, params.n_search, start=start_prior)]
         search_width = min(params.match_width, 800)
         scored = []
         for k, cand in enumerate(candidates):
             yield progress("search", f"searching the prior's uncertainty ({k + 1}/{len(candidates)})",
-                           (len(trials) + k / len(candidates)) / n_budget)
-            t = _run_trial(ctx, -1, cand, best.params, "search", width=search_width, max_rounds=2)
+                           (len(trials) + 0.5 * k / len(candidates)) / n_budget)
+            t = run_to_end(_run_trial(ctx, -1, cand, best.params, "search",
+                                      width=search_width, max_rounds=2))
             if t.pose is not None:
                 scored.append(t)
             check()
         if scored:
             lead = max(scored, key=lambda t: (t.metrics.get("inliers_3d", 0), t.q))
-            yield progress("trial", "refining the best start from the search",
-                           (n_budget - 1) / n_budget)
-            trial = _run_trial(ctx, len(trials), lead.pose, best.params, "search")
+            trial = yield from rounds_of(
+                _run_trial(ctx, len(trials), lead.pose, best.params, "search"),
+                "refining the best start from the search", base=len(trials) + 0.5, span=0.5)
             trials.append(trial)
         best = max(trials, key=_trial_rank)
 
@@ -522,7 +639,7 @@ def register_photo(
         trials=trials,
         timings_s=timings,
         best_trial=best.index,
-        assumptions=list(prior.assumptions),
+        assumptions=assumptions,
     )
 
 

@@ -12,7 +12,7 @@ import pytest
 from qtpy.QtCore import QPoint, Qt
 
 from napari_imgreg._layers import napari_from_pixels
-from napari_imgreg.filters import apply_filters
+from napari_imgreg.manual import filtered_for_matching
 from napari_imgreg.io.records import load_sensor_record, prior_from_record
 from napari_imgreg.quality import GRADES, METRICS
 from napari_imgreg.sample import load_truth
@@ -180,17 +180,30 @@ def test_filter_sliders_preview_photo_and_render(workbench, qtbot):
                           check_params_cb=lambda which: which == "photo"):
         panel.photo_editor.widgets["gamma"].setValue(1.8)
     assert ctrl.params.photo_filters.gamma == pytest.approx(1.8)
-    np.testing.assert_array_equal(photo_f.data, apply_filters(photo, ctrl.params.photo_filters))
-    assert ctrl.params.match_width >= photo.shape[1]  # else the preview is at the match width
+    # The preview is what the detector reads: the photo reduced to the match
+    # width, then filtered (a Wallis window means pixels at that width).
+    assert ctrl.params.match_width < photo.shape[1]  # the reduction is exercised
+    np.testing.assert_array_equal(
+        photo_f.data, filtered_for_matching(photo, ctrl.params.photo_filters, ctrl.params.match_width))
+    assert photo_f.data.shape[1] == ctrl.params.match_width
     panel.tabs.setCurrentIndex(1)
+    # Wallis is on for both images by default; turning it off for the render
+    # leaves the photo's untouched (the two are filtered independently).
+    assert ctrl.params.render_filters.wallis and ctrl.params.photo_filters.wallis
+    with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000,
+                          check_params_cb=lambda which: which == "render"):
+        panel.render_editor.wallis_check.setChecked(False)
+    assert not ctrl.params.render_filters.wallis and ctrl.params.photo_filters.wallis
+    assert not panel.render_editor.widgets["wallis_window"].isEnabled()
+    rendered = ctrl.last_render
+    np.testing.assert_array_equal(render_f.data, filtered_for_matching(
+        rendered.rgb, ctrl.params.render_filters, ctrl.params.match_width, mask=rendered.mask))
     with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000,
                           check_params_cb=lambda which: which == "render"):
         panel.render_editor.wallis_check.setChecked(True)
-    assert ctrl.params.render_filters.wallis and not ctrl.params.photo_filters.wallis
-    rendered = ctrl.last_render
-    np.testing.assert_array_equal(
-        render_f.data, apply_filters(rendered.rgb, ctrl.params.render_filters, mask=rendered.mask))
     assert panel.render_editor.widgets["wallis_window"].isEnabled()
+    np.testing.assert_array_equal(render_f.data, filtered_for_matching(
+        rendered.rgb, ctrl.params.render_filters, ctrl.params.match_width, mask=rendered.mask))
     # Linked: an edit of one applies to both.
     panel.link_check.setChecked(True)
     with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000):
@@ -215,8 +228,8 @@ def test_run_apply_suggestion_auto_to_good_and_restore_an_earlier_trial(workbenc
     _idle(wb, qtbot)
 
     # A first Run with a too strict detector: few points, the rules say why.
-    reg_panel.threshold_spin.setValue(3.0)
-    reg_panel.max_features_spin.setValue(600)
+    reg_panel.threshold_spin.setValue(4.0)
+    reg_panel.max_features_spin.setValue(500)
     assert reg_panel.preset_combo.currentText() == "(custom)"
     with qtbot.waitSignal(ctrl.registration_finished, timeout=60_000) as run:
         reg_panel.run_button.click()
@@ -235,9 +248,9 @@ def test_run_apply_suggestion_auto_to_good_and_restore_an_earlier_trial(workbenc
 
     # Apply the suggestion: the rule's adaptation lands in the parameters and the GUI.
     quality.apply_button.click()
-    assert ctrl.params.features.threshold_scale == pytest.approx(1.5)
-    assert reg_panel.threshold_spin.value() == pytest.approx(1.5)
-    assert reg_panel.max_features_spin.value() == 900
+    assert ctrl.params.features.threshold_scale == pytest.approx(2.0)
+    assert reg_panel.threshold_spin.value() == pytest.approx(2.0)
+    assert reg_panel.max_features_spin.value() == 750
 
     # Auto: good or better, the pose applied, correspondences drawn, the render blended.
     with qtbot.waitSignal(ctrl.registration_finished, timeout=90_000) as auto:
@@ -273,9 +286,9 @@ def test_run_apply_suggestion_auto_to_good_and_restore_an_earlier_trial(workbenc
     quality.history.selectRow(0)
     assert t1.grade.upper() in quality.banner.text()
     quality.restore_button.click()
-    assert ctrl.params.features.threshold_scale == pytest.approx(3.0)
-    assert reg_panel.threshold_spin.value() == pytest.approx(3.0)
-    assert ctrl.params.features.max_features == 600
+    assert ctrl.params.features.threshold_scale == pytest.approx(4.0)
+    assert reg_panel.threshold_spin.value() == pytest.approx(4.0)
+    assert ctrl.params.features.max_features == 500
     expected = t1.pose if t1.pose is not None else t1.start_pose
     assert ps.pose is expected and "trial 1 restored" in ps.history.label
     wb.pose_panel.undo_button.click()

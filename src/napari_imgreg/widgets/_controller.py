@@ -406,6 +406,10 @@ class _Layers:
         kind = np.where(corr.pose_inlier, 0, np.where(corr.feature_inlier, 1, 2))
         keep = kind < 2 if not outliers else np.ones(len(kind), bool)
         idx = np.flatnonzero(keep)
+        if len(idx) == 0:  # only outliers, not asked for: nothing to draw
+            if layer is not None:
+                layer.visible = False
+            return 0
         if len(idx) > MAX_LINES:  # an even sample: hundreds of lines hide the images
             keep = np.zeros(len(kind), bool)
             keep[idx[np.linspace(0, len(idx) - 1, MAX_LINES).round().astype(int)]] = True

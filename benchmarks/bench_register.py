@@ -1,0 +1,683 @@
+"""Registration benchmark: ours (full auto) beside the plain baseline, two light tiers.
+
+Generated outcrops (the package's sample generator, one model per scene seed)
+photographed from the ground with phone-like priors, in two tiers that share
+the cameras and the priors, so the difference between the tiers is the light
+alone:
+
+* ``same_light``: photos lit like the model's texture (the survey day's sun),
+  mild camera effects;
+* ``changed_light``: the texture is baked under the survey-day sun, the photos
+  are taken under another sun raking the face at a low angle (relief shading
+  and cast shadows change), with wet rock, another gamma and white balance,
+  more noise, blur and JPEG loss. Its strength is calibrated so that the plain
+  baseline registers well under half of the photos.
+
+Each photo is registered twice in the same process, one after the other:
+``ours`` = ``RegistrationParams()`` (full automatic pipeline) and ``baseline``
+= ``RegistrationParams.baseline()`` (SIFT, ratio test, RANSAC EPnP: no
+filters, no re-rendering, no adaptation, no search, no verification).
+
+A photo is a *success* when the result's status is ``registered`` and the
+median reprojection error of the ground-truth check points (``IMG_*.truth.json``)
+is below 4 px at 1632 px width; a *false verdict* is a pose reported
+``registered`` (or graded good or excellent) whose check-point error is 4 px or
+more.
+
+    .venv/bin/python benchmarks/bench_register.py --report docs/benchmarks.md
+    .venv/bin/python benchmarks/bench_register.py --quick        # smoke run
+
+Generated data are cached under ``benchmarks/_cache/`` (models, photos) and the
+per-photo rows are written beside them (``bench_register_rows.json`` / ``.csv``).
+
+Reference (Kehl et al. 2018, Table I): on the September photo set (other
+season and light than the model), the plain DEM-based pipeline registered 2
+of 17 photos and the interactive framework 10 of 17 automatically; the tablet
+took about 185 s per photo.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import json
+import os
+import platform
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from napari_imgreg import Scene, render
+from napari_imgreg._atomic import atomic_path, atomic_write
+from napari_imgreg.io.photos import load_photo
+from napari_imgreg.io.records import prior_for_photo
+from napari_imgreg.params import RegistrationParams
+from napari_imgreg.pipeline import register
+from napari_imgreg.sample import (
+    GENERATOR_VERSION,
+    OutcropSpec,
+    PhotoConditions,
+    generate_outcrop,
+    load_truth,
+)
+from napari_imgreg.sample.noise import rng_for
+from napari_imgreg.sample.photo import synthesize_photo, vertex_normals_of
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_CACHE = HERE / "_cache"
+#: Bump when the benchmark's generated data change (cache key).
+BENCH_DATA_VERSION = "2"
+MARK_START, MARK_END = "<!-- bench_register:start -->", "<!-- bench_register:end -->"
+
+REFERENCE_WIDTH = 1632
+SUCCESS_PX = 4.0
+TIERS = ("same_light", "changed_light")
+METHODS = ("ours", "baseline")
+
+#: Changed-light strength (see :func:`changed_light_conditions`), calibrated so
+#: that the baseline registers 20-40 % of the tier.
+CHANGED_STRENGTH = 0.8
+
+#: Micro-relief of the rock (see :func:`relief_normals`): RMS slope.
+RELIEF_RMS_SLOPE = 0.3
+#: Photos are rendered at this factor and area-averaged (as the generator's).
+SUPERSAMPLE = 1.5
+
+#: Prior errors (what the phone logs): GNSS horizontal sigma, DEM altitude
+#: (+ eye height, with the generator's 2 m noise), compass and tilt sigmas.
+PRIOR_SIGMA = {"position_m": 5.0, "heading_deg": 6.0, "tilt_deg": 3.0}
+
+TARGETS = {
+    "same_light_success": 1.0,
+    "changed_light_success": 0.6,
+    "median_cp_px": 1.5,
+    "false_verdicts": 0.02,
+    "one_trial_s": 2.0,
+    "full_auto_s": 6.0,
+}
+PAPER = {
+    "sept_dem": "2/17",
+    "sept_interactive": "10/17",
+    "tablet_s": 185.0,
+}
+
+
+# --------------------------------------------------------------------- data
+def changed_light_conditions(
+    rng: np.random.Generator,
+    strength: float,
+    survey_sun: tuple[float, float],
+    survey_ambient: float,
+) -> PhotoConditions:
+    """Conditions of a changed-light photo: :meth:`PhotoConditions.from_rng`.
+
+    At strength 1: a sun raking the south-facing face from the east or west
+    at 8-22° elevation, less sky light, wet rock, another white balance,
+    gamma and exposure, more noise, blur and JPEG loss; lower strengths move
+    every dial part of the way from the survey day.
+    """
+    return PhotoConditions.from_rng(rng, strength, survey_sun, survey_ambient)
+
+
+# ------------------------------------------------------------ micro-relief
+def relief_normals(scene: Scene, grid: tuple[int, int], texture_size: int, seed: int,
+                   rms_slope: float = RELIEF_RMS_SLOPE) -> tuple[np.ndarray, np.ndarray]:
+    """Per-texel normals of the mesh and of the rock's micro-relief, (T, T, 3) float32 each.
+
+    The generated mesh resolves relief down to its grid (≈ 0.3 m); the texture
+    adds albedo detail, but nothing that changes with the sun. Real rock is
+    rough at every scale below that, and its micro-relief shading, baked into a
+    photogrammetric texture under the survey-day sun, looks different under
+    another sun: this is what defeats matching across light (Kehl et al.'s
+    September set). Here a self-similar height field (Gaussian-filtered noise
+    at 4, 11, 27 and 65 cm) is scaled to an RMS slope of ``rms_slope`` and
+    perturbs the mesh normal of every texel (bump mapping in the grid's
+    tangent frame).
+    """
+    from scipy import ndimage
+
+    from napari_imgreg.sample.noise import separable_sample
+
+    nx, ns = grid
+    T = texture_size
+    X = scene.vertices.reshape(ns, nx, 3)
+    vn = vertex_normals_of(scene).reshape(ns, nx, 3)
+    ri = (1.0 - (np.arange(T) + 0.5) / T) * (ns - 1)  # v = 0 is the texture's bottom row
+    ci = (np.arange(T) + 0.5) / T * (nx - 1)
+    n = separable_sample(vn, ri, ci)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True) + 1e-9
+    du = separable_sample(np.gradient(X, axis=1), ri, ci) * ((nx - 1) / T)  # metres per texel
+    dv = -separable_sample(np.gradient(X, axis=0), ri, ci) * ((ns - 1) / T)  # down the texture
+    lu = np.linalg.norm(du, axis=-1)
+    lv = np.linalg.norm(dv, axis=-1)
+    du /= lu[..., None] + 1e-9
+    dv /= lv[..., None] + 1e-9
+    rng = rng_for(seed, 8100)
+    h = np.zeros((T, T), np.float32)
+    for sigma, amp in ((0.8, 0.25), (2.0, 0.5), (5.0, 1.0), (12.0, 1.2)):
+        w = ndimage.gaussian_filter(rng.standard_normal((T, T), dtype=np.float32), sigma, mode="wrap")
+        h += amp * sigma * w / w.std()
+    gy, gx = np.gradient(h)
+    sx = gx / np.maximum(lu, 1e-4)
+    sy = gy / np.maximum(lv, 1e-4)
+    k = rms_slope / float(np.sqrt(np.mean(sx * sx + sy * sy)))
+    n2 = n - k * (sx[..., None] * du + sy[..., None] * dv)
+    n2 /= np.linalg.norm(n2, axis=-1, keepdims=True)
+    return n.astype(np.float32), n2.astype(np.float32)
+
+
+def micro_shading(n: np.ndarray, n2: np.ndarray, sun: np.ndarray, ambient: float) -> np.ndarray:
+    """Lambert shading of the micro-relief relative to the mesh's own, (T, T)."""
+    sun = np.asarray(sun, np.float32)
+    s0 = ambient + (1.0 - ambient) * np.clip(n @ sun, 0.0, None)
+    s1 = ambient + (1.0 - ambient) * np.clip(n2 @ sun, 0.0, None)
+    return np.clip(s1 / np.maximum(s0, 1e-3), 0.2, 4.0)
+
+
+def _spec(size: str, n_photos: int) -> OutcropSpec:
+    return OutcropSpec.for_size(
+        size,
+        n_photos=n_photos,
+        condition_strength=(0.0, 0.0),  # the generator's own photos: same light
+        supersample=0.5,  # they are re-made with the micro-relief: keep these cheap
+        sigma_position_m=PRIOR_SIGMA["position_m"],
+        sigma_heading_deg=PRIOR_SIGMA["heading_deg"],
+        sigma_tilt_deg=PRIOR_SIGMA["tilt_deg"],
+    )
+
+
+@contextlib.contextmanager
+def _building(target: Path):
+    """A temporary folder beside ``target``, renamed into place on success."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        yield tmp
+        if target.exists():
+            shutil.rmtree(target)
+        os.rename(tmp, target)
+    finally:
+        with contextlib.suppress(OSError):
+            shutil.rmtree(tmp)
+
+
+class _Relief:
+    """What photo synthesis needs of one generated scene (albedo scene, relief normals)."""
+
+    def __init__(self, folder: Path, cache: bool = True) -> None:
+        from PIL import Image
+
+        self.manifest = json.loads((folder / "scene.json").read_text())
+        m = self.manifest
+        base = Scene.load(folder / m["files"]["mesh"], cache=cache)
+        self.albedo = np.asarray(Image.open(folder / m["files"]["albedo"]).convert("RGB"))
+        self.scene = Scene(base.vertices, base.faces, base.uv, self.albedo, name="albedo")
+        self.scene.build_engine()
+        self.vertex_normals = vertex_normals_of(self.scene)
+        self.n, self.n2 = relief_normals(self.scene, tuple(m["grid"]), m["texture_size"], m["seed"])
+        sun = m["survey_sun"]
+        self.survey = (sun["azimuth_deg"], sun["elevation_deg"])
+        self.survey_ambient = sun["ambient"]
+
+    def photo(self, truth, cond: PhotoConditions) -> np.ndarray:
+        """The photo of ``truth``'s camera under ``cond``, micro-relief lit by its sun."""
+        import copy
+
+        m = micro_shading(self.n, self.n2, cond.sun, cond.ambient)
+        scene = copy.copy(self.scene)  # shares the ray engine; own texture
+        scene.texture = np.clip(self.albedo * m[..., None] + 0.5, 0, 255).astype(np.uint8)
+        return synthesize_photo(scene, truth.intrinsics, truth.pose, cond, self.vertex_normals,
+                                SUPERSAMPLE)
+
+
+def _write_photo(folder: Path, name: str, img: np.ndarray, cond: PhotoConditions, truth,
+                 sensor: Path, strength: float) -> None:
+    from PIL import Image
+
+    with atomic_path(folder / f"{name}.jpg") as p:
+        Image.fromarray(img).save(p, format="JPEG", quality=cond.jpeg_quality)
+    shutil.copyfile(sensor, folder / f"{name}.json")
+    raw = dict(truth.raw)
+    raw["conditions"] = {**cond.to_dict(), "strength": strength}
+    with atomic_write(folder / f"{name}.truth.json") as fh:
+        json.dump(raw, fh, indent=1)
+
+
+def scene_folder(cache: Path, size: str, seed: int, n_photos: int) -> Path:
+    """The model of one scene seed and its same-light photos (generated once).
+
+    The generator makes the model, the cameras, their priors and check
+    points; the model's texture then gets the micro-relief shading of the
+    survey-day sun, and the photos are re-made with the micro-relief lit by
+    their own sun.
+    """
+    from PIL import Image
+
+    target = cache / f"{size}-seed{seed}-n{n_photos}-g{GENERATOR_VERSION}-b{BENCH_DATA_VERSION}"
+    if (target / "bench.json").is_file():
+        return target
+    print(f"generating scene {target.name} ...", flush=True)
+    t0 = time.perf_counter()
+    with _building(target) as tmp:
+        generate_outcrop(tmp, size=size, seed=seed, spec=_spec(size, n_photos))
+        relief = _Relief(tmp, cache=False)
+        m = relief.manifest
+        tex_path = tmp / m["files"]["texture"]
+        tex = np.asarray(Image.open(tex_path).convert("RGB")).astype(np.float32)
+        shade = micro_shading(relief.n, relief.n2, PhotoConditions.same_light(relief.survey).sun,
+                              relief.survey_ambient)
+        tex = np.clip(tex * shade[..., None] + 0.5, 0, 255).astype(np.uint8)
+        with atomic_path(tex_path) as p:
+            Image.fromarray(tex).save(p, format="JPEG", quality=m["spec"]["texture_jpeg_quality"])
+        # The parsed-mesh cache keys on the files' times: touch the OBJ after its texture.
+        os.utime(tmp / m["files"]["mesh"])
+        out = tmp / "same_light"
+        out.mkdir()
+
+        def make(ph: dict) -> None:
+            truth = load_truth(tmp / ph["truth"])
+            img = relief.photo(truth, truth.conditions)
+            _write_photo(out, Path(ph["image"]).stem, img, truth.conditions, truth,
+                         tmp / ph["sensor"], 0.0)
+
+        with ThreadPoolExecutor(2) as pool:
+            list(pool.map(make, m["photos"]))
+        for ph in m["photos"]:
+            for key in ("image", "sensor", "truth"):
+                (tmp / ph[key]).unlink()
+        with atomic_write(tmp / "bench.json") as fh:
+            json.dump({"bench_data_version": BENCH_DATA_VERSION, "relief_rms_slope": RELIEF_RMS_SLOPE,
+                       "supersample": SUPERSAMPLE, "prior_sigma": PRIOR_SIGMA}, fh, indent=1)
+    print(f"  {time.perf_counter() - t0:.0f} s", flush=True)
+    return target
+
+
+def changed_folder(scene_dir: Path, strength: float) -> Path:
+    """The same cameras and priors under changed light (generated once per strength)."""
+    target = scene_dir / f"changed_light-s{strength:.2f}"
+    if (target / "done.json").is_file():
+        return target
+    print(f"generating {scene_dir.name}/{target.name} ...", flush=True)
+    t0 = time.perf_counter()
+    relief = _Relief(scene_dir)
+    m = relief.manifest
+    seed = int(m["seed"])
+    with _building(target) as tmp:
+        def make(k_ph: tuple[int, dict]) -> None:
+            k, ph = k_ph
+            truth = load_truth(scene_dir / "same_light" / ph["truth"])
+            cond = changed_light_conditions(rng_for(seed, 7000 + k), strength, relief.survey,
+                                            relief.survey_ambient)
+            img = relief.photo(truth, cond)
+            _write_photo(tmp, Path(ph["image"]).stem, img, cond, truth,
+                         scene_dir / "same_light" / ph["sensor"], strength)
+
+        with ThreadPoolExecutor(2) as pool:
+            list(pool.map(make, enumerate(m["photos"])))
+        with atomic_write(tmp / "done.json") as fh:
+            json.dump({"strength": strength, "n": len(m["photos"])}, fh)
+    print(f"  {time.perf_counter() - t0:.0f} s", flush=True)
+    return target
+
+
+# ------------------------------------------------------------------- scoring
+def _check_point_errors(reg, truth) -> np.ndarray:
+    """Pixel distances of the check points projected with the estimate, at 1632 px width."""
+    proj = reg.pose.project(truth.intrinsics, truth.check_xyz)
+    err = np.linalg.norm(proj - truth.check_pixels, axis=1)
+    return err * REFERENCE_WIDTH / truth.intrinsics.width
+
+
+def evaluate(scene: Scene, photo_path: Path, method: str) -> dict:
+    truth = load_truth(photo_path)
+    photo = load_photo(photo_path)
+    prior = prior_for_photo(photo, scene)
+    params = RegistrationParams() if method == "ours" else RegistrationParams.baseline()
+    t0 = time.perf_counter()
+    reg = register(scene, photo.image, prior, params, photo_path.name)
+    seconds = time.perf_counter() - t0
+    cp = _check_point_errors(reg, truth)
+    cp = np.where(np.isfinite(cp), cp, 1e6)  # behind the camera: a miss
+    cp_med = float(np.median(cp))
+    registered = reg.status == "registered"
+    claims = registered or reg.grade in ("good", "excellent")
+    cond = truth.raw.get("conditions", {})
+    first = reg.trials[0] if reg.trials else None
+    return {
+        "method": method,
+        "status": reg.status,
+        "grade": reg.grade,
+        "Q": round(reg.q, 3),
+        "success": bool(registered and cp_med < SUCCESS_PX),
+        "false_verdict": bool(claims and cp_med >= SUCCESS_PX),
+        "cp_median_px": round(cp_med, 3),
+        "cp_p95_px": round(float(np.percentile(cp, 95)), 3),
+        "rotation_error_deg": round(reg.pose.rotation_error_deg(truth.pose), 4),
+        "position_error_m": round(float(np.linalg.norm(reg.pose.center - truth.pose.center)), 4),
+        "seconds": round(seconds, 3),
+        "one_trial_s": round(first.seconds, 3) if first else None,
+        "full_auto_s": round(reg.timings_s["total"], 3),
+        "n_trials": len(reg.trials),
+        "trials": [
+            {"origin": t.origin, "rounds": t.rounds, "verified": t.verified, "grade": t.grade,
+             "Q": round(t.q, 3), "feature_inliers": t.metrics.get("feature_inliers"),
+             "inliers_3d": t.metrics.get("inliers_3d"),
+             "residual_flow_px": t.metrics.get("residual_flow_px"),
+             "adaptation": t.adaptation, "seconds": round(t.seconds, 3)}
+            for t in reg.trials
+        ],
+        "metrics": reg.metrics,
+        "hints": reg.hints,
+        "assumptions": reg.assumptions,
+        "prior_rotation_error_deg": round(truth.raw["prior_error"]["rotation_deg"], 3),
+        "prior_position_error_m": round(truth.raw["prior_error"]["position_m"], 3),
+        "strength": cond.get("strength"),
+        "sun_azimuth_deg": round(cond.get("sun_azimuth_deg", float("nan")), 1),
+        "sun_elevation_deg": round(cond.get("sun_elevation_deg", float("nan")), 1),
+        "wet_fraction": round(cond.get("wet_fraction", 0.0), 3),
+    }
+
+
+def _warm_up(scene: Scene, photo_path: Path) -> None:
+    """Build the ray engine and the per-face arrays before anything is timed."""
+    scene.build_engine()
+    truth = load_truth(photo_path)
+    render(scene, truth.intrinsics, truth.pose, scale=0.5)
+    render(scene, truth.intrinsics, truth.pose, scale=1024 / truth.intrinsics.width)
+
+
+# ------------------------------------------------------------------- summary
+def _median(values) -> float | None:
+    v = [x for x in values if x is not None and np.isfinite(x)]
+    return float(statistics.median(v)) if v else None
+
+
+def _pct(values, q) -> float | None:
+    v = [x for x in values if x is not None and np.isfinite(x)]
+    return float(np.percentile(v, q)) if v else None
+
+
+def summarize(rows: list[dict]) -> dict:
+    out = {}
+    for tier in TIERS + ("all",):
+        for method in METHODS:
+            sel = [r for r in rows if r["method"] == method and (tier == "all" or r["tier"] == tier)]
+            if not sel:
+                continue
+            reg = [r for r in sel if r["status"] == "registered"]
+            ok = [r for r in sel if r["success"]]
+            out[f"{tier}/{method}"] = {
+                "n": len(sel),
+                "success": len(ok),
+                "registered": len(reg),
+                "false_verdicts": sum(r["false_verdict"] for r in sel),
+                "cp_median_registered": _median([r["cp_median_px"] for r in reg]),
+                "cp_p95_registered": _pct([r["cp_median_px"] for r in reg], 95),
+                "cp_median_success": _median([r["cp_median_px"] for r in ok]),
+                "rot_median_registered": _median([r["rotation_error_deg"] for r in reg]),
+                "pos_median_registered": _median([r["position_error_m"] for r in reg]),
+                "one_trial_s": _median([r["one_trial_s"] for r in sel]),
+                "full_auto_s": _median([r["full_auto_s"] for r in sel]),
+                "full_auto_p90_s": _pct([r["full_auto_s"] for r in sel], 90),
+                "trials_median": _median([r["n_trials"] for r in sel]),
+            }
+    return out
+
+
+def _f(v, fmt="{:.2f}", none="–") -> str:
+    return none if v is None else fmt.format(v)
+
+
+def report(summary: dict, meta: dict) -> str:
+    def rate(s):
+        return f"{s['success']}/{s['n']} ({s['success'] / s['n']:.0%})"
+
+    def fv(s):
+        return f"{s['false_verdicts']}/{s['n']} ({s['false_verdicts'] / s['n']:.0%})"
+
+    lines = [
+        MARK_START,
+        "## Automatic registration (issue 3)",
+        "",
+        f"{meta['n_scenes']} generated outcrops ({meta['size']}: {meta['triangles']:,} triangles, "
+        f"texture {meta['texture']}², photos {meta['photo_size'][0]}×{meta['photo_size'][1]}), "
+        f"scene seeds {meta['seeds']}, {meta['n_per_scene']} cameras each; every camera is "
+        "photographed twice, once per tier, with the same prior, so the tiers differ by the light "
+        f"alone. Priors: GNSS position σ {PRIOR_SIGMA['position_m']:g} m, altitude from the DEM "
+        f"+ 1.6 m (σ 2 m), compass σ {PRIOR_SIGMA['heading_deg']:g}°, tilt σ "
+        f"{PRIOR_SIGMA['tilt_deg']:g}° (clipped at 3σ); median prior error "
+        f"{meta['prior_rot_median']:.1f}° and {meta['prior_pos_median']:.1f} m. "
+        f"`changed_light`: strength {meta['strength']:.2f} (sun {meta['sun_el_range']} above the "
+        f"horizon from the east or west, raking the south-facing face; wet rock on "
+        f"{meta['wet_share']:.0%} of the photos; other gamma, white balance, more noise, blur, "
+        "JPEG loss). Success: status `registered` and median check-point error < 4 px (at "
+        "1632 px width); false verdict: `registered` or graded good/excellent with a "
+        "check-point error ≥ 4 px.",
+        "",
+        "| tier | method | success | false verdicts | check-point error, median / 95th (px) "
+        "| rotation error (°) | position error (m) | one trial (s) | full auto (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for tier in TIERS + ("all",):
+        for method in METHODS:
+            s = summary.get(f"{tier}/{method}")
+            if s is None:
+                continue
+            one = _f(s["one_trial_s"]) if method == "ours" else "–"
+            lines.append(
+                f"| {tier} | {method} | {rate(s)} | {fv(s)} | "
+                f"{_f(s['cp_median_registered'])} / {_f(s['cp_p95_registered'])} | "
+                f"{_f(s['rot_median_registered'], '{:.3f}')} | "
+                f"{_f(s['pos_median_registered'], '{:.3f}')} | {one} | {_f(s['full_auto_s'])} |"
+            )
+    lines += [
+        f"| Sept. set (paper) | DEM-based, plain | {PAPER['sept_dem']} | | | | | | |",
+        f"| Sept. set (paper) | interactive framework, automatic | {PAPER['sept_interactive']} "
+        f"| | | | | | ≈ {PAPER['tablet_s']:.0f} (tablet) |",
+        "",
+        "Errors are over the photos each method reported `registered`; times are medians over "
+        "all photos (wall clock of `register`, after the scene is loaded and its ray engine "
+        "built). *One trial* is the first trial of ours (render → match → pose, iterated until "
+        "the pose stops moving); *full auto* adds the adapted trials and the prior search when "
+        "the first trial does not verify. The baseline is one round by construction.",
+        "",
+    ]
+    lines += meta.get("verdicts", [])
+    lines += [
+        "",
+        f"Reproduce: `{meta['command']}` ({meta['cpus']} cores, Python {meta['python']}, "
+        f"OpenCV {meta['opencv']}; load average {meta['load']} during the run; "
+        f"{meta['wall_min']:.0f} min including {meta['gen_min']:.0f} min generating data, "
+        "which is cached in `benchmarks/_cache/`). Per-photo rows: "
+        "`benchmarks/_cache/bench_register_rows.json` and `.csv`.",
+        MARK_END,
+    ]
+    return "\n".join(lines)
+
+
+def verdicts(summary: dict) -> list[str]:
+    """One honest line per target, from the figures."""
+    out = ["Targets (issue 3):", ""]
+
+    def line(ok: bool | None, text: str) -> None:
+        mark = "–" if ok is None else ("✅" if ok else "❌")
+        out.append(f"- {mark} {text}")
+
+    s = summary.get("same_light/ours")
+    if s:
+        r = s["success"] / s["n"]
+        line(r >= TARGETS["same_light_success"],
+             f"`same_light` 100 % success: {s['success']}/{s['n']} ({r:.0%}).")
+    c = summary.get("changed_light/ours")
+    cb = summary.get("changed_light/baseline")
+    if c:
+        r = c["success"] / c["n"]
+        extra = ""
+        if cb:
+            extra = f"; the baseline registers {cb['success']}/{cb['n']} ({cb['success'] / cb['n']:.0%})"
+        line(r >= TARGETS["changed_light_success"],
+             f"`changed_light` ≥ 60 %: {c['success']}/{c['n']} ({r:.0%}){extra}.")
+    a = summary.get("all/ours")
+    if a:
+        line(a["cp_median_registered"] is not None
+             and a["cp_median_registered"] <= TARGETS["median_cp_px"],
+             f"median check-point error ≤ 1.5 px: {_f(a['cp_median_registered'])} px over the "
+             f"{a['registered']} registered photos (95th percentile {_f(a['cp_p95_registered'])} px).")
+        r = a["false_verdicts"] / a["n"]
+        ab = summary.get("all/baseline")
+        extra = ""
+        if ab:
+            extra = (f"; the baseline: {ab['false_verdicts']}/{ab['n']} "
+                     f"({ab['false_verdicts'] / ab['n']:.0%})")
+        line(r <= TARGETS["false_verdicts"],
+             f"at most 2 % false verdicts: {a['false_verdicts']}/{a['n']} ({r:.1%}){extra}.")
+        line(a["one_trial_s"] is not None and a["one_trial_s"] <= TARGETS["one_trial_s"],
+             f"one trial ≤ 2 s median: {_f(a['one_trial_s'])} s.")
+        line(a["full_auto_s"] is not None and a["full_auto_s"] <= TARGETS["full_auto_s"],
+             f"full auto ≤ 6 s median: {_f(a['full_auto_s'])} s (90th percentile "
+             f"{_f(a['full_auto_p90_s'])} s; ≈ {PAPER['tablet_s'] / a['full_auto_s']:.0f}× faster "
+             "than the paper's tablet).")
+    return out
+
+
+def write_report(path: Path, section: str) -> None:
+    text = path.read_text() if path.exists() else "# Benchmarks\n\n"
+    if MARK_START in text and MARK_END in text:
+        before, rest = text.split(MARK_START, 1)
+        after = rest.split(MARK_END, 1)[1]
+        text = before + section + after
+    else:
+        text = text.rstrip() + "\n\n" + section + "\n"
+    with atomic_write(path) as fh:
+        fh.write(text)
+
+
+def write_rows(rows: list[dict], stem: Path) -> None:
+    with atomic_write(stem.with_suffix(".json")) as fh:
+        json.dump(rows, fh, indent=1)
+    flat = [k for k in rows[0] if not isinstance(rows[0][k], (list, dict))] if rows else []
+    with atomic_write(stem.with_suffix(".csv"), newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=flat, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+
+
+# ---------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: 1 small scene, 6 photos per tier")
+    parser.add_argument("--size", choices=("small", "large"), default=None)
+    parser.add_argument("--scenes", type=int, default=None, help="scene seeds to use (default 6)")
+    parser.add_argument("--first-seed", type=int, default=1)
+    parser.add_argument("--photos", type=int, default=None, help="cameras per scene (default 8)")
+    parser.add_argument("--strength", type=float, default=CHANGED_STRENGTH,
+                        help="changed-light strength (calibrated default)")
+    parser.add_argument("--tiers", default=",".join(TIERS))
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
+    parser.add_argument("--report", type=Path, help="markdown file whose section to rewrite")
+    parser.add_argument("--rows", type=Path, default=None,
+                        help="per-photo rows, stem of .json/.csv (default: in the cache)")
+    args = parser.parse_args(argv)
+
+    size = args.size or ("small" if args.quick else "large")
+    n_scenes = args.scenes or (1 if args.quick else 6)
+    n_photos = args.photos or (6 if args.quick else 8)
+    tiers = [t for t in args.tiers.split(",") if t]
+    methods = [m for m in args.methods.split(",") if m]
+    seeds = list(range(args.first_seed, args.first_seed + n_scenes))
+    rows_stem = args.rows or (args.cache / ("bench_register_rows" + ("_quick" if args.quick else "")))
+
+    t_start = time.perf_counter()
+    folders = {}
+    for seed in seeds:
+        d = scene_folder(args.cache, size, seed, n_photos)
+        folders[seed] = {"same_light": d / "same_light"}
+        if "changed_light" in tiers:
+            folders[seed]["changed_light"] = changed_folder(d, args.strength)
+    gen_s = time.perf_counter() - t_start
+
+    rows: list[dict] = []
+    meta_scene = None
+    for seed in seeds:
+        scene_dir = folders[seed]["same_light"].parent
+        manifest = json.loads((scene_dir / "scene.json").read_text())
+        meta_scene = meta_scene or manifest
+        scene = Scene.load(scene_dir / manifest["files"]["mesh"])
+        photos = sorted(folders[seed]["same_light"].glob("IMG_*.jpg"))
+        _warm_up(scene, photos[0])
+        for tier in tiers:
+            for photo_path in sorted(folders[seed][tier].glob("IMG_*.jpg")):
+                for method in methods:
+                    row = {"tier": tier, "scene_seed": seed, "photo": photo_path.name,
+                           **evaluate(scene, photo_path, method)}
+                    rows.append(row)
+                    print(
+                        f"{tier:13s} seed {seed} {photo_path.name} {method:8s} "
+                        f"{row['status']:10s} {row['grade']:9s} cp {row['cp_median_px']:8.2f} px "
+                        f"rot {row['rotation_error_deg']:7.3f}° pos {row['position_error_m']:6.2f} m "
+                        f"{row['seconds']:5.1f} s trials {row['n_trials']}"
+                        + (" SUCCESS" if row["success"] else "")
+                        + (" FALSE-VERDICT" if row["false_verdict"] else ""),
+                        flush=True,
+                    )
+        del scene
+    write_rows(rows, rows_stem)
+
+    summary = summarize(rows)
+    same = [r for r in rows if r["method"] == methods[0] and r["tier"] == tiers[0]]
+    changed = [r for r in rows if r["tier"] == "changed_light" and r["method"] == methods[0]]
+    import cv2
+
+    cmd = "python benchmarks/bench_register.py" + (" --quick" if args.quick else "")
+    if args.report:
+        cmd += f" --report {args.report}"
+    if args.strength != CHANGED_STRENGTH:
+        cmd += f" --strength {args.strength:g}"
+    if args.scenes:
+        cmd += f" --scenes {args.scenes}"
+    if args.photos:
+        cmd += f" --photos {args.photos}"
+    meta = {
+        "size": size,
+        "n_scenes": n_scenes,
+        "n_per_scene": n_photos,
+        "seeds": f"{seeds[0]}–{seeds[-1]}" if len(seeds) > 1 else str(seeds[0]),
+        "triangles": int(meta_scene["n_triangles"]),
+        "texture": int(meta_scene["texture_size"]),
+        "photo_size": meta_scene["spec"]["photo_size"],
+        "strength": args.strength,
+        "prior_rot_median": _median([r["prior_rotation_error_deg"] for r in same]) or 0.0,
+        "prior_pos_median": _median([r["prior_position_error_m"] for r in same]) or 0.0,
+        "sun_el_range": (
+            f"{min(r['sun_elevation_deg'] for r in changed):.0f}–"
+            f"{max(r['sun_elevation_deg'] for r in changed):.0f}°" if changed else "–"
+        ),
+        "wet_share": (sum(r["wet_fraction"] > 0 for r in changed) / len(changed)) if changed else 0.0,
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "opencv": cv2.__version__,
+        "load": ", ".join(f"{x:.1f}" for x in os.getloadavg()),
+        "wall_min": (time.perf_counter() - t_start) / 60,
+        "gen_min": gen_s / 60,
+        "command": ".venv/bin/" + cmd,
+    }
+    meta["verdicts"] = verdicts(summary)
+    section = report(summary, meta)
+    print(section)
+    if args.report:
+        write_report(args.report, section)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
