@@ -399,3 +399,58 @@ def test_presets_are_the_papers_combinations():
     names = {p.name for p in PRESETS.values()}
     assert {"SIFT–SIFT", "FAST–SIFT", "MSCR–SIFT", "ORB–ORB", "AKAZE–AKAZE",
             "BRISK–BRISK"} <= names
+
+
+# ------------------------------------------- registration-tuned options
+def _shift_pair(img: np.ndarray, shift=(9.0, -6.0)):
+    """A pure translation (no rotation): the case upright descriptors are for."""
+    H = np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]], [0.0, 0.0, 1.0]])
+    warped, valid = _warp(img, H)
+    return warped, valid, H
+
+
+def test_root_sift_descriptors_are_unit_length_square_roots():
+    img = _rock_texture()
+    plain = detect_and_describe(to_gray(img), FeatureParams())
+    root = detect_and_describe(to_gray(img), FeatureParams(root_sift=True))
+    np.testing.assert_array_equal(plain.points, root.points)
+    # RootSIFT (Arandjelović & Zisserman 2012): L1-normalise, then square root,
+    # so the result has unit L2 norm and equals sqrt(d / |d|_1).
+    np.testing.assert_allclose(np.linalg.norm(root.descriptors, axis=1), 1.0, atol=1e-4)
+    expected = np.sqrt(plain.descriptors / plain.descriptors.sum(axis=1, keepdims=True))
+    np.testing.assert_allclose(root.descriptors, expected, atol=1e-4)
+
+
+def test_upright_keypoints_have_zero_angle_one_per_place_and_follow_a_shift():
+    img = _rock_texture()
+    warped, valid, H = _shift_pair(img)
+    p = FeatureParams(upright=True, root_sift=True)
+    fa = detect_and_describe(to_gray(img), p)
+    fb = detect_and_describe(to_gray(warped), p, mask=valid)
+    places = {(round(float(x), 2), round(float(y), 2), round(float(s), 2))
+              for (x, y), s in zip(fa.points, fa.sizes)}
+    assert len(places) == len(fa)  # SIFT's extra orientations are not described twice
+    m = match_features(fa, fb, replace(p, geometric_model="homography"))
+    inl = m.inlier
+    assert inl.sum() >= 50
+    err = np.linalg.norm(_map(H, fa.points[m.idx_a[inl]]) - fb.points[m.idx_b[inl]], axis=1)
+    assert np.mean(err < 2.0) >= 0.95
+
+
+def test_guided_matching_finds_the_shifted_counterparts_within_the_radius():
+    img = _rock_texture()
+    warped, valid, H = _shift_pair(img, shift=(4.0, 3.0))
+    p = FeatureParams(upright=True, root_sift=True, guided_radius_px=8.0,
+                      geometric_model="homography")
+    fa = detect_and_describe(to_gray(img), p)
+    fb = detect_and_describe(to_gray(warped), p, mask=valid)
+    m = F.match_guided(fa, fb, p)
+    inl = m.inlier
+    assert inl.sum() >= 50
+    pa, pb = fa.points[m.idx_a[inl]], fb.points[m.idx_b[inl]]
+    np.testing.assert_allclose(np.median(pb - pa, axis=0), [4.0, 3.0], atol=0.3)
+    # A radius smaller than the shift cannot reach the true counterparts:
+    # whatever it pairs up does not follow the shift.
+    near = F.match_guided(fa, fb, p, radius_px=2.0)
+    qa, qb = fa.points[near.idx_a], fb.points[near.idx_b]
+    assert np.mean(np.linalg.norm(_map(H, qa) - qb, axis=1) < 1.0) < 0.05

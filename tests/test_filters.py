@@ -238,3 +238,36 @@ def test_filter_params_dict_round_trip():
 def test_filter_params_from_dict_rejects_unknown_keys():
     with pytest.raises(KeyError, match="gama"):
         FilterParams.from_dict({"gama": 2.0})
+
+
+def test_illumination_invariant_cancels_shading_and_gamma_free_exposure():
+    from napari_imgreg.filters import illumination_invariant
+
+    rng = np.random.default_rng(0)
+    # Surface colours (chromaticity) and a shading field common to all channels.
+    albedo = rng.uniform(60, 200, (64, 64, 3)).astype(np.float32)
+    shading = np.linspace(0.3, 1.0, 64, dtype=np.float32)[None, :, None]
+    lit = np.clip(albedo * shading, 0, 255).astype(np.uint8)
+    flat = np.clip(albedo * 0.8, 0, 255).astype(np.uint8)
+    a, b = illumination_invariant(lit), illumination_invariant(flat)
+    # log G − α log B − (1−α) log R: a common factor cancels (up to the +1
+    # guard against log 0 and 8-bit rounding) and the result is standardised.
+    assert np.corrcoef(a.ravel().astype(float), b.ravel().astype(float))[0, 1] > 0.97
+    assert abs(float(a.mean()) - 127) < 3 and abs(float(b.mean()) - 127) < 3
+
+
+def test_illumination_invariant_statistics_come_from_the_mask_only():
+    from napari_imgreg.filters import illumination_invariant
+
+    img = np.zeros((20, 20, 3), np.uint8)
+    img[:, :10] = (90, 140, 60)
+    img[:, 10:] = (60, 140, 90)
+    mask = np.zeros((20, 20), bool)
+    mask[:, :15] = True
+    with_mask = illumination_invariant(img, mask)
+    black_sky = img.copy()
+    black_sky[:, 15:] = 0
+    # Changing what lies outside the mask does not change the rock's grey values.
+    np.testing.assert_array_equal(illumination_invariant(black_sky, mask)[:, :15], with_mask[:, :15])
+    with pytest.raises(ValueError):
+        illumination_invariant(img[..., 0])
