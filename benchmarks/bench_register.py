@@ -57,19 +57,21 @@ import numpy as np
 
 from napari_imgreg import Scene, render
 from napari_imgreg._atomic import atomic_path, atomic_write
+from napari_imgreg.geo import Georef
 from napari_imgreg.io.photos import load_photo
 from napari_imgreg.io.records import prior_for_photo
 from napari_imgreg.params import RegistrationParams
 from napari_imgreg.pipeline import register
 from napari_imgreg.sample import (
-    GENERATOR_VERSION,
+    MODEL_VERSION,
     OutcropSpec,
     PhotoConditions,
     generate_outcrop,
     load_truth,
 )
 from napari_imgreg.sample.noise import rng_for
-from napari_imgreg.sample.photo import synthesize_photo, vertex_normals_of
+from napari_imgreg.sample.photo import make_exif, synthesize_photo, vertex_normals_of
+from napari_imgreg.sample.suntime import SunTime, time_for_sun
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_CACHE = HERE / "_cache"
@@ -226,6 +228,7 @@ class _Relief:
         sun = m["survey_sun"]
         self.survey = (sun["azimuth_deg"], sun["elevation_deg"])
         self.survey_ambient = sun["ambient"]
+        self.georef = Georef.load(folder / "georef.json")
 
     def photo(self, truth, cond: PhotoConditions) -> np.ndarray:
         """The photo of ``truth``'s camera under ``cond``, micro-relief lit by its sun."""
@@ -238,17 +241,83 @@ class _Relief:
                                 SUPERSAMPLE)
 
 
+def _dated(cond: PhotoConditions, truth, georef: Georef) -> tuple[PhotoConditions, SunTime]:
+    """The conditions with the sun of the instant it stood closest to ``cond``'s (see
+    :func:`napari_imgreg.sample.suntime.time_for_sun`), and that instant."""
+    sun_time = time_for_sun(cond.sun, georef, truth.pose.center)
+    return replace(cond, sun_azimuth_deg=sun_time.azimuth_deg,
+                   sun_elevation_deg=sun_time.elevation_deg), sun_time
+
+
+def _photo_exif(truth, georef: Georef, sensor: Path, when) -> bytes:
+    """A phone's EXIF: camera, capture time with its UTC offset, GPS of the sensor record."""
+    record = json.loads(sensor.read_text())
+    pos = record["position"]
+    lat, lon, alt = georef.local_to_geodetic([pos["x"], pos["y"], pos["z"]])
+    cam = record.get("camera", {})
+    f_mm = float(cam.get("focal_length_mm", 4.25))
+    diag = float(np.hypot(cam.get("sensor_width_mm", 5.6), cam.get("sensor_height_mm", 4.2)))
+    return make_exif("napari-imgreg", "SynthPhone 26mm", f_mm, int(round(f_mm * 43.27 / diag)),
+                     when, float(lat), float(lon), float(alt),
+                     truth.intrinsics.width, truth.intrinsics.height)
+
+
 def _write_photo(folder: Path, name: str, img: np.ndarray, cond: PhotoConditions, truth,
-                 sensor: Path, strength: float) -> None:
+                 sensor: Path, strength: float, sun_time: SunTime, georef: Georef) -> None:
     from PIL import Image
 
     with atomic_path(folder / f"{name}.jpg") as p:
-        Image.fromarray(img).save(p, format="JPEG", quality=cond.jpeg_quality)
+        Image.fromarray(img).save(p, format="JPEG", quality=cond.jpeg_quality,
+                                  exif=_photo_exif(truth, georef, sensor, sun_time.when))
     shutil.copyfile(sensor, folder / f"{name}.json")
     raw = dict(truth.raw)
-    raw["conditions"] = {**cond.to_dict(), "strength": strength}
+    raw["conditions"] = {**cond.to_dict(), "strength": strength,
+                         "capture_time": sun_time.when.isoformat(),
+                         "capture_sun_miss_deg": round(sun_time.miss_deg, 4)}
     with atomic_write(folder / f"{name}.truth.json") as fh:
         json.dump(raw, fh, indent=1)
+
+
+def _splice_exif(jpeg: bytes, exif: bytes) -> bytes:
+    """The JPEG with an APP1 Exif segment inserted after its APP0 (no re-encoding)."""
+    assert jpeg[:2] == b"\xff\xd8"
+    pos = 2
+    if jpeg[2:4] == b"\xff\xe0":  # JFIF APP0 comes first
+        pos = 4 + int.from_bytes(jpeg[4:6], "big")
+    if not exif.startswith(b"Exif\x00\x00"):
+        exif = b"Exif\x00\x00" + exif
+    segment = b"\xff\xe1" + (len(exif) + 2).to_bytes(2, "big") + exif
+    return jpeg[:pos] + segment + jpeg[pos:]
+
+
+def ensure_capture_times(folder: Path, georef: Georef) -> int:
+    """Date photos made before the benchmark wrote EXIF (cache migration, lossless).
+
+    Each photo gets the instant its sun stood closest to the sun it was
+    rendered with; the miss (hundredths of a degree) is kept in its truth
+    file. Returns the number of photos dated.
+    """
+    from PIL import Image
+
+    n = 0
+    for jpg in sorted(folder.glob("IMG_*.jpg")):
+        with Image.open(jpg) as im:
+            if im.getexif().get_ifd(0x8769).get(0x9003):  # DateTimeOriginal present
+                continue
+        truth = load_truth(jpg)
+        cond = truth.conditions
+        sun_time = time_for_sun(cond.sun, georef, truth.pose.center)
+        data = _splice_exif(jpg.read_bytes(),
+                            _photo_exif(truth, georef, folder / f"{jpg.stem}.json", sun_time.when))
+        with atomic_path(jpg) as p:
+            Path(p).write_bytes(data)
+        raw = dict(truth.raw)
+        raw["conditions"] = {**raw["conditions"], "capture_time": sun_time.when.isoformat(),
+                             "capture_sun_miss_deg": round(sun_time.miss_deg, 4)}
+        with atomic_write(folder / f"{jpg.stem}.truth.json") as fh:
+            json.dump(raw, fh, indent=1)
+        n += 1
+    return n
 
 
 def scene_folder(cache: Path, size: str, seed: int, n_photos: int) -> Path:
@@ -261,7 +330,7 @@ def scene_folder(cache: Path, size: str, seed: int, n_photos: int) -> Path:
     """
     from PIL import Image
 
-    target = cache / f"{size}-seed{seed}-n{n_photos}-g{GENERATOR_VERSION}-b{BENCH_DATA_VERSION}"
+    target = cache / f"{size}-seed{seed}-n{n_photos}-g{MODEL_VERSION}-b{BENCH_DATA_VERSION}"
     if (target / "bench.json").is_file():
         return target
     print(f"generating scene {target.name} ...", flush=True)
@@ -284,9 +353,10 @@ def scene_folder(cache: Path, size: str, seed: int, n_photos: int) -> Path:
 
         def make(ph: dict) -> None:
             truth = load_truth(tmp / ph["truth"])
-            img = relief.photo(truth, truth.conditions)
-            _write_photo(out, Path(ph["image"]).stem, img, truth.conditions, truth,
-                         tmp / ph["sensor"], 0.0)
+            cond, sun_time = _dated(truth.conditions, truth, relief.georef)
+            img = relief.photo(truth, cond)
+            _write_photo(out, Path(ph["image"]).stem, img, cond, truth,
+                         tmp / ph["sensor"], 0.0, sun_time, relief.georef)
 
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(make, m["photos"]))
@@ -316,9 +386,10 @@ def changed_folder(scene_dir: Path, strength: float) -> Path:
             truth = load_truth(scene_dir / "same_light" / ph["truth"])
             cond = changed_light_conditions(rng_for(seed, 7000 + k), strength, relief.survey,
                                             relief.survey_ambient)
+            cond, sun_time = _dated(cond, truth, relief.georef)
             img = relief.photo(truth, cond)
             _write_photo(tmp, Path(ph["image"]).stem, img, cond, truth,
-                         scene_dir / "same_light" / ph["sensor"], strength)
+                         scene_dir / "same_light" / ph["sensor"], strength, sun_time, relief.georef)
 
         with ThreadPoolExecutor(2) as pool:
             list(pool.map(make, enumerate(m["photos"])))
@@ -604,6 +675,10 @@ def main(argv: list[str] | None = None) -> int:
         folders[seed] = {"same_light": d / "same_light"}
         if "changed_light" in tiers:
             folders[seed]["changed_light"] = changed_folder(d, args.strength)
+        georef = Georef.load(d / "georef.json")
+        for folder in folders[seed].values():
+            if (n := ensure_capture_times(folder, georef)):
+                print(f"  dated {n} photos of {folder.relative_to(args.cache)}", flush=True)
     gen_s = time.perf_counter() - t_start
 
     rows: list[dict] = []

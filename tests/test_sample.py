@@ -261,6 +261,38 @@ def test_photos_have_phone_exif(small):
         assert pixels.std() > 20 and (pixels == 255).mean() < 0.05
 
 
+def test_exif_capture_time_gives_the_sun_the_photo_is_lit_by(small):
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.sun import sun_for_photo
+
+    georef = Georef.load(small / "georef.json")
+    for ph in sorted(small.glob("IMG_*.jpg")):
+        t = load_truth(ph)
+        direction, sun, notes = sun_for_photo(load_photo(ph).exif, georef, t.pose.center)
+        assert sun is not None and sun.is_up and not notes  # offset and GPS time agree
+        angle = np.degrees(np.arccos(np.clip(direction @ t.conditions.sun, -1.0, 1.0)))
+        assert angle < 0.01
+
+
+@pytest.mark.parametrize("azimuth, elevation", [(150.0, 40.0), (80.0, 15.0), (275.0, 12.0)])
+def test_time_for_sun_finds_the_instant_of_a_reachable_sun(azimuth, elevation):
+    from napari_imgreg.sample.photo import sun_vector
+    from napari_imgreg.sample.suntime import time_for_sun
+    from napari_imgreg.sun import sun_direction_local, sun_position
+
+    georef = Georef("EPSG:32630", np.array([579000.0, 5912000.0, 350.0]))
+    center = np.array([10.0, -90.0, 2.0])
+    found = time_for_sun(sun_vector(azimuth, elevation), georef, center)
+    assert found.miss_deg < 0.2
+    assert found.azimuth_deg == pytest.approx(azimuth, abs=0.3)
+    assert found.elevation_deg == pytest.approx(elevation, abs=0.3)
+    # Independently: the sun at that instant is where it says.
+    lat, lon, alt = georef.local_to_geodetic(center)
+    again = sun_direction_local(sun_position(found.when, lat, lon, alt), georef, center)
+    np.testing.assert_allclose(again, found.direction, atol=1e-6)
+    assert found.when.utcoffset().total_seconds() == 0  # 1.8° W: nautical zone UTC+0
+
+
 def test_load_truth_of_a_folder(small):
     truth = load_truth(small)
     assert isinstance(truth, SceneTruth)

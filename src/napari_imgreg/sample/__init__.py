@@ -27,7 +27,6 @@ Folder layout (see :func:`generate_outcrop`)::
 from __future__ import annotations
 
 import contextlib
-import datetime as _dt
 import json
 import logging
 import os
@@ -35,7 +34,7 @@ import shutil
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +44,7 @@ from .._atomic import atomic_path, atomic_write, umask
 from ..scene import ray_threads
 from ..camera import Intrinsics, Pose
 from .noise import rng_for
+from .suntime import time_for_sun
 from .outcrop import (
     SIZES,
     Outcrop,
@@ -68,6 +68,7 @@ from .photo import (
 
 __all__ = [
     "GENERATOR_VERSION",
+    "MODEL_VERSION",
     "SIZES",
     "OutcropSpec",
     "PhotoConditions",
@@ -86,7 +87,10 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Bump when the generated content changes: cached scenes are keyed by it.
-GENERATOR_VERSION = "3"
+GENERATOR_VERSION = "4"
+#: Version of the model (mesh, texture, cameras, priors, check points) alone:
+#: the benchmark, which re-makes the photos, keys its cache on it.
+MODEL_VERSION = "3"
 
 # Random stream ids (see noise.rng_for).
 _S_POSES, _S_PHOTO = 4, 100
@@ -274,7 +278,6 @@ def generate_outcrop(
     t0 = time.perf_counter()
     diag = float(np.hypot(*spec.sensor_size_mm))
     f35 = int(round(spec.focal_length_mm * np.hypot(36.0, 24.0) / diag))
-    start = _dt.datetime(2024, 6, 15, 9, 30) + _dt.timedelta(minutes=int(rng_for(seed, 9).integers(0, 240)))
     vertex_normals = oc.vertex_normals
 
     def make_photo(k: int) -> dict[str, str]:
@@ -287,12 +290,17 @@ def generate_outcrop(
             survey_sun=(spec.survey_sun_azimuth_deg, spec.survey_sun_elevation_deg),
             survey_ambient=spec.survey_ambient,
         )
+        # The capture time is when the sun stood where this photo is lit
+        # from; the photo takes that instant's sun (a few hundredths of a
+        # degree from the one drawn), so its EXIF time gives its light.
+        sun_time = time_for_sun(cond.sun, georef, pose.center, year=spec.photo_year)
+        cond = replace(cond, sun_azimuth_deg=sun_time.azimuth_deg,
+                       sun_elevation_deg=sun_time.elevation_deg)
         img = synthesize_photo(scene, intr, pose, cond, vertex_normals, spec.supersample)
         record, prior = _sensor_record(spec, intr, pose, dem, georef, rng)
         lat, lon, alt = georef.local_to_geodetic(prior["position"])
-        when = start + _dt.timedelta(minutes=4 * k, seconds=int(rng.integers(0, 60)))
         exif = make_exif(spec.camera_make, spec.camera_model, spec.focal_length_mm, f35,
-                         when.strftime("%Y:%m:%d %H:%M:%S"), lat, lon, alt, intr.width, intr.height)
+                         sun_time.when, lat, lon, alt, intr.width, intr.height)
         with atomic_path(out / f"{name}.jpg") as tmp:
             Image.fromarray(img).save(tmp, format="JPEG", quality=cond.jpeg_quality, exif=exif)
         _write_json(out / f"{name}.json", record)

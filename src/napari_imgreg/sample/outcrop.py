@@ -125,6 +125,8 @@ class OutcropSpec:
     supersample: float = 1.5
     """Photos are rendered at this factor and area-averaged (anti-aliasing)."""
     n_check_points: int = 30
+    photo_year: int = 2024
+    """Photos are dated in this year, at the instant their sun stood where it is."""
     # --- prior (what the phone logs)
     sigma_position_m: float = 5.0
     sigma_altitude_m: float = 2.0

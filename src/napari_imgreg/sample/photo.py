@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
 from typing import Any, Callable
 
 import cv2
@@ -691,7 +692,7 @@ def make_exif(
     model: str,
     focal_length_mm: float,
     focal_35mm: int,
-    when: str,
+    when: str | datetime,
     lat: float,
     lon: float,
     alt: float,
@@ -702,8 +703,10 @@ def make_exif(
 
     Parameters
     ----------
-    when : str
-        ``"YYYY:MM:DD HH:MM:SS"``.
+    when : str or datetime
+        ``"YYYY:MM:DD HH:MM:SS"``, or a time-zone aware datetime: then the
+        Exif 2.31 ``OffsetTimeOriginal`` and the GPS time stamp (UTC) are
+        written too, as phones do, so the capture instant is unambiguous.
     lat, lon : float
         WGS84 degrees.
     alt : float
@@ -713,6 +716,10 @@ def make_exif(
     from PIL.ExifTags import GPS, IFD, Base
     from PIL.TiffImagePlugin import IFDRational
 
+    aware = isinstance(when, datetime) and when.tzinfo is not None
+    instant = when if isinstance(when, datetime) else None
+    if isinstance(when, datetime):
+        when = when.strftime("%Y:%m:%d %H:%M:%S")
     exif = Image.Exif()
     exif[Base.Make] = make
     exif[Base.Model] = model
@@ -722,6 +729,11 @@ def make_exif(
     sub[Base.FocalLength] = IFDRational(int(round(focal_length_mm * 100)), 100)
     sub[Base.FocalLengthIn35mmFilm] = int(focal_35mm)
     sub[Base.DateTimeOriginal] = when
+    if aware:
+        offset = instant.utcoffset()
+        minutes = int(offset.total_seconds() // 60)
+        sign = "-" if minutes < 0 else "+"
+        sub[Base.OffsetTimeOriginal] = f"{sign}{abs(minutes) // 60:02d}:{abs(minutes) % 60:02d}"
     sub[Base.ExifImageWidth] = int(width)
     sub[Base.ExifImageHeight] = int(height)
     gps = exif.get_ifd(IFD.GPSInfo)
@@ -732,4 +744,9 @@ def make_exif(
     gps[GPS.GPSLongitude] = _dms(lon)
     gps[GPS.GPSAltitudeRef] = b"\x00" if alt >= 0 else b"\x01"
     gps[GPS.GPSAltitude] = IFDRational(int(round(abs(alt) * 100)), 100)
+    if aware:
+        utc = instant.astimezone(timezone.utc)
+        gps[GPS.GPSDateStamp] = utc.strftime("%Y:%m:%d")
+        gps[GPS.GPSTimeStamp] = (IFDRational(utc.hour, 1), IFDRational(utc.minute, 1),
+                                 IFDRational(utc.second, 1))
     return exif.tobytes()
