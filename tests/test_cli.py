@@ -112,3 +112,33 @@ def test_console_script_help_and_usage_errors():
     run = subprocess.run([sys.executable, "-m", "napari_imgreg", "render"],
                          capture_output=True, text=True)
     assert run.returncode == 2
+
+
+def test_demo_registers_the_sample_photos(tmp_path, capsys):
+    from napari_imgreg.sample import load_truth, sample_scene
+
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out)]) == 0
+    stdout = capsys.readouterr().out
+    folder = sample_scene("small")
+    demo = json.loads((out / "demo.json").read_text())
+    photos = sorted(p.name for p in folder.glob("IMG_*.jpg"))
+    assert [p["photo"] for p in demo["photos"]] == photos
+    for entry in demo["photos"]:
+        stem = entry["photo"][: -len(".jpg")]
+        reg = entry["registration"]
+        assert reg["status"] == "registered" and reg["rotation_error_deg"] < 0.2
+        # The written RESULT.json itself, checked against the ground truth.
+        result = json.loads((out / f"{stem}.result.json").read_text())
+        assert result["status"] == "registered"
+        truth = load_truth(folder / entry["photo"]).pose
+        pose = Pose.from_dict(result["pose"])
+        assert pose.rotation_error_deg(truth) < 0.2
+        assert np.linalg.norm(pose.center - truth.center) < 1.0
+        # photo | render views, from the prior and from the registered pose.
+        w, h = result["camera"]["width"], result["camera"]["height"]
+        for view in ("prior", "registered"):
+            assert Image.open(out / f"{stem}_photo_vs_{view}.jpg").size == (2 * w, h)
+        assert f"{entry['photo']}: REGISTERED" in stdout
+    assert "off the true pose by" in stdout
+    assert f"registered {len(photos)} of {len(photos)} sample photos" in stdout

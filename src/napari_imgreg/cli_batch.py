@@ -1,0 +1,492 @@
+"""``napari-imgreg batch``: register every photo of a field scene folder (contract §8).
+
+After fieldwork a scene folder holds one textured mesh, optionally a DEM
+(``dem.tif`` / ``dem.asc``) and ``georef.json``, and the day's photos, each
+with an optional sensor record ``PHOTO.json`` beside it (photos without one
+fall back to their EXIF/XMP). ``batch`` loads the scene once, registers the
+photos in name order and writes, into RESULTS_DIR,
+
+- ``<photo stem>.result.json`` per photo: the same RESULT.json as
+  ``register`` (contract §4);
+- ``summary.csv`` and ``summary.json``: one row per photo (status, grade,
+  Q, pose, error), rewritten after every photo.
+
+Every file is written atomically, so an interrupted batch (Ctrl-C, a crash)
+keeps the finished results and a summary consistent with them; run it again
+with ``--skip-existing`` to carry on.
+
+A bad photo (unreadable, no sensor record and no usable EXIF, a wrong field
+in its record) does not stop the batch: its one-line error goes to stderr and
+into the summary's ``error`` column. A bad scene (missing folder, no mesh,
+a corrupt mesh, DEM or parameter file) stops it before anything is written.
+
+Exit code: 2 when the scene is bad or any photo had bad input, else 1 when
+any registration failed its quality bar, else 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import re
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from .errors import InputError, input_error
+
+__all__ = ["add_parser", "cmd_batch", "find_scene_files", "SceneFiles", "SUMMARY_COLUMNS"]
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+
+#: Columns of ``summary.csv``, in order.
+SUMMARY_COLUMNS = (
+    "photo", "status", "grade", "Q", "n_trials", "seconds", "x", "y", "z",
+    "trend_deg", "plunge_deg", "roll_deg", "reprojection_error_px", "error",
+)
+
+#: DEM file names found without ``--dem`` (any ``*.asc`` grid counts too).
+_DEM_NAMES = ("dem.tif", "dem.tiff", "dem.asc")
+#: TIFF tags that make a TIFF a GeoTIFF (a raster, not a photo).
+_GEOTIFF_TAGS = (33550, 33922, 34264, 34735)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``batch`` sub-command; its handler is :func:`cmd_batch`."""
+    p = subparsers.add_parser(
+        "batch",
+        help="register every photo of a scene folder (writes RESULTS_DIR)",
+        description="Register every photo in SCENE_DIR (one mesh, optional dem.tif/.asc and "
+        "georef.json, photos with optional PHOTO.json sensor records) in name order. Writes "
+        "RESULTS_DIR/<photo>.result.json per photo and summary.csv + summary.json, updated "
+        "after every photo. A bad photo is reported and skipped; the batch goes on. Exit 0 "
+        "when all registered, 1 when any failed its quality bar, 2 on bad input.",
+    )
+    p.add_argument("scene_dir", metavar="SCENE_DIR", help="folder with the mesh and the photos")
+    p.add_argument("--out", required=True, metavar="RESULTS_DIR", help="folder for the results")
+    p.add_argument("--mesh", help="the mesh, when SCENE_DIR holds several (default: the only one)")
+    p.add_argument("--dem", help="DEM GeoTIFF or .asc (default: dem.tif / dem.asc in SCENE_DIR)")
+    p.add_argument("--georef",
+                   help="georef.json (default: the one in SCENE_DIR or beside the mesh)")
+    p.add_argument("--params", metavar="PARAMS.json", help="registration parameters (any subset)")
+    p.add_argument("--skip-existing", action="store_true",
+                   help="keep photos whose RESULTS_DIR/<photo>.result.json exists (resume a batch)")
+    p.add_argument("-v", "--verbose", action="store_true", help="print progress within each photo")
+    p.set_defaults(func=cmd_batch)
+    return p
+
+
+# ------------------------------------------------------------------ scene
+@dataclass
+class SceneFiles:
+    """What a scene folder holds.
+
+    Attributes
+    ----------
+    folder : Path
+    mesh : Path
+    dem : Path or None
+    georef : Path or None
+    photos : list of Path
+        In name order.
+    ignored : dict of str to str
+        Image files that are not photos (textures, GeoTIFFs, ...), with why.
+    """
+
+    folder: Path
+    mesh: Path
+    dem: Path | None = None
+    georef: Path | None = None
+    photos: list[Path] = field(default_factory=list)
+    ignored: dict[str, str] = field(default_factory=dict)
+
+
+def _natural_key(name: str) -> list:
+    """Sort ``IMG_2`` before ``IMG_10`` (and ignore case)."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def _resolve(path: str, folder: Path) -> Path:
+    """A path as given, or relative to the scene folder when only that exists."""
+    p = Path(path)
+    if not p.exists() and not p.is_absolute() and (folder / p).exists():
+        return folder / p
+    return p
+
+
+def _textures_named_by(mesh_files: list[Path], folder: Path) -> dict[str, str]:
+    """Image files the mesh(es) and their materials use: not photos."""
+    out: dict[str, str] = {}
+
+    def add(name: str, why: str) -> None:
+        name = name.strip().strip('"')
+        if name:
+            out[Path(name).name.lower()] = why
+
+    for mtl in folder.iterdir():
+        if mtl.suffix.lower() != ".mtl" or not mtl.is_file():
+            continue
+        try:
+            text = mtl.read_text(errors="replace")
+        except OSError:
+            continue
+        for line in text.splitlines():
+            parts = line.split()
+            if len(parts) >= 2 and parts[0].lower().startswith(("map_", "bump", "disp", "decal")):
+                add(parts[-1], f"texture in {mtl.name}")
+    for mesh in mesh_files:
+        suffix = mesh.suffix.lower()
+        try:
+            if suffix == ".gltf":
+                data = json.loads(mesh.read_text(errors="replace"))
+                for image in data.get("images", []) if isinstance(data, dict) else []:
+                    if isinstance(image, dict) and isinstance(image.get("uri"), str) \
+                            and not image["uri"].startswith("data:"):
+                        add(image["uri"], f"texture of {mesh.name}")
+            elif suffix == ".ply":
+                with open(mesh, "rb") as fh:
+                    head = fh.read(4096).decode("latin-1")
+                for line in head.split("end_header")[0].splitlines():
+                    parts = line.split()
+                    if len(parts) >= 3 and parts[0] == "comment" \
+                            and parts[1].lower() == "texturefile":
+                        add(" ".join(parts[2:]), f"texture of {mesh.name}")
+        except (OSError, ValueError):
+            continue
+    return out
+
+
+def _manifest_files(folder: Path) -> dict[str, str]:
+    """Images a sample-scene manifest (``scene.json`` ``files``) names: not photos."""
+    path = folder / "scene.json"
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    files = data.get("files") if isinstance(data, dict) else None
+    if not isinstance(files, dict):
+        return {}
+    return {Path(v).name.lower(): f"scene.json: {k}"
+            for k, v in files.items() if isinstance(v, str)}
+
+
+def _is_geotiff(path: Path) -> bool:
+    """A TIFF with georeferencing tags: a DEM or an orthophoto, not a field photo."""
+    try:
+        import tifffile
+
+        with tifffile.TiffFile(path) as tif:
+            tags = tif.pages[0].tags
+            return any(tags.get(code) is not None for code in _GEOTIFF_TAGS)
+    except Exception:  # not readable as TIFF: load_photo will say so
+        return False
+
+
+def find_scene_files(
+    folder: str | Path,
+    mesh: str | None = None,
+    dem: str | None = None,
+    georef: str | None = None,
+) -> SceneFiles:
+    """Find the mesh, DEM, georeference and photos of a scene folder.
+
+    Raises
+    ------
+    InputError
+        No such folder, no mesh or several (without ``mesh``), several DEMs
+        (without ``dem``), a given file missing, or no photos.
+    """
+    from .io.meshes import MESH_SUFFIXES
+    from .io.photos import PHOTO_SUFFIXES
+
+    folder = Path(folder)
+    if not folder.exists():
+        raise input_error(folder, "no such folder")
+    if not folder.is_dir():
+        raise input_error(folder, "is not a folder (batch needs the scene folder)")
+    files = sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")),
+                   key=lambda p: _natural_key(p.name))
+
+    meshes = [p for p in files if p.suffix.lower() in MESH_SUFFIXES]
+    if mesh is not None:
+        mesh_path = _resolve(mesh, folder)
+        if not mesh_path.exists():
+            raise input_error(mesh_path, "no such file")
+    elif not meshes:
+        raise input_error(folder, "no mesh in the folder (expected an OBJ, PLY, GLB or GLTF file)")
+    elif len(meshes) > 1:
+        raise input_error(
+            folder, f"several meshes ({', '.join(p.name for p in meshes)}): choose one with --mesh"
+        )
+    else:
+        mesh_path = meshes[0]
+
+    dems = [p for p in files if p.name.lower() in _DEM_NAMES or p.suffix.lower() == ".asc"]
+    if dem is not None:
+        dem_path: Path | None = _resolve(dem, folder)
+        if not dem_path.exists():
+            raise input_error(dem_path, "no such file")
+    elif len(dems) > 1:
+        raise input_error(
+            folder, f"several DEMs ({', '.join(p.name for p in dems)}): choose one with --dem"
+        )
+    else:
+        dem_path = dems[0] if dems else None
+
+    if georef is not None:
+        georef_path: Path | None = _resolve(georef, folder)
+        if not georef_path.exists():
+            raise input_error(georef_path, "no such file")
+    else:
+        georef_path = folder / "georef.json" if (folder / "georef.json").is_file() else None
+
+    not_photos = {**_manifest_files(folder), **_textures_named_by(meshes + [mesh_path], folder)}
+    scene = SceneFiles(folder, mesh_path, dem_path, georef_path)
+    for p in files:
+        if p.suffix.lower() not in PHOTO_SUFFIXES:
+            continue
+        key = p.name.lower()
+        if dem_path is not None and p.resolve() == dem_path.resolve():
+            continue
+        if key in _DEM_NAMES:
+            scene.ignored[p.name] = "a DEM"
+        elif key in not_photos:
+            scene.ignored[p.name] = not_photos[key]
+        elif p.suffix.lower() in (".tif", ".tiff") and _is_geotiff(p):
+            scene.ignored[p.name] = "a GeoTIFF raster (DEM or orthophoto), not a photo"
+        else:
+            scene.photos.append(p)
+    if not scene.photos:
+        raise input_error(folder, "no photos in the folder (expected JPEG, PNG or TIFF files)")
+    return scene
+
+
+def _result_names(photos: list[Path]) -> dict[Path, str]:
+    """``<stem>.result.json`` per photo (``<name>.result.json`` where stems clash)."""
+    stems: dict[str, int] = {}
+    for p in photos:
+        stems[p.stem.lower()] = stems.get(p.stem.lower(), 0) + 1
+    return {p: (f"{p.stem}.result.json" if stems[p.stem.lower()] == 1 else f"{p.name}.result.json")
+            for p in photos}
+
+
+# ---------------------------------------------------------------- summary
+def _num(value: Any, digits: int) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return round(v, digits) if math.isfinite(v) else None
+
+
+def _row_of_result(photo: str, result: dict, seconds: float | None) -> dict[str, Any]:
+    """A summary row from a RESULT.json dict."""
+    pose = result.get("pose") or {}
+    quality = result.get("quality") or {}
+    metrics = result.get("metrics") or {}
+    position = pose.get("position") or [None, None, None]
+    if seconds is None:
+        seconds = (result.get("timings_s") or {}).get("total")
+    return {
+        "photo": photo,
+        "status": result.get("status"),
+        "grade": quality.get("grade"),
+        "Q": _num(quality.get("Q"), 3),
+        "n_trials": len(result.get("trials") or []),
+        "seconds": _num(seconds, 2),
+        "x": _num(position[0], 3),
+        "y": _num(position[1], 3),
+        "z": _num(position[2], 3),
+        "trend_deg": _num(pose.get("trend_deg"), 3),
+        "plunge_deg": _num(pose.get("plunge_deg"), 3),
+        "roll_deg": _num(pose.get("roll_deg"), 3),
+        "reprojection_error_px": _num(metrics.get("reprojection_error_px"), 3),
+        "error": "",
+    }
+
+
+def _error_row(photo: str, status: str, message: str, seconds: float) -> dict[str, Any]:
+    row: dict[str, Any] = {c: None for c in SUMMARY_COLUMNS}
+    row.update(photo=photo, status=status, seconds=_num(seconds, 2), error=message,
+               skipped=False, result=None)
+    return row
+
+
+def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
+    """Write summary.csv and summary.json atomically (csv first, json last)."""
+    from ._atomic import atomic_write
+
+    with atomic_write(out / "summary.csv", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(SUMMARY_COLUMNS)
+        for row in rows:
+            writer.writerow(["" if row.get(c) is None else row[c] for c in SUMMARY_COLUMNS])
+    counts = {k: sum(1 for r in rows if r["status"] == k)
+              for k in ("registered", "failed", "bad_input", "error")}
+    counts["skipped"] = sum(1 for r in rows if r.get("skipped"))
+    with atomic_write(out / "summary.json", encoding="utf-8") as fh:
+        json.dump({**header, "n_done": len(rows), "counts": counts, "photos": rows}, fh, indent=2)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def exit_code_of(rows: list[dict[str, Any]]) -> int:
+    """2 if any photo had bad input, else 1 if any did not register, else 0."""
+    if any(r["status"] == "bad_input" for r in rows):
+        return EXIT_BAD_INPUT
+    if any(r["status"] != "registered" for r in rows):
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+# ------------------------------------------------------------------- run
+def cmd_batch(args: argparse.Namespace) -> int:
+    """Run ``batch``: check the scene, register every photo, keep the summary current."""
+    from ._atomic import atomic_write
+    from .io.photos import load_photo
+    from .io.records import prior_for_photo, read_json
+    from .params import RegistrationParams, load_params
+    from .pipeline import register
+    from .scene import Scene
+
+    t_start = time.perf_counter()
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise input_error(out, "exists and is not a folder")
+    # Everything about the scene is checked before anything is written.
+    files = find_scene_files(args.scene_dir, args.mesh, args.dem, args.georef)
+    params = load_params(args.params) if args.params else RegistrationParams()
+    scene = Scene.load(files.mesh, georef=files.georef, dem=files.dem)
+    scene.build_engine()
+    n = len(files.photos)
+    print(
+        f"scene {files.folder}: {files.mesh.name} ({scene.n_faces:,} triangles)"
+        + (f", DEM {files.dem.name}" if files.dem else ", no DEM")
+        + (", georeferenced" if scene.georef is not None else "")
+        + f"; {n} photo{'s' if n != 1 else ''} (loaded in {time.perf_counter() - t_start:.1f} s)",
+        flush=True,
+    )
+    for note in scene.warnings:
+        print(f"  assumed: {note}")
+    if files.ignored:
+        print("  not photos: " + ", ".join(f"{k} ({v})" for k, v in files.ignored.items()))
+
+    out.mkdir(parents=True, exist_ok=True)
+    names = _result_names(files.photos)
+    header: dict[str, Any] = {
+        "scene": str(files.folder),
+        "mesh": str(files.mesh),
+        "dem": str(files.dem) if files.dem else None,
+        "georef": str(files.georef) if files.georef else None,
+        "params": str(args.params) if args.params else None,
+        "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "n_photos": n,
+        "complete": False,
+        "interrupted": False,
+    }
+    rows: list[dict[str, Any]] = []
+    width = len(str(n))
+
+    def show(p) -> None:
+        if args.verbose and p.message:
+            print(f"      [{p.fraction:4.0%}] {p.message}", flush=True)
+
+    try:
+        for i, photo_path in enumerate(files.photos, 1):
+            tag = f"[{i:>{width}}/{n}] {photo_path.name}"
+            result_path = out / names[photo_path]
+            t0 = time.perf_counter()
+            if args.skip_existing and result_path.is_file():
+                try:
+                    existing = read_json(result_path)
+                    if not isinstance(existing, dict) or "status" not in existing:
+                        raise input_error(result_path, "not a registration result")
+                except InputError as exc:
+                    print(f"{tag}: existing result unreadable ({_one_line(exc)}): redoing it")
+                else:
+                    row = _row_of_result(photo_path.name, existing, None)
+                    row.update(skipped=True, result=result_path.name)
+                    rows.append(row)
+                    _write_summary(out, header, rows)
+                    print(f"{tag}: skipped, result exists ({row['status']}, grade {row['grade']})",
+                          flush=True)
+                    continue
+            try:
+                photo = load_photo(photo_path)
+                prior = prior_for_photo(photo, scene)
+                w, h = photo.size
+                if (w, h) != (prior.intrinsics.width, prior.intrinsics.height):
+                    raise input_error(
+                        photo.sidecar if photo.sidecar and photo.sidecar.exists() else photo_path,
+                        f"the camera is {prior.intrinsics.width}×{prior.intrinsics.height} px "
+                        f"but the photo is {w}×{h} px",
+                    )
+                reg = register(scene, photo.image, prior, params, photo_path.name, on_progress=show)
+            except InputError as exc:
+                status, message, label = "bad_input", _one_line(exc), "BAD INPUT"
+            except Exception as exc:  # noqa: BLE001 - one photo must not end the batch
+                status, label = "error", "ERROR"
+                message = f"{photo_path}: {type(exc).__name__}: {_one_line(exc)}"
+            else:
+                status = ""
+            if status:
+                print(f"napari-imgreg batch: error: {message}", file=sys.stderr, flush=True)
+                row = _error_row(photo_path.name, status, message, time.perf_counter() - t0)
+                rows.append(row)
+                _write_summary(out, header, rows)
+                print(f"{tag}: {label} — {message}", flush=True)
+                continue
+            result = reg.to_dict()
+            with atomic_write(result_path) as fh:
+                json.dump(result, fh, indent=2)
+            row = _row_of_result(photo_path.name, result, time.perf_counter() - t0)
+            row.update(skipped=False, result=result_path.name, hints=list(reg.hints),
+                       assumptions=list(reg.assumptions))
+            rows.append(row)
+            _write_summary(out, header, rows)
+            trend, plunge, roll = reg.pose.attitude
+            x, y, z = reg.pose.center
+            err = reg.metrics.get("reprojection_error_px")
+            print(
+                f"{tag}: {reg.status.upper()} — grade {reg.grade} (Q = {reg.q:+.2f}), "
+                f"{len(reg.trials)} trial(s), {row['seconds']:.1f} s; "
+                f"({x:.1f}, {y:.1f}, {z:.1f}) m, trend {trend:.1f}° plunge {plunge:.1f}° "
+                f"roll {roll:.1f}°"
+                + (f", reprojection {err:.2f} px" if err is not None else ""),
+                flush=True,
+            )
+            if not reg.registered:
+                for hint in reg.hints[:2]:
+                    print(f"      hint: {hint}")
+    except KeyboardInterrupt:
+        header["interrupted"] = True
+        _write_summary(out, header, rows)
+        print(f"interrupted after {len(rows)} of {n} photos; finished results and the summary "
+              f"are in {out}/ (run again with --skip-existing to carry on)", flush=True)
+        raise
+
+    header["complete"] = True
+    _write_summary(out, header, rows)
+    counts = {k: sum(1 for r in rows if r["status"] == k)
+              for k in ("registered", "failed", "bad_input", "error")}
+    skipped = sum(1 for r in rows if r.get("skipped"))
+    parts = [f"{counts['registered']} registered", f"{counts['failed']} failed"]
+    if counts["bad_input"]:
+        parts.append(f"{counts['bad_input']} bad input")
+    if counts["error"]:
+        parts.append(f"{counts['error']} crashed")
+    print(
+        f"batch: {n} photo{'s' if n != 1 else ''} — {', '.join(parts)}"
+        + (f" ({skipped} kept from earlier runs)" if skipped else "")
+        + f" in {time.perf_counter() - t_start:.1f} s -> {out / 'summary.csv'}"
+    )
+    return exit_code_of(rows)

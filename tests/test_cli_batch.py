@@ -1,0 +1,242 @@
+"""``napari-imgreg batch``: a scene folder in, one RESULT.json per photo and a summary out."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from napari_imgreg import Pose
+from napari_imgreg.cli import main
+from napari_imgreg.cli_batch import SUMMARY_COLUMNS
+from napari_imgreg.sample import load_truth, sample_scene
+
+#: The sample scene's model files (the texture is named by outcrop.mtl).
+SCENE_FILES = ("outcrop.obj", "outcrop.mtl", "outcrop_texture.jpg", "dem.tif", "georef.json")
+RESULT_KEYS = {"status", "photo", "camera", "pose", "metrics", "quality", "trials", "timings_s"}
+
+
+def _make_scene(folder, photos):
+    """Copy the small sample's model and some photos (+ records, truth) into ``folder``."""
+    src = sample_scene("small")
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in SCENE_FILES:
+        shutil.copy2(src / name, folder / name)
+    for stem in photos:
+        for suffix in (".jpg", ".json", ".truth.json"):
+            shutil.copy2(src / f"{stem}{suffix}", folder / f"{stem}{suffix}")
+    return folder
+
+
+def _run(argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in argv])
+    return code, out.getvalue(), err.getvalue()
+
+
+def _summary(out):
+    with open(out / "summary.csv", newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    header, body = rows[0], rows[1:]
+    assert tuple(header) == SUMMARY_COLUMNS
+    return [dict(zip(header, r)) for r in body], json.loads((out / "summary.json").read_text())
+
+
+def _fake_registration(prior, name, status="failed"):
+    """A quick stand-in for pipeline.register (no matching)."""
+    from napari_imgreg.pipeline import Registration
+
+    return Registration(
+        status=status, photo=name, intrinsics=prior.intrinsics, pose=prior.pose, prior=prior,
+        metrics={}, q=-1.0, grade="failed", hints=["fake"], trials=[], timings_s={"total": 0.0},
+    )
+
+
+def _assert_at_truth(result_file, photo):
+    result = json.loads(result_file.read_text())
+    assert RESULT_KEYS <= set(result)
+    assert result["status"] == "registered" and result["photo"] == photo.name
+    truth = load_truth(photo).pose
+    pose = Pose.from_dict(result["pose"])
+    assert pose.rotation_error_deg(truth) < 0.2
+    assert np.linalg.norm(pose.center - truth.center) < 1.0
+    return result
+
+
+@pytest.fixture(scope="module")
+def batch_run(tmp_path_factory):
+    """One real batch over two sample photos (shared: registration takes seconds)."""
+    root = tmp_path_factory.mktemp("batch")
+    scene = _make_scene(root / "scene", ["IMG_0001", "IMG_0003"])
+    out = root / "results"
+    code, stdout, stderr = _run(["batch", scene, "--out", out])
+    return scene, out, code, stdout, stderr
+
+
+def test_batch_registers_every_photo(batch_run):
+    scene, out, code, stdout, stderr = batch_run
+    assert code == 0, stdout + stderr
+    assert stderr == ""
+    # One RESULT.json per photo — the texture and the truth files are not photos.
+    assert sorted(p.name for p in out.glob("*.result.json")) == [
+        "IMG_0001.result.json", "IMG_0003.result.json"]
+    for name in ("IMG_0001", "IMG_0003"):
+        _assert_at_truth(out / f"{name}.result.json", scene / f"{name}.jpg")
+    rows, summary = _summary(out)
+    assert [r["photo"] for r in rows] == ["IMG_0001.jpg", "IMG_0003.jpg"]
+    for row in rows:
+        assert row["status"] == "registered" and row["error"] == ""
+        result = json.loads((out / row["photo"].replace(".jpg", ".result.json")).read_text())
+        assert float(row["Q"]) == pytest.approx(result["quality"]["Q"], abs=1e-3)
+        assert row["grade"] == result["quality"]["grade"]
+        assert int(row["n_trials"]) == len(result["trials"])
+        xyz = [float(row[k]) for k in ("x", "y", "z")]
+        assert np.allclose(xyz, result["pose"]["position"], atol=1e-3)
+        assert float(row["trend_deg"]) == pytest.approx(result["pose"]["trend_deg"], abs=1e-3)
+        assert float(row["seconds"]) > 0
+    assert summary["complete"] and not summary["interrupted"]
+    assert summary["n_photos"] == 2 and summary["counts"]["registered"] == 2
+    assert "IMG_0003.jpg: REGISTERED" in stdout and "2 registered, 0 failed" in stdout
+    assert "outcrop_texture.jpg" in stdout  # said to be a texture, not a photo
+    assert not list(out.glob(".*"))  # no temporary files left
+
+
+def test_skip_existing_keeps_done_photos(batch_run, tmp_path, monkeypatch):
+    _, done, *_ = batch_run
+    scene = batch_run[0]
+    out = tmp_path / "results"
+    shutil.copytree(done, out)
+    kept = (out / "IMG_0001.result.json").read_bytes()
+    (out / "IMG_0003.result.json").unlink()
+    calls = []
+
+    def fake_register(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        calls.append(photo_name)
+        return _fake_registration(prior, photo_name)
+
+    monkeypatch.setattr("napari_imgreg.pipeline.register", fake_register)
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--skip-existing"])
+    # Only the photo without a result is redone; the fake marks it failed: exit 1.
+    assert calls == ["IMG_0003.jpg"]
+    assert code == 1 and stderr == ""
+    assert (out / "IMG_0001.result.json").read_bytes() == kept
+    assert json.loads((out / "IMG_0003.result.json").read_text())["status"] == "failed"
+    rows, summary = _summary(out)
+    assert [(r["photo"], r["status"]) for r in rows] == [
+        ("IMG_0001.jpg", "registered"), ("IMG_0003.jpg", "failed")]
+    assert summary["counts"]["skipped"] == 1
+    assert "IMG_0001.jpg: skipped" in stdout
+
+    # Everything done: nothing is registered again.
+    calls.clear()
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--skip-existing"])
+    assert calls == [] and code == 1 and stdout.count("skipped") == 2
+
+
+def test_bad_photos_do_not_stop_the_batch(tmp_path):
+    scene = _make_scene(tmp_path / "scene", ["IMG_0002"])
+    (scene / "IMG_0000.jpg").write_bytes(b"\xff\xd8 this is not a JPEG \x00\x13\x37" * 20)
+    # A photo without a sensor record and without EXIF (upper-case extension).
+    Image.open(scene / "IMG_0002.jpg").save(scene / "IMG_0004.PNG")
+    # A photo whose record has a wrong field.
+    shutil.copy2(scene / "IMG_0002.jpg", scene / "IMG_0005.jpg")
+    record = json.loads((scene / "IMG_0002.json").read_text())
+    record["orientation"]["trend_deg"] = "north"
+    (scene / "IMG_0005.json").write_text(json.dumps(record))
+    out = tmp_path / "results"
+
+    code, stdout, stderr = _run(["batch", scene, "--out", out])
+    assert code == 2
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 3
+    assert sum("IMG_0000.jpg" in line for line in lines) == 1
+    assert "IMG_0000.jpg" in lines[0] and "cannot read image" in lines[0]
+    assert "IMG_0004.PNG" in lines[1] and "no sensor record" in lines[1]
+    assert "IMG_0005.json" in lines[2] and "orientation.trend_deg" in lines[2]
+    # The good photo after the corrupt one is registered.
+    _assert_at_truth(out / "IMG_0002.result.json", scene / "IMG_0002.jpg")
+    assert sorted(p.name for p in out.glob("*.result.json")) == ["IMG_0002.result.json"]
+    rows, summary = _summary(out)
+    by_photo = {r["photo"]: r for r in rows}
+    assert list(by_photo) == ["IMG_0000.jpg", "IMG_0002.jpg", "IMG_0004.PNG", "IMG_0005.jpg"]
+    assert by_photo["IMG_0002.jpg"]["status"] == "registered"
+    for name, line in zip(("IMG_0000.jpg", "IMG_0004.PNG", "IMG_0005.jpg"), lines):
+        assert by_photo[name]["status"] == "bad_input"
+        assert by_photo[name]["error"] and by_photo[name]["error"] in line
+    assert summary["complete"] and summary["counts"]["bad_input"] == 3
+    assert "1 registered, 0 failed, 3 bad input" in stdout
+
+
+def _tiny_obj(path):
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 0 1\nf 1 2 3\n")
+
+
+@pytest.mark.parametrize(
+    "case, needle",
+    [
+        ("missing", "scene: no such folder"),
+        ("no_mesh", "no mesh in the folder"),
+        ("two_meshes", "several meshes (a.obj, b.ply): choose one with --mesh"),
+        ("corrupt_mesh", "broken.obj"),
+        ("no_photos", "no photos in the folder"),
+        ("bad_params", "params.json: invalid JSON"),
+    ],
+)
+def test_bad_scene_is_exit_2_and_writes_nothing(tmp_path, case, needle):
+    scene = tmp_path / "scene"
+    extra = []
+    if case != "missing":
+        scene.mkdir()
+        if case != "no_photos":
+            Image.new("RGB", (32, 24)).save(scene / "IMG_0001.jpg")
+        if case == "two_meshes":
+            _tiny_obj(scene / "a.obj")
+            (scene / "b.ply").write_text("ply\n")
+        elif case == "corrupt_mesh":
+            (scene / "broken.obj").write_bytes(b"v 1 2\nf 1 2 9\n\x00\xff garbage")
+        elif case in ("no_photos", "bad_params"):
+            _tiny_obj(scene / "a.obj")
+        if case == "bad_params":
+            (tmp_path / "params.json").write_text("{ oops")
+            extra = ["--params", tmp_path / "params.json"]
+    out = tmp_path / "results"
+    code, stdout, stderr = _run(["batch", scene, "--out", out, *extra])
+    assert code == 2
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and needle in lines[0], stderr
+    assert not out.exists()
+
+
+def test_interrupted_batch_keeps_finished_results(tmp_path, monkeypatch):
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002"])
+    out = tmp_path / "results"
+
+    def fake_register(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        if photo_name == "IMG_0002.jpg":
+            raise KeyboardInterrupt
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.pipeline.register", fake_register)
+    code, stdout, stderr = _run(["batch", scene, "--out", out])
+    assert code == 130 and "interrupted" in stderr
+    assert [p.name for p in out.glob("*.result.json")] == ["IMG_0001.result.json"]
+    rows, summary = _summary(out)
+    assert [r["photo"] for r in rows] == ["IMG_0001.jpg"]
+    assert summary["interrupted"] and not summary["complete"] and summary["n_photos"] == 2
+    assert not list(out.glob(".*"))
+    assert "--skip-existing" in stdout
+
+
+def test_batch_help(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["batch", "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    assert "SCENE_DIR" in text and "--skip-existing" in text
