@@ -70,7 +70,7 @@ from napari_imgreg.sample import (
     load_truth,
 )
 from napari_imgreg.sample.noise import rng_for
-from napari_imgreg.sample.photo import make_exif, synthesize_photo, vertex_normals_of
+from napari_imgreg.sample.photo import make_exif, sun_vector, synthesize_photo, vertex_normals_of
 from napari_imgreg.sample.suntime import SunTime, time_for_sun
 
 HERE = Path(__file__).resolve().parent
@@ -676,6 +676,12 @@ def main(argv: list[str] | None = None) -> int:
         if "changed_light" in tiers:
             folders[seed]["changed_light"] = changed_folder(d, args.strength)
         georef = Georef.load(d / "georef.json")
+        if not (d / "survey.json").exists():  # scenes cached before survey.json existed
+            from napari_imgreg.sample import write_survey
+
+            sun = json.loads((d / "scene.json").read_text())["survey_sun"]
+            write_survey(d, georef, sun_vector(sun["azimuth_deg"], sun["elevation_deg"]),
+                         Scene.load(d / "outcrop.obj").vertices.mean(axis=0))
         for folder in folders[seed].values():
             if (n := ensure_capture_times(folder, georef)):
                 print(f"  dated {n} photos of {folder.relative_to(args.cache)}", flush=True)

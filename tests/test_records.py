@@ -136,3 +136,62 @@ def test_result_json_pose_is_read_back(tmp_path):
     bad = {"camera": intr.to_dict(), "pose": {**pose.to_dict(), "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]]}}
     with pytest.raises(InputError, match="not a rotation"):
         load_camera_and_pose(write(tmp_path, bad, "BAD.json"))
+
+
+# ------------------------------------------------------- sun at capture
+def test_prior_carries_the_sun_of_the_exif_capture_time():
+    from napari_imgreg import Scene
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.io.records import prior_for_photo
+    from napari_imgreg.sample import load_truth, sample_scene
+
+    folder = sample_scene("small")
+    scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
+    photo = load_photo(folder / "IMG_0002.jpg")
+    prior = prior_for_photo(photo, scene)
+    truth = load_truth(photo.path)
+    # The photo was lit by the sun of its EXIF instant, seen from its true
+    # centre; the prior's centre is metres off, which moves the sun by far
+    # less than 0.01°.
+    assert prior.sun_source.startswith("EXIF time")
+    assert np.degrees(np.arccos(np.clip(prior.sun @ truth.conditions.sun, -1, 1))) < 0.01
+
+
+def test_record_time_and_sun_override_exif(tmp_path):
+    from napari_imgreg import Scene
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.io.records import prior_for_photo
+    from napari_imgreg.sample import sample_scene
+    from napari_imgreg.sun import meridian_convergence_deg
+
+    folder = sample_scene("small")
+    scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
+    photo = load_photo(folder / "IMG_0002.jpg")
+    record = json.loads((folder / "IMG_0002.json").read_text())
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps({**record, "sun": {"azimuth_deg": 180.0, "elevation_deg": 30.0}}))
+    prior = prior_for_photo(photo, scene, record_path=path)
+    assert prior.sun_source == "sensor record sun"
+    # True south turned to grid: azimuth 180 − convergence.
+    conv = meridian_convergence_deg(scene.georef, prior.pose.center)
+    az = np.degrees(np.arctan2(prior.sun[0], prior.sun[1])) % 360
+    assert az == pytest.approx(180.0 - conv, abs=1e-6)
+    assert np.degrees(np.arcsin(prior.sun[2])) == pytest.approx(30.0)
+    path.write_text(json.dumps({**record, "time": "2024-06-21T12:00:00+00:00"}))
+    prior = prior_for_photo(photo, scene, record_path=path)
+    assert prior.sun_source.startswith("sensor record time")
+    assert 55 < np.degrees(np.arcsin(prior.sun[2])) < 62  # midsummer noon at 53° N
+
+
+@pytest.mark.parametrize("extra, words", [
+    ({"time": "2024-06-21T12:00:00"}, "UTC offset"),
+    ({"time": 12}, "ISO 8601"),
+    ({"sun": {"azimuth_deg": "south", "elevation_deg": 3}}, "sun.azimuth_deg"),
+    ({"sun": {"azimuth_deg": 10, "elevation_deg": 95}}, "sun.elevation_deg"),
+])
+def test_bad_time_or_sun_fields_name_the_field(tmp_path, extra, words):
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps({"position": {"x": 0, "y": 0}, **extra}))
+    with pytest.raises(InputError) as err:
+        load_sensor_record(path)
+    assert words in str(err.value) and "bad.json" in str(err.value)

@@ -357,3 +357,15 @@ def test_sample_scene_leaves_nothing_when_generation_fails(tmp_path, monkeypatch
     with pytest.raises(RuntimeError):
         sample_scene("small", seed=3)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_survey_json_gives_the_scene_the_texture_sun(small):
+    from napari_imgreg import Scene
+    from napari_imgreg.sample.photo import sun_vector
+
+    scene = Scene.load(small / "outcrop.obj")
+    manifest = json.loads((small / "scene.json").read_text())
+    sun = manifest["survey_sun"]
+    expected = sun_vector(sun["azimuth_deg"], sun["elevation_deg"])
+    # survey.json states the true azimuth; the scene turns it to grid north.
+    assert np.degrees(np.arccos(np.clip(scene.survey_sun @ expected, -1, 1))) < 0.01

@@ -116,6 +116,9 @@ class Scene:
         self.georef = georef
         self.dem = dem
         self.name = name
+        #: Unit vector toward the sun the texture was photographed under (local
+        #: frame), when known (``survey.json``): relighting divides its shading out.
+        self.survey_sun: np.ndarray | None = None
         self.warnings: list[str] = []
         self._engine = None
         self._engine_lock = threading.Lock()
@@ -174,6 +177,9 @@ class Scene:
             name=mesh_path.stem,
         )
         scene.warnings = list(data.warnings)
+        survey = mesh_path.parent / "survey.json"
+        if survey.exists() and (scene.has_texture or scene.vertex_colors is not None):
+            scene.survey_sun = read_survey_sun(survey, georef, scene.bounds.mean(axis=0))
         scene.timings_s["load"] = time.perf_counter() - t0
         return scene
 
@@ -425,6 +431,39 @@ class Scene:
         colour = "texture" if self.has_texture else (
             "vertex colours" if self.vertex_colors is not None else "no colour")
         return f"Scene({self.name!r}, {self.n_faces} triangles, {colour})"
+
+
+def read_survey_sun(path: str | os.PathLike, georef, where: np.ndarray) -> np.ndarray:
+    """The survey-day sun of a model's texture from ``survey.json``, local frame.
+
+    ``survey.json`` (beside the mesh) gives either ``{"sun": {"azimuth_deg",
+    "elevation_deg"}}`` (azimuth clockwise from true north) or ``{"time":
+    "2024-06-15T10:30:00+01:00"}`` — the capture time of the photos the
+    texture was made from (with a georeference, the sun is computed there).
+
+    Raises
+    ------
+    InputError
+        Unreadable file or wrong fields; the message names the file.
+    """
+    from .errors import input_error
+    from .io.records import parse_sensor_record, read_json
+    from .sun import meridian_convergence_deg, sun_direction_local, sun_position, sun_vector_enu
+
+    data = read_json(path)
+    if not isinstance(data, dict) or ("sun" not in data and "time" not in data):
+        raise input_error(path, "survey.json needs a 'sun' or a 'time' field")
+    record = parse_sensor_record({k: data[k] for k in ("sun", "time") if k in data}, path)
+    if record.sun is not None:
+        conv = 0.0 if georef is None else meridian_convergence_deg(georef, where)
+        return sun_vector_enu(record.sun["azimuth_deg"] - conv, record.sun["elevation_deg"])
+    if georef is None:
+        raise input_error(path, "a survey 'time' needs georef.json beside the mesh")
+    from datetime import datetime
+
+    lat, lon, alt = georef.local_to_geodetic(where)
+    when = datetime.fromisoformat(record.time.replace("Z", "+00:00"))
+    return sun_direction_local(sun_position(when, float(lat), float(lon), float(alt)), georef, where)
 
 
 def _orthophoto_uv(path: str | os.PathLike, enh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -78,6 +78,12 @@ class SensorRecord:
         Expected prior errors (defaults when absent).
     source : Path or None
         The file it came from (for messages).
+    time : str or None
+        Extension: capture instant, ISO 8601 with its UTC offset
+        (``"2024-08-03T07:21:10+01:00"``); overrides the EXIF time.
+    sun : dict or None
+        Extension: ``{"azimuth_deg", "elevation_deg"}`` of the sun at capture,
+        azimuth clockwise from *true* north; overrides the time.
     """
 
     camera: dict | None = None
@@ -85,6 +91,8 @@ class SensorRecord:
     orientation: dict | None = None
     sigma: Sigma = field(default_factory=Sigma)
     source: Path | None = None
+    time: str | None = None
+    sun: dict | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -95,6 +103,10 @@ class SensorRecord:
         if self.orientation is not None:
             out["orientation"] = dict(self.orientation)
         out["sigma"] = self.sigma.to_dict()
+        if self.time is not None:
+            out["time"] = self.time
+        if self.sun is not None:
+            out["sun"] = dict(self.sun)
         return out
 
 
@@ -110,12 +122,18 @@ class Prior:
     sigma : Sigma
     assumptions : list of str
         Plain-language notes ("altitude from DEM + 1.6 m", ...).
+    sun : (3,) array or None
+        Unit vector toward the sun at capture, local frame (None: unknown).
+    sun_source : str
+        How the sun was found ("EXIF time", "record time", "record sun", ...).
     """
 
     intrinsics: Intrinsics
     pose: Pose
     sigma: Sigma = field(default_factory=Sigma)
     assumptions: list[str] = field(default_factory=list)
+    sun: np.ndarray | None = None
+    sun_source: str = ""
 
 
 def read_json(path: str | os.PathLike) -> Any:
@@ -208,7 +226,31 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
                 )
             )
         )
-    return SensorRecord(camera, position, orientation, sigma, src)
+    when = data.get("time")
+    if when is not None:
+        if not isinstance(when, str) or _aware_iso(when) is None:
+            raise input_error(
+                src, f"field 'time' must be an ISO 8601 time with its UTC offset "
+                     f"(e.g. 2024-08-03T07:21:10+01:00), got {when!r}")
+    sun = data.get("sun")
+    if sun is not None:
+        if not isinstance(sun, dict):
+            raise input_error(src, "field 'sun' must be an object")
+        _number(sun, "azimuth_deg", "sun", src)
+        if abs(_number(sun, "elevation_deg", "sun", src)) > 90:
+            raise input_error(src, "field 'sun.elevation_deg' must be in [-90, 90]")
+    return SensorRecord(camera, position, orientation, sigma, src, when, sun)
+
+
+def _aware_iso(text: str):
+    """An ISO 8601 string with a UTC offset → aware datetime, else None."""
+    from datetime import datetime
+
+    try:
+        when = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    return when if when.tzinfo is not None else None
 
 
 def load_sensor_record(path: str | os.PathLike) -> SensorRecord:
@@ -479,7 +521,40 @@ def prior_for_photo(
         height_above_ground_m=height_above_ground_m,
     )
     prior.assumptions = notes + prior.assumptions
+    _attach_sun(prior, record, photo, getattr(scene, "georef", None))
     return prior
+
+
+def _attach_sun(prior: Prior, record: SensorRecord, photo, georef: Georef | None) -> None:
+    """Give the prior the sun at capture: record ``sun``, else record ``time``, else EXIF."""
+    from ..sun import sun_direction_local, sun_for_photo, sun_position, sun_vector_enu
+
+    center = prior.pose.center
+    if record.sun is not None:
+        from ..sun import meridian_convergence_deg
+
+        conv = 0.0 if georef is None else meridian_convergence_deg(georef, center)
+        prior.sun = sun_vector_enu(record.sun["azimuth_deg"] - conv, record.sun["elevation_deg"])
+        prior.sun_source = "sensor record sun"
+        return
+    if record.time is not None:
+        if georef is None:
+            prior.assumptions.append("capture time given but no georeference: sun unknown")
+            return
+        lat, lon, alt = georef.local_to_geodetic(center)
+        sun = sun_position(_aware_iso(record.time), float(lat), float(lon),
+                           float(alt) if math.isfinite(alt) else 0.0)
+        prior.sun = sun_direction_local(sun, georef, center)
+        prior.sun_source = f"sensor record time {record.time}"
+        return
+    direction, sun, sun_notes = sun_for_photo(photo.exif or {}, georef, center)
+    if direction is None:
+        # Not an assumption: the sun is simply not used (said where it matters).
+        prior.sun_source = "unknown: " + "; ".join(sun_notes or ["no capture time"])
+        return
+    prior.sun = direction
+    prior.sun_source = f"EXIF time {sun.when.isoformat()}"
+    prior.assumptions += [f"sun: {n}" for n in sun_notes]
 
 
 _NOTE_WORDS = {"camera": ("camera",), "position": ("position",),

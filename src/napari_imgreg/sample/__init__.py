@@ -13,6 +13,7 @@ and their traces on the surface).
 Folder layout (see :func:`generate_outcrop`)::
 
     scene.json                 manifest: size, seed, files, photos, survey sun
+    survey.json                the sun the texture was photographed under (true azimuth, time)
     outcrop.obj/.mtl           the model (local ENU metres)
     outcrop_texture.jpg        its texture: albedo x survey-day shading
     albedo.png                 reflectance only (for synthesising photos)
@@ -63,6 +64,7 @@ from .photo import (
     make_exif,
     sample_poses,
     select_check_points,
+    sun_vector,
     synthesize_photo,
 )
 
@@ -79,6 +81,7 @@ __all__ = [
     "sample_scene",
     "cache_dir",
     "load_truth",
+    "write_survey",
     "plane_normal",
     "dip_from_normal",
     "truth_lines",
@@ -87,7 +90,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Bump when the generated content changes: cached scenes are keyed by it.
-GENERATOR_VERSION = "4"
+GENERATOR_VERSION = "5"
 #: Version of the model (mesh, texture, cameras, priors, check points) alone:
 #: the benchmark, which re-makes the photos, keys its cache on it.
 MODEL_VERSION = "3"
@@ -346,6 +349,8 @@ def generate_outcrop(
         "spec": spec.to_dict(),
     }
     _write_json(out / "scene.json", manifest)
+    write_survey(out, georef, sun_vector(spec.survey_sun_azimuth_deg, spec.survey_sun_elevation_deg),
+                 np.asarray(scene.vertices).mean(axis=0))
     timings["total"] = time.perf_counter() - t_start
     log.info("sample outcrop %s (seed %d) written to %s in %.1f s: %s", size, seed, out,
              timings["total"], {k: round(v, 2) for k, v in timings.items()})
@@ -399,6 +404,27 @@ def cache_dir() -> Path:
     ``~/.cache/napari-imgreg``."""
     env = os.environ.get("NAPARI_IMGREG_CACHE")
     return Path(env).expanduser() if env else Path.home() / ".cache" / "napari-imgreg"
+
+
+def write_survey(folder: Path, georef, survey_sun_local: np.ndarray,
+                 where: np.ndarray) -> None:
+    """Write ``survey.json``: the sun the texture was photographed under.
+
+    Given as true azimuth and elevation (what a survey report states), with
+    the survey instant at which the sun stood there (as a photogrammetry
+    survey's EXIF would give it).
+    """
+    from ..sun import meridian_convergence_deg
+
+    sun_time = time_for_sun(survey_sun_local, georef, where)
+    d = np.asarray(survey_sun_local, np.float64)
+    grid_az = float(np.degrees(np.arctan2(d[0], d[1])) % 360.0)
+    true_az = (grid_az + meridian_convergence_deg(georef, where)) % 360.0
+    _write_json(folder / "survey.json", {
+        "sun": {"azimuth_deg": round(true_az, 4),
+                "elevation_deg": round(float(np.degrees(np.arcsin(d[2]))), 4)},
+        "time": sun_time.when.isoformat(),
+    })
 
 
 def sample_scene(size: str = "small", seed: int = 0) -> Path:
