@@ -81,8 +81,11 @@ MARK_START, MARK_END = "<!-- bench_register:start -->", "<!-- bench_register:end
 
 REFERENCE_WIDTH = 1632
 SUCCESS_PX = 4.0
-TIERS = ("same_light", "changed_light")
-METHODS = ("ours", "baseline")
+TIERS = ("same_light", "changed_light", "changed_untextured")
+#: ``ours``: the full automatic pipeline; ``keypoints``: the same without the
+#: illumination-robust stages (sun-lit renders, edges, mutual information),
+#: i.e. issue 3's pipeline; ``baseline``: plain SIFT + EPnP.
+METHODS = ("ours", "keypoints", "baseline")
 
 #: Changed-light strength (see :func:`changed_light_conditions`), calibrated so
 #: that the baseline registers 20-40 % of the tier.
@@ -407,11 +410,27 @@ def _check_point_errors(reg, truth) -> np.ndarray:
     return err * REFERENCE_WIDTH / truth.intrinsics.width
 
 
+def method_params(method: str) -> RegistrationParams:
+    if method == "ours":
+        return RegistrationParams()
+    if method == "keypoints":
+        return RegistrationParams(sun_relight=False, edge_align=False, dense_refine=False)
+    return RegistrationParams.baseline()
+
+
+def untextured(scene: Scene) -> Scene:
+    """The same surface without texture or colours (a bare lidar mesh)."""
+    bare = Scene(scene.vertices, scene.faces, georef=scene.georef, dem=scene.dem,
+                 name=scene.name + " (untextured)")
+    bare._engine = scene.engine  # the same geometry: share the ray engine
+    return bare
+
+
 def evaluate(scene: Scene, photo_path: Path, method: str) -> dict:
     truth = load_truth(photo_path)
     photo = load_photo(photo_path)
     prior = prior_for_photo(photo, scene)
-    params = RegistrationParams() if method == "ours" else RegistrationParams.baseline()
+    params = method_params(method)
     t0 = time.perf_counter()
     reg = register(scene, photo.image, prior, params, photo_path.name)
     seconds = time.perf_counter() - t0
@@ -437,8 +456,11 @@ def evaluate(scene: Scene, photo_path: Path, method: str) -> dict:
         "one_trial_s": round(first.seconds, 3) if first else None,
         "full_auto_s": round(reg.timings_s["total"], 3),
         "n_trials": len(reg.trials),
+        "stages": {k: round(v, 3) for k, v in reg.timings_s.items()},
+        "winning_stage": (reg.trials[reg.best_trial].origin
+                          if reg.best_trial is not None and reg.registered else None),
         "trials": [
-            {"origin": t.origin, "rounds": t.rounds, "verified": t.verified, "grade": t.grade,
+            {"origin": t.origin, "render_mode": t.render_mode, "rounds": t.rounds, "verified": t.verified, "grade": t.grade,
              "Q": round(t.q, 3), "feature_inliers": t.metrics.get("feature_inliers"),
              "inliers_3d": t.metrics.get("inliers_3d"),
              "residual_flow_px": t.metrics.get("residual_flow_px"),
@@ -673,8 +695,9 @@ def main(argv: list[str] | None = None) -> int:
     for seed in seeds:
         d = scene_folder(args.cache, size, seed, n_photos)
         folders[seed] = {"same_light": d / "same_light"}
-        if "changed_light" in tiers:
+        if "changed_light" in tiers or "changed_untextured" in tiers:
             folders[seed]["changed_light"] = changed_folder(d, args.strength)
+            folders[seed]["changed_untextured"] = folders[seed]["changed_light"]
         georef = Georef.load(d / "georef.json")
         if not (d / "survey.json").exists():  # scenes cached before survey.json existed
             from napari_imgreg.sample import write_survey
@@ -682,7 +705,7 @@ def main(argv: list[str] | None = None) -> int:
             sun = json.loads((d / "scene.json").read_text())["survey_sun"]
             write_survey(d, georef, sun_vector(sun["azimuth_deg"], sun["elevation_deg"]),
                          Scene.load(d / "outcrop.obj").vertices.mean(axis=0))
-        for folder in folders[seed].values():
+        for folder in set(folders[seed].values()):
             if (n := ensure_capture_times(folder, georef)):
                 print(f"  dated {n} photos of {folder.relative_to(args.cache)}", flush=True)
     gen_s = time.perf_counter() - t_start
@@ -696,11 +719,15 @@ def main(argv: list[str] | None = None) -> int:
         scene = Scene.load(scene_dir / manifest["files"]["mesh"])
         photos = sorted(folders[seed]["same_light"].glob("IMG_*.jpg"))
         _warm_up(scene, photos[0])
+        bare = untextured(scene)
         for tier in tiers:
+            model = bare if tier == "changed_untextured" else scene
             for photo_path in sorted(folders[seed][tier].glob("IMG_*.jpg")):
                 for method in methods:
+                    if tier == "changed_untextured" and method == "keypoints":
+                        continue  # keypoints on a grey render: the baseline shows that
                     row = {"tier": tier, "scene_seed": seed, "photo": photo_path.name,
-                           **evaluate(scene, photo_path, method)}
+                           **evaluate(model, photo_path, method)}
                     rows.append(row)
                     print(
                         f"{tier:13s} seed {seed} {photo_path.name} {method:8s} "

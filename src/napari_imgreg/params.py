@@ -66,6 +66,17 @@ class RegistrationParams:
         and the final render agree). Off, a pose with 7 or more 3D inliers is
         taken as registered, as a plain SIFT + EPnP pipeline does (the
         benchmark's baseline).
+    sun_relight : bool
+        When the photo's sun is known (capture time, sensor record) and the
+        model's texture sun too (``survey.json``) or the model is untextured,
+        match against renders relit for the photo's sun with cast shadows.
+    edge_align : bool
+        When keypoints do not verify, align the model's structure edges
+        (skyline, occluding contours, creases, strata contacts) to the
+        photo's edges, then match keypoints again from there.
+    dense_refine : bool
+        When keypoints do not verify, refine the best pose by maximising the
+        mutual information of photo and render, then match again.
     """
 
     # Wallis on both images by default: it pulls the photo's and the render's
@@ -88,6 +99,11 @@ class RegistrationParams:
     search_prior: bool = True
     n_search: int = 12
     verify: bool = True
+    # Illumination-robust stages (used when keypoints on the plain render do
+    # not verify; an untextured model is lit by the photo's sun from the start).
+    sun_relight: bool = True
+    edge_align: bool = True
+    dense_refine: bool = True
 
     @classmethod
     def baseline(cls) -> RegistrationParams:
@@ -106,6 +122,9 @@ class RegistrationParams:
             max_trials=1,
             search_prior=False,
             verify=False,
+            sun_relight=False,
+            edge_align=False,
+            dense_refine=False,
         )
 
     def copy(self) -> RegistrationParams:

@@ -130,11 +130,13 @@ class Trial:
     origin: str = "prior"
     seconds: float = 0.0
     correspondences: Correspondences | None = None
+    render_mode: str = "plain"
 
     def to_dict(self) -> dict:
         return {
             "index": self.index,
             "origin": self.origin,
+            "render_mode": self.render_mode,
             "params": self.params.to_dict(),
             "metrics": self.metrics,
             "Q": self.q,
@@ -214,6 +216,28 @@ class _Context:
         self._photo_rgb = photo_rgb
         self._photo_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._feature_cache: dict[tuple, Features] = {}
+        #: Toward the photo's sun (local frame), when known and usable.
+        self.sun: np.ndarray | None = None
+
+    @property
+    def photo(self) -> np.ndarray:
+        return self._photo_rgb
+
+    def render(self, pose: Pose, scale: float, mode: str = "plain",
+               intrinsics: Intrinsics | None = None) -> RenderResult:
+        """Render for matching: ``plain`` (texture or colours as they are) or
+        ``sunlit`` (relit for the photo's sun with cast shadows)."""
+        intr = intrinsics or self.intrinsics
+        t0 = time.perf_counter()
+        if mode == "sunlit" and self.sun is not None:
+            from .sun import render_sunlit
+
+            rendered = render_sunlit(self.scene, intr, pose, self.sun, scale=scale,
+                                     survey_sun_dir=self.scene.survey_sun)
+        else:
+            rendered = render(self.scene, intr, pose, scale=scale)
+        self.timings["render"] += time.perf_counter() - t0
+        return rendered
 
     def photo_at(self, width: int) -> tuple[np.ndarray, float]:
         """The photo resized to ``width`` (never enlarged) and the scale used."""
@@ -290,7 +314,7 @@ def _pose_change(a: Pose, b: Pose) -> tuple[float, float]:
 
 
 def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
-           near: bool = False):
+           near: bool = False, mode: str = "plain"):
     """One render → match → lift → pose round. Returns (estimate, metrics, corr, render).
 
     ``near``: the render is from a pose estimated in this trial, so it looks
@@ -302,9 +326,7 @@ def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
     guided = near and fp.guided_radius_px > 0
     invariant = fp.invariant_channel and not near
     scale = min(1.0, width / ctx.intrinsics.width)
-    t0 = time.perf_counter()
-    rendered = render(ctx.scene, ctx.intrinsics, pose, scale=scale)
-    ctx.timings["render"] += time.perf_counter() - t0
+    rendered = ctx.render(pose, scale, mode)
     ctx.check()
     photo_feats = ctx.photo_features(params, width, invariant)
     ctx.check()
@@ -395,6 +417,7 @@ def _run_trial(
     origin: str,
     width: int | None = None,
     max_rounds: int | None = None,
+    mode: str = "plain",
 ) -> Generator[tuple[int, int], None, Trial]:
     """Run one trial; yields (round, rounds) before each round, returns the Trial."""
     t_start = time.perf_counter()
@@ -411,7 +434,7 @@ def _run_trial(
         # After a round that found a pose, the next render is close to the
         # photo: luminance features suffice.
         estimate, metrics, corr, _ = _round(ctx, pose, params, width,
-                                            near=last_ok_pose is not None)
+                                            near=last_ok_pose is not None, mode=mode)
         if not estimate.ok:
             if best is None:
                 best = (estimate, metrics, corr)
@@ -465,6 +488,7 @@ def _run_trial(
         origin=origin,
         seconds=time.perf_counter() - t_start,
         correspondences=corr,
+        render_mode=mode,
     )
 
 
@@ -493,6 +517,111 @@ def _perturbed_priors(prior: Prior, n: int, seed: int = 0,
         dxyz = rng.normal(0, 1, 3) * np.array([s_pos, s_pos, 0.5 * s_alt])
         poses.append(Pose.from_attitude(trend + dt, plunge + dp, roll + dr, c + dxyz))
     return poses[:n]
+
+
+def _good(t: Trial) -> bool:
+    return t.verified and t.grade in ("excellent", "good")
+
+
+def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: RegistrationParams,
+                   trials: list[Trial], first_mode: str, options: RegistrationParams,
+                   progress, rounds_of, n_budget: int):
+    """Illumination-robust stages, in order of cost, each ending in a keypoint
+    trial from the pose it found (so every pose is verified the same way):
+    a sun-lit render; edge alignment from the prior; MI refinement of the best
+    pose so far. Stops at the first verified good trial."""
+    mode = "sunlit" if ctx.sun is not None else first_mode
+    base = len(trials)
+
+    def keypoint_trial(start: Pose, origin: str, label: str, at: float):
+        trial = yield from rounds_of(_run_trial(ctx, len(trials), start, params, origin, mode=mode),
+                                     label, base=at, span=0.5)
+        trials.append(trial)
+        return trial
+
+    best = max(trials, key=_trial_rank)
+    if options.sun_relight and mode == "sunlit" and first_mode != "sunlit":
+        start = best.pose if (best.pose is not None and best.metrics.get("inliers_3d", 0) >= 12) \
+            else start_prior
+        trial = yield from keypoint_trial(start, "sun-lit render", "matching a sun-lit render", base)
+        ctx.check()
+        if _good(trial):
+            return
+
+    if options.edge_align:
+        from .edges import align_edges
+
+        yield progress("edges", "aligning the model's edges with the photo's", (base + 0.5) / n_budget)
+        t0 = time.perf_counter()
+        aligned = align_edges(
+            ctx.scene, ctx.photo, ctx.intrinsics, start_prior,
+            render_fn=lambda _scene, intr, pose, scale: ctx.render(pose, scale, mode, intr),
+            cancelled=_raising(ctx.check),
+            position_sigma_m=prior.sigma.position_m, search_position_m=prior.sigma.position_m)
+        ctx.timings["edges"] = ctx.timings.get("edges", 0.0) + time.perf_counter() - t0
+        if aligned.ok:
+            trial = yield from keypoint_trial(aligned.pose, "edges", "matching from the edge pose",
+                                              base + 1.0)
+            extra = {"edge_inlier_fraction": round(aligned.inlier_fraction, 4),
+                     "edge_chamfer_px": round(aligned.score, 3)}
+            trial.metrics.update(extra)
+            ctx.check()
+            if _good(trial):
+                return
+            if trial.pose is None:
+                trials.append(_stage_trial(len(trials), trial, aligned.pose, start_prior, "edges",
+                                           extra, aligned.seconds,
+                                           f"edges agree ({aligned.inlier_fraction:.0%} of the "
+                                           "model's edge points on photo edges) but keypoints do "
+                                           "not confirm the pose: not verified"))
+
+    if options.dense_refine:
+        from .dense import refine_pose_mi
+
+        best = max(trials, key=_trial_rank)
+        start = best.pose if best.pose is not None else start_prior
+        yield progress("dense", "refining by mutual information", (base + 1.5) / n_budget)
+        t0 = time.perf_counter()
+        refined = refine_pose_mi(
+            ctx.scene, ctx.photo, ctx.intrinsics, start,
+            render_fn=lambda pose, scale: ctx.render(pose, scale, mode),
+            cancelled=_raising(ctx.check), max_seconds=6.0)
+        ctx.timings["dense"] = ctx.timings.get("dense", 0.0) + time.perf_counter() - t0
+        if refined.improved:
+            trial = yield from keypoint_trial(refined.pose, "mutual information",
+                                              "matching from the MI pose", base + 1.5)
+            extra = {"mi_nmi": round(refined.nmi, 4),
+                     "mi_sharpness": round(float(getattr(refined, "sharpness", float("nan"))), 4)}
+            trial.metrics.update(extra)
+            if trial.pose is None and not _good(trial):
+                trials.append(_stage_trial(len(trials), trial, refined.pose, start, "mutual information",
+                                           extra, refined.seconds,
+                                           "mutual information peaks here but keypoints do not "
+                                           "confirm the pose: not verified"))
+
+
+def _stage_trial(index: int, keypoint_trial: Trial, pose: Pose, start: Pose, origin: str,
+                 extra: dict, seconds: float, hint: str) -> Trial:
+    """A pose found by edges or mutual information that keypoints could not
+    confirm: kept (it is usually far better than the prior, a start for the
+    manual registration) but never graded above "poor" — an MI or edge optimum
+    alone can be a wrong pose."""
+    metrics = {**keypoint_trial.metrics, **extra}
+    q = min(keypoint_trial.q, -0.01)
+    return Trial(
+        index=index, params=keypoint_trial.params, metrics=metrics, q=q,
+        grade=grade_of(min(q, -0.01)).name, hints=[hint, *keypoint_trial.hints], pose=pose,
+        start_pose=start, rounds=0, converged=False, verified=False,
+        residual_flow_px=float("inf"), origin=origin, seconds=seconds,
+        render_mode=keypoint_trial.render_mode)
+
+
+def _raising(check: Callable[[], None]) -> Callable[[], bool]:
+    """A ``cancelled()`` poll for the stages that raises :class:`Cancelled` itself."""
+    def poll() -> bool:
+        check()
+        return False
+    return poll
 
 
 def register_photo(
@@ -551,7 +680,16 @@ def register_photo(
             f"prior camera {EYE_HEIGHT_M - lift:+.1f} m above the model surface: "
             f"lifted to {EYE_HEIGHT_M:g} m above it"
         )
-    n_budget = max(1, params.max_trials) + (1 if params.search_prior else 0)
+    untextured = not (scene.has_texture or scene.vertex_colors is not None)
+    # Relighting needs the photo's sun, and the texture's own sun to divide
+    # out (an untextured model has none): without it, it does more harm than good.
+    if params.sun_relight and prior.sun is not None and (untextured or scene.survey_sun is not None):
+        ctx.sun = prior.sun
+        assumptions.append(f"sun from the {prior.sun_source}")
+    first_mode = "sunlit" if (untextured and ctx.sun is not None) else "plain"
+    robust = params.sun_relight or params.edge_align or params.dense_refine
+    n_budget = (max(1, params.max_trials) + (1 if params.search_prior else 0)
+                + (2 if robust else 0))
 
     def progress(stage: str, msg: str, done: float) -> Progress:
         return Progress(stage, min(0.99, done), msg, len(trials) + 1)
@@ -571,9 +709,13 @@ def register_photo(
                 return stop.value
             yield progress("trial", f"{label}, round {k + 1}/{n}", (base + span * k / n) / n_budget)
 
-    for trial_no in range(params.max_trials if params.auto_adapt else 1):
+    # Keypoints of a bare mesh's shading rarely match a photo's rock colours:
+    # one trial to try, then the structure and dense stages.
+    n_keypoint_trials = 1 if (untextured and robust) else (
+        params.max_trials if params.auto_adapt else 1)
+    for trial_no in range(n_keypoint_trials):
         trial = yield from rounds_of(
-            _run_trial(ctx, len(trials), start, current, origin),
+            _run_trial(ctx, len(trials), start, current, origin, mode=first_mode),
             f"trial {trial_no + 1}: {current.features.name}")
         trials.append(trial)
         check()
@@ -593,7 +735,7 @@ def register_photo(
             start, origin = trial.pose, f"trial {trial.index + 1}"
 
     best = max(trials, key=_trial_rank)
-    if not best.verified and params.search_prior:
+    if not best.verified and params.search_prior and not (untextured and robust):
         # Search the prior's uncertainty at reduced resolution, one round each.
         candidates = [_above_ground(scene, c)[0]
                       for c in _perturbed_priors(prior, params.n_search, start=start_prior)]
@@ -603,16 +745,21 @@ def register_photo(
             yield progress("search", f"searching the prior's uncertainty ({k + 1}/{len(candidates)})",
                            (len(trials) + 0.5 * k / len(candidates)) / n_budget)
             t = run_to_end(_run_trial(ctx, -1, cand, best.params, "search",
-                                      width=search_width, max_rounds=2))
+                                      width=search_width, max_rounds=2, mode=first_mode))
             if t.pose is not None:
                 scored.append(t)
             check()
         if scored:
             lead = max(scored, key=lambda t: (t.metrics.get("inliers_3d", 0), t.q))
             trial = yield from rounds_of(
-                _run_trial(ctx, len(trials), lead.pose, best.params, "search"),
+                _run_trial(ctx, len(trials), lead.pose, best.params, "search", mode=first_mode),
                 "refining the best start from the search", base=len(trials) + 0.5, span=0.5)
             trials.append(trial)
+        best = max(trials, key=_trial_rank)
+
+    if robust and not _good(best):
+        yield from _robust_stages(ctx, prior, start_prior, best.params, trials, first_mode,
+                                  params, progress, rounds_of, n_budget)
         best = max(trials, key=_trial_rank)
 
     if params.verify:
