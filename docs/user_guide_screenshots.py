@@ -111,9 +111,12 @@ def main() -> None:
     fp.link_check.setChecked(False)
     idle()
 
-    # 5. Register: a strict first Run (fair), the hint and the suggestion.
+    # 5. Register: a strict first Run (fair), the hint and the suggestion
+    # (keypoints only: the stages for another light come in step 10).
     wb.show_tab("Register")
     rp = wb.register_panel
+    for check in (rp.sun_relight_check, rp.edge_align_check, rp.dense_refine_check):
+        check.setChecked(False)
     rp.threshold_spin.setValue(3.0)
     rp.max_features_spin.setValue(600)
     rp.outlier_check.setChecked(True)
@@ -175,6 +178,41 @@ def main() -> None:
     # 9. The Interpret tab: the interpretation tools docked in the workbench.
     wb.show_tab("Interpret")
     shot("interpret")
+
+    # 10. Another sun: the third photo (a low morning sun from the east; the
+    # texture was lit from the south-south-east). A Run with a detector too
+    # strict for keypoints to verify goes through the stages for another
+    # light; Auto with the defaults registers; the sun-lit preview shows the
+    # model under the photo's sun.
+    from napari_imgreg.params import RegistrationParams
+
+    wb.scene_panel.photo_list.setCurrentRow(2)
+    idle()
+    wb.show_tab("Register")
+    ctrl.set_blend(visible=False)
+    ctrl.params = RegistrationParams()
+    ctrl.params_changed.emit()
+    rp.threshold_spin.setValue(4.0)
+    rp.max_features_spin.setValue(500)
+    rp.run_button.click()
+    wait(lambda: bool(ctrl.current.trials) and not ctrl.is_running("registration"))
+    ctrl.params = RegistrationParams()
+    ctrl.params_changed.emit()
+    rp.auto_button.click()
+    wait(lambda: ctrl.current.runs >= 2 and not ctrl.is_running("registration"))
+    idle()
+    rp.corr_check.setChecked(False)
+    rp.blend_check.setChecked(False)
+    rp.sun_box.preview_check.setChecked(True)
+    idle()
+    viewer.layers.selection.active = ctrl.layers.get("render")
+    ctrl.fit_2d()
+    cam = ctrl.camera
+    h = ctrl.layers.height
+    cam.center = (cam.center[0], 0.4 * h, cam.center[-1])
+    cam.zoom *= 1.2
+    wb.tabs.currentWidget().ensureWidgetVisible(rp.sun_box)
+    shot("sun")
 
     viewer.close()
 

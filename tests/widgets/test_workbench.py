@@ -12,8 +12,9 @@ import pytest
 from qtpy.QtCore import QPoint, Qt
 
 from napari_imgreg._layers import napari_from_pixels
+from napari_imgreg.io.photos import load_photo
 from napari_imgreg.manual import filtered_for_matching
-from napari_imgreg.io.records import load_sensor_record, prior_from_record
+from napari_imgreg.io.records import load_sensor_record, prior_for_photo, prior_from_record
 from napari_imgreg.quality import GRADES, METRICS
 from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._controller import GAP, controller_for
@@ -227,7 +228,11 @@ def test_run_apply_suggestion_auto_to_good_and_restore_an_earlier_trial(workbenc
     wb.pose_panel.nudge_buttons["turn left"].click()
     _idle(wb, qtbot)
 
-    # A first Run with a too strict detector: few points, the rules say why.
+    # A first Run with a too strict detector: few points, the rules say why
+    # (keypoints only: the stages for another light are the subject of other tests).
+    for check in (reg_panel.sun_relight_check, reg_panel.edge_align_check,
+                  reg_panel.dense_refine_check):
+        check.setChecked(False)
     reg_panel.threshold_spin.setValue(4.0)
     reg_panel.max_features_spin.setValue(500)
     assert reg_panel.preset_combo.currentText() == "(custom)"
@@ -320,6 +325,181 @@ def test_errors_become_one_line_messages(workbench, qtbot, tmp_path):
     job, message = failed.args
     assert job == "open scene" and "missing.obj" in message and "\n" not in message
     assert message in wb.status_label.text()
+
+
+# --------------------------------------------------------- another light
+def _angle_deg(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    c = a @ b / (np.linalg.norm(a) * np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def test_light_stage_checkboxes_edit_the_parameters_both_ways(workbench, qtbot):
+    wb = workbench
+    panel, ctrl = wb.register_panel, wb.controller
+    checks = {"sun_relight": panel.sun_relight_check, "edge_align": panel.edge_align_check,
+              "dense_refine": panel.dense_refine_check}
+    for name, check in checks.items():
+        assert check.isChecked() == getattr(ctrl.params, name) is True  # the defaults
+        assert check.toolTip()
+        check.setChecked(False)
+        assert getattr(ctrl.params, name) is False
+    panel.preset_combo.setCurrentIndex(panel.preset_combo.findData("ORB"))
+    assert not any(c.isChecked() for c in checks.values())  # a preset is features only
+    ctrl.params.edge_align = True  # e.g. a restored trial's parameters
+    ctrl.params_changed.emit()
+    assert panel.edge_align_check.isChecked() and not panel.dense_refine_check.isChecked()
+
+
+def test_sun_box_shows_the_exif_sun_and_a_hand_set_sun_is_the_one_registered(
+        workbench, qtbot, monkeypatch):
+    from napari_imgreg import pipeline
+    from napari_imgreg.sun import sun_vector_enu
+
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    ps, box = ctrl.current, wb.register_panel.sun_box
+    wb.show_tab("Register")
+    exif_sun = prior_for_photo(load_photo(ps.photo.path), ctrl.scene).sun
+    assert exif_sun is not None
+    assert "from EXIF time 2024-" in box.source_label.text()
+    assert ctrl.scene.georef.crs in box.north_label.text()
+    conv = ctrl.convergence_deg()
+    assert 0.5 < abs(conv) < 2.0  # the sample lies off its UTM zone's central meridian
+    shown = sun_vector_enu(box.azimuth_spin.value() - conv, box.elevation_spin.value())
+    assert _angle_deg(shown, exif_sun) < 0.1
+    az_true, el = ctrl.sun_angles()
+    grid_az = np.degrees(np.arctan2(exif_sun[0], exif_sun[1])) % 360
+    assert az_true == pytest.approx((grid_az + conv) % 360, abs=1e-6)  # true = grid + conv
+    assert not box.reset_button.isEnabled()
+    assert box.note_label.isHidden()  # survey.json gives the texture's sun: it will relight
+    wb.register_panel.sun_relight_check.setChecked(False)
+    assert "Sun-lit matching is off" in box.note_label.text() and not box.note_label.isHidden()
+    wb.register_panel.sun_relight_check.setChecked(True)
+
+    # Swing the sun round by hand: it is this photo's sun from now on.
+    box.azimuth_spin.setValue(az_true + 40.0)
+    assert ps.sun_override is not None and ps.sun_source == "hand setting"
+    assert ctrl.sun_angles()[0] == pytest.approx(round(az_true, 1) + 40.0, abs=1e-6)
+    assert _angle_deg(ps.sun, exif_sun) > 20.0
+    assert "set by hand" in box.source_label.text() and box.reset_button.isEnabled()
+
+    # The registration starts from a prior carrying that sun.
+    seen = []
+
+    def fake_register(scene, image, prior, params, **kwargs):
+        seen.append((prior, params))
+        raise pipeline.Cancelled()
+        yield  # a generator, as the real one
+
+    monkeypatch.setattr(pipeline, "register_photo", fake_register)
+    with qtbot.waitSignal(ctrl.registration_finished, timeout=10_000):
+        wb.register_panel.run_button.click()
+    prior, params = seen[0]
+    np.testing.assert_allclose(prior.sun, ps.sun)
+    assert prior.sun_source == "hand setting" and prior.pose is ps.pose
+    assert prior.sigma == ps.prior.sigma and params.sun_relight
+
+    box.reset_button.click()
+    assert ps.sun_override is None and _angle_deg(ps.sun, exif_sun) < 1e-9
+    assert box.azimuth_spin.value() == pytest.approx(az_true, abs=0.05)
+    _idle(wb, qtbot)
+    with qtbot.waitSignal(ctrl.registration_finished, timeout=10_000):
+        wb.register_panel.run_button.click()
+    np.testing.assert_allclose(seen[1][0].sun, exif_sun)
+    assert seen[1][0].sun_source.startswith("EXIF time")
+
+
+def test_sun_lit_preview_and_the_sun_read_from_the_photo(workbench, qtbot):
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    ps, box = ctrl.current, wb.register_panel.sun_box
+    layer = ctrl.layers.get("render")
+    plain = layer.data.copy()
+    mask = ctrl.last_render.mask
+    assert ctrl.shown_look == ("plain",) and layer.name == "render"
+
+    with qtbot.waitSignal(ctrl.render_shown, timeout=20_000,
+                          check_params_cb=lambda kind: kind == "full"):
+        box.preview_check.setChecked(True)
+    assert ctrl.shown_look[0] == "sunlit" and layer.name == "render (sun-lit)"
+    np.testing.assert_allclose(ctrl.shown_look[1], ps.sun)
+    lit = layer.data.copy()
+    diff = np.abs(lit.astype(float) - plain.astype(float)).mean(axis=-1)
+    assert diff[mask].mean() > 5.0  # morning sun from the east, texture lit from the SSE
+    assert np.array_equal(lit[~mask], plain[~mask])  # the sky stays
+
+    # Move the sun: the relit render follows (reduced first, then full).
+    az, el = ctrl.sun_angles()
+    with qtbot.waitSignal(ctrl.render_shown, timeout=20_000,
+                          check_params_cb=lambda kind: kind == "full"):
+        box.azimuth_spin.setValue((az + 90.0) % 360)
+    assert not np.array_equal(layer.data, lit)
+
+    # Read the sun from the photo, from the true pose: close to the EXIF sun.
+    truth = load_truth(ps.photo.path)
+    ctrl.set_pose(truth.pose, "true pose")
+    with qtbot.waitSignal(ctrl.sun_estimated, timeout=20_000) as estimated:
+        box.estimate_button.click()
+    est = estimated.args[0]
+    assert est is not None and ps.sun_estimate is est
+    assert _angle_deg(est.direction, ps.prior.sun) < 6.0
+    assert ps.sun_source.startswith("photo's shading")
+    assert "read from the photo's shading" in box.source_label.text()
+    assert box.azimuth_spin.value() == pytest.approx(ctrl.sun_angles()[0], abs=0.05)
+    _idle(wb, qtbot)
+    assert ctrl.shown_look == ("sunlit", tuple(ps.sun))
+
+    box.preview_check.setChecked(False)
+    _idle(wb, qtbot)
+    assert ctrl.shown_look == ("plain",) and layer.name == "render"
+
+
+def test_trial_history_says_where_each_pose_came_from_and_how_the_render_was_lit(
+        workbench, qtbot):
+    from napari_imgreg.params import RegistrationParams
+    from napari_imgreg.pipeline import Trial
+    from napari_imgreg.widgets._controller import TrialRecord
+    from napari_imgreg.widgets._quality import HISTORY_COLUMNS
+
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    ps = ctrl.current
+    for k, (origin, mode) in enumerate((("prior", "plain"), ("sun-lit render", "sunlit"),
+                                        ("edges", "sunlit"), ("mutual information", "plain"))):
+        trial = Trial(index=k, params=RegistrationParams(), metrics={}, q=-0.5, grade="poor",
+                      hints=[], pose=None, start_pose=ps.pose, rounds=1, converged=False,
+                      verified=False, residual_flow_px=float("inf"), origin=origin,
+                      render_mode=mode)
+        ps.trials.append(TrialRecord(trial, 1, "Auto"))
+    ctrl.trials_changed.emit()
+    history = wb.quality.history
+    col = {name: HISTORY_COLUMNS.index(name) for name in ("trial", "from", "grade")}
+    assert [history.item(r, col["from"]).text() for r in range(4)] == [
+        "prior", "sun-lit render", "edges ☀", "mutual information"]
+    tip = history.item(2, col["from"]).toolTip()
+    assert "edges" in tip and "relit for the photo's sun" in tip
+    assert "as textured" in history.item(3, col["from"]).toolTip()
+    assert history.item(0, col["grade"]).text() == "poor"
+    assert ps.trials[2].label.endswith("(edges, sun-lit render)")
+
+    # Correspondences of trials with many, then few lines, drawn while hidden
+    # (napari does not re-slice a hidden layer: its colours must not go stale).
+    from napari_imgreg.pipeline import Correspondences
+
+    rng = np.random.default_rng(0)
+    for rec, n in zip(ps.trials[:2], (40, 5)):
+        pts = rng.uniform(0, 700, (n, 2))
+        rec.trial.correspondences = Correspondences(pts, pts + 3.0, np.ones(n, bool),
+                                                    np.ones(n, bool), np.ones(n, bool))
+    ctrl.select_trial(0)
+    lines = ctrl.layers.get("correspondences")
+    assert lines.visible and len(lines.data) == 40
+    wb.register_panel.corr_check.setChecked(False)
+    ctrl.select_trial(1)
+    assert not lines.visible
+    wb.register_panel.corr_check.setChecked(True)
+    assert lines.visible and len(lines.data) == 5 and len(lines.edge_color) == 5
 
 
 # ----------------------------------------------------------------- manual

@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import inspect
 import logging
+import math
 import threading
 import time
 import weakref
@@ -52,6 +53,7 @@ __all__ = [
     "controller_for",
     "one_line",
     "PREVIEW_WIDTH",
+    "RENDER_NAMES",
     "PAIR_COLORS",
     "CORRESPONDENCE_COLORS",
 ]
@@ -62,6 +64,10 @@ log = logging.getLogger(__name__)
 PREVIEW_WIDTH = 400
 #: Idle time after the last pose edit before the full-resolution render, ms.
 FULL_RENDER_DELAY_MS = 350
+#: Width (pixels) at which the sun is read from a photo (its shading is broad).
+SUN_ESTIMATE_WIDTH = 1024
+#: Render layer names: as textured, and relit for the photo's sun.
+RENDER_NAMES = {"plain": "render", "sunlit": "render (sun-lit)"}
 #: Metadata key of an interpretation layer naming its photo layer (interpret_widget).
 INTERPRETATION_OF = "imgreg_interpretation_of"
 #: Correspondence lines drawn at most (an even sample of them).
@@ -176,7 +182,13 @@ class TrialRecord:
         t = self.trial
         if self.kind == "Manual":
             return "manual pairs"
-        return f"{self.kind} {self.run}: {t.params.features.name} ({t.origin})"
+        light = ", sun-lit render" if self.sunlit and t.origin != "sun-lit render" else ""
+        return f"{self.kind} {self.run}: {t.params.features.name} ({t.origin}{light})"
+
+    @property
+    def sunlit(self) -> bool:
+        """Matched against a render relit for the photo's sun."""
+        return getattr(self.trial, "render_mode", "plain") == "sunlit"
 
 
 @dataclass(eq=False)
@@ -215,6 +227,20 @@ class PhotoState:
     pairs_reference: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     selected_trial: int | None = None
     runs: int = 0
+    sun_override: np.ndarray | None = None
+    sun_override_source: str = ""
+    sun_estimate: Any = None  # the last SunEstimate read from the photo
+    _convergence: float | None = None
+
+    @property
+    def sun(self) -> np.ndarray | None:
+        """Toward the sun at capture, local frame: set by hand or read from the
+        photo (``sun_override``), else the prior's (None: unknown)."""
+        return self.sun_override if self.sun_override is not None else self.prior.sun
+
+    @property
+    def sun_source(self) -> str:
+        return self.sun_override_source if self.sun_override is not None else self.prior.sun_source
 
     @property
     def name(self) -> str:
@@ -359,9 +385,14 @@ class _Layers:
             layer.data = image
         return layer
 
-    def show_render(self, rgb: np.ndarray, blend_opacity: float, blend_visible: bool) -> None:
-        """The render (at the photo's size) right of the photo, and over it for blending."""
-        self._show_rgb("render", "render", rgb, (1.0, 1.0), (0.0, self.offset))
+    def show_render(self, rgb: np.ndarray, blend_opacity: float, blend_visible: bool,
+                    mode: str = "plain") -> None:
+        """The render (at the photo's size) right of the photo, and over it for
+        blending; ``mode`` "sunlit": relit for the photo's sun (named so)."""
+        layer = self._show_rgb("render", RENDER_NAMES[mode], rgb, (1.0, 1.0), (0.0, self.offset))
+        if getattr(self, "_render_mode", "plain") != mode:  # renamed on a change only
+            layer.name = RENDER_NAMES[mode]
+        self._render_mode = mode
         self._blend_rgb = rgb
         blend = self.get("blend")
         if blend is None:
@@ -423,11 +454,15 @@ class _Layers:
             layer = self._put("correspondences", self._add(
                 "add_vectors", vectors, name="correspondences", edge_color=colors, edge_width=width,
                 vector_style="line", visible=visible))
+        elif not visible:
+            # napari does not re-slice a hidden layer: new data with fewer lines
+            # than its stale view would break its colours. Updated when shown.
+            layer.visible = False
         else:
+            layer.visible = True
             layer.data = vectors
             layer.edge_color = colors
             layer.edge_width = width
-            layer.visible = visible
         return int(keep.sum())
 
     def show_reference(self, reference: RenderResult) -> None:
@@ -553,6 +588,8 @@ class WorkbenchController(QObject):
     reference_ready = Signal()
     pairs_changed = Signal()
     manual_finished = Signal(object)  # ManualSolution or None
+    sun_changed = Signal()  # the current photo's sun or the sun-lit preview changed
+    sun_estimated = Signal(object)  # SunEstimate, or None when it failed
     busy_changed = Signal()
     status = Signal(str)
     failed = Signal(str, str)  # job, one-line message
@@ -573,6 +610,10 @@ class WorkbenchController(QObject):
         self.blend_opacity = 0.5
         self.blend_visible = False
         self.last_render: RenderResult | None = None
+        #: Show the render relit for the photo's sun (when one is known).
+        self.sun_preview = False
+        #: What the shown render is: ("plain",) or ("sunlit", sun direction).
+        self.shown_look: tuple = ()
         self._shown_full_pose: Pose | None = None
         self._workers: dict[str, Any] = {}
         self._pending: dict[str, tuple] = {}
@@ -935,21 +976,29 @@ class WorkbenchController(QObject):
         pose, intr = ps.pose, ps.intrinsics
         scale = 1.0 if full else min(1.0, PREVIEW_WIDTH / intr.width)
         t0 = since if since is not None else time.perf_counter()
+        look = self.render_look(ps)
 
         def job_fn():
             import cv2
 
             from ..render import render
 
-            result = render(scene, intr, pose, scale=scale)
+            if look[0] == "sunlit":
+                from ..sun import render_sunlit
+
+                # As the pipeline renders for sun-lit matching.
+                result = render_sunlit(scene, intr, pose, np.asarray(look[1]), scale=scale,
+                                       survey_sun_dir=scene.survey_sun)
+            else:
+                result = render(scene, intr, pose, scale=scale)
             rgb = result.rgb
             if scale < 1.0:  # shown at the photo's size: the layers keep their geometry
                 rgb = cv2.resize(rgb, (intr.width, intr.height), interpolation=cv2.INTER_LINEAR)
             return result, rgb
 
         def done(value):
-            if value is None or self.current is not ps:
-                return
+            if value is None or self.current is not ps or look != self.render_look(ps):
+                return  # another photo, or the light changed: its own render follows
             result, rgb = value
             current = ps.pose
             if full:
@@ -959,7 +1008,8 @@ class WorkbenchController(QObject):
                 self.last_render = result
             elif self._shown_full_pose is current:
                 return  # the full render of this pose is already shown
-            self.layers.show_render(rgb, self.blend_opacity, self.blend_visible)
+            self.layers.show_render(rgb, self.blend_opacity, self.blend_visible, mode=look[0])
+            self.shown_look = look
             # Shown this long after the latest edit (t0: the oldest one served).
             self.latency[job] = time.perf_counter() - max(t0, self._asked.get(job, t0))
             if full:
@@ -1052,7 +1102,7 @@ class WorkbenchController(QObject):
         if not auto:
             params.search_prior = False
             params.max_trials = 1
-        prior = Prior(ps.intrinsics, ps.pose, ps.prior.sigma, list(ps.prior.assumptions))
+        prior = self.registration_prior(ps)
         image, name = ps.photo.image, ps.name
         kind = "Auto" if auto else "Run"
         self._cancel = False
@@ -1090,6 +1140,17 @@ class WorkbenchController(QObject):
                              on_failed=failed,
                              progress={"total": 100, "desc": f"Registering {name}"})
         state["pbar"] = getattr(worker, "pbar", None)
+
+    def registration_prior(self, ps: PhotoState | None = None) -> Prior:
+        """The prior a registration of the photo starts from: its current camera
+        and pose, its prior's uncertainty and notes, and its sun (the one set
+        by hand or read from the photo, else the prior's)."""
+        ps = ps if ps is not None else self.current
+        sun = ps.sun
+        return replace(ps.prior, intrinsics=ps.intrinsics, pose=ps.pose,
+                       assumptions=list(ps.prior.assumptions),
+                       sun=None if sun is None else np.array(sun, float),
+                       sun_source=ps.sun_source)
 
     def cancel_registration(self) -> None:
         """Stop the running registration (or manual scoring) at its next step."""
@@ -1178,6 +1239,133 @@ class WorkbenchController(QObject):
         self.params_changed.emit()
         self.status.emit(f"parameters adapted (rule {hit.rule}): {hit.adaptation}")
         return True
+
+    # ----------------------------------------------------------------- sun
+    def render_look(self, ps: PhotoState | None = None) -> tuple:
+        """How the render of the photo is lit: ("sunlit", its sun as a tuple)
+        with the sun-lit preview on and a sun known, else ("plain",)."""
+        ps = ps if ps is not None else self.current
+        sun = ps.sun if ps is not None and self.sun_preview else None
+        return ("plain",) if sun is None else ("sunlit", tuple(float(v) for v in sun))
+
+    def convergence_deg(self, ps: PhotoState | None = None) -> float:
+        """Meridian convergence at the photo's prior camera, degrees: grid
+        azimuth = true azimuth − convergence (0 without a georeference, the
+        model's +Y then taken as true north)."""
+        ps = ps if ps is not None else self.current
+        scene = self.scene
+        if ps is None or scene is None or scene.georef is None:
+            return 0.0
+        if ps._convergence is None:
+            from ..sun import meridian_convergence_deg
+
+            ps._convergence = float(meridian_convergence_deg(scene.georef, ps.prior.pose.center))
+        return ps._convergence
+
+    def sun_angles(self, ps: PhotoState | None = None) -> tuple[float, float] | None:
+        """The photo's sun as (azimuth from TRUE north, elevation), degrees; None: unknown."""
+        ps = ps if ps is not None else self.current
+        if ps is None or ps.sun is None:
+            return None
+        d = np.asarray(ps.sun, float)
+        d = d / np.linalg.norm(d)
+        grid_az = math.degrees(math.atan2(d[0], d[1]))
+        elevation = math.degrees(math.asin(float(np.clip(d[2], -1.0, 1.0))))
+        return (grid_az + self.convergence_deg(ps)) % 360.0, elevation
+
+    def set_sun(self, direction, source: str = "hand setting") -> None:
+        """Override the current photo's sun (unit vector toward it, local frame);
+        ``source`` completes "sun from the …" in the registration's notes."""
+        ps = self.current
+        if ps is None:
+            return
+        d = np.asarray(direction, float).reshape(3)
+        ps.sun_override = d / np.linalg.norm(d)
+        ps.sun_override_source = source
+        self._sun_edited()
+
+    def set_sun_angles(self, azimuth_true_deg: float, elevation_deg: float,
+                       source: str = "hand setting") -> None:
+        """Set the current photo's sun by its azimuth from TRUE north and its elevation."""
+        from ..sun import sun_vector_enu
+
+        if self.current is None:
+            return
+        grid = float(azimuth_true_deg) - self.convergence_deg()
+        self.set_sun(sun_vector_enu(grid, float(elevation_deg)), source)
+
+    def reset_sun(self) -> None:
+        """Back to the prior's sun (capture time or sensor record)."""
+        ps = self.current
+        if ps is None or ps.sun_override is None:
+            return
+        ps.sun_override, ps.sun_override_source = None, ""
+        self._sun_edited()
+
+    def set_sun_preview(self, on: bool) -> None:
+        """Show the render relit for the photo's sun instead of as textured."""
+        on = bool(on)
+        if on == self.sun_preview:
+            return
+        self.sun_preview = on
+        self.sun_changed.emit()
+        if self.current is not None and self.current.sun is None and on:
+            self.status.emit("sun-lit preview: this photo's sun is unknown; set it, or read "
+                             "it from the photo")
+        self._shown_full_pose = None
+        self.request_render(full=False)
+        self.request_render(full=True)
+
+    def _sun_edited(self) -> None:
+        self.sun_changed.emit()
+        if self.sun_preview:  # relit quickly, then at full resolution when the edits stop
+            self._shown_full_pose = None
+            self.request_render(full=False)
+            self._full_timer.start()
+
+    def estimate_sun(self) -> None:
+        """Read the current photo's sun from its light and shade against a render
+        from the current pose (in a worker); the result becomes its sun."""
+        ps, scene = self.current, self.scene
+        if ps is None or scene is None:
+            self._notify_error("Load a scene and a photo first.")
+            return
+        if self.is_running("sun"):
+            return
+        intr, pose, image = ps.intrinsics, ps.pose, ps.photo.image
+        survey = scene.survey_sun
+
+        def job():
+            import cv2
+
+            from ..render import render
+            from ..sun import estimate_sun_from_photo
+
+            rendered = render(scene, intr, pose, scale=min(1.0, SUN_ESTIMATE_WIDTH / intr.width))
+            h, w = rendered.shape
+            photo = image if image.shape[:2] == (h, w) else cv2.resize(
+                image, (w, h), interpolation=cv2.INTER_AREA)
+            return estimate_sun_from_photo(photo, rendered, scene=scene, survey_sun_dir=survey)
+
+        def done(est):
+            if est is None:
+                self.sun_estimated.emit(None)
+                return
+            ps.sun_estimate = est
+            ps.sun_override = np.asarray(est.direction, float)
+            ps.sun_override_source = (f"photo's shading (fit r = {est.correlation:.2f}, "
+                                      f"confidence {est.confidence:.2f})")
+            if ps is self.current:
+                self._sun_edited()
+            az, el = self.sun_angles(ps)
+            weak = ("; low confidence: the pose may be off or the light flat — compare the "
+                    "sun-lit preview with the photo" if est.confidence < 0.3 else "")
+            self.status.emit(f"{ps.name}: sun read from the photo: azimuth {az:.1f}° (true), "
+                             f"elevation {el:.1f}°, ±{est.spread_deg:.0f}°{weak}")
+            self.sun_estimated.emit(est)
+
+        self._start("sun", job, on_returned=done, on_failed=lambda m: self.sun_estimated.emit(None),
+                    progress={"desc": "Reading the sun from the photo"})
 
     # -------------------------------------------------------------- manual
     def make_reference(self, source: str = "pose") -> None:

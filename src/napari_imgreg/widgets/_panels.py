@@ -8,6 +8,8 @@ controller runs the jobs and draws the layers.
 from __future__ import annotations
 
 import math
+import re
+from datetime import datetime
 from pathlib import Path
 from typing import Callable
 
@@ -46,8 +48,8 @@ from ..io.photos import PHOTO_SUFFIXES
 from ..manual import MIN_PAIRS, MIN_PAIRS_FOCAL
 from ._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
 
-__all__ = ["ScenePanel", "PosePanel", "FiltersPanel", "RegisterPanel", "ManualPanel",
-           "TerrainMapCanvas"]
+__all__ = ["ScenePanel", "PosePanel", "FiltersPanel", "RegisterPanel", "SunBox", "ManualPanel",
+           "TerrainMapCanvas", "sun_source_text"]
 
 _MESH_FILTER = "Models (*.obj *.ply *.glb *.gltf *.tif *.tiff *.asc);;All files (*)"
 _DEM_FILTER = "DEM (*.tif *.tiff *.asc);;All files (*)"
@@ -852,6 +854,23 @@ class RegisterPanel(QWidget):
         self.trials_spin.setRange(1, 12)
         self.search_check = QCheckBox("search the prior's uncertainty when nothing registers")
         self.verify_check = QCheckBox("verify (converged, photo and render agree)")
+        # Illumination-robust stages: tried in this order when keypoints do not verify.
+        self.sun_relight_check = QCheckBox("match a render lit by the photo's sun")
+        self.sun_relight_check.setToolTip(
+            "Relight the model for the sun of the photo (its capture time, its sensor record, "
+            "or the Sun box below), cast shadows included, and match the photo against that. "
+            "For photos taken under another sun than the model's texture. Needs the texture's "
+            "own sun (survey.json beside the model) unless the model is untextured.")
+        self.edge_align_check = QCheckBox("align the model's edges with the photo's")
+        self.edge_align_check.setToolTip(
+            "Line up the skyline, ridges, overhangs and bedding contacts of the model with the "
+            "edges seen in the photo, then match keypoints again from that pose. Edges survive a "
+            "change of light that defeats keypoints.")
+        self.dense_refine_check = QCheckBox("refine by mutual information")
+        self.dense_refine_check.setToolTip(
+            "Nudge the best pose so far until photo and render agree best as whole images "
+            "(mutual information: no keypoints needed), then match keypoints again from there. "
+            "A pose that keypoints cannot confirm is kept as a start, graded poor at best.")
 
         form = QFormLayout()
         form.addRow("Preset", self.preset_combo)
@@ -876,8 +895,18 @@ class RegisterPanel(QWidget):
         form.addRow(self.search_check)
         form.addRow(self.verify_check)
 
+        light_box = QGroupBox("When keypoints do not verify (another light)")
+        light_layout = QVBoxLayout(light_box)
+        for check in (self.sun_relight_check, self.edge_align_check, self.dense_refine_check):
+            light_layout.addWidget(check)
+        light_layout.addWidget(_hint(
+            "Tried in this order after the keypoint trials, each ending in a keypoint trial "
+            "from the pose it found; the Trials list says which stage found each pose."))
+        self.sun_box = SunBox(controller)
+
         self.run_button = QPushButton("Run")
-        self.run_button.setToolTip("One trial with these parameters, from the current pose")
+        self.run_button.setToolTip("One trial with these parameters, from the current pose "
+                                   "(then the checked stages below it if it does not verify)")
         self.auto_button = QPushButton("Auto")
         self.auto_button.setToolTip("Trials adapted by the rules until the grade is good")
         self.cancel_button = QPushButton("Cancel")
@@ -920,6 +949,8 @@ class RegisterPanel(QWidget):
         params_box = QGroupBox("Parameters")
         params_box.setLayout(form)
         layout.addWidget(params_box)
+        layout.addWidget(light_box)
+        layout.addWidget(self.sun_box)
         layout.addLayout(buttons)
         layout.addWidget(self.progress)
         layout.addWidget(self.status_label)
@@ -946,6 +977,10 @@ class RegisterPanel(QWidget):
         self.trials_spin.valueChanged.connect(lambda v: self._set(None, "max_trials", int(v)))
         self.search_check.toggled.connect(lambda v: self._set(None, "search_prior", bool(v)))
         self.verify_check.toggled.connect(lambda v: self._set(None, "verify", bool(v)))
+        for check, name in ((self.sun_relight_check, "sun_relight"),
+                            (self.edge_align_check, "edge_align"),
+                            (self.dense_refine_check, "dense_refine")):
+            check.toggled.connect(lambda v, name=name: self._set(None, name, bool(v)))
         self.run_button.clicked.connect(lambda: controller.run_registration(auto=False))
         self.auto_button.clicked.connect(lambda: controller.run_registration(auto=True))
         self.cancel_button.clicked.connect(controller.cancel_registration)
@@ -967,6 +1002,8 @@ class RegisterPanel(QWidget):
         setattr(target, name, value)
         if group == "features":
             self._match_preset()
+        elif name == "sun_relight":
+            self.sun_box.refresh_notes()
 
     def _preset(self) -> None:
         name = self.preset_combo.currentData()
@@ -998,7 +1035,11 @@ class RegisterPanel(QWidget):
         _set_quietly(self.trials_spin, int(p.max_trials))
         _set_quietly(self.search_check, p.search_prior)
         _set_quietly(self.verify_check, p.verify)
+        _set_quietly(self.sun_relight_check, p.sun_relight)
+        _set_quietly(self.edge_align_check, p.edge_align)
+        _set_quietly(self.dense_refine_check, p.dense_refine)
         self._match_preset()
+        self.sun_box.refresh_notes()
 
     def _started(self, kind: str) -> None:
         self.progress.setValue(0)
@@ -1027,6 +1068,169 @@ class RegisterPanel(QWidget):
 
     def _sync_blend(self, _source: str = "") -> None:
         _set_quietly(self.blend_check, self.ctrl.blend_visible)
+
+
+# ======================================================================== sun
+def sun_source_text(source: str) -> str:
+    """Where a photo's sun comes from, in words for the Sun box.
+
+    >>> sun_source_text("EXIF time 2024-08-03T07:21:40+00:00")
+    'from EXIF time 2024-08-03 07:21 +00:00'
+    >>> sun_source_text("unknown: no capture time")
+    'unknown — no capture time'
+    """
+    if not source:
+        return "unknown"
+    if source.startswith("unknown"):
+        reason = source.partition(":")[2].strip()
+        return f"unknown — {reason}" if reason else "unknown"
+    m = re.fullmatch(r"(EXIF time|sensor record time) (\S+)", source.strip())
+    if m:
+        what = "EXIF time" if m.group(1) == "EXIF time" else "the sensor record's time"
+        try:
+            when = datetime.fromisoformat(m.group(2))
+        except ValueError:
+            return f"from {what} {m.group(2)}"
+        zone = f" {when.isoformat()[-6:]}" if when.utcoffset() is not None else ""
+        return f"from {what} {when:%Y-%m-%d %H:%M}{zone}"
+    if source == "sensor record sun":
+        return "from the sensor record"
+    if source == "hand setting":
+        return "set by hand"
+    if source.startswith("photo's shading"):
+        return f"read from the {source}"
+    return f"from the {source}"
+
+
+class SunBox(QGroupBox):
+    """The current photo's sun: where it comes from, its azimuth (true north)
+    and elevation to set it by hand, reading it from the photo, and the render
+    relit by it."""
+
+    def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
+        super().__init__("Sun at capture", parent)
+        self.ctrl = controller
+        self.source_label = QLabel("No photo.")
+        self.source_label.setWordWrap(True)
+        self.azimuth_spin = _spin(0.0, 360.0, 1, 1.0, "°")
+        self.azimuth_spin.setWrapping(True)
+        self.azimuth_spin.setToolTip(
+            "Direction of the sun, degrees clockwise from true north (90° east, 180° south). "
+            "Type a value or hold the arrows to swing the sun round; with the sun-lit preview on "
+            "the render's shadows follow.")
+        self.elevation_spin = _spin(-90.0, 90.0, 1, 1.0, "°")
+        self.elevation_spin.setToolTip(
+            "Height of the sun above the horizon, degrees: low sun, long shadows.")
+        self.north_label = _hint("")
+        self.estimate_button = QPushButton("From photo")
+        self.estimate_button.setToolTip(
+            "Read the sun from the photo's light and shade, against a render from the current "
+            "pose (it needs a pose close to right: register first, or set the pose by hand)")
+        self.reset_button = QPushButton("Reset")
+        self.reset_button.setToolTip("Back to the sun of the capture time or the sensor record")
+        self.preview_check = QCheckBox("Sun-lit preview")
+        self.preview_check.setToolTip(
+            "Show the render relit for this sun, cast shadows included, instead of the model's "
+            "texture as surveyed: do its shadows fall where the photo's do?")
+        self.note_label = _hint("")
+
+        angles = QGridLayout()
+        angles.addWidget(QLabel("azimuth"), 0, 0)
+        angles.addWidget(self.azimuth_spin, 0, 1)
+        angles.addWidget(QLabel("elevation"), 0, 2)
+        angles.addWidget(self.elevation_spin, 0, 3)
+        angles.setColumnStretch(1, 1)
+        angles.setColumnStretch(3, 1)
+        buttons = QHBoxLayout()
+        buttons.addWidget(self.estimate_button)
+        buttons.addWidget(self.reset_button)
+        buttons.addWidget(self.preview_check)
+        buttons.addStretch(1)
+        layout = QVBoxLayout(self)
+        layout.addWidget(self.source_label)
+        layout.addLayout(angles)
+        layout.addWidget(self.north_label)
+        layout.addLayout(buttons)
+        layout.addWidget(self.note_label)
+
+        self.azimuth_spin.valueChanged.connect(self._typed)
+        self.elevation_spin.valueChanged.connect(self._typed)
+        self.estimate_button.clicked.connect(controller.estimate_sun)
+        self.reset_button.clicked.connect(controller.reset_sun)
+        self.preview_check.toggled.connect(controller.set_sun_preview)
+        controller.sun_changed.connect(self.refresh)
+        controller.photo_changed.connect(self.refresh)
+        controller.scene_changed.connect(self.refresh)
+        controller.busy_changed.connect(self._busy)
+        self.refresh()
+
+    def _typed(self, _value: float = 0.0) -> None:
+        self.ctrl.set_sun_angles(self.azimuth_spin.value(), self.elevation_spin.value())
+
+    def refresh(self) -> None:
+        ctrl, ps = self.ctrl, self.ctrl.current
+        _set_quietly(self.preview_check, ctrl.sun_preview)
+        for w in (self.azimuth_spin, self.elevation_spin, self.estimate_button,
+                  self.preview_check):
+            w.setEnabled(ps is not None)
+        if ps is None:
+            self.source_label.setText("No photo.")
+            self.reset_button.setEnabled(False)
+            self.north_label.setText("")
+            self.refresh_notes()
+            return
+        angles = ctrl.sun_angles()
+        text = sun_source_text(ps.sun_source)
+        if angles is None:
+            self.source_label.setText(
+                f"<b>{ps.name}</b>: sun {text}. Type its azimuth and elevation, or read it "
+                "from the photo.")
+            grey = "color: #8a8a8a;"
+            _set_quietly(self.azimuth_spin, 180.0)  # placeholders: a sun due south, 45° high
+            _set_quietly(self.elevation_spin, 45.0)
+        else:
+            self.source_label.setText(f"<b>{ps.name}</b>: sun {text}")
+            grey = ""
+            _set_quietly(self.azimuth_spin, angles[0] % 360.0)
+            _set_quietly(self.elevation_spin, angles[1])
+        for spin in (self.azimuth_spin, self.elevation_spin):
+            spin.setStyleSheet(grey)  # greyed: a placeholder until a sun is set
+        self.reset_button.setEnabled(ps.sun_override is not None)
+        scene = ctrl.scene
+        if scene is not None and scene.georef is not None:
+            conv = ctrl.convergence_deg()
+            side = "east" if conv >= 0 else "west"
+            self.north_label.setText(
+                f"Azimuth from true north; the model's grid north is {abs(conv):.2f}° {side} of "
+                f"it here ({scene.georef.crs}).")
+        else:
+            self.north_label.setText("Azimuth from the model's north (no georeference: taken "
+                                     "as true north).")
+        self.refresh_notes()
+        self._busy()
+
+    def refresh_notes(self) -> None:
+        """Say when the registration will not relight, and why."""
+        ctrl, ps, scene = self.ctrl, self.ctrl.current, self.ctrl.scene
+        notes = []
+        if ps is not None and scene is not None:
+            textured = scene.has_texture or scene.vertex_colors is not None
+            if not ctrl.params.sun_relight:
+                notes.append("Sun-lit matching is off (checkbox above).")
+            elif ps.sun is None:
+                notes.append("Registration cannot relight until this photo's sun is known.")
+            elif textured and scene.survey_sun is None:
+                notes.append(
+                    "The sun of the model's texture is unknown (no survey.json beside the "
+                    "model): the registration will not relight, and the preview only guesses "
+                    "the texture's own shading.")
+        self.note_label.setText(" ".join(notes))
+        self.note_label.setVisible(bool(notes))
+
+    def _busy(self) -> None:
+        running = self.ctrl.is_running("sun")
+        self.estimate_button.setEnabled(self.ctrl.current is not None and not running)
+        self.estimate_button.setText("Reading…" if running else "From photo")
 
 
 # ===================================================================== manual

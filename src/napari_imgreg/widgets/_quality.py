@@ -26,7 +26,8 @@ from ..manual import metric_trend
 from ..quality import GRADES, METRICS, REFERENCE_WIDTH_PX, classify
 from ._controller import WorkbenchController
 
-__all__ = ["QualityPanel", "CLASS_COLORS", "TREND_ARROWS"]
+__all__ = ["QualityPanel", "CLASS_COLORS", "TREND_ARROWS", "HISTORY_COLUMNS", "SUNLIT_MARK",
+           "origin_text"]
 
 #: Backgrounds of a metric's class: superior (+1), normal (0), inferior (−1).
 CLASS_COLORS = {1: "#2e7d32", 0: "#8d8d3a", -1: "#c62828"}
@@ -40,6 +41,31 @@ SHORT_LABELS = {
 }
 #: Arrow and colour of a metric's trend against the previous trial.
 TREND_ARROWS = {1: ("▲", "#00e676"), -1: ("▼", "#ff5252"), 0: ("=", "#bdbdbd")}
+#: Trial history columns.
+HISTORY_COLUMNS = ("#", "trial", "from", "Q", "grade", "3D inl.", "error", "✓")
+#: Marks, in the "from" column, a trial matched against a render relit for the photo's sun.
+SUNLIT_MARK = "☀"
+#: What each origin of a trial means (the "from" column's tooltip).
+ORIGINS = {
+    "prior": "matched from the start pose (the prior, or the pose you set)",
+    "search": "matched from the best of the starts tried within the prior's uncertainty",
+    "sun-lit render": "matched against the model relit for the photo's sun",
+    "edges": "pose found by aligning the model's edges with the photo's, then matched",
+    "mutual information": "pose refined by mutual information of photo and render, then matched",
+    "manual": "pose solved from your control-point pairs, then scored",
+}
+
+
+def origin_text(rec) -> tuple[str, str]:
+    """A trial's "from" cell and its tooltip: where its pose came from, and
+    ☀ when it was matched against a render relit for the photo's sun."""
+    t = rec.trial
+    origin = "manual" if rec.kind == "Manual" else t.origin
+    tip = ORIGINS.get(origin, f"matched from the pose of {origin}")
+    if getattr(t, "render_mode", "plain") != "sunlit":
+        return origin, tip + "; render as textured"
+    tip += "; render relit for the photo's sun, cast shadows included"
+    return (origin if origin == "sun-lit render" else f"{origin} {SUNLIT_MARK}"), tip
 
 
 def _grade_range(k: int) -> str:
@@ -114,14 +140,19 @@ class QualityPanel(QWidget):
             "background:#1b5e20; color:#e8f5e9; padding:6px; border-radius:4px;")
         self.adapt_label = QLabel("")
         self.adapt_label.setWordWrap(True)
+        for label in (self.hint_label, self.adapt_label):  # escaped HTML, never guessed
+            label.setTextFormat(Qt.TextFormat.RichText)
         self.adapt_label.setStyleSheet(
             "background:#006064; color:#e0f7fa; padding:6px; border-radius:4px;")
         self.apply_button = QPushButton("Apply suggested parameters")
         self.apply_button.setEnabled(False)
 
-        self.history = QTableWidget(0, 7)
-        self.history.setHorizontalHeaderLabels(
-            ["#", "trial", "Q", "grade", "3D inl.", "error", "✓"])
+        self.history = QTableWidget(0, len(HISTORY_COLUMNS))
+        self.history.setHorizontalHeaderLabels(list(HISTORY_COLUMNS))
+        self.history.horizontalHeaderItem(HISTORY_COLUMNS.index("from")).setToolTip(
+            "Where the trial's pose came from: the start pose, a search, a sun-lit render, "
+            f"edge alignment or mutual information; {SUNLIT_MARK}: matched against the model "
+            "relit for the photo's sun")
         self.history.verticalHeader().setVisible(False)
         self.history.setEditTriggers(QAbstractItemView.NoEditTriggers)
         self.history.setSelectionBehavior(QAbstractItemView.SelectRows)
@@ -149,8 +180,9 @@ class QualityPanel(QWidget):
         hl.addWidget(self.restore_button)
         rl.addWidget(hist_box, 1)
         self._columns = QBoxLayout(QBoxLayout.Direction.TopToBottom, self)
-        self._columns.addWidget(left, 1)
-        self._columns.addWidget(right, 1)
+        # The metrics need less room than the trial history.
+        self._columns.addWidget(left, 2)
+        self._columns.addWidget(right, 3)
         self.hint_label.hide()
         self.adapt_label.hide()
 
@@ -175,19 +207,26 @@ class QualityPanel(QWidget):
         records = ps.trials if ps is not None else []
         self.history.blockSignals(True)
         self.history.setRowCount(len(records))
+        grade_col = HISTORY_COLUMNS.index("grade")
         for r, rec in enumerate(records):
             t = rec.trial
             err = t.metrics.get("reprojection_error_px")
-            cells = [str(r + 1), rec.label, f"{t.q:.2f}", t.grade,
+            origin, origin_tip = origin_text(rec)
+            name = rec.label if rec.kind == "Manual" else \
+                f"{rec.kind} {rec.run}: {t.params.features.name}"
+            cells = [str(r + 1), name, origin, f"{t.q:.2f}", t.grade,
                      str(t.metrics.get("inliers_3d", 0)),
                      f"{err:.2f}" if err is not None else "—",
                      "✓" if t.verified else ""]
+            tips = {1: rec.label, 2: origin_tip}
             for c, text in enumerate(cells):
                 item = QTableWidgetItem(text)
-                if c == 3:
+                if c == grade_col:
                     g = next(g for g in GRADES if g.name == t.grade)
                     item.setBackground(QColor(g.color))
                     item.setForeground(QColor("#111111"))
+                if c in tips:
+                    item.setToolTip(tips[c])
                 self.history.setItem(r, c, item)
         self.history.resizeColumnsToContents()
         self.history.horizontalHeader().setSectionResizeMode(1, QHeaderView.Stretch)

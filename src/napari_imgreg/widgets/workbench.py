@@ -6,7 +6,8 @@ Two docks share one :class:`~._controller.WorkbenchController` per viewer:
   photos with their sensor records, 2D/3D views), *Pose* (values, nudges, the
   DEM map, undo, save to the sensor record), *Filters* (gamma, Wallis,
   brightness/contrast, CLAHE for photo and render, live preview), *Register*
-  (detector–descriptor, parameters, Run / Auto / Cancel, correspondences,
+  (detector–descriptor, parameters, the stages for another light, the
+  photo's sun with a sun-lit preview, Run / Auto / Cancel, correspondences,
   render over the photo), *Manual* (reference render, paired control points,
   solve) and *Interpret* (a place for the interpretation tools).
 * **Registration quality** (under the canvas): the seven metrics, Q and grade,
