@@ -23,6 +23,7 @@ def non_default() -> RegistrationParams:
         pose=PoseParams(reprojection_error_px=9.0, iterations=800, confidence=0.99, refine=False),
         match_width=800, max_iterations=2, converged_deg=0.1, converged_m=0.2,
         auto_adapt=False, max_trials=2, search_prior=False, n_search=5, verify=False,
+        sun_relight=False, edge_align=False, dense_refine=False,
     )
 
 
@@ -31,7 +32,8 @@ def test_dict_round_trip():
     d = p.to_dict()
     assert set(d) == {"photo_filters", "render_filters", "features", "pose", "match_width",
                       "max_iterations", "converged_deg", "converged_m", "auto_adapt",
-                      "max_trials", "search_prior", "n_search", "verify"}
+                      "max_trials", "search_prior", "n_search", "verify",
+                      "sun_relight", "edge_align", "dense_refine"}
     assert RegistrationParams.from_dict(d) == p
     assert RegistrationParams.from_dict(RegistrationParams().to_dict()) == RegistrationParams()
 
@@ -143,6 +145,8 @@ def test_baseline_is_the_plain_pipeline():
     assert b.max_trials == 1 and b.auto_adapt is False
     assert b.search_prior is False
     assert b.verify is False
+    # ... and none of the illumination-robust stages.
+    assert not (b.sun_relight or b.edge_align or b.dense_refine)
     # Each call is a fresh object.
     b.features.ratio = 0.5
     assert RegistrationParams.baseline().features.ratio != 0.5
@@ -152,3 +156,4 @@ def test_baseline_differs_from_the_default_pipeline():
     d, b = RegistrationParams(), RegistrationParams.baseline()
     assert d != b
     assert d.auto_adapt and d.search_prior and d.verify and d.max_iterations > 1
+    assert d.sun_relight and d.edge_align and d.dense_refine
