@@ -502,7 +502,9 @@ def summarize(rows: list[dict]) -> dict:
     out: dict = {"_rows": rows}
     for tier in TIERS + ("all",):
         for method in METHODS:
-            sel = [r for r in rows if r["method"] == method and (tier == "all" or r["tier"] == tier)]
+            # "all": the two textured tiers (issue 3's targets are over them).
+            sel = [r for r in rows if r["method"] == method and (
+                r["tier"] == tier or (tier == "all" and r["tier"] in ("same_light", "changed_light")))]
             if not sel:
                 continue
             reg = [r for r in sel if r["status"] == "registered"]
@@ -565,8 +567,9 @@ def report(summary: dict, meta: dict) -> str:
             if s is None:
                 continue
             one = _f(s["one_trial_s"]) if method != "baseline" else "–"
+            label = "both textured tiers" if tier == "all" else tier
             lines.append(
-                f"| {tier} | {method} | {rate(s)} | {fv(s)} | "
+                f"| {label} | {method} | {rate(s)} | {fv(s)} | "
                 f"{_f(s['cp_median_registered'])} / {_f(s['cp_p95_registered'])} | "
                 f"{_f(s['rot_median_registered'], '{:.3f}')} | "
                 f"{_f(s['pos_median_registered'], '{:.3f}')} | {one} | {_f(s['full_auto_s'])} |"
@@ -596,7 +599,7 @@ def report(summary: dict, meta: dict) -> str:
         f"OpenCV {meta['opencv']}; load average {meta['load']} during the run; "
         f"{meta['wall_min']:.0f} min including {meta['gen_min']:.0f} min generating data, "
         "which is cached in `benchmarks/_cache/`). Per-photo rows: "
-        "`benchmarks/_cache/bench_register_rows.json` and `.csv`.",
+        + ", ".join(f"`{r}.json`" for r in meta.get("rows_files", [])) + " (and `.csv`).",
         MARK_END,
     ]
     return "\n".join(lines)
@@ -619,7 +622,7 @@ def stage_table(rows: list[dict]) -> list[str]:
         sel = [r for r in ours if r["tier"] == tier]
         hard = [r for r in sel if r["n_trials"] > 1]
         for label, group in ((tier, sel), (f"{tier}, hard", hard)):
-            if not group:
+            if not group or (group is hard and len(hard) == len(sel)):
                 continue
             cells = []
             for st in STAGES:
@@ -809,6 +812,12 @@ def main(argv: list[str] | None = None) -> int:
         cmd += f" --scenes {args.scenes}"
     if args.photos:
         cmd += f" --photos {args.photos}"
+    if tiers != list(TIERS):
+        cmd += " --tiers " + ",".join(tiers)
+    if methods != list(METHODS):
+        cmd += " --methods " + ",".join(methods)
+    if args.rows:
+        cmd += f" --rows {args.rows}"
     meta = {
         "size": size,
         "n_scenes": n_scenes,
@@ -835,6 +844,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     meta["tiers"] = tiers
     meta["methods"] = methods
+    meta["rows_files"] = [str(rows_stem.relative_to(HERE.parent)) if rows_stem.is_absolute()
+                          and HERE.parent in rows_stem.parents else str(rows_stem)]
     with atomic_write(rows_stem.with_suffix(".meta.json")) as fh:
         json.dump(meta, fh, indent=1)
     meta["verdicts"] = verdicts(summary)
@@ -856,6 +867,7 @@ def report_from_rows(paths: list[Path], report_path: Path | None) -> int:
     meta["gen_min"] = sum(m["gen_min"] for m in metas)
     meta["load"] = "; ".join(m["load"] for m in metas)
     meta["command"] = " && ".join(m["command"] for m in metas)
+    meta["rows_files"] = [str(p.with_suffix("")) for p in paths]
     meta["verdicts"] = verdicts(summarize(rows))
     section = report(summarize(rows), meta)
     print(section)
