@@ -271,3 +271,21 @@ def test_illumination_invariant_statistics_come_from_the_mask_only():
     np.testing.assert_array_equal(illumination_invariant(black_sky, mask)[:, :15], with_mask[:, :15])
     with pytest.raises(ValueError):
         illumination_invariant(img[..., 0])
+
+
+@pytest.mark.parametrize("reduce_wide", [False, True])
+def test_masked_gaussian_ignores_what_lies_outside_the_mask(reduce_wide):
+    from napari_imgreg.filters import masked_gaussian
+
+    mask = np.zeros((120, 160), bool)
+    mask[:, :100] = True
+    values = np.where(mask, 50.0, 1000.0).astype(np.float32)  # huge values outside
+    for sigma in (2.0, 12.0):
+        out = masked_gaussian(values, mask, sigma, reduce_wide=reduce_wide)
+        # A constant inside the mask stays that constant, right up to the mask's edge.
+        np.testing.assert_allclose(out[mask], 50.0, rtol=1e-4)
+    rgb = np.dstack([values, 2 * values, 3 * values])
+    out = masked_gaussian(rgb, mask, 3.0)
+    np.testing.assert_allclose(out[mask], np.broadcast_to([50.0, 100.0, 150.0], (mask.sum(), 3)),
+                               rtol=1e-4)
+    assert masked_gaussian(values, mask, 0.0) is values

@@ -59,7 +59,8 @@ import cv2
 import numpy as np
 
 from .camera import Intrinsics, Pose
-from .render import RenderResult, render
+from .filters import masked_gaussian
+from .render import RenderResult, _light_direction, render
 from .scene import Scene
 
 __all__ = [
@@ -400,9 +401,9 @@ def _local_contrast(img: np.ndarray, mask: np.ndarray | None, sigma: float) -> n
         detail = img - mean
         spread = np.sqrt(cv2.GaussianBlur(detail * detail, (0, 0), sigma))
     else:
-        mean = _masked_blur(img, mask, sigma)
+        mean = masked_gaussian(img, mask, sigma, reduce_wide=False)
         detail = np.where(mask, img - mean, 0).astype(np.float32)
-        spread = np.sqrt(_masked_blur(detail * detail, mask, sigma))
+        spread = np.sqrt(masked_gaussian(detail * detail, mask, sigma, reduce_wide=False))
     return detail / (spread + 1e-3 * float(np.abs(img).max() + 1.0))
 
 
@@ -478,28 +479,12 @@ def _fibonacci_sphere(n: int) -> np.ndarray:
 _NORMAL_DIRS = _fibonacci_sphere(_N_NORMAL_CLASSES).astype(np.float32)
 
 
-def _masked_blur(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian blur of ``values`` (H, W[, C]) over ``mask`` only (normalised convolution)."""
-    if sigma <= 0:
-        return values
-    m = mask.astype(np.float32)
-    vals = np.where(mask[..., None] if values.ndim == 3 else mask, values, 0).astype(np.float32)
-    num = cv2.GaussianBlur(vals, (0, 0), sigma)
-    den = np.maximum(cv2.GaussianBlur(m, (0, 0), sigma), 1e-6)
-    return num / (den[..., None] if values.ndim == 3 else den)
-
-
 def _quantile_labels(values: np.ndarray, n_bins: int) -> np.ndarray:
     """Labels 1..n_bins-1 by equal-population bins of ``values`` (1-D)."""
     if values.size == 0:
         return np.zeros(0, np.intp)
     edges = np.quantile(values, np.linspace(0.0, 1.0, n_bins)[1:-1])
     return 1 + np.searchsorted(edges, values, side="right")
-
-
-def _default_light(R: np.ndarray) -> np.ndarray:
-    """Toward a light up, left and behind the camera (world frame), as render's default."""
-    return R.T @ np.array([-0.4, -0.6, -0.7])
 
 
 def _samples_from_render(
@@ -549,17 +534,17 @@ def _samples_from_render(
         lab = np.zeros(pick.size, np.intp)
         n_lab = bins
         if mode in ("shaded", "normal", "normal_z") and normals is None:
-            normals = picked(_masked_blur(rr.normal, hit, sigma))
+            normals = picked(masked_gaussian(rr.normal, hit, sigma, reduce_wide=False))
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-6)
         if mode == "color":
-            lum = _masked_blur(_luminance(rr.rgb), hit, sigma)
+            lum = masked_gaussian(_luminance(rr.rgb), hit, sigma, reduce_wide=False)
             lab[hit_s] = _quantile_labels(picked(lum), bins)
         elif mode == "detail":
-            lum = _masked_blur(_luminance(rr.rgb), hit, sigma)
+            lum = masked_gaussian(_luminance(rr.rgb), hit, sigma, reduce_wide=False)
             lab[hit_s] = _quantile_labels(picked(_local_contrast(lum, hit, _DETAIL_PX * stride)),
                                           bins)
         elif mode == "shaded":
-            light = _default_light(pose.R) if light_direction is None else light_direction
+            light = _light_direction(pose.R) if light_direction is None else light_direction
             light = np.asarray(light, np.float32) / np.linalg.norm(light)
             lab[hit_s] = _quantile_labels(np.clip(normals @ light, 0.0, None), bins)
         elif mode == "normal":

@@ -25,6 +25,7 @@ __all__ = [
     "clahe",
     "gradient_magnitude",
     "illumination_invariant",
+    "masked_gaussian",
     "INVARIANT_ALPHA",
 ]
 
@@ -285,3 +286,46 @@ def illumination_invariant(
     if mask is not None:
         out[~mask] = 127
     return out
+
+
+def masked_gaussian(values: np.ndarray, mask: np.ndarray, sigma_px: float,
+                    reduce_wide: bool = True) -> np.ndarray:
+    """Gaussian blur of ``values`` over ``mask`` only (normalised convolution).
+
+    Pixels outside the mask (sky, no model) neither contribute nor get a
+    meaningful value. With ``reduce_wide``, wide blurs (σ ≥ 8 px) run on a
+    reduced image — the result is smooth anyway — which keeps a 30 px σ at a
+    few milliseconds.
+
+    Parameters
+    ----------
+    values : (H, W) or (H, W, C) array
+    mask : (H, W) bool array
+    sigma_px : float
+        Gaussian σ, pixels; ≤ 0 returns ``values`` unchanged.
+    reduce_wide : bool
+        Allow the reduced-image shortcut (off where exact values matter).
+
+    Returns
+    -------
+    (H, W) or (H, W, C) float32 array
+    """
+    if sigma_px <= 0:
+        return values
+    h, w = mask.shape
+    channels = values.ndim == 3
+    num = np.where(mask[..., None] if channels else mask, values, 0).astype(np.float32)
+    den = mask.astype(np.float32)
+    factor = int(sigma_px // 4) if (reduce_wide and sigma_px >= 8.0) else 1
+    if factor > 1:
+        small = (max(1, w // factor), max(1, h // factor))
+        num = cv2.resize(num, small, interpolation=cv2.INTER_AREA)
+        den = cv2.resize(den, small, interpolation=cv2.INTER_AREA)
+        sigma_px = sigma_px * small[0] / w
+    num = cv2.GaussianBlur(num, (0, 0), sigma_px)
+    den = cv2.GaussianBlur(den, (0, 0), sigma_px)
+    if factor > 1:
+        num = cv2.resize(num, (w, h), interpolation=cv2.INTER_LINEAR)
+        den = cv2.resize(den, (w, h), interpolation=cv2.INTER_LINEAR)
+    den = np.maximum(den, 1e-6)
+    return num / (den[..., None] if channels else den)

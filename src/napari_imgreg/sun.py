@@ -47,6 +47,7 @@ import numpy.typing as npt
 
 from .camera import Intrinsics, Pose
 from .errors import InputError
+from .filters import masked_gaussian
 from .geo import Georef, _transformer
 from .render import RenderResult, render
 from .scene import Scene, ray_threads
@@ -883,29 +884,6 @@ def _run_blocks(work, bounds: list[int]) -> None:
         list(pool.map(lambda b: work(*b), pairs))
 
 
-def _masked_blur(img: np.ndarray, mask: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Gaussian blur of ``img`` over ``mask`` only (normalised convolution), (H, W) float32.
-
-    Wide blurs run on a reduced image (the result is smooth anyway), which
-    keeps a 30 px sigma at a few milliseconds.
-    """
-    h, w = mask.shape
-    num = np.where(mask, img, 0.0).astype(np.float32)
-    den = mask.astype(np.float32)
-    factor = int(sigma_px // 4) if sigma_px >= 8.0 else 1
-    if factor > 1:
-        small = (max(1, w // factor), max(1, h // factor))
-        num = cv2.resize(num, small, interpolation=cv2.INTER_AREA)
-        den = cv2.resize(den, small, interpolation=cv2.INTER_AREA)
-        sigma_px = sigma_px * small[0] / w
-    num = cv2.GaussianBlur(num, (0, 0), sigma_px)
-    den = cv2.GaussianBlur(den, (0, 0), sigma_px)
-    if factor > 1:
-        num = cv2.resize(num, (w, h), interpolation=cv2.INTER_LINEAR)
-        den = cv2.resize(den, (w, h), interpolation=cv2.INTER_LINEAR)
-    return num / np.maximum(den, 1e-6)
-
-
 def _shading(cos_i: np.ndarray, lit: np.ndarray | None, ambient: float, gamma: float) -> np.ndarray:
     """``(ambient + (1 - ambient) * cos_i * lit) ** (1 / gamma)``, float32."""
     direct = cos_i if lit is None else cos_i * lit
@@ -1040,7 +1018,7 @@ def relight(
                 pts, nrm = np.take(xyz, idx, axis=0), np.take(n_geo, idx, axis=0)
                 lit[idx[_occluded_toward(scene, pts, nrm, sun, offset)]] = 0.0
         if penumbra_px > 0:
-            lit = _gather(_masked_blur(_scatter(lit, pix, mask.shape), mask, penumbra_px), pix)
+            lit = _gather(masked_gaussian(_scatter(lit, pix, mask.shape), mask, penumbra_px), pix)
         return lit
 
     # --- albedo, (N, 3) float32
@@ -1053,7 +1031,7 @@ def relight(
     elif mode == "lowpass":
         lum = colours @ _LUMA
         sigma = max(1.0, lowpass_sigma * max(h, w))
-        broad = _gather(_masked_blur(_scatter(lum, pix, mask.shape), mask, sigma), pix)
+        broad = _gather(masked_gaussian(_scatter(lum, pix, mask.shape), mask, sigma), pix)
         alb = colours * (float(lum.mean()) / np.maximum(broad, 1.0))[:, None]
     elif mode == "constant":
         alb = np.full_like(colours, GREY_ALBEDO)
@@ -1241,8 +1219,8 @@ def estimate_sun_from_photo(
                           survey_ambient=survey_ambient, shadows=False, penumbra_px=0.0)
     else:
         alb_img = np.full(mask.shape + (3,), GREY_ALBEDO, np.float32)
-    photo_lum = _masked_blur(photo_rgb.astype(np.float32) @ _LUMA, mask, blur_px)
-    alb_lum = _masked_blur(alb_img.astype(np.float32) @ _LUMA, mask, blur_px)
+    photo_lum = masked_gaussian(photo_rgb.astype(np.float32) @ _LUMA, mask, blur_px)
+    alb_lum = masked_gaussian(alb_img.astype(np.float32) @ _LUMA, mask, blur_px)
     ok = inner & (alb_lum > 8.0) & (photo_lum > 1.0)
     idx = np.flatnonzero(ok)
     if len(idx) < 50:
