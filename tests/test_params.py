@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from napari_imgreg.area import AreaParams
 from napari_imgreg.errors import InputError
 from napari_imgreg.features import FeatureParams
 from napari_imgreg.filters import FilterParams
@@ -23,7 +24,8 @@ def non_default() -> RegistrationParams:
         pose=PoseParams(reprojection_error_px=9.0, iterations=800, confidence=0.99, refine=False),
         match_width=800, max_iterations=2, converged_deg=0.1, converged_m=0.2,
         auto_adapt=False, max_trials=2, search_prior=False, n_search=5, verify=False,
-        sun_relight=False, edge_align=False, dense_refine=False,
+        sun_relight=False, edge_align=False, dense_refine=False, area_match=False,
+        area=AreaParams(width=800, template_px=41, stride_px=20, min_score=0.3),
     )
 
 
@@ -33,7 +35,7 @@ def test_dict_round_trip():
     assert set(d) == {"photo_filters", "render_filters", "features", "pose", "match_width",
                       "max_iterations", "converged_deg", "converged_m", "auto_adapt",
                       "max_trials", "search_prior", "n_search", "verify",
-                      "sun_relight", "edge_align", "dense_refine"}
+                      "sun_relight", "edge_align", "dense_refine", "area_match", "area"}
     assert RegistrationParams.from_dict(d) == p
     assert RegistrationParams.from_dict(RegistrationParams().to_dict()) == RegistrationParams()
 
@@ -86,6 +88,8 @@ def test_unknown_nested_field_names_file_section_and_field(tmp_path, section, fi
     ({"features": {"detector": "SIFT", "descriptor": "AKAZE"}}, ["features", "AKAZE"]),
     ({"features": 3}, ["features", "object"]),
     ({"pose": [1, 2]}, ["pose", "object"]),
+    ({"area": {"template_px": 32}}, ["area", "odd"]),
+    ({"area": {"stride": 8}}, ["area", "stride"]),
 ])
 def test_invalid_nested_values_are_input_errors(data, words):
     with pytest.raises(InputError) as err:
@@ -101,6 +105,7 @@ def test_invalid_nested_values_are_input_errors(data, words):
     ({"pose": {"reprojection_error_px": "six"}}, "reprojection_error_px"),
     ({"photo_filters": {"gamma": "x"}}, "gamma"),
     ({"features": {"grid": [8]}}, "grid"),
+    ({"area": {"min_score": "high"}}, "min_score"),
 ])
 def test_ill_typed_fields_are_input_errors(data, field):
     with pytest.raises(InputError, match=field):
@@ -146,7 +151,7 @@ def test_baseline_is_the_plain_pipeline():
     assert b.search_prior is False
     assert b.verify is False
     # ... and none of the illumination-robust stages.
-    assert not (b.sun_relight or b.edge_align or b.dense_refine)
+    assert not (b.sun_relight or b.edge_align or b.dense_refine or b.area_match)
     # Each call is a fresh object.
     b.features.ratio = 0.5
     assert RegistrationParams.baseline().features.ratio != 0.5
@@ -156,4 +161,4 @@ def test_baseline_differs_from_the_default_pipeline():
     d, b = RegistrationParams(), RegistrationParams.baseline()
     assert d != b
     assert d.auto_adapt and d.search_prior and d.verify and d.max_iterations > 1
-    assert d.sun_relight and d.edge_align and d.dense_refine
+    assert d.sun_relight and d.edge_align and d.dense_refine and d.area_match

@@ -113,7 +113,7 @@ def test_adaptation_stops_when_the_rule_has_nothing_left_to_change(sample):
     # detector is already at its most sensitive, so another trial would repeat this one.
     blank = np.full_like(photo.image, 128)
     params = RegistrationParams(max_trials=5, search_prior=False, sun_relight=False,
-                                edge_align=False, dense_refine=False)
+                                edge_align=False, dense_refine=False, area_match=False)
     params.features.threshold_scale = 0.05
     params.features.max_features = 30_000
     reg = register(scene, blank, prior, params)

@@ -56,12 +56,55 @@ def test_untextured_model_registers_a_photo_of_its_shading_under_a_known_sun(sam
     assert "sun from the test" in reg.assumptions
 
 
+def _check_point_px(reg, truth) -> float:
+    proj = reg.pose.project(truth.intrinsics, truth.check_xyz)
+    return float(np.median(np.linalg.norm(proj - truth.check_pixels, axis=1)))
+
+
+def test_untextured_model_registers_a_photo_of_coloured_rock_by_area_matching(sample):
+    folder, scene = sample
+    bare = _bare(scene)
+    jpg = folder / "IMG_0003.jpg"
+    truth = load_truth(jpg)
+    photo = load_photo(jpg)  # bedding colours and texture the bare mesh knows nothing of
+    prior = prior_for_photo(photo, bare)
+    assert prior.sun is not None  # from the photo's EXIF capture time
+    reg = register(bare, photo.image, prior)
+    assert reg.registered, reg.hints
+    best = reg.trials[reg.best_trial]
+    assert best.matcher == "area" and best.render_mode == "sunlit" and best.verified
+    assert best.to_dict()["matcher"] == "area"
+    # From a prior 4.4° and 11.5 m off to about a pixel (1024 px photo).
+    assert prior.pose.rotation_error_deg(truth.pose) > 4
+    assert _check_point_px(reg, truth) < 2.0
+    assert reg.pose.rotation_error_deg(truth.pose) < 0.4
+    assert np.linalg.norm(reg.pose.center - truth.pose.center) < 0.5
+    assert "area" in reg.timings_s
+
+
+def test_area_matching_does_not_verify_a_mirrored_photo(sample):
+    folder, scene = sample
+    bare = _bare(scene)
+    photo = load_photo(folder / "IMG_0003.jpg")
+    prior = prior_for_photo(photo, bare)
+    # The same rock, the same light, the same camera: but not this outcrop's shape.
+    mirrored = np.ascontiguousarray(photo.image[:, ::-1])
+    reg = register(bare, mirrored, prior, RegistrationParams(dense_refine=False))
+    assert reg.status == "failed"
+    assert reg.grade in ("poor", "failed")
+    for t in reg.trials:
+        if t.matcher == "area":
+            assert not t.verified and t.grade in ("poor", "failed")
+            assert t.hints
+
+
 def test_stage_poses_are_never_graded_above_poor(sample):
     folder, scene = sample
     bare = _bare(scene)
-    photo = load_photo(folder / "IMG_0002.jpg")  # rock colours a bare mesh cannot explain
+    photo = load_photo(folder / "IMG_0002.jpg")
     prior = prior_for_photo(photo, bare)
-    reg = register(bare, photo.image, prior, RegistrationParams(n_search=2))
+    # Area matching off: the edge and MI stages' own poses are what is tested.
+    reg = register(bare, photo.image, prior, RegistrationParams(n_search=2, area_match=False))
     for t in reg.trials:
         if t.origin in ("edges", "mutual information") and t.rounds == 0:
             assert t.grade in ("poor", "failed") and not t.verified

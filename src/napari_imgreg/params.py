@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field, fields, replace
 
+from .area import AreaParams
 from .errors import input_error
 from .features import FeatureParams
 from .filters import FilterParams
@@ -77,6 +78,13 @@ class RegistrationParams:
     dense_refine : bool
         When keypoints do not verify, refine the best pose by maximising the
         mutual information of photo and render, then match again.
+    area_match : bool
+        When keypoints do not verify, match blocks of the (sun-lit) render in
+        the photo by correlation (area-based matching) from the best pose so
+        far and from each stage's pose: what registers a bare mesh's shading
+        to a photo of coloured rock.
+    area : AreaParams
+        Settings of the area-based matching.
     """
 
     # Wallis on both images by default: it pulls the photo's and the render's
@@ -104,6 +112,8 @@ class RegistrationParams:
     sun_relight: bool = True
     edge_align: bool = True
     dense_refine: bool = True
+    area_match: bool = True
+    area: AreaParams = field(default_factory=AreaParams)
 
     @classmethod
     def baseline(cls) -> RegistrationParams:
@@ -125,6 +135,7 @@ class RegistrationParams:
             sun_relight=False,
             edge_align=False,
             dense_refine=False,
+            area_match=False,
         )
 
     def copy(self) -> RegistrationParams:
@@ -134,6 +145,7 @@ class RegistrationParams:
             render_filters=replace(self.render_filters),
             features=replace(self.features),
             pose=replace(self.pose),
+            area=replace(self.area),
         )
 
     def to_dict(self) -> dict:
@@ -157,6 +169,7 @@ class RegistrationParams:
             "render_filters": FilterParams,
             "features": FeatureParams,
             "pose": PoseParams,
+            "area": AreaParams,
         }
         names = {f.name for f in fields(cls)}
         kwargs = {}

@@ -63,6 +63,10 @@ MIN_VERIFIED_INLIERS = 15
 #: translation nearly cancel in the image, so the angle/metre test alone can
 #: keep a pose that no longer changes what it shows "moving" for rounds.
 CONVERGED_SHIFT_PX = 0.5
+#: The same for area matching: its blocks are cut anew from every render, so
+#: even at the right pose the estimate jitters by a few tenths of a pixel
+#: between rounds (the residual-flow test still bounds the misfit).
+AREA_CONVERGED_SHIFT_PX = 1.0
 #: A start pose whose camera is less than this above the model's surface is
 #: lifted to eye height above it (see :func:`_above_ground`).
 MIN_GROUND_CLEARANCE_M = 0.5
@@ -131,12 +135,16 @@ class Trial:
     seconds: float = 0.0
     correspondences: Correspondences | None = None
     render_mode: str = "plain"
+    #: "keypoints" (detected and described features) or "area" (render
+    #: blocks found in the photo by correlation, :mod:`napari_imgreg.area`).
+    matcher: str = "keypoints"
 
     def to_dict(self) -> dict:
         return {
             "index": self.index,
             "origin": self.origin,
             "render_mode": self.render_mode,
+            "matcher": self.matcher,
             "params": self.params.to_dict(),
             "metrics": self.metrics,
             "Q": self.q,
@@ -216,6 +224,7 @@ class _Context:
         self._photo_rgb = photo_rgb
         self._photo_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._feature_cache: dict[tuple, Features] = {}
+        self._area_cache: dict[tuple, np.ndarray] = {}
         #: Toward the photo's sun (local frame), when known and usable.
         self.sun: np.ndarray | None = None
 
@@ -253,6 +262,15 @@ class _Context:
             self._photo_cache[key] = (img, np.array(scale))
         img, s = self._photo_cache[key]
         return img, float(s)
+
+    def area_photo(self, photo_small: np.ndarray, sigma_px: float) -> np.ndarray:
+        """The photo band-passed for area matching at ``photo_small``'s size (cached)."""
+        from .area import prepare_photo
+
+        key = ("area", photo_small.shape, round(sigma_px, 3))
+        if key not in self._area_cache:
+            self._area_cache[key] = prepare_photo(photo_small, sigma_px)
+        return self._area_cache[key]
 
     def photo_features(self, params: RegistrationParams, width: int,
                        invariant: bool = False) -> Features:
@@ -387,6 +405,71 @@ def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
     return estimate, metrics, corr, rendered
 
 
+def _area_round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
+                radius: int, mode: str = "plain"):
+    """One render → block correlation → lift → pose round (area-based matching).
+
+    Same return values and metrics as :func:`_round`, so the seven metrics,
+    Q and the verification apply unchanged: the "points" of both images are
+    the render blocks searched, the feature inliers the blocks whose
+    correlation peak is high and unique.
+    """
+    from .area import match_blocks, prepare_render
+
+    ap = params.area
+    scale = min(1.0, width / ctx.intrinsics.width)
+    rendered = ctx.render(pose, scale, mode)
+    ctx.check()
+    t0 = time.perf_counter()
+    photo_small, _ = ctx.photo_at(width)
+    if photo_small.shape[:2] != rendered.shape:
+        photo_small = cv2.resize(photo_small, (rendered.shape[1], rendered.shape[0]),
+                                 interpolation=cv2.INTER_AREA)
+    photo_bp = ctx.area_photo(photo_small, ap.band_sigma_px)
+    render_bp = prepare_render(rendered.rgb, rendered.mask, ap.band_sigma_px)
+    blocks = match_blocks(photo_bp, render_bp, rendered.mask, template_px=ap.template_px,
+                          search_px=radius, stride_px=ap.stride_px, min_score=ap.min_score,
+                          max_second_ratio=ap.max_second_ratio, min_texture=ap.min_texture,
+                          min_coverage=ap.min_coverage)
+    ctx.timings["area"] = ctx.timings.get("area", 0.0) + time.perf_counter() - t0
+    ctx.check()
+
+    inl = blocks.accepted
+    t0 = time.perf_counter()
+    xyz, lifted = rendered.lift(blocks.render_points)
+    lifted &= inl
+    ctx.timings["lift_3d"] += time.perf_counter() - t0
+    to_full = lambda p: (p + 0.5) / scale - 0.5  # noqa: E731  pixel-centre convention
+    photo_pts = to_full(blocks.photo_points)
+    render_pts = to_full(blocks.render_points)
+    t0 = time.perf_counter()
+    estimate = estimate_pose(ctx.intrinsics, xyz[lifted], photo_pts[lifted], params.pose)
+    ctx.timings["pose"] += time.perf_counter() - t0
+
+    n = blocks.n_blocks
+    n_inl = int(inl.sum())
+    n_3d = int(lifted.sum())
+    pose_inlier = np.zeros(n, bool)
+    if estimate.ok:
+        pose_inlier[np.flatnonzero(lifted)[estimate.inliers]] = True
+    metrics = {
+        "points_photo": n,
+        "points_render": n,
+        "putative_matches": n,
+        "feature_inliers": n_inl,
+        "correspondences_3d": n_3d,
+        "inlier_ratio_2d": round(n_inl / n, 4) if n else 0.0,
+        "inliers_3d": estimate.n_inliers if estimate.ok else 0,
+        "inlier_ratio_3d": round(estimate.n_inliers / n_3d, 4) if (n_3d and estimate.ok) else 0.0,
+        "reprojection_error_px": round(estimate.mean_error_px, 4) if estimate.ok else None,
+        "render_coverage": round(rendered.coverage, 4),
+        "area_width_px": int(rendered.shape[1]),
+        "area_search_px": int(radius),
+    }
+    corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier, xyz)
+    return estimate, metrics, corr, rendered
+
+
 def _image_shift(intr: Intrinsics, a: Pose, b: Pose, corr: Correspondences) -> float:
     """Median distance (pixels) by which the pose-inlier 3D points move in the
     image from pose ``a`` to pose ``b``: how much a pose change *shows*.
@@ -400,13 +483,33 @@ def _image_shift(intr: Intrinsics, a: Pose, b: Pose, corr: Correspondences) -> f
     return float(np.median(np.linalg.norm(a.project(intr, pts) - b.project(intr, pts), axis=1)))
 
 
-def _residual_flow(corr: Correspondences) -> float:
-    """Median distance between matched photo and render keypoints that agree
-    with the pose (pixels): near zero when the render is from the photo's pose."""
+def _residual_flow(corr: Correspondences, regional_px: float | None = None) -> float:
+    """Median distance between matched photo and render points that agree
+    with the pose (pixels): near zero when the render is from the photo's pose.
+
+    With ``regional_px`` (area matching), the points are grouped in square
+    cells of that side and the flow is the median, over cells with five
+    points or more, of the length of each cell's median shift: a block's
+    correlation peak is noisier than a keypoint's position (a pixel or so
+    when shading is matched against a coloured photo), and what the test is
+    for is a systematic misfit of a part of the image, which survives the
+    cell's median while the noise does not.
+    """
     sel = corr.pose_inlier
     if sel.sum() < 3:
         return float("inf")
-    return float(np.median(np.linalg.norm(corr.photo_points[sel] - corr.render_points[sel], axis=1)))
+    shift = corr.photo_points[sel] - corr.render_points[sel]
+    plain = float(np.median(np.linalg.norm(shift, axis=1)))
+    if not regional_px:
+        return plain
+    cell = np.floor(corr.render_points[sel] / regional_px).astype(int)
+    keys = cell[:, 0] * 100_003 + cell[:, 1]
+    lengths = []
+    for key in np.unique(keys):
+        in_cell = keys == key
+        if in_cell.sum() >= 5:
+            lengths.append(float(np.linalg.norm(np.median(shift[in_cell], axis=0))))
+    return float(np.median(lengths)) if len(lengths) >= 3 else plain
 
 
 def _run_trial(
@@ -418,8 +521,17 @@ def _run_trial(
     width: int | None = None,
     max_rounds: int | None = None,
     mode: str = "plain",
+    matcher: str = "keypoints",
+    far_start: bool = True,
 ) -> Generator[tuple[int, int], None, Trial]:
-    """Run one trial; yields (round, rounds) before each round, returns the Trial."""
+    """Run one trial; yields (round, rounds) before each round, returns the Trial.
+
+    ``matcher`` "area" matches render blocks by correlation instead of
+    keypoints (:func:`_area_round`), at widths and search radii that follow
+    the pose's convergence (:func:`napari_imgreg.area.search_schedule`;
+    ``far_start``: the start is the sensor prior, not a stage's estimate).
+    A trial is converged only after a round at the full area width.
+    """
     t_start = time.perf_counter()
     width = width or params.match_width
     rounds = max_rounds or params.max_iterations
@@ -428,13 +540,27 @@ def _run_trial(
     converged = False
     n_done = 0
     last_ok_pose: Pose | None = None
+    area = matcher == "area"
+    if area:
+        from .area import search_schedule
+
+        # Coarse rounds do not count: up to two more to reach the full width.
+        rounds += 2
+    last_shift = float("inf")
+    final_width = True
     for k in range(rounds):
         n_done = k + 1
         yield k, rounds
-        # After a round that found a pose, the next render is close to the
-        # photo: luminance features suffice.
-        estimate, metrics, corr, _ = _round(ctx, pose, params, width,
-                                            near=last_ok_pose is not None, mode=mode)
+        if area:
+            a_width, radius = search_schedule(params.area, k == 0, far_start, last_shift,
+                                              ctx.intrinsics.width)
+            final_width = a_width >= min(params.area.width, ctx.intrinsics.width)
+            estimate, metrics, corr, _ = _area_round(ctx, pose, params, a_width, radius, mode)
+        else:
+            # After a round that found a pose, the next render is close to the
+            # photo: luminance features suffice.
+            estimate, metrics, corr, _ = _round(ctx, pose, params, width,
+                                                near=last_ok_pose is not None, mode=mode)
         if not estimate.ok:
             if best is None:
                 best = (estimate, metrics, corr)
@@ -442,16 +568,19 @@ def _run_trial(
         best = (estimate, metrics, corr)
         d_rot, d_pos = _pose_change(pose, estimate.pose)
         shift = _image_shift(ctx.intrinsics, pose, estimate.pose, corr)
+        last_shift = shift
         last_ok_pose = estimate.pose
         pose = estimate.pose
-        if (d_rot < params.converged_deg and d_pos < params.converged_m) or (
-            shift < CONVERGED_SHIFT_PX * ctx.intrinsics.width / 1632.0
-        ):
+        converged_px = AREA_CONVERGED_SHIFT_PX if area else CONVERGED_SHIFT_PX
+        if final_width and ((d_rot < params.converged_deg and d_pos < params.converged_m) or (
+            shift < converged_px * ctx.intrinsics.width / 1632.0
+        )):
             converged = True
             break
     estimate, metrics, corr = best
     scale_px = ctx.intrinsics.width / 1632.0
-    flow = _residual_flow(corr)
+    # Area matching: cells of a quarter of the photo's width.
+    flow = _residual_flow(corr, ctx.intrinsics.width / 4.0 if area else None)
     verified = bool(
         converged
         and last_ok_pose is not None
@@ -461,10 +590,17 @@ def _run_trial(
     metrics = {**metrics, "residual_flow_px": round(flow, 3) if math.isfinite(flow) else None}
     q = quality_q(metrics, ctx.intrinsics.width)
     grade = grade_of(q, pose_found=last_ok_pose is not None)
-    if last_ok_pose is not None and not verified and grade.name in ("excellent", "good"):
-        grade = grade_of(min(q, 0.59))  # unverified: at best "fair"
-    hits = evaluate_rules(metrics, params, ctx.intrinsics.width)
+    if last_ok_pose is not None and not verified and grade.name in ("excellent", "good", "fair"):
+        # Unverified: at best "fair" — at best "poor" for area matching, whose
+        # block counts (the "points") are high whatever the photo shows.
+        grade = grade_of(min(q, -0.01 if area else 0.59))
+    # The six rules tune keypoint detection and matching: no advice for blocks.
+    hits = [] if area else evaluate_rules(metrics, params, ctx.intrinsics.width)
     hints = [h.hint for h in hits]
+    if area and last_ok_pose is None:
+        hints.append(f"Area matching found too few consistent blocks ({metrics['feature_inliers']} "
+                     f"of {metrics['points_render']} correlate clearly): the start may be too far "
+                     "off, or the photo shows little of the model's relief.")
     if last_ok_pose is not None and not converged:
         hints.append("The pose was still moving after the last round: not verified.")
     elif last_ok_pose is not None and not verified:
@@ -489,6 +625,7 @@ def _run_trial(
         seconds=time.perf_counter() - t_start,
         correspondences=corr,
         render_mode=mode,
+        matcher=matcher,
     )
 
 
@@ -525,25 +662,57 @@ def _good(t: Trial) -> bool:
 
 def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: RegistrationParams,
                    trials: list[Trial], first_mode: str, options: RegistrationParams,
-                   progress, rounds_of, n_budget: int):
-    """Illumination-robust stages, in order of cost, each ending in a keypoint
-    trial from the pose it found (so every pose is verified the same way):
-    a sun-lit render; edge alignment from the prior; MI refinement of the best
-    pose so far. Stops at the first verified good trial."""
+                   progress, rounds_of, n_budget: int, untextured: bool = False):
+    """Illumination-robust stages, in order of cost, each ending in a trial
+    from the pose it found (so every pose is verified the same way): a
+    sun-lit render; area matching from the best pose so far; edge alignment
+    from the prior; MI refinement of the best pose so far. After edges and
+    MI, keypoints are matched again (textured models only: a bare mesh's
+    shading has no keypoints of a photo's) and then blocks by correlation.
+    Stops at the first verified good trial."""
     mode = "sunlit" if ctx.sun is not None else first_mode
     base = len(trials)
 
-    def keypoint_trial(start: Pose, origin: str, label: str, at: float):
-        trial = yield from rounds_of(_run_trial(ctx, len(trials), start, params, origin, mode=mode),
-                                     label, base=at, span=0.5)
+    def stage_trial(start: Pose, origin: str, label: str, at: float, matcher: str = "keypoints",
+                    far_start: bool = False):
+        trial = yield from rounds_of(
+            _run_trial(ctx, len(trials), start, params, origin, mode=mode, matcher=matcher,
+                       far_start=far_start),
+            label, base=at, span=0.5)
         trials.append(trial)
+        return trial
+
+    def follow_up(start: Pose, origin: str, what: str, at: float, extra: dict):
+        """Keypoints (textured models), then area matching, from a stage's pose."""
+        trial = None
+        if not untextured:
+            trial = yield from stage_trial(start, origin, f"matching from the {what} pose", at)
+            trial.metrics.update(extra)
+            ctx.check()
+            if _good(trial) or not options.area_match:
+                return trial
+        if options.area_match:
+            trial = yield from stage_trial(start, origin, f"area matching from the {what} pose",
+                                           at + 0.25, matcher="area")
+            trial.metrics.update(extra)
+            ctx.check()
         return trial
 
     best = max(trials, key=_trial_rank)
     if options.sun_relight and mode == "sunlit" and first_mode != "sunlit":
         start = best.pose if (best.pose is not None and best.metrics.get("inliers_3d", 0) >= 12) \
             else start_prior
-        trial = yield from keypoint_trial(start, "sun-lit render", "matching a sun-lit render", base)
+        trial = yield from stage_trial(start, "sun-lit render", "matching a sun-lit render", base)
+        ctx.check()
+        if _good(trial):
+            return
+
+    if options.area_match:
+        best = max(trials, key=_trial_rank)
+        near = best.pose is not None and best.metrics.get("inliers_3d", 0) >= 12
+        trial = yield from stage_trial(best.pose if near else start_prior, "area matching",
+                                       "area matching", base + 0.5, matcher="area",
+                                       far_start=not near)
         ctx.check()
         if _good(trial):
             return
@@ -551,7 +720,7 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
     if options.edge_align:
         from .edges import align_edges
 
-        yield progress("edges", "aligning the model's edges with the photo's", (base + 0.5) / n_budget)
+        yield progress("edges", "aligning the model's edges with the photo's", (base + 1.0) / n_budget)
         t0 = time.perf_counter()
         aligned = align_edges(
             ctx.scene, ctx.photo, ctx.intrinsics, start_prior,
@@ -560,27 +729,24 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
             position_sigma_m=prior.sigma.position_m, search_position_m=prior.sigma.position_m)
         ctx.timings["edges"] = ctx.timings.get("edges", 0.0) + time.perf_counter() - t0
         if aligned.ok:
-            trial = yield from keypoint_trial(aligned.pose, "edges", "matching from the edge pose",
-                                              base + 1.0)
             extra = {"edge_inlier_fraction": round(aligned.inlier_fraction, 4),
                      "edge_chamfer_px": round(aligned.score, 3)}
-            trial.metrics.update(extra)
-            ctx.check()
-            if _good(trial):
+            trial = yield from follow_up(aligned.pose, "edges", "edge", base + 1.5, extra)
+            if trial is not None and _good(trial):
                 return
-            if trial.pose is None:
-                trials.append(_stage_trial(len(trials), trial, aligned.pose, start_prior, "edges",
-                                           extra, aligned.seconds,
+            if trial is None or trial.pose is None:
+                trials.append(_stage_trial(len(trials), trial or trials[-1], aligned.pose,
+                                           start_prior, "edges", extra, aligned.seconds,
                                            f"edges agree ({aligned.inlier_fraction:.0%} of the "
-                                           "model's edge points on photo edges) but keypoints do "
-                                           "not confirm the pose: not verified"))
+                                           "model's edge points on photo edges) but no matching "
+                                           "confirms the pose: not verified"))
 
     if options.dense_refine:
         from .dense import refine_pose_mi
 
         best = max(trials, key=_trial_rank)
         start = best.pose if best.pose is not None else start_prior
-        yield progress("dense", "refining by mutual information", (base + 1.5) / n_budget)
+        yield progress("dense", "refining by mutual information", (base + 2.0) / n_budget)
         t0 = time.perf_counter()
         refined = refine_pose_mi(
             ctx.scene, ctx.photo, ctx.intrinsics, start,
@@ -588,16 +754,15 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
             cancelled=_raising(ctx.check), max_seconds=6.0)
         ctx.timings["dense"] = ctx.timings.get("dense", 0.0) + time.perf_counter() - t0
         if refined.improved:
-            trial = yield from keypoint_trial(refined.pose, "mutual information",
-                                              "matching from the MI pose", base + 1.5)
             extra = {"mi_nmi": round(refined.nmi, 4),
                      "mi_sharpness": round(float(getattr(refined, "sharpness", float("nan"))), 4)}
-            trial.metrics.update(extra)
-            if trial.pose is None and not _good(trial):
-                trials.append(_stage_trial(len(trials), trial, refined.pose, start, "mutual information",
-                                           extra, refined.seconds,
-                                           "mutual information peaks here but keypoints do not "
-                                           "confirm the pose: not verified"))
+            trial = yield from follow_up(refined.pose, "mutual information", "MI", base + 2.5,
+                                         extra)
+            if trial is None or (trial.pose is None and not _good(trial)):
+                trials.append(_stage_trial(len(trials), trial or trials[-1], refined.pose, start,
+                                           "mutual information", extra, refined.seconds,
+                                           "mutual information peaks here but no matching "
+                                           "confirms the pose: not verified"))
 
 
 def _stage_trial(index: int, keypoint_trial: Trial, pose: Pose, start: Pose, origin: str,
@@ -687,9 +852,9 @@ def register_photo(
         ctx.sun = prior.sun
         assumptions.append(f"sun from the {prior.sun_source}")
     first_mode = "sunlit" if (untextured and ctx.sun is not None) else "plain"
-    robust = params.sun_relight or params.edge_align or params.dense_refine
+    robust = params.sun_relight or params.edge_align or params.dense_refine or params.area_match
     n_budget = (max(1, params.max_trials) + (1 if params.search_prior else 0)
-                + (2 if robust else 0))
+                + (3 if robust else 0))
 
     def progress(stage: str, msg: str, done: float) -> Progress:
         return Progress(stage, min(0.99, done), msg, len(trials) + 1)
@@ -759,7 +924,7 @@ def register_photo(
 
     if robust and not _good(best):
         yield from _robust_stages(ctx, prior, start_prior, best.params, trials, first_mode,
-                                  params, progress, rounds_of, n_budget)
+                                  params, progress, rounds_of, n_budget, untextured)
         best = max(trials, key=_trial_rank)
 
     if params.verify:
