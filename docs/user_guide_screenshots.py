@@ -115,7 +115,8 @@ def main() -> None:
     # (keypoints only: the stages for another light come in step 10).
     wb.show_tab("Register")
     rp = wb.register_panel
-    for check in (rp.sun_relight_check, rp.edge_align_check, rp.dense_refine_check):
+    for check in (rp.sun_relight_check, rp.area_match_check, rp.edge_align_check,
+                  rp.dense_refine_check):
         check.setChecked(False)
     rp.threshold_spin.setValue(3.0)
     rp.max_features_spin.setValue(600)

@@ -110,3 +110,24 @@ def test_stage_poses_are_never_graded_above_poor(sample):
             assert t.grade in ("poor", "failed") and not t.verified
     if not reg.registered:
         assert reg.grade not in ("excellent", "good")
+
+
+def test_regional_residual_flow_sees_a_systematic_misfit_not_block_noise():
+    from napari_imgreg.pipeline import Correspondences, _residual_flow
+
+    rng = np.random.default_rng(5)
+    render_pts = rng.uniform(0, 1024, (600, 2))
+    noise = rng.normal(0, 1.0, (600, 2))  # a block's peak: about a pixel of noise
+    ones = np.ones(600, bool)
+
+    def flow(photo_pts, regional):
+        corr = Correspondences(photo_pts, render_pts, ones, ones, ones)
+        return _residual_flow(corr, 256.0 if regional else None)
+
+    right = render_pts + noise
+    assert flow(right, False) > 1.0  # the median length of pure noise
+    assert flow(right, True) < 0.4  # ... averages out within each region
+    # Two thirds of the image 3 px off: a real misfit survives the regional median.
+    misfit = right.copy()
+    misfit[render_pts[:, 0] > 340] += (3.0, 0.0)
+    assert flow(misfit, True) > 2.5

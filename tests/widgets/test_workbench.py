@@ -230,8 +230,8 @@ def test_run_apply_suggestion_auto_to_good_and_restore_an_earlier_trial(workbenc
 
     # A first Run with a too strict detector: few points, the rules say why
     # (keypoints only: the stages for another light are the subject of other tests).
-    for check in (reg_panel.sun_relight_check, reg_panel.edge_align_check,
-                  reg_panel.dense_refine_check):
+    for check in (reg_panel.sun_relight_check, reg_panel.area_match_check,
+                  reg_panel.edge_align_check, reg_panel.dense_refine_check):
         check.setChecked(False)
     reg_panel.threshold_spin.setValue(4.0)
     reg_panel.max_features_spin.setValue(500)
@@ -337,8 +337,8 @@ def _angle_deg(a, b) -> float:
 def test_light_stage_checkboxes_edit_the_parameters_both_ways(workbench, qtbot):
     wb = workbench
     panel, ctrl = wb.register_panel, wb.controller
-    checks = {"sun_relight": panel.sun_relight_check, "edge_align": panel.edge_align_check,
-              "dense_refine": panel.dense_refine_check}
+    checks = {"sun_relight": panel.sun_relight_check, "area_match": panel.area_match_check,
+              "edge_align": panel.edge_align_check, "dense_refine": panel.dense_refine_check}
     for name, check in checks.items():
         assert check.isChecked() == getattr(ctrl.params, name) is True  # the defaults
         assert check.toolTip()
@@ -465,23 +465,30 @@ def test_trial_history_says_where_each_pose_came_from_and_how_the_render_was_lit
     wb = workbench
     ctrl = _load_sample(wb, qtbot)
     ps = ctrl.current
-    for k, (origin, mode) in enumerate((("prior", "plain"), ("sun-lit render", "sunlit"),
-                                        ("edges", "sunlit"), ("mutual information", "plain"))):
+    for k, (origin, mode, matcher) in enumerate((
+            ("prior", "plain", "keypoints"), ("sun-lit render", "sunlit", "keypoints"),
+            ("edges", "sunlit", "keypoints"), ("mutual information", "plain", "keypoints"),
+            ("area matching", "sunlit", "area"), ("edges", "sunlit", "area"))):
         trial = Trial(index=k, params=RegistrationParams(), metrics={}, q=-0.5, grade="poor",
                       hints=[], pose=None, start_pose=ps.pose, rounds=1, converged=False,
                       verified=False, residual_flow_px=float("inf"), origin=origin,
-                      render_mode=mode)
+                      render_mode=mode, matcher=matcher)
         ps.trials.append(TrialRecord(trial, 1, "Auto"))
     ctrl.trials_changed.emit()
     history = wb.quality.history
     col = {name: HISTORY_COLUMNS.index(name) for name in ("trial", "from", "grade")}
-    assert [history.item(r, col["from"]).text() for r in range(4)] == [
-        "prior", "sun-lit render", "edges ☀", "mutual information"]
+    assert [history.item(r, col["from"]).text() for r in range(6)] == [
+        "prior", "sun-lit render", "edges ☀", "mutual information", "area matching ☀",
+        "edges ▦ ☀"]
     tip = history.item(2, col["from"]).toolTip()
     assert "edges" in tip and "relit for the photo's sun" in tip
     assert "as textured" in history.item(3, col["from"]).toolTip()
+    assert "by correlation" in history.item(5, col["from"]).toolTip()
+    assert history.item(5, col["trial"]).text().endswith(": blocks")
+    assert history.item(2, col["trial"]).text().endswith(": SIFT–SIFT")
     assert history.item(0, col["grade"]).text() == "poor"
     assert ps.trials[2].label.endswith("(edges, sun-lit render)")
+    assert "blocks by correlation (edges, sun-lit render)" in ps.trials[5].label
 
     # Correspondences of trials with many, then few lines, drawn while hidden
     # (napari does not re-slice a hidden layer: its colours must not go stale).

@@ -183,7 +183,9 @@ class TrialRecord:
         if self.kind == "Manual":
             return "manual pairs"
         light = ", sun-lit render" if self.sunlit and t.origin != "sun-lit render" else ""
-        return f"{self.kind} {self.run}: {t.params.features.name} ({t.origin}{light})"
+        area = getattr(t, "matcher", "keypoints") == "area"
+        what = "blocks by correlation" if area else t.params.features.name
+        return f"{self.kind} {self.run}: {what} ({t.origin}{light})"
 
     @property
     def sunlit(self) -> bool:

@@ -861,15 +861,23 @@ class RegisterPanel(QWidget):
             "or the Sun box below), cast shadows included, and match the photo against that. "
             "For photos taken under another sun than the model's texture. Needs the texture's "
             "own sun (survey.json beside the model) unless the model is untextured.")
+        self.area_match_check = QCheckBox("match blocks of the render by correlation")
+        self.area_match_check.setToolTip(
+            "Cut the render into small blocks and find each in the photo by correlation "
+            "(area-based matching), then solve the pose from them as from keypoints. It compares "
+            "the layout of light and shade of the relief, not keypoint descriptors: what "
+            "registers a bare (untextured) mesh lit by the photo's sun to a photo of coloured "
+            "rock. Verified like keypoints (converged, photo and render agree).")
         self.edge_align_check = QCheckBox("align the model's edges with the photo's")
         self.edge_align_check.setToolTip(
             "Line up the skyline, ridges, overhangs and bedding contacts of the model with the "
-            "edges seen in the photo, then match keypoints again from that pose. Edges survive a "
-            "change of light that defeats keypoints.")
+            "edges seen in the photo, then match keypoints (and blocks) again from that pose. "
+            "Edges survive a change of light that defeats keypoints.")
         self.dense_refine_check = QCheckBox("refine by mutual information")
         self.dense_refine_check.setToolTip(
             "Nudge the best pose so far until photo and render agree best as whole images "
-            "(mutual information: no keypoints needed), then match keypoints again from there. "
+            "(mutual information: no keypoints needed), then match keypoints (and blocks) again "
+            "from there. "
             "A pose that keypoints cannot confirm is kept as a start, graded poor at best.")
 
         form = QFormLayout()
@@ -897,11 +905,13 @@ class RegisterPanel(QWidget):
 
         light_box = QGroupBox("When keypoints do not verify (another light)")
         light_layout = QVBoxLayout(light_box)
-        for check in (self.sun_relight_check, self.edge_align_check, self.dense_refine_check):
+        for check in (self.sun_relight_check, self.area_match_check, self.edge_align_check,
+                      self.dense_refine_check):
             light_layout.addWidget(check)
         light_layout.addWidget(_hint(
-            "Tried in this order after the keypoint trials, each ending in a keypoint trial "
-            "from the pose it found; the Trials list says which stage found each pose."))
+            "Tried in this order after the keypoint trials, edges and MI each ending in a "
+            "matching trial from the pose they found; the Trials list says which stage found "
+            "each pose (▦: blocks matched by correlation)."))
         self.sun_box = SunBox(controller)
 
         self.run_button = QPushButton("Run")
@@ -978,6 +988,7 @@ class RegisterPanel(QWidget):
         self.search_check.toggled.connect(lambda v: self._set(None, "search_prior", bool(v)))
         self.verify_check.toggled.connect(lambda v: self._set(None, "verify", bool(v)))
         for check, name in ((self.sun_relight_check, "sun_relight"),
+                            (self.area_match_check, "area_match"),
                             (self.edge_align_check, "edge_align"),
                             (self.dense_refine_check, "dense_refine")):
             check.toggled.connect(lambda v, name=name: self._set(None, name, bool(v)))
@@ -1036,6 +1047,7 @@ class RegisterPanel(QWidget):
         _set_quietly(self.search_check, p.search_prior)
         _set_quietly(self.verify_check, p.verify)
         _set_quietly(self.sun_relight_check, p.sun_relight)
+        _set_quietly(self.area_match_check, p.area_match)
         _set_quietly(self.edge_align_check, p.edge_align)
         _set_quietly(self.dense_refine_check, p.dense_refine)
         self._match_preset()

@@ -45,11 +45,14 @@ TREND_ARROWS = {1: ("▲", "#00e676"), -1: ("▼", "#ff5252"), 0: ("=", "#bdbdbd
 HISTORY_COLUMNS = ("#", "trial", "from", "Q", "grade", "3D inl.", "error", "✓")
 #: Marks, in the "from" column, a trial matched against a render relit for the photo's sun.
 SUNLIT_MARK = "☀"
+#: Marks, in the "from" column, a trial that matched render blocks by correlation.
+AREA_MARK = "▦"
 #: What each origin of a trial means (the "from" column's tooltip).
 ORIGINS = {
     "prior": "matched from the start pose (the prior, or the pose you set)",
     "search": "matched from the best of the starts tried within the prior's uncertainty",
     "sun-lit render": "matched against the model relit for the photo's sun",
+    "area matching": "blocks of the render found in the photo by correlation",
     "edges": "pose found by aligning the model's edges with the photo's, then matched",
     "mutual information": "pose refined by mutual information of photo and render, then matched",
     "manual": "pose solved from your control-point pairs, then scored",
@@ -57,15 +60,20 @@ ORIGINS = {
 
 
 def origin_text(rec) -> tuple[str, str]:
-    """A trial's "from" cell and its tooltip: where its pose came from, and
-    ☀ when it was matched against a render relit for the photo's sun."""
+    """A trial's "from" cell and its tooltip: where its pose came from, ▦ when
+    it matched render blocks by correlation, ☀ when it was matched against a
+    render relit for the photo's sun."""
     t = rec.trial
     origin = "manual" if rec.kind == "Manual" else t.origin
     tip = ORIGINS.get(origin, f"matched from the pose of {origin}")
+    cell = origin
+    if getattr(t, "matcher", "keypoints") == "area" and origin != "area matching":
+        cell += f" {AREA_MARK}"
+        tip += "; blocks of the render found in the photo by correlation"
     if getattr(t, "render_mode", "plain") != "sunlit":
-        return origin, tip + "; render as textured"
+        return cell, tip + "; render as textured"
     tip += "; render relit for the photo's sun, cast shadows included"
-    return (origin if origin == "sun-lit render" else f"{origin} {SUNLIT_MARK}"), tip
+    return (cell if origin == "sun-lit render" else f"{cell} {SUNLIT_MARK}"), tip
 
 
 def _grade_range(k: int) -> str:
@@ -212,8 +220,9 @@ class QualityPanel(QWidget):
             t = rec.trial
             err = t.metrics.get("reprojection_error_px")
             origin, origin_tip = origin_text(rec)
-            name = rec.label if rec.kind == "Manual" else \
-                f"{rec.kind} {rec.run}: {t.params.features.name}"
+            what = ("blocks" if getattr(t, "matcher", "keypoints") == "area"
+                    else t.params.features.name)
+            name = rec.label if rec.kind == "Manual" else f"{rec.kind} {rec.run}: {what}"
             cells = [str(r + 1), name, origin, f"{t.q:.2f}", t.grade,
                      str(t.metrics.get("inliers_3d", 0)),
                      f"{err:.2f}" if err is not None else "—",
