@@ -381,15 +381,27 @@ def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
     estimate = estimate_pose(ctx.intrinsics, xyz[lifted], photo_pts[lifted], params.pose)
     ctx.timings["pose"] += time.perf_counter() - t0
 
-    n_putative = len(matches)
-    n_inl = int(inl.sum())
+    metrics, pose_inlier = _round_metrics(len(photo_feats), len(render_feats), inl, lifted,
+                                          estimate, rendered)
+    corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier, xyz)
+    return estimate, metrics, corr, rendered
+
+
+def _round_metrics(points_photo: int, points_render: int, inlier: np.ndarray,
+                   lifted: np.ndarray, estimate: PoseEstimate, rendered: RenderResult
+                   ) -> tuple[dict, np.ndarray]:
+    """A round's metrics (RESULT.json names) and which putative matches agree
+    with the pose. ``inlier``/``lifted``: per putative match, passed the
+    geometric check / has a 3D point (and passed)."""
+    n_putative = len(inlier)
+    n_inl = int(inlier.sum())
     n_3d = int(lifted.sum())
     pose_inlier = np.zeros(n_putative, bool)
     if estimate.ok:
         pose_inlier[np.flatnonzero(lifted)[estimate.inliers]] = True
     metrics = {
-        "points_photo": len(photo_feats),
-        "points_render": len(render_feats),
+        "points_photo": points_photo,
+        "points_render": points_render,
         "putative_matches": n_putative,
         "feature_inliers": n_inl,
         "correspondences_3d": n_3d,
@@ -401,8 +413,7 @@ def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
         ),
         "render_coverage": round(rendered.coverage, 4),
     }
-    corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier, xyz)
-    return estimate, metrics, corr, rendered
+    return metrics, pose_inlier
 
 
 def _area_round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
@@ -446,26 +457,9 @@ def _area_round(ctx: _Context, pose: Pose, params: RegistrationParams, width: in
     estimate = estimate_pose(ctx.intrinsics, xyz[lifted], photo_pts[lifted], params.pose)
     ctx.timings["pose"] += time.perf_counter() - t0
 
-    n = blocks.n_blocks
-    n_inl = int(inl.sum())
-    n_3d = int(lifted.sum())
-    pose_inlier = np.zeros(n, bool)
-    if estimate.ok:
-        pose_inlier[np.flatnonzero(lifted)[estimate.inliers]] = True
-    metrics = {
-        "points_photo": n,
-        "points_render": n,
-        "putative_matches": n,
-        "feature_inliers": n_inl,
-        "correspondences_3d": n_3d,
-        "inlier_ratio_2d": round(n_inl / n, 4) if n else 0.0,
-        "inliers_3d": estimate.n_inliers if estimate.ok else 0,
-        "inlier_ratio_3d": round(estimate.n_inliers / n_3d, 4) if (n_3d and estimate.ok) else 0.0,
-        "reprojection_error_px": round(estimate.mean_error_px, 4) if estimate.ok else None,
-        "render_coverage": round(rendered.coverage, 4),
-        "area_width_px": int(rendered.shape[1]),
-        "area_search_px": int(radius),
-    }
+    metrics, pose_inlier = _round_metrics(blocks.n_blocks, blocks.n_blocks, inl, lifted,
+                                          estimate, rendered)
+    metrics.update(area_width_px=int(rendered.shape[1]), area_search_px=int(radius))
     corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier, xyz)
     return estimate, metrics, corr, rendered
 
