@@ -5,7 +5,7 @@ For each photo of the generated sample scenes, every true 3D trace in
 ``truth_lines.geojson`` (bed boundaries and the fault) is projected into the
 photo with the TRUE camera pose; its visible stretches (first hit of the true
 camera's ray) become the lines a geologist would draw, in pixels. The photo is
-then registered with :func:`napari_imgreg.pipeline.register` from its sensor
+then registered with :func:`napari_imgreg.registration.pipeline.register` from its sensor
 prior, and the drawn lines are projected back onto the mesh with the
 ESTIMATED pose. We report the 3D distance of the projected points to the true
 traces (median, 95th percentile) and the orientation error of the bedding
@@ -34,12 +34,12 @@ from scipy.spatial import cKDTree
 
 from napari_imgreg import Scene
 from napari_imgreg._atomic import atomic_write
-from napari_imgreg.interpret import Interpretation, project_interpretations
+from napari_imgreg.interpret.project import Interpretation, project_interpretations
 from napari_imgreg.io.photos import load_photo
 from napari_imgreg.io.records import prior_for_photo
-from napari_imgreg.pipeline import register
+from napari_imgreg.registration.pipeline import register
 from napari_imgreg.sample import load_truth, sample_scene
-from napari_imgreg.structural import fisher_mean, normal_from_dip
+from napari_imgreg.interpret.structural import fisher_mean, normal_from_dip
 
 from _report import markers, write_section  # noqa: E402  (benchmarks/ is on sys.path)
 
@@ -212,7 +212,7 @@ def _summary(rows: list[dict], which: str) -> dict:
 
 
 def report(result: dict) -> str:
-    from napari_imgreg.structural import dip_dip_direction
+    from napari_imgreg.interpret.structural import dip_dip_direction
 
     lines = [
         MARK_START,

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from napari_imgreg._atomic import atomic_write
-from napari_imgreg.orient import (
+from napari_imgreg.orient.estimate import (
     estimate_rotation_lsq,
     estimate_rotation_paper,
     estimate_rotation_robust,

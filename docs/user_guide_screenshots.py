@@ -29,7 +29,7 @@ def main() -> None:
     import napari
     from qtpy.QtWidgets import QApplication
 
-    from napari_imgreg._layers import napari_from_pixels
+    from napari_imgreg.widgets._layers import napari_from_pixels
     from napari_imgreg.sample import load_truth
     from napari_imgreg.widgets.workbench import Workbench
 
@@ -185,7 +185,7 @@ def main() -> None:
     # strict for keypoints to verify goes through the stages for another
     # light; Auto with the defaults registers; the sun-lit preview shows the
     # model under the photo's sun.
-    from napari_imgreg.params import RegistrationParams
+    from napari_imgreg.registration.params import RegistrationParams
 
     wb.scene_panel.photo_list.setCurrentRow(2)
     idle()

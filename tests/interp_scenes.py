@@ -11,7 +11,7 @@ import numpy as np
 from skimage.measure import find_contours
 
 from napari_imgreg import Intrinsics, Pose, Scene
-from napari_imgreg.structural import normal_from_dip
+from napari_imgreg.interpret.structural import normal_from_dip
 
 WALL_X = (-40.0, 40.0)
 WALL_Z = (0.0, 30.0)

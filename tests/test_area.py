@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from napari_imgreg.area import (
+from napari_imgreg.registration.stages.area import (
     AreaParams,
     band_pass,
     match_blocks,

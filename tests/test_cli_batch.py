@@ -14,7 +14,7 @@ from PIL import Image
 
 from napari_imgreg import Pose
 from napari_imgreg.cli import main
-from napari_imgreg.cli_batch import SUMMARY_COLUMNS
+from napari_imgreg.cli.batch import SUMMARY_COLUMNS
 from napari_imgreg.sample import load_truth, sample_scene
 
 #: The sample scene's model files (the texture is named by outcrop.mtl).
@@ -51,7 +51,7 @@ def _summary(out):
 
 def _fake_registration(prior, name, status="failed"):
     """A quick stand-in for pipeline.register (no matching)."""
-    from napari_imgreg.pipeline import Registration
+    from napari_imgreg.registration.pipeline import Registration
 
     return Registration(
         status=status, photo=name, intrinsics=prior.intrinsics, pose=prior.pose, prior=prior,
@@ -121,7 +121,7 @@ def test_skip_existing_keeps_done_photos(batch_run, tmp_path, monkeypatch):
         calls.append(photo_name)
         return _fake_registration(prior, photo_name)
 
-    monkeypatch.setattr("napari_imgreg.pipeline.register", fake_register)
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", fake_register)
     code, stdout, stderr = _run(["batch", scene, "--out", out, "--skip-existing"])
     # Only the photo without a result is redone; the fake marks it failed: exit 1.
     assert calls == ["IMG_0003.jpg"]
@@ -223,7 +223,7 @@ def test_interrupted_batch_keeps_finished_results(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return _fake_registration(prior, photo_name, status="registered")
 
-    monkeypatch.setattr("napari_imgreg.pipeline.register", fake_register)
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", fake_register)
     code, stdout, stderr = _run(["batch", scene, "--out", out])
     assert code == 130 and "interrupted" in stderr
     assert [p.name for p in out.glob("*.result.json")] == ["IMG_0001.result.json"]

@@ -1,4 +1,4 @@
-"""Known-answer tests for :mod:`napari_imgreg.dense` (mutual-information refinement).
+"""Known-answer tests for :mod:`napari_imgreg.registration.stages.dense` (mutual-information refinement).
 
 The refinement tests use the small generated outcrop. Two photo kinds:
 
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.dense import (
+from napari_imgreg.registration.stages.dense import (
     DenseResult,
     entropy,
     mi_score,

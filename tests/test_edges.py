@@ -1,4 +1,4 @@
-"""Known-answer tests for :mod:`napari_imgreg.edges`.
+"""Known-answer tests for :mod:`napari_imgreg.registration.stages.edges`.
 
 Structure edges are checked against the analytic projection of a box; the
 skyline detector against a drawn skyline; chamfer alignment against scenes
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.edges import (
+from napari_imgreg.registration.stages.edges import (
     ALBEDO,
     CREASE,
     OCCLUDING,

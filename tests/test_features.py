@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from skimage import data
 
-from napari_imgreg import features as F
+from napari_imgreg.registration import features as F
 from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.features import (
+from napari_imgreg.registration.features import (
     PRESETS,
     FeatureParams,
     available,
@@ -20,7 +20,7 @@ from napari_imgreg.features import (
     preset,
     verify_geometry,
 )
-from napari_imgreg.filters import to_gray
+from napari_imgreg.registration.filters import to_gray
 
 
 def _similarity(w: int, h: int, angle_deg=10.0, scale=0.9, shift=(12.0, -7.0)) -> np.ndarray:

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from napari_imgreg.filters import (
+from napari_imgreg.registration.filters import (
     FilterParams,
     apply_filters,
     brightness_contrast,
@@ -241,7 +241,7 @@ def test_filter_params_from_dict_rejects_unknown_keys():
 
 
 def test_illumination_invariant_cancels_shading_and_gamma_free_exposure():
-    from napari_imgreg.filters import illumination_invariant
+    from napari_imgreg.registration.filters import illumination_invariant
 
     rng = np.random.default_rng(0)
     # Surface colours (chromaticity) and a shading field common to all channels.
@@ -257,7 +257,7 @@ def test_illumination_invariant_cancels_shading_and_gamma_free_exposure():
 
 
 def test_illumination_invariant_statistics_come_from_the_mask_only():
-    from napari_imgreg.filters import illumination_invariant
+    from napari_imgreg.registration.filters import illumination_invariant
 
     img = np.zeros((20, 20, 3), np.uint8)
     img[:, :10] = (90, 140, 60)
@@ -275,7 +275,7 @@ def test_illumination_invariant_statistics_come_from_the_mask_only():
 
 @pytest.mark.parametrize("reduce_wide", [False, True])
 def test_masked_gaussian_ignores_what_lies_outside_the_mask(reduce_wide):
-    from napari_imgreg.filters import masked_gaussian
+    from napari_imgreg.registration.filters import masked_gaussian
 
     mask = np.zeros((120, 160), bool)
     mask[:, :100] = True

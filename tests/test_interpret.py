@@ -7,7 +7,7 @@ import pytest
 from interp_scenes import camera, combine, true_trace, wall_scene
 
 from napari_imgreg import Intrinsics, Pose
-from napari_imgreg.interpret import (
+from napari_imgreg.interpret.project import (
     Interpretation,
     ProjectionParams,
     densify,
@@ -17,7 +17,7 @@ from napari_imgreg.interpret import (
     project_interpretations,
     project_polyline,
 )
-from napari_imgreg.structural import normal_from_dip, vector_from_plunge_trend
+from napari_imgreg.interpret.structural import normal_from_dip, vector_from_plunge_trend
 
 
 def _draw(intr: Intrinsics, pose: Pose, xyz: np.ndarray) -> np.ndarray:

@@ -14,8 +14,8 @@ from interp_scenes import camera, true_trace, wall_scene
 
 from napari_imgreg.errors import InputError
 from napari_imgreg.geo import Georef
-from napari_imgreg.interpret import Interpretation, measure_features, project_interpretations
-from napari_imgreg.io.interpretations import (
+from napari_imgreg.interpret.project import Interpretation, measure_features, project_interpretations
+from napari_imgreg.interpret.files import (
     MEASUREMENT_COLUMNS,
     export_features,
     features_to_geojson,
@@ -31,7 +31,7 @@ GEOREF = Georef("EPSG:32630", np.array([579000.0, 5912000.0, 350.0]))
 
 def run_cli(argv: list[str]) -> int:
     """``napari-imgreg project|measure`` as the main command runs them."""
-    from napari_imgreg.cli_interpret import add_parsers
+    from napari_imgreg.cli.interpret import add_parsers
 
     parser = argparse.ArgumentParser(prog="napari-imgreg")
     add_parsers(parser.add_subparsers(dest="command", required=True))

@@ -11,7 +11,7 @@ from napari_imgreg import Scene
 from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.io.photos import load_photo
 from napari_imgreg.io.records import load_sensor_record, prior_for_photo, prior_from_record
-from napari_imgreg.manual import (
+from napari_imgreg.registration.manual import (
     MIN_PAIRS,
     PoseHistory,
     camera_from_view,
@@ -28,7 +28,7 @@ from napari_imgreg.manual import (
     turn_toward,
     view_from_camera,
 )
-from napari_imgreg.quality import METRICS
+from napari_imgreg.registration.quality import METRICS
 from napari_imgreg.render import render
 from napari_imgreg.sample import load_truth, sample_scene
 
@@ -250,7 +250,7 @@ def test_truth_pairs_through_a_reference_render_recover_the_sample_pose(sample):
 
 # ----------------------------------------------------------- filter preview
 def test_filter_preview_is_what_the_detector_reads():
-    from napari_imgreg.filters import FilterParams, apply_filters
+    from napari_imgreg.registration.filters import FilterParams, apply_filters
 
     rng = np.random.default_rng(2)
     big = (rng.random((1224, 1632, 3)) * 255).astype(np.uint8)

@@ -14,11 +14,11 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from napari_imgreg.camera import rotation_from_attitude
-from napari_imgreg.cli_orient import add_parser
+from napari_imgreg.cli.orient import add_parser
 from napari_imgreg.errors import InputError
 from napari_imgreg.io.meshes import load_mesh
 from napari_imgreg.io.orientation_tables import OrientationTable, write_orientation_csv
-from napari_imgreg.orient import (
+from napari_imgreg.orient.estimate import (
     PAPER_STEP_DEG,
     angle_by_rss_search,
     apply_to_mesh_file,

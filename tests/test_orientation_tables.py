@@ -26,7 +26,7 @@ from napari_imgreg.io.orientation_tables import (
     read_photo_attitudes,
     write_orientation_csv,
 )
-from napari_imgreg.orient import orient, rotation_error_deg, simulate_survey
+from napari_imgreg.orient.estimate import orient, rotation_error_deg, simulate_survey
 
 
 @pytest.fixture

@@ -6,12 +6,12 @@ import json
 
 import pytest
 
-from napari_imgreg.area import AreaParams
+from napari_imgreg.registration.stages.area import AreaParams
 from napari_imgreg.errors import InputError
-from napari_imgreg.features import FeatureParams
-from napari_imgreg.filters import FilterParams
-from napari_imgreg.params import RegistrationParams, load_params
-from napari_imgreg.pose import PoseParams
+from napari_imgreg.registration.features import FeatureParams
+from napari_imgreg.registration.filters import FilterParams
+from napari_imgreg.registration.params import RegistrationParams, load_params
+from napari_imgreg.registration.pose import PoseParams
 
 
 def non_default() -> RegistrationParams:

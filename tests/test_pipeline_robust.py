@@ -10,8 +10,8 @@ from napari_imgreg import Scene
 from napari_imgreg.camera import Pose
 from napari_imgreg.io.photos import load_photo
 from napari_imgreg.io.records import Prior, Sigma, prior_for_photo
-from napari_imgreg.params import RegistrationParams
-from napari_imgreg.pipeline import register
+from napari_imgreg.registration.params import RegistrationParams
+from napari_imgreg.registration.pipeline import register
 from napari_imgreg.sample import load_truth, sample_scene
 from napari_imgreg.sun import render_sunlit
 
@@ -113,7 +113,7 @@ def test_stage_poses_are_never_graded_above_poor(sample):
 
 
 def test_regional_residual_flow_sees_a_systematic_misfit_not_block_noise():
-    from napari_imgreg.pipeline import Correspondences, _residual_flow
+    from napari_imgreg.registration.pipeline import Correspondences, _residual_flow
 
     rng = np.random.default_rng(5)
     render_pts = rng.uniform(0, 1024, (600, 2))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.pose import (
+from napari_imgreg.registration.pose import (
     MIN_POINTS,
     PoseEstimate,
     PoseParams,

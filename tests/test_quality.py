@@ -13,8 +13,8 @@ import math
 
 import pytest
 
-from napari_imgreg.params import RegistrationParams
-from napari_imgreg.quality import (
+from napari_imgreg.registration.params import RegistrationParams
+from napari_imgreg.registration.quality import (
     GRADES,
     METRICS,
     REFERENCE_WIDTH_PX,

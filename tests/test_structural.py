@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from napari_imgreg.structural import (
+from napari_imgreg.interpret.structural import (
     FitThresholds,
     dip_dip_direction,
     equal_area,

@@ -11,10 +11,14 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from .camera import Intrinsics, Pose, attitude_from_rotation, rotation_from_attitude
-from .errors import InputError
-from .render import RenderResult, render
-from .scene import Scene
+from napari_imgreg import _deprecated
+
+_deprecated.install()  # old flat module paths keep working, with a warning
+
+from napari_imgreg.camera import Intrinsics, Pose, attitude_from_rotation, rotation_from_attitude
+from napari_imgreg.errors import InputError
+from napari_imgreg.render import RenderResult, render
+from napari_imgreg.scene import Scene
 
 __all__ = [
     "Intrinsics",

@@ -30,8 +30,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import numpy.typing as npt
 
-from ._atomic import atomic_path
-from .errors import InputError
+from napari_imgreg._atomic import atomic_path
+from napari_imgreg.errors import InputError
 
 __all__ = [
     "GeoError",

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .camera import Intrinsics, Pose
-from .scene import Scene, ray_threads
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.scene import Scene, ray_threads
 
 __all__ = ["RenderResult", "render", "RENDER_MODES"]
 

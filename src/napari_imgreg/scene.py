@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import InputError, input_error
+from napari_imgreg.errors import InputError, input_error
 
 if TYPE_CHECKING:
-    from .geo import DEM, Georef
+    from napari_imgreg.geo import DEM, Georef
 
 __all__ = ["Scene", "RayHits", "ray_threads"]
 
@@ -154,8 +154,8 @@ class Scene:
         InputError
             A file is missing or unreadable.
         """
-        from .geo import DEM, Georef
-        from .io.meshes import load_mesh
+        from napari_imgreg.geo import DEM, Georef
+        from napari_imgreg.io.meshes import load_mesh
 
         t0 = time.perf_counter()
         data = load_mesh(mesh_path, cache=cache)
@@ -210,7 +210,7 @@ class Scene:
         stride : int
             Take every ``stride``-th DEM cell (coarser mesh for huge DSMs).
         """
-        from .geo import DEM, Georef
+        from napari_imgreg.geo import DEM, Georef
 
         if not isinstance(dem, DEM):
             dem = DEM.load(dem)
@@ -446,9 +446,9 @@ def read_survey_sun(path: str | os.PathLike, georef, where: np.ndarray) -> np.nd
     InputError
         Unreadable file or wrong fields; the message names the file.
     """
-    from .errors import input_error
-    from .io.records import parse_sensor_record, read_json
-    from .sun import meridian_convergence_deg, sun_direction_local, sun_position, sun_vector_enu
+    from napari_imgreg.errors import input_error
+    from napari_imgreg.io.records import parse_sensor_record, read_json
+    from napari_imgreg.sun import meridian_convergence_deg, sun_direction_local, sun_position, sun_vector_enu
 
     data = read_json(path)
     if not isinstance(data, dict) or ("sun" not in data and "time" not in data):
@@ -468,7 +468,7 @@ def read_survey_sun(path: str | os.PathLike, georef, where: np.ndarray) -> np.nd
 
 def _orthophoto_uv(path: str | os.PathLike, enh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Texture coordinates of points (E, N, H) on a north-up RGB GeoTIFF."""
-    from .geo import read_geotiff
+    from napari_imgreg.geo import read_geotiff
 
     raster = read_geotiff(path)
     image = raster.data

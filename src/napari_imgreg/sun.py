@@ -45,12 +45,12 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from .camera import Intrinsics, Pose
-from .errors import InputError
-from .filters import masked_gaussian
-from .geo import Georef, _transformer
-from .render import RenderResult, render
-from .scene import Scene, ray_threads
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.errors import InputError
+from napari_imgreg.registration.filters import masked_gaussian
+from napari_imgreg.geo import Georef, _transformer
+from napari_imgreg.render import RenderResult, render
+from napari_imgreg.scene import Scene, ray_threads
 
 __all__ = [
     "SunPosition",
@@ -679,7 +679,7 @@ def sun_for_photo(
     if georef is not None:
         lat, lon, alt = georef.local_to_geodetic(center)
     else:
-        from .io.records import _dms  # the EXIF GPS reading of sensor records
+        from napari_imgreg.io.records import _dms  # the EXIF GPS reading of sensor records
 
         gps = exif.get("GPSInfo")
         gps = gps if isinstance(gps, Mapping) else exif

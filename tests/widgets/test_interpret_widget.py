@@ -10,7 +10,7 @@ from matplotlib.colors import to_hex
 from scipy.spatial import cKDTree
 
 from napari_imgreg import Scene
-from napari_imgreg._layers import napari_from_pixels, surface_layer_data, world_from_napari
+from napari_imgreg.widgets._layers import napari_from_pixels, surface_layer_data, world_from_napari
 from napari_imgreg.io.photos import load_photo
 from napari_imgreg.sample import load_truth, sample_scene
 from napari_imgreg.widgets.interpret_widget import (

@@ -12,7 +12,7 @@ import trimesh
 from PIL import Image
 
 from napari_imgreg import Scene
-from napari_imgreg._layers import napari_from_world, surface_layer_data, world_from_napari
+from napari_imgreg.widgets._layers import napari_from_world, surface_layer_data, world_from_napari
 from napari_imgreg._reader import get_reader
 
 

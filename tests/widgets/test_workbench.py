@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from qtpy.QtCore import QPoint, Qt
 
-from napari_imgreg._layers import napari_from_pixels
+from napari_imgreg.widgets._layers import napari_from_pixels
 from napari_imgreg.io.photos import load_photo
-from napari_imgreg.manual import filtered_for_matching
+from napari_imgreg.registration.manual import filtered_for_matching
 from napari_imgreg.io.records import load_sensor_record, prior_for_photo, prior_from_record
-from napari_imgreg.quality import GRADES, METRICS
+from napari_imgreg.registration.quality import GRADES, METRICS
 from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._controller import GAP, controller_for
 from napari_imgreg.widgets._quality import CLASS_COLORS
@@ -353,7 +353,7 @@ def test_light_stage_checkboxes_edit_the_parameters_both_ways(workbench, qtbot):
 
 def test_sun_box_shows_the_exif_sun_and_a_hand_set_sun_is_the_one_registered(
         workbench, qtbot, monkeypatch):
-    from napari_imgreg import pipeline
+    from napari_imgreg.registration import pipeline
     from napari_imgreg.sun import sun_vector_enu
 
     wb = workbench
@@ -457,8 +457,8 @@ def test_sun_lit_preview_and_the_sun_read_from_the_photo(workbench, qtbot):
 
 def test_trial_history_says_where_each_pose_came_from_and_how_the_render_was_lit(
         workbench, qtbot):
-    from napari_imgreg.params import RegistrationParams
-    from napari_imgreg.pipeline import Trial
+    from napari_imgreg.registration.params import RegistrationParams
+    from napari_imgreg.registration.pipeline import Trial
     from napari_imgreg.widgets._controller import TrialRecord
     from napari_imgreg.widgets._quality import HISTORY_COLUMNS
 
@@ -492,7 +492,7 @@ def test_trial_history_says_where_each_pose_came_from_and_how_the_render_was_lit
 
     # Correspondences of trials with many, then few lines, drawn while hidden
     # (napari does not re-slice a hidden layer: its colours must not go stale).
-    from napari_imgreg.pipeline import Correspondences
+    from napari_imgreg.registration.pipeline import Correspondences
 
     rng = np.random.default_rng(0)
     for rec, n in zip(ps.trials[:2], (40, 5)):

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import input_error
+from napari_imgreg.errors import input_error
 
 __all__ = ["Photo", "load_photo", "PHOTO_SUFFIXES", "save_image"]
 
@@ -87,7 +87,7 @@ def save_image(path: str | os.PathLike, rgb: np.ndarray, quality: int = 92) -> N
     """Write an RGB (or grey) uint8 image atomically; format from the extension."""
     import cv2
 
-    from .._atomic import atomic_path
+    from napari_imgreg._atomic import atomic_path
 
     arr = np.asarray(rgb)
     if arr.ndim == 3:

@@ -16,11 +16,11 @@ from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 
-from ..camera import Intrinsics, Pose
-from ..errors import InputError, input_error
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.errors import InputError, input_error
 
 if TYPE_CHECKING:
-    from ..geo import DEM, Georef
+    from napari_imgreg.geo import DEM, Georef
 
 __all__ = [
     "DEFAULT_HEIGHT_ABOVE_GROUND_M",
@@ -422,7 +422,7 @@ def record_from_exif(photo) -> tuple[SensorRecord, list[str]]:
     EXIF GPS latitude/longitude/altitude. Orientation: DJI XMP gimbal angles
     (drone photos), else EXIF ``GPSImgDirection`` for the trend only.
     """
-    from .orientation_tables import attitude_from_dji_gimbal, dji_gimbal_angles
+    from napari_imgreg.io.orientation_tables import attitude_from_dji_gimbal, dji_gimbal_angles
 
     exif = photo.exif or {}
     notes: list[str] = []
@@ -527,11 +527,11 @@ def prior_for_photo(
 
 def _attach_sun(prior: Prior, record: SensorRecord, photo, georef: Georef | None) -> None:
     """Give the prior the sun at capture: record ``sun``, else record ``time``, else EXIF."""
-    from ..sun import sun_direction_local, sun_for_photo, sun_position, sun_vector_enu
+    from napari_imgreg.sun import sun_direction_local, sun_for_photo, sun_position, sun_vector_enu
 
     center = prior.pose.center
     if record.sun is not None:
-        from ..sun import meridian_convergence_deg
+        from napari_imgreg.sun import meridian_convergence_deg
 
         conv = 0.0 if georef is None else meridian_convergence_deg(georef, center)
         prior.sun = sun_vector_enu(record.sun["azimuth_deg"] - conv, record.sun["elevation_deg"])

@@ -8,8 +8,8 @@ scoring) in a napari thread worker, so the viewer never freezes, and turns
 errors into one-line napari notifications.
 
 It orchestrates only: rendering, filtering, registration and manual solving
-are the backend's (:mod:`~napari_imgreg.render`, :mod:`~napari_imgreg.filters`,
-:mod:`~napari_imgreg.pipeline`, :mod:`~napari_imgreg.manual`).
+are the backend's (:mod:`~napari_imgreg.render`, :mod:`~napari_imgreg.registration.filters`,
+:mod:`~napari_imgreg.registration.pipeline`, :mod:`~napari_imgreg.registration.manual`).
 """
 
 from __future__ import annotations
@@ -28,22 +28,22 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 from qtpy.QtCore import QObject, QTimer, Signal
 
-from .. import manual
-from .._layers import napari_from_pixels, napari_from_world, pixels_from_napari, surface_layer_data
-from ..camera import Intrinsics, Pose
-from ..errors import InputError
-from ..features import FeatureParams
-from ..io.records import Prior
-from ..params import RegistrationParams
-from ..pipeline import Cancelled, Registration, Trial
-from ..quality import evaluate_rules
+from napari_imgreg.registration import manual
+from napari_imgreg.widgets._layers import napari_from_pixels, napari_from_world, pixels_from_napari, surface_layer_data
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.errors import InputError
+from napari_imgreg.registration.features import FeatureParams
+from napari_imgreg.io.records import Prior
+from napari_imgreg.registration.params import RegistrationParams
+from napari_imgreg.registration.pipeline import Cancelled, Registration, Trial
+from napari_imgreg.registration.quality import evaluate_rules
 
 if TYPE_CHECKING:
     import napari
 
-    from ..io.photos import Photo
-    from ..render import RenderResult
-    from ..scene import Scene
+    from napari_imgreg.io.photos import Photo
+    from napari_imgreg.render import RenderResult
+    from napari_imgreg.scene import Scene
 
 __all__ = [
     "WorkbenchController",
@@ -739,7 +739,7 @@ class WorkbenchController(QObject):
                    georef: str | Path | None = None, photos: list | None = None) -> None:
         """Load a mesh (or a DSM as GeoTIFF/.asc), optionally a DEM and georeference,
         in a worker; then add ``photos``."""
-        from ..scene import Scene
+        from napari_imgreg.scene import Scene
 
         def job(mesh, dem, georef):
             return _in_python_thread(load, mesh, dem, georef)
@@ -747,12 +747,12 @@ class WorkbenchController(QObject):
         def load(mesh, dem, georef):
             path = Path(mesh)
             if path.suffix.lower() in (".tif", ".tiff", ".asc"):
-                from ..geo import Georef
+                from napari_imgreg.geo import Georef
 
                 g = Georef.load(georef) if georef else None
                 scene = Scene.from_dem(path, georef=g)
                 if dem:
-                    from ..geo import DEM
+                    from napari_imgreg.geo import DEM
 
                     scene.dem = DEM.load(dem)
             else:
@@ -786,7 +786,7 @@ class WorkbenchController(QObject):
 
     def open_sample(self) -> None:
         """The generated sample outcrop with its DEM and its photos."""
-        from ..sample import sample_scene
+        from napari_imgreg.sample import sample_scene
 
         def job():
             return _in_python_thread(sample_scene, "small")
@@ -813,8 +813,8 @@ class WorkbenchController(QObject):
             return _in_python_thread(load)
 
         def load():
-            from ..io.photos import load_photo
-            from ..io.records import prior_for_photo
+            from napari_imgreg.io.photos import load_photo
+            from napari_imgreg.io.records import prior_for_photo
 
             loaded, errors = [], []
             for p in paths:
@@ -983,10 +983,10 @@ class WorkbenchController(QObject):
         def job_fn():
             import cv2
 
-            from ..render import render
+            from napari_imgreg.render import render
 
             if look[0] == "sunlit":
-                from ..sun import render_sunlit
+                from napari_imgreg.sun import render_sunlit
 
                 # As the pipeline renders for sun-lit matching.
                 result = render_sunlit(scene, intr, pose, np.asarray(look[1]), scale=scale,
@@ -1059,7 +1059,7 @@ class WorkbenchController(QObject):
         cache = self._reduced
 
         def job_fn():
-            from ..filters import apply_filters
+            from napari_imgreg.registration.filters import apply_filters
 
             # The reduced image does not change while a slider moves: reduce once.
             key = (which, id(image), width)
@@ -1110,7 +1110,7 @@ class WorkbenchController(QObject):
         self._cancel = False
 
         def job():
-            from ..pipeline import register_photo
+            from napari_imgreg.registration.pipeline import register_photo
 
             return (yield from register_photo(scene, image, prior, params, photo_name=name,
                                               cancelled=lambda: self._cancel))
@@ -1259,7 +1259,7 @@ class WorkbenchController(QObject):
         if ps is None or scene is None or scene.georef is None:
             return 0.0
         if ps._convergence is None:
-            from ..sun import meridian_convergence_deg
+            from napari_imgreg.sun import meridian_convergence_deg
 
             ps._convergence = float(meridian_convergence_deg(scene.georef, ps.prior.pose.center))
         return ps._convergence
@@ -1289,7 +1289,7 @@ class WorkbenchController(QObject):
     def set_sun_angles(self, azimuth_true_deg: float, elevation_deg: float,
                        source: str = "hand setting") -> None:
         """Set the current photo's sun by its azimuth from TRUE north and its elevation."""
-        from ..sun import sun_vector_enu
+        from napari_imgreg.sun import sun_vector_enu
 
         if self.current is None:
             return
@@ -1340,8 +1340,8 @@ class WorkbenchController(QObject):
         def job():
             import cv2
 
-            from ..render import render
-            from ..sun import estimate_sun_from_photo
+            from napari_imgreg.render import render
+            from napari_imgreg.sun import estimate_sun_from_photo
 
             rendered = render(scene, intr, pose, scale=min(1.0, SUN_ESTIMATE_WIDTH / intr.width))
             h, w = rendered.shape
@@ -1387,7 +1387,7 @@ class WorkbenchController(QObject):
             intr, pose = ps.intrinsics, ps.pose
 
         def job():
-            from ..render import render
+            from napari_imgreg.render import render
 
             return render(scene, intr, pose)
 
@@ -1412,7 +1412,7 @@ class WorkbenchController(QObject):
 
     def camera_from_3d_view(self) -> tuple[Intrinsics, Pose]:
         """The camera that sees what the 3D view shows (photo's size and focal length)."""
-        from .._layers import world_from_napari
+        from napari_imgreg.widgets._layers import world_from_napari
 
         ps = self.current
         cam = self.camera

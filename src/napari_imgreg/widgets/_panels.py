@@ -43,10 +43,10 @@ from qtpy.QtWidgets import (
 )
 from superqt import QLabeledDoubleSlider, QLabeledSlider
 
-from ..features import DESCRIPTORS, DETECTORS, PRESETS, available
-from ..io.photos import PHOTO_SUFFIXES
-from ..manual import MIN_PAIRS, MIN_PAIRS_FOCAL
-from ._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
+from napari_imgreg.registration.features import DESCRIPTORS, DETECTORS, PRESETS, available
+from napari_imgreg.io.photos import PHOTO_SUFFIXES
+from napari_imgreg.registration.manual import MIN_PAIRS, MIN_PAIRS_FOCAL
+from napari_imgreg.widgets._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
 
 __all__ = ["ScenePanel", "PosePanel", "FiltersPanel", "RegisterPanel", "SunBox", "ManualPanel",
            "TerrainMapCanvas", "sun_source_text"]
@@ -626,7 +626,7 @@ class PosePanel(QWidget):
 
     def _typed(self, name: str, value: float) -> None:
         """One value typed: only that component changes (the others keep full precision)."""
-        from ..camera import Pose
+        from napari_imgreg.camera import Pose
 
         ps = self.ctrl.current
         if ps is None:
@@ -658,7 +658,7 @@ class PosePanel(QWidget):
 
 # ==================================================================== filters
 class FilterEditor(QWidget):
-    """Sliders for one image's :class:`~napari_imgreg.filters.FilterParams`."""
+    """Sliders for one image's :class:`~napari_imgreg.registration.filters.FilterParams`."""
 
     #: name, label, kind, lo, hi, decimals
     FIELDS = (
@@ -744,7 +744,7 @@ class FilterEditor(QWidget):
         self.on_edit(self.which)
 
     def reset(self) -> None:
-        from ..filters import FilterParams
+        from napari_imgreg.registration.filters import FilterParams
 
         fresh = FilterParams()
         for name in fresh.to_dict():

@@ -22,9 +22,9 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from ..manual import metric_trend
-from ..quality import GRADES, METRICS, REFERENCE_WIDTH_PX, classify
-from ._controller import WorkbenchController
+from napari_imgreg.registration.manual import metric_trend
+from napari_imgreg.registration.quality import GRADES, METRICS, REFERENCE_WIDTH_PX, classify
+from napari_imgreg.widgets._controller import WorkbenchController
 
 __all__ = ["QualityPanel", "CLASS_COLORS", "TREND_ARROWS", "HISTORY_COLUMNS", "SUNLIT_MARK",
            "origin_text"]

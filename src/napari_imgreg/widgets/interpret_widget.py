@@ -1,11 +1,11 @@
 """Dock widget: draw interpretations on registered photos, project them onto the
-model in 3D, measure them (backend: :mod:`napari_imgreg.interpret`,
-:mod:`napari_imgreg.structural`).
+model in 3D, measure them (backend: :mod:`napari_imgreg.interpret.project`,
+:mod:`napari_imgreg.interpret.structural`).
 
 A *registered photo* is an Image layer whose metadata carries its camera and
 pose: ``metadata["result"]`` (a RESULT.json dict), or ``metadata["intrinsics"]``
 and ``metadata["pose"]`` (contract dicts or :class:`Intrinsics`/:class:`Pose`),
-or ``metadata["imgreg_registration"]`` (a :class:`~napari_imgreg.pipeline.Registration`).
+or ``metadata["imgreg_registration"]`` (a :class:`~napari_imgreg.registration.pipeline.Registration`).
 "Attach RESULT.json…" adds one to any Image layer. The model is a Surface
 layer with ``metadata["imgreg_scene"]`` (the reader and the sample data set it).
 
@@ -43,10 +43,10 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from .._layers import napari_from_pixels, napari_from_world, pixels_from_napari
-from ..camera import Intrinsics, Pose
-from ..errors import InputError
-from ..interpret import (
+from napari_imgreg.widgets._layers import napari_from_pixels, napari_from_world, pixels_from_napari
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.errors import InputError
+from napari_imgreg.interpret.project import (
     LABEL_COLORS,
     Feature3D,
     Interpretation,
@@ -54,7 +54,7 @@ from ..interpret import (
     merge_interpretations,
     project_interpretations,
 )
-from ..structural import Measurement, draw_stereonet
+from napari_imgreg.interpret.structural import Measurement, draw_stereonet
 
 if TYPE_CHECKING:
     import napari
@@ -361,7 +361,7 @@ class InterpretWidget(QWidget):
     # ------------------------------------------------------------- I/O
     def attach_result(self, path: str | Path, layer=None) -> None:
         """Attach a RESULT.json's camera and pose to an Image layer."""
-        from ..io.records import read_json
+        from napari_imgreg.io.records import read_json
 
         layer = layer or self.photo_layer
         data = read_json(path)
@@ -374,7 +374,7 @@ class InterpretWidget(QWidget):
 
     def load_geojson(self, path: str | Path, photo_layer=None):
         """Add the interpretations of a pixel GeoJSON to the photo's interpretation layer."""
-        from ..io.interpretations import read_interpretations
+        from napari_imgreg.interpret.files import read_interpretations
 
         items = read_interpretations(path)
         layer = self.interpretation_layer(photo_layer, create=True)
@@ -401,7 +401,7 @@ class InterpretWidget(QWidget):
 
     def save_geojson(self, path: str | Path, photo_layer=None) -> int:
         """Save the photo's interpretation layer as pixel GeoJSON; returns the count."""
-        from ..io.interpretations import write_interpretations
+        from napari_imgreg.interpret.files import write_interpretations
 
         layer = self.interpretation_layer(photo_layer)
         items = interpretations_from_shapes(layer) if layer is not None else []
@@ -574,7 +574,7 @@ class InterpretWidget(QWidget):
     # ---------------------------------------------------------- exports
     def export(self, path: str | Path, georeferenced: bool | None = None) -> None:
         """Write the projected set (.geojson, .csv, .obj, .ply)."""
-        from ..io.interpretations import export_features
+        from napari_imgreg.interpret.files import export_features
 
         scene = self.scene
         georef = getattr(scene, "georef", None)
@@ -583,13 +583,13 @@ class InterpretWidget(QWidget):
         self.status_label.setText(f"Exported {len(self.features)} feature(s) to {Path(path).name}.")
 
     def save_measurements(self, path: str | Path) -> None:
-        from ..io.interpretations import write_measurements_csv
+        from napari_imgreg.interpret.files import write_measurements_csv
 
         write_measurements_csv(path, self.measurements)
         self.status_label.setText(f"Saved {len(self.measurements)} measurement(s).")
 
     def save_stereonet(self, path: str | Path) -> None:
-        from .._atomic import atomic_path
+        from napari_imgreg._atomic import atomic_path
 
         with atomic_path(path) as tmp:
             self.figure.savefig(tmp, dpi=120)

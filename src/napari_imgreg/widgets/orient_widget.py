@@ -1,4 +1,4 @@
-"""Dock widget: orient a model from phone camera attitudes (backend: :mod:`napari_imgreg.orient`).
+"""Dock widget: orient a model from phone camera attitudes (backend: :mod:`napari_imgreg.orient.estimate`).
 
 Load the model's camera orientations (ESTIMATED) and the phone's (MEASURED),
 choose the estimator, Run (in a napari thread worker, the viewer stays
@@ -34,9 +34,9 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from .._layers import napari_from_world, world_from_napari
-from ..errors import InputError
-from ..orient import (
+from napari_imgreg.widgets._layers import napari_from_world, world_from_napari
+from napari_imgreg.errors import InputError
+from napari_imgreg.orient.estimate import (
     METHODS,
     OrientationResult,
     lower_hemisphere_axis,
@@ -369,7 +369,7 @@ class OrientWidget(QWidget):
 
         scene = meta.get("imgreg_unoriented_scene", meta.get("imgreg_scene"))
         if scene is not None:
-            from ..scene import Scene
+            from napari_imgreg.scene import Scene
 
             meta["imgreg_unoriented_scene"] = scene
             meta["imgreg_scene"] = Scene(

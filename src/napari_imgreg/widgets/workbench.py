@@ -28,9 +28,9 @@ from typing import TYPE_CHECKING
 from qtpy.QtCore import QTimer
 from qtpy.QtWidgets import QLabel, QScrollArea, QTabWidget, QVBoxLayout, QWidget
 
-from ._controller import WorkbenchController, controller_for
-from ._panels import FiltersPanel, ManualPanel, PosePanel, RegisterPanel, ScenePanel
-from ._quality import QualityPanel
+from napari_imgreg.widgets._controller import WorkbenchController, controller_for
+from napari_imgreg.widgets._panels import FiltersPanel, ManualPanel, PosePanel, RegisterPanel, ScenePanel
+from napari_imgreg.widgets._quality import QualityPanel
 
 if TYPE_CHECKING:
     import napari
@@ -137,7 +137,7 @@ class Workbench(QWidget):
     def _try_interpret_widget(self) -> None:
         """Dock the interpretation widget in its tab when the module is there."""
         try:
-            from . import interpret_widget  # noqa: F401  (built separately)
+            from napari_imgreg.widgets import interpret_widget  # noqa: F401  (built separately)
         except ImportError:
             return
         cls = getattr(interpret_widget, "InterpretWidget", None)

@@ -31,15 +31,15 @@ from typing import Any, Callable, Generator
 import cv2
 import numpy as np
 
-from .camera import Intrinsics, Pose
-from .features import Features, Matches, detect_and_describe, match_features, match_guided
-from .filters import apply_filters, illumination_invariant
-from .io.records import Prior
-from .params import RegistrationParams
-from .pose import PoseEstimate, estimate_pose
-from .quality import GRADES, evaluate_rules, grade_of, quality_q
-from .render import RenderResult, render
-from .scene import Scene
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.registration.features import Features, Matches, detect_and_describe, match_features, match_guided
+from napari_imgreg.registration.filters import apply_filters, illumination_invariant
+from napari_imgreg.io.records import Prior
+from napari_imgreg.registration.params import RegistrationParams
+from napari_imgreg.registration.pose import PoseEstimate, estimate_pose
+from napari_imgreg.registration.quality import GRADES, evaluate_rules, grade_of, quality_q
+from napari_imgreg.render import RenderResult, render
+from napari_imgreg.scene import Scene
 
 __all__ = [
     "Progress",
@@ -136,7 +136,7 @@ class Trial:
     correspondences: Correspondences | None = None
     render_mode: str = "plain"
     #: "keypoints" (detected and described features) or "area" (render
-    #: blocks found in the photo by correlation, :mod:`napari_imgreg.area`).
+    #: blocks found in the photo by correlation, :mod:`napari_imgreg.registration.stages.area`).
     matcher: str = "keypoints"
 
     def to_dict(self) -> dict:
@@ -239,7 +239,7 @@ class _Context:
         intr = intrinsics or self.intrinsics
         t0 = time.perf_counter()
         if mode == "sunlit" and self.sun is not None:
-            from .sun import render_sunlit
+            from napari_imgreg.sun import render_sunlit
 
             rendered = render_sunlit(self.scene, intr, pose, self.sun, scale=scale,
                                      survey_sun_dir=self.scene.survey_sun)
@@ -265,7 +265,7 @@ class _Context:
 
     def area_photo(self, photo_small: np.ndarray, sigma_px: float) -> np.ndarray:
         """The photo band-passed for area matching at ``photo_small``'s size (cached)."""
-        from .area import prepare_photo
+        from napari_imgreg.registration.stages.area import prepare_photo
 
         key = ("area", photo_small.shape, round(sigma_px, 3))
         if key not in self._area_cache:
@@ -425,7 +425,7 @@ def _area_round(ctx: _Context, pose: Pose, params: RegistrationParams, width: in
     the render blocks searched, the feature inliers the blocks whose
     correlation peak is high and unique.
     """
-    from .area import match_blocks, prepare_render
+    from napari_imgreg.registration.stages.area import match_blocks, prepare_render
 
     ap = params.area
     scale = min(1.0, width / ctx.intrinsics.width)
@@ -522,7 +522,7 @@ def _run_trial(
 
     ``matcher`` "area" matches render blocks by correlation instead of
     keypoints (:func:`_area_round`), at widths and search radii that follow
-    the pose's convergence (:func:`napari_imgreg.area.search_schedule`;
+    the pose's convergence (:func:`napari_imgreg.registration.stages.area.search_schedule`;
     ``far_start``: the start is the sensor prior, not a stage's estimate).
     A trial is converged only after a round at the full area width.
     """
@@ -536,7 +536,7 @@ def _run_trial(
     last_ok_pose: Pose | None = None
     area = matcher == "area"
     if area:
-        from .area import search_schedule
+        from napari_imgreg.registration.stages.area import search_schedule
 
         # Coarse rounds do not count: up to two more to reach the full width.
         rounds += 2
@@ -712,7 +712,7 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
             return
 
     if options.edge_align:
-        from .edges import align_edges
+        from napari_imgreg.registration.stages.edges import align_edges
 
         yield progress("edges", "aligning the model's edges with the photo's", (base + 1.0) / n_budget)
         t0 = time.perf_counter()
@@ -736,7 +736,7 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
                                            "confirms the pose: not verified"))
 
     if options.dense_refine:
-        from .dense import refine_pose_mi
+        from napari_imgreg.registration.stages.dense import refine_pose_mi
 
         best = max(trials, key=_trial_rank)
         start = best.pose if best.pose is not None else start_prior

@@ -32,9 +32,9 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from .camera import Intrinsics, Pose
-from .errors import InputError, input_error
-from .pose import PoseParams, estimate_pose, reprojection_errors
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.errors import InputError, input_error
+from napari_imgreg.registration.pose import PoseParams, estimate_pose, reprojection_errors
 
 __all__ = [
     "MIN_PAIRS",
@@ -611,7 +611,7 @@ def solve_manual(
     """The photo's pose from manually picked 2D–3D pairs.
 
     With six or more pairs, RANSAC EPnP with refinement
-    (:func:`napari_imgreg.pose.estimate_pose`) sets a mis-picked pair aside;
+    (:func:`napari_imgreg.registration.pose.estimate_pose`) sets a mis-picked pair aside;
     with four or five, every pair is used: EPnP, SQPnP and (from ``initial``)
     iterative PnP, each refined by Levenberg–Marquardt, the one with the
     smallest RMS error that keeps all points in front of the camera wins.
@@ -733,7 +733,7 @@ def reduce_for_matching(
     """An image (and its mask) at the registration's matching width.
 
     A wider image is reduced by area averaging, as
-    :func:`napari_imgreg.pipeline.register_photo` reduces the photo; a
+    :func:`napari_imgreg.registration.pipeline.register_photo` reduces the photo; a
     narrower one is returned as it is (never enlarged).
 
     Parameters
@@ -785,7 +785,7 @@ def filtered_for_matching(
     (h, w) uint8 array
         At ``min(W, match_width)`` pixels wide.
     """
-    from .filters import apply_filters
+    from napari_imgreg.registration.filters import apply_filters
 
     small, small_mask = reduce_for_matching(image, match_width, mask)
     return apply_filters(small, params, mask=small_mask)
@@ -809,7 +809,7 @@ def score_pose(
     *given* pose is tested: a 3D inlier is a correspondence whose 3D point
     projects within ``params.pose.reprojection_error_px`` of its photo
     keypoint, and the reprojection error is their mean. The pose is
-    *verified* as in :func:`napari_imgreg.pipeline.register_photo`: enough
+    *verified* as in :func:`napari_imgreg.registration.pipeline.register_photo`: enough
     3D inliers and photo and render keypoints coincide (small residual flow);
     an unverified pose is graded "fair" at best.
 
@@ -826,26 +826,26 @@ def score_pose(
     origin : str
         Stored in the returned trial (``"manual"``).
     cancelled : callable, optional
-        Polled between steps; raises :class:`napari_imgreg.pipeline.Cancelled`.
+        Polled between steps; raises :class:`napari_imgreg.registration.pipeline.Cancelled`.
 
     Returns
     -------
-    napari_imgreg.pipeline.Trial
+    napari_imgreg.registration.pipeline.Trial
         With ``pose`` set to the given pose, ``rounds`` 0 and the
         correspondences for drawing.
     """
-    from .features import detect_and_describe, match_features
-    from .filters import apply_filters
-    from .params import RegistrationParams
-    from .pipeline import (
+    from napari_imgreg.registration.features import detect_and_describe, match_features
+    from napari_imgreg.registration.filters import apply_filters
+    from napari_imgreg.registration.params import RegistrationParams
+    from napari_imgreg.registration.pipeline import (
         MIN_VERIFIED_INLIERS,
         VERIFY_FLOW_PX,
         Cancelled,
         Correspondences,
         Trial,
     )
-    from .quality import REFERENCE_WIDTH_PX, evaluate_rules, grade_of, quality_q
-    from .render import render
+    from napari_imgreg.registration.quality import REFERENCE_WIDTH_PX, evaluate_rules, grade_of, quality_q
+    from napari_imgreg.render import render
 
     def check() -> None:
         if cancelled is not None and cancelled():
@@ -946,7 +946,7 @@ def metric_trend(metric, value: float | None, previous: float | None) -> int:
 
     Parameters
     ----------
-    metric : napari_imgreg.quality.Metric
+    metric : napari_imgreg.registration.quality.Metric
         Knows whether lower is better (the reprojection error).
     value, previous : float or None
         A missing (None/NaN) value is the worst possible.
@@ -995,7 +995,7 @@ def save_pose_to_record(
     InputError
         The existing file is not a JSON object.
     """
-    from ._atomic import atomic_write
+    from napari_imgreg._atomic import atomic_write
 
     path = Path(path)
     data: dict = {}

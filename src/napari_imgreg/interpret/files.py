@@ -34,13 +34,13 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from .._atomic import atomic_write
-from ..errors import InputError, input_error
-from ..interpret import Feature3D, Interpretation
-from ..structural import Measurement
+from napari_imgreg._atomic import atomic_write
+from napari_imgreg.errors import InputError, input_error
+from napari_imgreg.interpret.project import Feature3D, Interpretation
+from napari_imgreg.interpret.structural import Measurement
 
 if TYPE_CHECKING:
-    from ..geo import Georef
+    from napari_imgreg.geo import Georef
 
 __all__ = [
     "MEASUREMENT_COLUMNS",
@@ -72,7 +72,7 @@ _DECIMALS = 4  # 0.1 mm
 
 # ------------------------------------------------------------- pixel GeoJSON
 def _load_json(path: Path) -> Any:
-    from .records import read_json
+    from napari_imgreg.io.records import read_json
 
     return read_json(path)
 

@@ -72,9 +72,9 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .camera import attitude_from_rotation
-from .errors import input_error
-from .io.orientation_tables import (
+from napari_imgreg.camera import attitude_from_rotation
+from napari_imgreg.errors import input_error
+from napari_imgreg.io.orientation_tables import (
     OrientationTable,
     PairedOrientations,
     pair_tables,
@@ -1150,7 +1150,7 @@ def save_orientation(result: OrientationResult, path: str | os.PathLike) -> None
     """Write ORIENTATION.json atomically."""
     import json
 
-    from ._atomic import atomic_write
+    from napari_imgreg._atomic import atomic_write
 
     with atomic_write(path, encoding="utf-8") as fh:
         json.dump(result.to_dict(), fh, indent=2, ensure_ascii=False)
@@ -1248,8 +1248,8 @@ def apply_to_mesh_file(
     """
     import trimesh
 
-    from ._atomic import atomic_path, atomic_write
-    from .io.meshes import load_mesh
+    from napari_imgreg._atomic import atomic_path, atomic_write
+    from napari_imgreg.io.meshes import load_mesh
 
     source, destination = Path(source), Path(destination)
     suffix = destination.suffix.lower()
@@ -1382,7 +1382,7 @@ def save_residual_plots(
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from ._atomic import atomic_path
+    from napari_imgreg._atomic import atomic_path
 
     figure = Figure(figsize=(10, 4))
     FigureCanvasAgg(figure)

@@ -65,9 +65,9 @@ import numpy as np
 from scipy import ndimage
 from scipy.optimize import least_squares
 
-from .camera import Intrinsics, Pose
-from .render import RenderResult, render
-from .scene import Scene
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.render import RenderResult, render
+from napari_imgreg.scene import Scene
 
 __all__ = [
     "SKYLINE",

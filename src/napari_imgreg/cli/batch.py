@@ -38,7 +38,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError, input_error
+from napari_imgreg.errors import InputError, input_error
 
 __all__ = ["add_parser", "cmd_batch", "find_scene_files", "SceneFiles", "SUMMARY_COLUMNS"]
 
@@ -203,8 +203,8 @@ def find_scene_files(
         No such folder, no mesh or several (without ``mesh``), several DEMs
         (without ``dem``), a given file missing, or no photos.
     """
-    from .io.meshes import MESH_SUFFIXES
-    from .io.photos import PHOTO_SUFFIXES
+    from napari_imgreg.io.meshes import MESH_SUFFIXES
+    from napari_imgreg.io.photos import PHOTO_SUFFIXES
 
     folder = Path(folder)
     if not folder.exists():
@@ -321,7 +321,7 @@ def _error_row(photo: str, status: str, message: str, seconds: float) -> dict[st
 
 def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
     """Write summary.csv and summary.json atomically (csv first, json last)."""
-    from ._atomic import atomic_write
+    from napari_imgreg._atomic import atomic_write
 
     with atomic_write(out / "summary.csv", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
@@ -351,12 +351,12 @@ def exit_code_of(rows: list[dict[str, Any]]) -> int:
 # ------------------------------------------------------------------- run
 def cmd_batch(args: argparse.Namespace) -> int:
     """Run ``batch``: check the scene, register every photo, keep the summary current."""
-    from ._atomic import atomic_write
-    from .io.photos import load_photo
-    from .io.records import prior_for_photo, read_json
-    from .params import RegistrationParams, load_params
-    from .pipeline import register
-    from .scene import Scene
+    from napari_imgreg._atomic import atomic_write
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.io.records import prior_for_photo, read_json
+    from napari_imgreg.registration.params import RegistrationParams, load_params
+    from napari_imgreg.registration.pipeline import register
+    from napari_imgreg.scene import Scene
 
     t_start = time.perf_counter()
     out = Path(args.out)

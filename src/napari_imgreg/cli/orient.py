@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .errors import input_error
+from napari_imgreg.errors import input_error
 
 __all__ = ["add_parser", "cmd_orient"]
 
@@ -57,8 +57,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def cmd_orient(args: argparse.Namespace) -> int:
     """Run ``orient``: read, estimate, write ORIENTATION.json, print a summary."""
-    from .io.orientation_tables import read_orientation_table
-    from .orient import (
+    from napari_imgreg.io.orientation_tables import read_orientation_table
+    from napari_imgreg.orient.estimate import (
         MESH_OUT_SUFFIXES,
         apply_to_mesh_file,
         orient,

@@ -92,7 +92,7 @@ class FeatureParams:
         them with the Hellinger kernel; a few more correct matches for free.
     invariant_channel : bool
         Also detect and describe on the illumination-invariant image of each
-        colour image (:func:`napari_imgreg.filters.illumination_invariant`,
+        colour image (:func:`napari_imgreg.registration.filters.illumination_invariant`,
         Maddern et al. 2014); its keypoints are matched only among themselves.
         Used by the registration for matching from a distant start, where
         relief shading under another sun defeats the luminance features.

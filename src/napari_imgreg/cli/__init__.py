@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .errors import InputError, input_error
+from napari_imgreg import __version__
+from napari_imgreg.errors import InputError, input_error
 
 __all__ = ["main"]
 
@@ -24,17 +24,17 @@ EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 
 
 def _scene(mesh: str, georef: str | None, dem: str | None):
-    from .scene import Scene
+    from napari_imgreg.scene import Scene
 
     return Scene.load(mesh, georef=georef, dem=dem)
 
 
 # ----------------------------------------------------------------- render
 def cmd_render(args: argparse.Namespace) -> int:
-    from ._atomic import atomic_path
-    from .io.photos import save_image
-    from .io.records import load_camera_and_pose
-    from .render import render
+    from napari_imgreg._atomic import atomic_path
+    from napari_imgreg.io.photos import save_image
+    from napari_imgreg.io.records import load_camera_and_pose
+    from napari_imgreg.render import render
 
     out = Path(args.out)
     if out.suffix.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
@@ -78,11 +78,11 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------- register
 def cmd_register(args: argparse.Namespace) -> int:
-    from ._atomic import atomic_write
-    from .io.photos import load_photo
-    from .io.records import prior_for_photo
-    from .params import RegistrationParams, load_params
-    from .pipeline import register
+    from napari_imgreg._atomic import atomic_write
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.io.records import prior_for_photo
+    from napari_imgreg.registration.params import RegistrationParams, load_params
+    from napari_imgreg.registration.pipeline import register
 
     photo_path = Path(args.photo)
     out = Path(args.out) if args.out else photo_path.with_suffix(".result.json")
@@ -126,13 +126,13 @@ def cmd_register(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------- demo
 def cmd_demo(args: argparse.Namespace) -> int:
-    from ._atomic import atomic_write
-    from .io.photos import load_photo, save_image
-    from .io.records import prior_for_photo
-    from .pipeline import register
-    from .render import render
-    from .sample import load_truth, sample_scene
-    from .scene import Scene
+    from napari_imgreg._atomic import atomic_write
+    from napari_imgreg.io.photos import load_photo, save_image
+    from napari_imgreg.io.records import prior_for_photo
+    from napari_imgreg.registration.pipeline import register
+    from napari_imgreg.render import render
+    from napari_imgreg.sample import load_truth, sample_scene
+    from napari_imgreg.scene import Scene
 
     t0 = time.perf_counter()
     folder = sample_scene("small")
@@ -212,7 +212,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _demo_gui(folder: Path) -> int:  # pragma: no cover - interactive
-    from .widgets.demo import open_demo  # the only path of the CLI that needs Qt
+    from napari_imgreg.widgets.demo import open_demo  # the only path of the CLI that needs Qt
 
     open_demo(folder)
     return EXIT_OK
@@ -220,7 +220,7 @@ def _demo_gui(folder: Path) -> int:  # pragma: no cover - interactive
 
 # ----------------------------------------------------------------- sample
 def cmd_sample(args: argparse.Namespace) -> int:
-    from .sample import generate_outcrop
+    from napari_imgreg.sample import generate_outcrop
 
     t0 = time.perf_counter()
     out = generate_outcrop(Path(args.out), size=args.size, seed=args.seed)
@@ -287,9 +287,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gui", action="store_true", help="open napari with the sample loaded")
     p.set_defaults(func=cmd_demo)
 
-    from .cli_batch import add_parser as add_batch_parser
-    from .cli_interpret import add_parsers as add_interpret_parsers
-    from .cli_orient import add_parser as add_orient_parser
+    from napari_imgreg.cli.batch import add_parser as add_batch_parser
+    from napari_imgreg.cli.interpret import add_parsers as add_interpret_parsers
+    from napari_imgreg.cli.orient import add_parser as add_orient_parser
 
     add_interpret_parsers(sub)
     add_orient_parser(sub)

@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, fields
 import cv2
 import numpy as np
 
-from .camera import Intrinsics, Pose
+from napari_imgreg.camera import Intrinsics, Pose
 
 __all__ = ["PoseParams", "PoseEstimate", "estimate_pose", "reprojection_errors", "MIN_POINTS"]
 

@@ -58,10 +58,10 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from .camera import Intrinsics, Pose
-from .filters import masked_gaussian
-from .render import RenderResult, _light_direction, render
-from .scene import Scene
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.registration.filters import masked_gaussian
+from napari_imgreg.render import RenderResult, _light_direction, render
+from napari_imgreg.scene import Scene
 
 __all__ = [
     "DENSE_MODES",

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from .params import RegistrationParams
+from napari_imgreg.registration.params import RegistrationParams
 
 __all__ = [
     "Metric",

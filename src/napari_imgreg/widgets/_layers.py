@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .scene import Scene
+from napari_imgreg.scene import Scene
 
 __all__ = [
     "napari_from_world",

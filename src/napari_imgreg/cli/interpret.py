@@ -11,7 +11,7 @@ import argparse
 from collections import Counter
 from pathlib import Path
 
-from .errors import input_error
+from napari_imgreg.errors import input_error
 
 __all__ = ["add_parsers", "cmd_project", "cmd_measure"]
 
@@ -83,13 +83,13 @@ def add_parsers(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _load_scene(mesh: str, georef: str | None, dem: str | None):
-    from .scene import Scene
+    from napari_imgreg.scene import Scene
 
     path = Path(mesh)
     if not path.exists():
         raise input_error(path, "no such file")
     if path.suffix.lower() in _DEM_SUFFIXES:
-        from .geo import Georef
+        from napari_imgreg.geo import Georef
 
         g = Georef.load(georef) if georef else None
         if g is None and (path.parent / "georef.json").exists():
@@ -100,9 +100,9 @@ def _load_scene(mesh: str, georef: str | None, dem: str | None):
 
 def cmd_project(args: argparse.Namespace) -> int:
     """Run ``project``: cast the drawn lines onto the mesh, write LINES3D."""
-    from .interpret import ProjectionParams, merge_interpretations, project_interpretations
-    from .io.interpretations import EXPORT_SUFFIXES, export_features, read_interpretations
-    from .io.records import load_camera_and_pose, read_json
+    from napari_imgreg.interpret.project import ProjectionParams, merge_interpretations, project_interpretations
+    from napari_imgreg.interpret.files import EXPORT_SUFFIXES, export_features, read_interpretations
+    from napari_imgreg.io.records import load_camera_and_pose, read_json
 
     out = Path(args.out)
     if out.suffix.lower() not in EXPORT_SUFFIXES + (".gpkg",):
@@ -159,10 +159,10 @@ def cmd_project(args: argparse.Namespace) -> int:
 
 def cmd_measure(args: argparse.Namespace) -> int:
     """Run ``measure``: fit lines and planes, write MEASUREMENTS.csv (and a stereonet)."""
-    from .interpret import measure_features
-    from .io.interpretations import read_features_geojson, write_measurements_csv
-    from .structural import FitThresholds, fisher_mean, save_stereonet, vector_from_plunge_trend
-    from .structural import dip_dip_direction, pole_of_plane
+    from napari_imgreg.interpret.project import measure_features
+    from napari_imgreg.interpret.files import read_features_geojson, write_measurements_csv
+    from napari_imgreg.interpret.structural import FitThresholds, fisher_mean, save_stereonet, vector_from_plunge_trend
+    from napari_imgreg.interpret.structural import dip_dip_direction, pole_of_plane
 
     out = Path(args.out)
     if out.suffix.lower() != ".csv":

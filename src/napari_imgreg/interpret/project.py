@@ -27,9 +27,9 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .camera import Intrinsics, Pose
-from .scene import Scene
-from .structural import DEFAULT_THRESHOLDS, FitThresholds, Measurement, measure_facet, measure_trace
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.scene import Scene
+from napari_imgreg.interpret.structural import DEFAULT_THRESHOLDS, FitThresholds, Measurement, measure_facet, measure_trace
 
 __all__ = [
     "LABEL_COLORS",
@@ -207,7 +207,7 @@ class Feature3D:
         return float(sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in self.parts))
 
     def measure(self, thresholds: FitThresholds = DEFAULT_THRESHOLDS) -> Measurement:
-        """The feature's contract §6 measurement (see :mod:`napari_imgreg.structural`)."""
+        """The feature's contract §6 measurement (see :mod:`napari_imgreg.interpret.structural`)."""
         color = self.properties.get("color")
         if self.kind == "facet":
             pts = self.patch_points if self.patch_points is not None and len(self.patch_points) else self.points

@@ -773,7 +773,7 @@ def save_stereonet(
     """
     from matplotlib.figure import Figure
 
-    from ._atomic import atomic_path
+    from napari_imgreg._atomic import atomic_path
 
     n_labels = len({m.label for m in measurements})
     fig = Figure(figsize=(6, 6.3 + 0.3 * n_labels))

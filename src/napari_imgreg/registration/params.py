@@ -9,11 +9,11 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field, fields, replace
 
-from .area import AreaParams
-from .errors import input_error
-from .features import FeatureParams
-from .filters import FilterParams
-from .pose import PoseParams
+from napari_imgreg.registration.stages.area import AreaParams
+from napari_imgreg.errors import input_error
+from napari_imgreg.registration.features import FeatureParams
+from napari_imgreg.registration.filters import FilterParams
+from napari_imgreg.registration.pose import PoseParams
 
 __all__ = ["RegistrationParams", "load_params"]
 
@@ -120,7 +120,7 @@ class RegistrationParams:
         """The plain pipeline the benchmark compares against: SIFT, ratio test,
         EPnP, no filters, no re-rendering, no adaptation, no search, no
         verification."""
-        from .features import FeatureParams
+        from napari_imgreg.registration.features import FeatureParams
 
         return cls(
             photo_filters=FilterParams(),
@@ -227,7 +227,7 @@ def _check_types(obj, source, section: str = "") -> None:
 
 def load_params(path: str | os.PathLike) -> RegistrationParams:
     """Read a ``--params`` JSON file (any subset of the fields)."""
-    from .io.records import read_json
+    from napari_imgreg.io.records import read_json
 
     data = read_json(path)
     if not isinstance(data, dict):
