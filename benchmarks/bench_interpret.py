@@ -36,7 +36,7 @@ from napari_imgreg import Scene
 from napari_imgreg._atomic import atomic_write
 from napari_imgreg.interpret.project import Interpretation, project_interpretations
 from napari_imgreg.io.photos import load_photo
-from napari_imgreg.io.records import prior_for_photo
+from napari_imgreg.prior import prior_for_photo
 from napari_imgreg.registration.pipeline import register
 from napari_imgreg.sample import load_truth, sample_scene
 from napari_imgreg.interpret.structural import fisher_mean, normal_from_dip

@@ -25,14 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from napari_imgreg._atomic import atomic_write
-from napari_imgreg.orient.estimate import (
+from napari_imgreg.orient import (
     estimate_rotation_lsq,
     estimate_rotation_paper,
     estimate_rotation_robust,
     orient,
     rotation_error_deg,
-    simulate_survey,
 )
+from napari_imgreg.sample.survey import simulate_survey
 
 from _report import markers, write_section  # noqa: E402  (benchmarks/ is on sys.path)
 

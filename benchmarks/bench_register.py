@@ -59,7 +59,7 @@ from napari_imgreg import Scene, render
 from napari_imgreg._atomic import atomic_path, atomic_write
 from napari_imgreg.geo import Georef
 from napari_imgreg.io.photos import load_photo
-from napari_imgreg.io.records import prior_for_photo
+from napari_imgreg.prior import prior_for_photo
 from napari_imgreg.registration.params import RegistrationParams
 from napari_imgreg.registration.pipeline import register
 from napari_imgreg.sample import (

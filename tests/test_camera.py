@@ -14,7 +14,11 @@ from napari_imgreg.camera import (
     Intrinsics,
     Pose,
     attitude_from_rotation,
+    match_scale,
+    pixels_to_full,
+    pixels_to_scaled,
     rotation_from_attitude,
+    scaled_size,
 )
 
 # ---------------------------------------------------------------------------
@@ -458,6 +462,43 @@ def test_scaled_keeps_pixel_centre_convention():
     # the first pixel's centre: (0 + 0.5) * 0.5 - 0.5 = -0.25
     half = Intrinsics(160, 120, 100.0, 100.0, 0.0, 0.0).scaled(0.5)
     assert (half.cx, half.cy, half.fx) == (-0.25, -0.25, 50.0)
+
+
+def test_match_scale_reduces_to_the_working_width_and_never_enlarges():
+    assert match_scale(2000, 500) == 0.25
+    assert match_scale(1632, 1024) == 1024 / 1632
+    assert match_scale(800, 1024) == 1.0 and match_scale(1024, 1024) == 1.0
+    assert scaled_size(1632, 1224, match_scale(1632, 1024)) == (1024, 768)
+    assert scaled_size(1500, 1000, 640 / 1500) == (640, 427)  # 426.67 rounds up
+    assert scaled_size(10, 10, 0.01) == (1, 1)  # never empty
+
+
+def test_pixel_centre_shift_known_answers():
+    # Halving: reduced pixel 0 covers full pixels 0 and 1, so its centre is 0.5;
+    # the left edge (-0.5) stays the left edge; reduced 1 covers full 2 and 3.
+    np.testing.assert_array_equal(
+        pixels_to_full(np.array([[0.0, 0.0], [-0.5, -0.5], [1.0, 3.0]]), 0.5),
+        [[0.5, 0.5], [-0.5, -0.5], [2.5, 6.5]])
+    # A quarter: reduced pixel 0 covers full pixels 0..3, centre 1.5.
+    assert pixels_to_full(0.0, 0.25) == 1.5
+    assert pixels_to_scaled(1.5, 0.25) == 0.0
+    assert pixels_to_scaled(-0.5, 0.25) == -0.5
+    # Inverse of each other; an array keeps its dtype (float32 keypoints).
+    pts = np.array([[12.25, 700.5], [0.0, 3.0]], np.float32)
+    back = pixels_to_scaled(pixels_to_full(pts, 0.6), 0.6)
+    assert back.dtype == np.float32
+    np.testing.assert_allclose(back, pts, atol=1e-4)
+
+
+def test_pixel_shift_is_what_a_scaled_camera_sees():
+    """A 3D point projects in the scaled camera where the shift puts its full-size pixel."""
+    intr = Intrinsics(1632, 1224, 1300.0, 1300.0, 815.5, 611.5)
+    rng = np.random.default_rng(4)
+    P = np.c_[rng.uniform(-3, 3, (40, 2)), rng.uniform(5, 30, 40)]
+    s = match_scale(intr.width, 1024)
+    small = intr.scaled(s)
+    np.testing.assert_allclose(small.project(P), pixels_to_scaled(intr.project(P), s), atol=1e-9)
+    np.testing.assert_allclose(pixels_to_full(small.project(P), s), intr.project(P), atol=1e-9)
 
 
 # ---------------------------------------------------------------------------

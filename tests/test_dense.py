@@ -20,6 +20,7 @@ import pytest
 
 from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.registration.stages.dense import (
+    DenseParams,
     DenseResult,
     entropy,
     mi_score,
@@ -157,7 +158,7 @@ def _rms_reprojection_px(truth: Pose, pose: Pose, intr: Intrinsics, points: np.n
 def test_refine_recovers_a_pose_1deg_1m_off(aerial, seed):
     scene, photo, intr, truth, rr = aerial
     start = _perturbed(truth, 1.0, 1.0, seed)
-    res = refine_pose_mi(scene, photo, intr, start, levels=(128, 256, 512, 800))
+    res = refine_pose_mi(scene, photo, intr, start, DenseParams(levels=(128, 256, 512, 800)))
     assert isinstance(res, DenseResult)
     assert res.converged, res.reason
     rot, pos = _errors(truth, res.pose)
@@ -190,7 +191,7 @@ def test_refine_sample_photo_under_another_sun(small, image):
 
 def test_refine_from_the_true_pose_stays_there(aerial):
     scene, photo, intr, truth, _ = aerial
-    res = refine_pose_mi(scene, photo, intr, truth, levels=(512, 800))
+    res = refine_pose_mi(scene, photo, intr, truth, DenseParams(levels=(512, 800)))
     rot, pos = _errors(truth, res.pose)
     assert rot < 0.05 and pos < 0.05, (rot, pos)
     assert res.score >= res.score_start
@@ -202,7 +203,7 @@ def test_refine_untextured_mesh_against_a_shading_photo(aerial):
     bare = Scene(scene.vertices, scene.faces)
     photo, rr = _synthetic_photo(scene, intr, truth, untextured=True)
     start = _perturbed(truth, 1.0, 1.0, seed=0)
-    res = refine_pose_mi(bare, photo, intr, start, modes=("shaded",),
+    res = refine_pose_mi(bare, photo, intr, start, DenseParams(modes=("shaded",)),
                          light_direction=PHOTO_LIGHT)
     assert res.converged, res.reason
     rot, pos = _errors(truth, res.pose)
@@ -215,7 +216,7 @@ def test_refine_focal_length(aerial):
     scene, photo, intr, truth, rr = aerial
     wrong = replace(intr, fx=intr.fx * 1.02, fy=intr.fy * 1.02)
     start = _perturbed(truth, 0.5, 0.5, seed=4)
-    res = refine_pose_mi(scene, photo, wrong, start, optimize_focal=True)
+    res = refine_pose_mi(scene, photo, wrong, start, DenseParams(optimize_focal=True))
     assert res.converged, res.reason
     assert res.intrinsics.fx / intr.fx == pytest.approx(1.0, abs=0.004)
     assert res.intrinsics.fx == pytest.approx(res.intrinsics.fy * intr.fx / intr.fy)
@@ -237,15 +238,38 @@ def test_refine_uses_a_custom_renderer(aerial):
     scene, photo, intr, truth, _ = aerial
     calls = []
 
-    def render_fn(pose, scale):
+    def render_fn(intrinsics, pose, scale):
         calls.append(scale)
-        return render(scene, intr, pose, scale=scale, mode="color")
+        return render(scene, intrinsics, pose, scale=scale, mode="color")
 
     start = _perturbed(truth, 0.3, 0.3, seed=6)
-    res = refine_pose_mi(None, photo, intr, start, render_fn=render_fn, levels=(128, 256))
+    res = refine_pose_mi(None, photo, intr, start, DenseParams(levels=(128, 256)),
+                         render_fn=render_fn)
     assert len(calls) == res.n_renders >= 2
     assert res.modes == ("detail", "normal")  # coloured: the renderer brings colour
     assert _errors(truth, res.pose)[0] < _errors(truth, start)[0]
+
+
+def test_refine_keeps_the_keywords_and_the_renderer_of_version_0_1(aerial):
+    """Settings as keywords and a ``render_fn(pose, scale)`` still work, with a warning,
+    and give the same result as the parameter object."""
+    scene, photo, intr, truth, _ = aerial
+    start = _perturbed(truth, 0.3, 0.3, seed=6)
+    params = DenseParams(levels=(128,), max_iterations=5)
+
+    def old_render_fn(pose, scale):
+        return render(scene, intr, pose, scale=scale, mode="color")
+
+    with pytest.warns(DeprecationWarning, match="levels, max_iterations"):
+        old = refine_pose_mi(scene, photo, intr, start, levels=(128,), max_iterations=5)
+    new = refine_pose_mi(scene, photo, intr, start, params)
+    assert np.array_equal(old.pose.R, new.pose.R) and np.array_equal(old.pose.t, new.pose.t)
+    assert old.score == new.score
+    with pytest.warns(DeprecationWarning, match=r"render_fn\(pose, scale\)"):
+        old = refine_pose_mi(None, photo, intr, start, params, render_fn=old_render_fn)
+    assert old.n_renders >= 1
+    with pytest.raises(TypeError, match="levelz"):
+        refine_pose_mi(scene, photo, intr, start, levelz=(128,))
 
 
 def test_refine_stops_when_cancelled_and_keeps_the_start(aerial):
@@ -254,8 +278,34 @@ def test_refine_stops_when_cancelled_and_keeps_the_start(aerial):
     res = refine_pose_mi(scene, photo, intr, start, cancelled=lambda: True)
     assert res.reason == "cancelled" and not res.converged
     assert res.pose is start
-    res = refine_pose_mi(scene, photo, intr, start, max_seconds=0.0)
+    res = refine_pose_mi(scene, photo, intr, start, DenseParams(max_seconds=0.0))
     assert res.reason == "time limit"
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"levels": ()}, "levels"),
+    ({"levels": (16, 256)}, "levels"),
+    ({"levels": (128.5,)}, "integers"),
+    ({"bins": 4}, "bins"),
+    ({"max_step_px": 0.0}, "max_step_px"),
+    ({"supersample": True}, "supersample"),
+    ({"modes": ("normal", "colour")}, "colour"),
+    ({"modes": "normal"}, "list"),
+    ({"modes": ()}, "empty"),
+])
+def test_dense_params_reject_values_out_of_range(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        DenseParams(**kwargs)
+
+
+def test_dense_params_defaults_lie_in_their_ranges_and_lists_become_tuples():
+    p = DenseParams()
+    assert set(p.RANGES) <= {f for f in p.to_dict()}
+    q = DenseParams(levels=[128, 256], modes=["shaded", "normal"])
+    assert q.levels == (128, 256) and q.modes == ("shaded", "normal")
+    assert DenseParams.from_dict(q.to_dict()) == q
+    with pytest.raises(KeyError, match="max_second"):
+        DenseParams.from_dict({"max_second": 3})
 
 
 def test_refine_rejects_a_photo_of_the_wrong_size(aerial):

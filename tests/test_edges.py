@@ -20,6 +20,7 @@ from napari_imgreg.registration.stages.edges import (
     CREASE,
     OCCLUDING,
     SKYLINE,
+    EdgeParams,
     align_edges,
     canny_edges,
     chamfer_distances,
@@ -298,6 +299,74 @@ def test_align_edges_stops_when_cancelled(steps):
     res = align_edges(scene, photo, STEPS_INTR, STEPS_TRUTH, cancelled=lambda: True)
     assert not res.ok and res.reason == "cancelled"
     assert res.pose is STEPS_TRUTH
+
+
+def test_align_edges_takes_a_renderer_and_its_settings(steps):
+    """A custom RenderFn sees the photo's camera (widened for the first search)
+    at the levels' scales; the settings come from EdgeParams."""
+    scene, photo = steps
+    calls = []
+
+    def render_fn(intrinsics, pose, scale):
+        calls.append((intrinsics.width, scale))
+        return render(scene, intrinsics, pose, scale=scale)
+
+    params = EdgeParams(levels=(200,), search_rotation_deg=(2.0, 2.0, 0.0), keep=1, max_rounds=1)
+    res = align_edges(scene, photo, STEPS_INTR, STEPS_TRUTH, params, search_position_m=None,
+                      render_fn=render_fn)
+    assert res.reason != "cancelled" and res.history[0]["width"] == 200
+    assert {scale for _, scale in calls} == {0.25}
+    assert calls[0][0] > STEPS_INTR.width and calls[-1][0] == STEPS_INTR.width
+
+
+def test_align_edges_keeps_the_keywords_and_the_renderer_of_version_0_1(steps):
+    scene, photo = steps
+    params = EdgeParams(levels=(200,), search_rotation_deg=(2.0, 2.0, 0.0), keep=1, max_rounds=1,
+                        kind_weights={"albedo": 0.0})
+    new = align_edges(scene, photo, STEPS_INTR, STEPS_TRUTH, params, search_position_m=None)
+    with pytest.warns(DeprecationWarning) as warned:
+        old = align_edges(scene, photo, STEPS_INTR, STEPS_TRUTH, levels=(200,),
+                          search_rotation_deg=(2.0, 2.0, 0.0), keep=1, max_rounds=1,
+                          weights={ALBEDO: 0.0}, search_position_m=None,
+                          render_fn=lambda s, intr, pose, scale: render(s, intr, pose, scale=scale))
+    messages = " ".join(str(w.message) for w in warned)
+    assert "EdgeParams" in messages and "render_fn(scene, intrinsics, pose, scale)" in messages
+    assert np.array_equal(old.pose.R, new.pose.R) and np.array_equal(old.pose.t, new.pose.t)
+    assert old.score == new.score
+    with pytest.raises(TypeError, match="levelz"):
+        align_edges(scene, photo, STEPS_INTR, STEPS_TRUTH, levelz=(200,))
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    ({"levels": ()}, "levels"),
+    ({"levels": (32, 768)}, "levels"),
+    ({"levels": (320.0,)}, "integers"),
+    ({"search_rotation_deg": (12.0, 6.0)}, "3 numbers"),
+    ({"search_rotation_deg": (12.0, 60.0, 4.0)}, "search_rotation_deg"),
+    ({"search_step_deg": 0.0}, "search_step_deg"),
+    ({"keep": 0}, "keep"),
+    ({"min_inlier_fraction": 1.5}, "min_inlier_fraction"),
+    ({"oriented": True, "max_points": 10}, "max_points"),
+    ({"kind_weights": {"sky": 1.0}}, "sky"),
+    ({"kind_weights": {"albedo": -1.0}}, "albedo"),
+])
+def test_edge_params_reject_values_out_of_range(kwargs, words):
+    with pytest.raises(ValueError, match=words):
+        EdgeParams(**kwargs)
+
+
+def test_edge_params_lists_become_tuples_and_weights_map_to_kinds():
+    p = EdgeParams(levels=[256, 512], search_rotation_deg=[10, 5, 3],
+                   kind_weights={"skyline": 3, "albedo": 0})
+    assert p.levels == (256, 512) and p.search_rotation_deg == (10.0, 5.0, 3.0)
+    assert p.weights_by_kind() == {SKYLINE: 3.0, ALBEDO: 0.0}
+    assert EdgeParams.from_dict(p.to_dict()) == p
+    assert EdgeParams().weights_by_kind() == {}  # the defaults of DEFAULT_KIND_WEIGHTS
+    q = EdgeParams()
+    q.kind_weights["crease"] = 1.0
+    assert EdgeParams().kind_weights == {}  # no shared default dict
+    with pytest.raises(KeyError, match="levelz"):
+        EdgeParams.from_dict({"levelz": [256]})
 
 
 def test_align_edges_fails_gracefully_on_a_blank_photo(steps):

@@ -11,7 +11,9 @@ from napari_imgreg.registration.filters import (
     apply_filters,
     brightness_contrast,
     clahe,
+    filtered_for_matching,
     gamma_correct,
+    reduce_for_matching,
     to_gray,
     wallis,
 )
@@ -289,3 +291,35 @@ def test_masked_gaussian_ignores_what_lies_outside_the_mask(reduce_wide):
     np.testing.assert_allclose(out[mask], np.broadcast_to([50.0, 100.0, 150.0], (mask.sum(), 3)),
                                rtol=1e-4)
     assert masked_gaussian(values, mask, 0.0) is values
+
+
+# ----------------------------------------------------------- filter preview
+def test_filter_preview_is_what_the_detector_reads():
+    rng = np.random.default_rng(2)
+    big = (rng.random((1224, 1632, 3)) * 255).astype(np.uint8)
+    params = FilterParams(gamma=1.4, wallis=True)
+    out = filtered_for_matching(big, params, 1024)
+    assert out.shape == (768, 1024) and out.dtype == np.uint8
+    small = cv2.resize(big, (1024, 768), interpolation=cv2.INTER_AREA)
+    np.testing.assert_array_equal(out, apply_filters(small, params))
+    # A photo narrower than the match width is filtered as it is.
+    np.testing.assert_array_equal(filtered_for_matching(small, params, 2048),
+                                  apply_filters(small, params))
+    mask = np.zeros((1224, 1632), bool)
+    mask[:, :800] = True
+    masked = filtered_for_matching(big, params, 1024, mask=mask)
+    assert masked.shape == (768, 1024)
+
+
+def test_reduce_for_matching_gives_the_render_size_and_keeps_a_narrow_image():
+    from napari_imgreg.camera import Intrinsics
+
+    rng = np.random.default_rng(3)
+    photo = rng.integers(0, 256, (1000, 1500, 3), dtype=np.uint8)
+    small, mask = reduce_for_matching(photo, 640, np.ones((1000, 1500), bool))
+    # The render at the same scale has the same size: pixels coincide.
+    scaled = Intrinsics(1500, 1000, 1200.0, 1200.0, 749.5, 499.5).scaled(640 / 1500)
+    assert small.shape[:2] == mask.shape == (scaled.height, scaled.width) == (427, 640)
+    assert mask.all()
+    same, none = reduce_for_matching(photo, 2000)
+    assert same is photo and none is None

@@ -478,7 +478,7 @@ def test_geo_error_is_the_package_input_error():
 
 
 def test_read_geotiff_rgb_and_bottom_up(tmp_path):
-    from napari_imgreg.geo import read_geotiff
+    from napari_imgreg.io.rasters import read_geotiff
 
     path = tmp_path / "ortho.tif"
     rgb = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
@@ -498,3 +498,28 @@ def test_read_geotiff_rgb_and_bottom_up(tmp_path):
     assert (dem.x0, dem.y0, dem.dy) == (0.5, 1.5, 1.0)
     np.testing.assert_array_equal(dem.heights, [[3.0, 4.0], [1.0, 2.0]])
     assert dem.height_at(0.5, 0.5) == 1.0
+
+
+@pytest.mark.parametrize("suffix", [".tif", ".asc"])
+def test_raster_files_are_plain_arrays_that_dem_builds_on(tmp_path, suffix):
+    # io.rasters reads and writes plain grids; DEM.load/save are thin on top.
+    from napari_imgreg.io import rasters
+
+    dem = plane_dem()
+    dem.heights[2, 3] = np.nan
+    dem = DEM.from_array(dem.heights, dem.x0, dem.y0, dem.dx, dem.dy, crs="EPSG:32630")
+    path = tmp_path / f"plain{suffix}"
+    write = rasters.write_dem_geotiff if suffix == ".tif" else rasters.write_dem_asc
+    write(path, dem.heights.tolist(), np.float64(dem.x0), dem.y0, dem.dx, dem.dy, dem.crs)
+    grid = rasters.read_dem_raster(path)
+    assert isinstance(grid, rasters.GeoRaster) and grid.nodata is None
+    assert grid.data.dtype == np.float64 and np.isnan(grid.data[2, 3])
+    geometry = (dem.x0, dem.y0, dem.dx, dem.dy, dem.crs)
+    assert (grid.x0, grid.y0, grid.dx, grid.dy, grid.crs) == geometry
+    expected = dem.heights.astype(np.float32) if suffix == ".tif" else dem.heights
+    np.testing.assert_array_equal(grid.data, expected)
+    saved = tmp_path / f"saved{suffix}"
+    (dem.save_geotiff if suffix == ".tif" else dem.save_asc)(saved)
+    assert saved.read_bytes() == path.read_bytes()
+    assert DEM.load(path) == DEM(grid.data, grid.x0, grid.y0, grid.dx, grid.dy, crs=grid.crs)
+    assert rasters.GeoError is GeoError

@@ -1,35 +1,42 @@
-"""Manual registration and the workbench's pose tools (backend, no Qt)."""
+"""Manual registration and the workbench's pose tools (backend, no Qt): control
+points (:mod:`~napari_imgreg.registration.manual`), hand corrections
+(:mod:`~napari_imgreg.adjust`) and the viewer camera (:mod:`~napari_imgreg.widgets._layers`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
+import cv2
 import numpy as np
 import pytest
 
 from napari_imgreg import Scene
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.io.photos import load_photo
-from napari_imgreg.io.records import load_sensor_record, prior_for_photo, prior_from_record
-from napari_imgreg.registration.manual import (
-    MIN_PAIRS,
+from napari_imgreg.adjust import (
     PoseHistory,
-    camera_from_view,
-    filtered_for_matching,
-    frustum_segments,
     height_above_ground,
-    metric_trend,
     nudge_pose,
     pose_at_ground,
-    save_pose_to_record,
-    score_pose,
-    solve_manual,
     terrain_map,
     turn_toward,
-    view_from_camera,
 )
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.io.photos import load_photo
+from napari_imgreg.io.records import load_sensor_record
+from napari_imgreg.prior import prior_for_photo, prior_from_record, save_pose_to_record
+from napari_imgreg.registration.manual import MIN_PAIRS, score_pose, solve_manual
+from napari_imgreg.registration.params import RegistrationParams
+from napari_imgreg.registration.pipeline import _Context
 from napari_imgreg.registration.quality import METRICS
+from napari_imgreg.registration.round import (
+    STAGE_Q_CEILING,
+    grade_pose,
+    match_round,
+    pose_round,
+    trial_from_round,
+)
 from napari_imgreg.render import render
+from napari_imgreg.widgets._layers import camera_from_view, frustum_segments, view_from_camera
 from napari_imgreg.sample import load_truth, sample_scene
 
 INTR = Intrinsics(1200, 900, 1000.0, 1000.0, 599.5, 449.5)
@@ -248,28 +255,6 @@ def test_truth_pairs_through_a_reference_render_recover_the_sample_pose(sample):
     assert np.linalg.norm(sol.pose.center - truth.pose.center) < 0.05
 
 
-# ----------------------------------------------------------- filter preview
-def test_filter_preview_is_what_the_detector_reads():
-    from napari_imgreg.registration.filters import FilterParams, apply_filters
-
-    rng = np.random.default_rng(2)
-    big = (rng.random((1224, 1632, 3)) * 255).astype(np.uint8)
-    params = FilterParams(gamma=1.4, wallis=True)
-    out = filtered_for_matching(big, params, 1024)
-    assert out.shape == (768, 1024) and out.dtype == np.uint8
-    import cv2
-
-    small = cv2.resize(big, (1024, 768), interpolation=cv2.INTER_AREA)
-    np.testing.assert_array_equal(out, apply_filters(small, params))
-    # A photo narrower than the match width is filtered as it is.
-    np.testing.assert_array_equal(filtered_for_matching(small, params, 2048),
-                                  apply_filters(small, params))
-    mask = np.zeros((1224, 1632), bool)
-    mask[:, :800] = True
-    masked = filtered_for_matching(big, params, 1024, mask=mask)
-    assert masked.shape == (768, 1024)
-
-
 # ----------------------------------------------------------- score_pose
 def test_score_pose_grades_the_true_pose_above_the_prior(sample):
     folder, scene = sample
@@ -290,14 +275,73 @@ def test_score_pose_grades_the_true_pose_above_the_prior(sample):
     assert any("not verified" in h for h in bad.hints)
 
 
-def test_metric_trend_knows_which_way_is_better():
-    count = next(m for m in METRICS if m.key == "inliers_3d")
-    error = next(m for m in METRICS if m.key == "reprojection_error_px")
-    assert metric_trend(count, 40, 20) == 1 and metric_trend(count, 10, 20) == -1
-    assert metric_trend(error, 0.8, 2.0) == 1 and metric_trend(error, 3.0, 2.0) == -1
-    assert metric_trend(count, 20, 20) == 0
-    assert metric_trend(error, None, 2.0) == -1 and metric_trend(error, 1.0, None) == 1
-    assert metric_trend(error, None, None) == 0
+def test_automatic_and_manual_scoring_share_one_round_and_one_grade_cap(sample):
+    """The same matches scored as the automatic registration does (pose solved)
+    and as the manual one does (the pose given): the same metrics, Q, grade
+    and verification; with photo and render disagreeing, both are capped."""
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    truth = load_truth(photo.path)
+    intr, params = truth.intrinsics, RegistrationParams()
+    source = _Context(scene, photo.image, intr, params, lambda: None)
+    # FLANN's randomised trees draw on OpenCV's global RNG: seed it for each match.
+    cv2.setRNGSeed(0)
+    matched = match_round(source, truth.pose, params, params.match_width, near=True)
+
+    def both(matched):
+        solved = pose_round(matched, intr, params.pose)  # automatic: RANSAC EPnP
+        assert solved.estimate.ok
+        given = solved.estimate.pose
+        tested = pose_round(matched, intr, params.pose, given_pose=given)  # manual
+        common = dict(params=params, start_pose=truth.pose, converged=True, seconds=0.0,
+                      image_width=intr.width)
+        auto = trial_from_round(solved, index=0, pose=given, rounds=2, origin="prior", **common)
+        manual = trial_from_round(tested, index=-1, pose=given, rounds=0, origin="manual",
+                                  **common)
+        np.testing.assert_array_equal(tested.correspondences.pose_inlier,
+                                      solved.correspondences.pose_inlier)
+        assert tested.metrics == solved.metrics
+        assert (manual.metrics, manual.q, manual.grade, manual.verified) == (
+            auto.metrics, auto.q, auto.grade, auto.verified)
+        return auto, manual
+
+    auto, manual = both(matched)
+    assert auto.verified and auto.grade in ("excellent", "good"), auto.hints
+    # score_pose is this round from the pose it is given.
+    cv2.setRNGSeed(0)
+    direct = score_pose(scene, photo.image, intr, truth.pose, params)
+    tested = pose_round(matched, intr, params.pose, given_pose=truth.pose)
+    assert direct.metrics == trial_from_round(
+        tested, index=-1, params=params, pose=truth.pose, start_pose=truth.pose, rounds=0,
+        converged=True, origin="manual", seconds=0.0, image_width=intr.width).metrics
+
+    # Render points 6 px off: the pose and Q are unchanged (the pose is solved
+    # from photo points and 3D points), but the residual flow fails the check.
+    off = dataclasses.replace(matched, render_points=matched.render_points + 6.0)
+    auto_off, manual_off = both(off)
+    assert auto_off.q == auto.q >= 0.6  # a "good" Q ...
+    assert not auto_off.verified and auto_off.grade == "fair"  # ... graded "fair" at best
+    assert any("not verified" in h for h in auto_off.hints)
+    assert any("not verified" in h for h in manual_off.hints)
+    # Area blocks and edge / MI poses: "poor" at best.
+    assert grade_pose(auto.q, pose_found=True, verified=False, ceiling=STAGE_Q_CEILING).name \
+        == "poor"
+    assert grade_pose(auto.q, pose_found=True, verified=True).name == auto.grade
+
+
+def test_names_moved_out_of_manual_still_resolve_with_a_warning():
+    import importlib
+
+    from napari_imgreg import adjust
+    from napari_imgreg.registration import manual
+
+    with pytest.warns(DeprecationWarning, match="moved to napari_imgreg.adjust.nudge_pose"):
+        assert manual.nudge_pose is adjust.nudge_pose
+    for name, home in manual._MOVED.items():
+        with pytest.warns(DeprecationWarning, match=home):
+            assert getattr(manual, name) is getattr(importlib.import_module(home), name)
+    with pytest.raises(AttributeError):
+        manual.no_such_name  # noqa: B018
 
 
 # ------------------------------------------------------------ sidecar

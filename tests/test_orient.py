@@ -18,7 +18,7 @@ from napari_imgreg.cli.orient import add_parser
 from napari_imgreg.errors import InputError
 from napari_imgreg.io.meshes import load_mesh
 from napari_imgreg.io.orientation_tables import OrientationTable, write_orientation_csv
-from napari_imgreg.orient.estimate import (
+from napari_imgreg.orient import (
     PAPER_STEP_DEG,
     angle_by_rss_search,
     apply_to_mesh_file,
@@ -32,10 +32,10 @@ from napari_imgreg.orient.estimate import (
     rotation_axis_from_j,
     rotation_error_deg,
     save_residual_plots,
-    simulate_survey,
     survey_path_position,
     unwrap_trend,
 )
+from napari_imgreg.sample.survey import simulate_survey
 
 
 def _cases(n, **kwargs):
@@ -298,3 +298,31 @@ def test_declination_is_added_to_measured_trends():
     result = orient(survey.estimated, magnetic, declination_deg=4.5)
     assert rotation_error_deg(result.rotation, survey.rotation) < 1e-6
     assert result.inputs["declination_deg"] == 4.5
+
+
+# Every name of the 0.1 flat module ``napari_imgreg.orient`` (its ``__all__``).
+_ORIENT_0_1_NAMES = [
+    "METHODS", "PAPER_STEP_DEG", "MEAN_RESIDUAL_MAX_DEG", "PATH_SLOPE_MAX", "TREND_SLOPE_MAX",
+    "RotationEstimate", "LinearFit", "QualityFlag", "OrientationResult", "j_vectors",
+    "orientation_tensor", "rotation_axis_from_j", "angle_by_rss_search",
+    "estimate_rotation_paper", "estimate_rotation_lsq", "estimate_rotation_robust",
+    "residual_angles", "survey_path_position", "unwrap_trend", "fit_line", "quality_flags",
+    "orient", "orient_files", "rotate_points", "rotate_cameras", "apply_to_mesh_file",
+    "MESH_OUT_SUFFIXES", "draw_residual_plots", "save_residual_plots", "save_orientation",
+    "SimulatedSurvey", "simulate_survey", "rotation_error_deg", "lower_hemisphere_axis",
+]
+
+
+def test_every_0_1_name_is_still_importable_from_orient():
+    import napari_imgreg.orient as orient_package
+    from napari_imgreg.sample import survey as survey_module
+
+    moved = {"SimulatedSurvey", "simulate_survey"}
+    for name in _ORIENT_0_1_NAMES:
+        if name in moved:  # synthetic data lives in sample/ now: forwarded, with a warning
+            with pytest.warns(DeprecationWarning, match=r"napari_imgreg\.sample\.survey"):
+                assert getattr(orient_package, name) is getattr(survey_module, name)
+        else:
+            assert getattr(orient_package, name) is not None
+    with pytest.raises(AttributeError):
+        orient_package.no_such_name  # noqa: B018

@@ -15,9 +15,9 @@ from scipy.spatial.transform import Rotation
 
 from napari_imgreg.camera import rotation_from_attitude
 from napari_imgreg.errors import InputError
+from napari_imgreg.io.exif import attitude_from_dji_gimbal
 from napari_imgreg.io.orientation_tables import (
     OrientationTable,
-    attitude_from_dji_gimbal,
     pair_tables,
     read_colmap_images,
     read_metashape_xml,
@@ -26,7 +26,8 @@ from napari_imgreg.io.orientation_tables import (
     read_photo_attitudes,
     write_orientation_csv,
 )
-from napari_imgreg.orient.estimate import orient, rotation_error_deg, simulate_survey
+from napari_imgreg.orient import orient, rotation_error_deg
+from napari_imgreg.sample.survey import simulate_survey
 
 
 @pytest.fixture

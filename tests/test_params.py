@@ -6,12 +6,14 @@ import json
 
 import pytest
 
-from napari_imgreg.registration.stages.area import AreaParams
 from napari_imgreg.errors import InputError
 from napari_imgreg.registration.features import FeatureParams
 from napari_imgreg.registration.filters import FilterParams
 from napari_imgreg.registration.params import RegistrationParams, load_params
 from napari_imgreg.registration.pose import PoseParams
+from napari_imgreg.registration.stages.area import AreaParams
+from napari_imgreg.registration.stages.dense import DenseParams
+from napari_imgreg.registration.stages.edges import EdgeParams
 
 
 def non_default() -> RegistrationParams:
@@ -26,6 +28,10 @@ def non_default() -> RegistrationParams:
         auto_adapt=False, max_trials=2, search_prior=False, n_search=5, verify=False,
         sun_relight=False, edge_align=False, dense_refine=False, area_match=False,
         area=AreaParams(width=800, template_px=41, stride_px=20, min_score=0.3),
+        edges=EdgeParams(levels=(256, 512, 1024), search_rotation_deg=(8.0, 4.0, 2.0), keep=2,
+                         oriented=False, kind_weights={"albedo": 0.0, "skyline": 3.0}),
+        dense=DenseParams(modes=("shaded", "normal"), levels=(128, 256), optimize_focal=True,
+                          max_seconds=3.0, max_samples=50_000),
     )
 
 
@@ -35,7 +41,8 @@ def test_dict_round_trip():
     assert set(d) == {"photo_filters", "render_filters", "features", "pose", "match_width",
                       "max_iterations", "converged_deg", "converged_m", "auto_adapt",
                       "max_trials", "search_prior", "n_search", "verify",
-                      "sun_relight", "edge_align", "dense_refine", "area_match", "area"}
+                      "sun_relight", "edge_align", "dense_refine", "area_match", "area",
+                      "edges", "dense"}
     assert RegistrationParams.from_dict(d) == p
     assert RegistrationParams.from_dict(RegistrationParams().to_dict()) == RegistrationParams()
 
@@ -44,8 +51,10 @@ def test_json_round_trip(tmp_path):
     p = non_default()
     path = tmp_path / "params.json"
     path.write_text(json.dumps(p.to_dict()))  # to_dict is JSON-ready (grid as a list)
+    assert json.loads(json.dumps(p.to_dict())) == p.to_dict()  # tuples as lists
     q = load_params(path)
     assert q == p and q.features.grid == (6, 4)
+    assert q.edges.levels == (256, 512, 1024) and q.dense.modes == ("shaded", "normal")
 
 
 def test_partial_dicts_keep_the_defaults():
@@ -61,6 +70,33 @@ def test_partial_dicts_keep_the_defaults():
     assert p.photo_filters == d.photo_filters and p.render_filters == d.render_filters
     assert p.match_width == d.match_width and p.verify == d.verify
     assert RegistrationParams.from_dict({}) == d
+    p = RegistrationParams.from_dict({"edges": {"keep": 5}, "dense": {"levels": [128, 256]}})
+    assert p.edges == EdgeParams(keep=5)
+    # The registration's MI time limit (6 s) stays when other MI fields are set.
+    assert p.dense == DenseParams(levels=(128, 256), max_seconds=6.0)
+
+
+def test_stage_settings_default_to_the_values_before_version_0_2():
+    """EdgeParams and DenseParams hold what align_edges and refine_pose_mi took as
+    keywords (same values); the registration stops MI after 6 s as it always did."""
+    edges = {"levels": [320, 768], "search_rotation_deg": [12.0, 6.0, 4.0],
+             "search_step_deg": 1.0, "keep": 3, "truncate_px": 40.0, "inlier_px": 4.0,
+             "max_points": 3000, "max_rounds": 3, "oriented": True, "min_inlier_fraction": 0.3,
+             "min_agreement": 0.25, "min_step_m": 0.6, "kind_weights": {}}
+    dense = {"modes": None, "levels": [128, 256, 512], "bins": 32, "optimize_focal": False,
+             "max_seconds": 10.0, "use_background": True, "blur_px": 1.0, "supersample": 2,
+             "max_iterations": 25, "tol_px": 0.01, "rerender_px": 1.5,
+             "max_renders_per_level": 3, "max_rotation_deg": 10.0, "max_samples": 120_000,
+             "max_step_px": 2.0, "curvature": False, "full_pose_from": 0}
+    assert EdgeParams().to_dict() == edges
+    assert DenseParams().to_dict() == dense
+    d = RegistrationParams()
+    assert d.edges == EdgeParams()
+    assert d.dense == DenseParams(max_seconds=6.0)
+    for params in (EdgeParams(), DenseParams()):
+        for name, (low, high) in params.RANGES.items():
+            value = getattr(params, name)
+            assert all(low <= v <= high for v in (value if isinstance(value, tuple) else (value,)))
 
 
 def test_unknown_top_level_field_names_file_and_field(tmp_path):
@@ -90,6 +126,14 @@ def test_unknown_nested_field_names_file_section_and_field(tmp_path, section, fi
     ({"pose": [1, 2]}, ["pose", "object"]),
     ({"area": {"template_px": 32}}, ["area", "odd"]),
     ({"area": {"stride": 8}}, ["area", "stride"]),
+    ({"edges": {"levels": []}}, ["edges", "levels"]),
+    ({"edges": {"keep": 0}}, ["edges", "keep", "[1, 20]"]),
+    ({"edges": {"kind_weights": {"skyline": -1}}}, ["edges", "skyline"]),
+    ({"edges": {"search_rotation": [1, 2, 3]}}, ["edges", "search_rotation"]),
+    ({"dense": {"modes": ["colour"]}}, ["dense", "colour"]),
+    ({"dense": {"max_seconds": -1}}, ["dense", "max_seconds"]),
+    ({"dense": {"bins": 1024}}, ["dense", "bins"]),
+    ({"dense": []}, ["dense", "object"]),
 ])
 def test_invalid_nested_values_are_input_errors(data, words):
     with pytest.raises(InputError) as err:
@@ -106,6 +150,12 @@ def test_invalid_nested_values_are_input_errors(data, words):
     ({"photo_filters": {"gamma": "x"}}, "gamma"),
     ({"features": {"grid": [8]}}, "grid"),
     ({"area": {"min_score": "high"}}, "min_score"),
+    ({"edges": {"search_rotation_deg": [12, "six", 4]}}, "search_rotation_deg"),
+    ({"edges": {"levels": [320.5]}}, "levels"),
+    ({"edges": {"oriented": "yes"}}, "oriented"),
+    ({"dense": {"levels": "128"}}, "levels"),
+    ({"dense": {"curvature": 1}}, "curvature"),
+    ({"dense": {"max_iterations": 2.5}}, "max_iterations"),
 ])
 def test_ill_typed_fields_are_input_errors(data, field):
     with pytest.raises(InputError, match=field):
@@ -134,6 +184,8 @@ def test_copy_is_deep():
     q.photo_filters.wallis = not p.photo_filters.wallis
     q.render_filters.gamma = 3.0
     q.pose.reprojection_error_px = 33.0
+    q.edges.kind_weights["albedo"] = 0.0
+    q.dense.max_seconds = 1.0
     assert p == RegistrationParams()
 
 

@@ -12,7 +12,7 @@ from skimage.data import astronaut
 from napari_imgreg import Scene
 from napari_imgreg.cli import main
 from napari_imgreg.io.photos import load_photo
-from napari_imgreg.io.records import prior_for_photo
+from napari_imgreg.prior import prior_for_photo
 from napari_imgreg.registration.params import RegistrationParams
 from napari_imgreg.registration.pipeline import Cancelled, Progress, register, register_photo
 from napari_imgreg.sample import load_truth, sample_scene

@@ -9,11 +9,12 @@ import pytest
 from napari_imgreg import Scene
 from napari_imgreg.camera import Pose
 from napari_imgreg.io.photos import load_photo
-from napari_imgreg.io.records import Prior, Sigma, prior_for_photo
+from napari_imgreg.io.records import Sigma
+from napari_imgreg.prior import Prior, prior_for_photo
 from napari_imgreg.registration.params import RegistrationParams
 from napari_imgreg.registration.pipeline import register
 from napari_imgreg.sample import load_truth, sample_scene
-from napari_imgreg.sun import render_sunlit
+from napari_imgreg.registration.stages.relight import render_sunlit
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +114,7 @@ def test_stage_poses_are_never_graded_above_poor(sample):
 
 
 def test_regional_residual_flow_sees_a_systematic_misfit_not_block_noise():
-    from napari_imgreg.registration.pipeline import Correspondences, _residual_flow
+    from napari_imgreg.registration.round import Correspondences, residual_flow
 
     rng = np.random.default_rng(5)
     render_pts = rng.uniform(0, 1024, (600, 2))
@@ -122,7 +123,7 @@ def test_regional_residual_flow_sees_a_systematic_misfit_not_block_noise():
 
     def flow(photo_pts, regional):
         corr = Correspondences(photo_pts, render_pts, ones, ones, ones)
-        return _residual_flow(corr, 256.0 if regional else None)
+        return residual_flow(corr, 256.0 if regional else None)
 
     right = render_pts + noise
     assert flow(right, False) > 1.0  # the median length of pure noise

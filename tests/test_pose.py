@@ -12,6 +12,7 @@ from napari_imgreg.registration.pose import (
     PoseEstimate,
     PoseParams,
     estimate_pose,
+    pose_agreement,
     reprojection_errors,
 )
 
@@ -256,3 +257,28 @@ def test_pose_params_dict_round_trip_and_unknown_keys():
     assert PoseParams.from_dict(p.to_dict()) == p
     with pytest.raises(KeyError, match="threshold"):
         PoseParams.from_dict({"threshold": 3.0})
+
+
+def test_a_given_pose_is_scored_like_an_estimate():
+    """pose_agreement: the inliers an estimate would have at the same pose, nothing solved."""
+    K, pose, X, x, truth = scene(3, False, (), noise_px=0.5, outlier_fraction=0.3)
+    est = estimate_pose(K, X, x)
+    agreed = pose_agreement(K, est.pose, X, x)
+    assert agreed.ok and agreed.pose is est.pose
+    np.testing.assert_array_equal(agreed.inliers, est.inliers)
+    assert agreed.mean_error_px == est.mean_error_px
+    np.testing.assert_array_equal(agreed.inliers, truth)
+    # A pose 5 degrees off agrees with nothing: not ok, with the reason.
+    t, p, r = pose.attitude
+    off = pose_agreement(K, Pose.from_attitude(t + 5.0, p, r, pose.center), X, x,
+                         PoseParams(reprojection_error_px=3.0))
+    assert not off.ok and off.pose is None and off.n_inliers == 0 and "3 px" in off.reason
+    empty = pose_agreement(K, pose, np.zeros((0, 3)), np.zeros((0, 2)))
+    assert not empty.ok and empty.inliers.shape == (0,)
+
+
+def test_estimate_pose_takes_no_initial_pose():
+    K, pose, X, x, _ = scene(0, False, ())
+    with pytest.raises(TypeError):
+        estimate_pose(K, X, x, None, pose)  # the unused ``initial`` is gone
+    assert estimate_pose(K, X, x, rng_seed=3).ok

@@ -20,7 +20,8 @@ from napari_imgreg.camera import Intrinsics
 from napari_imgreg.errors import InputError
 from napari_imgreg.geo import Georef
 from napari_imgreg.io.photos import load_photo
-from napari_imgreg.io.records import prior_for_photo, record_from_exif
+from napari_imgreg.io.exif import record_from_exif
+from napari_imgreg.prior import prior_for_photo
 
 W, H = 160, 120  # small photos: the metadata is what matters
 MAM_TOR = (53.3490, -1.8100)  # inside UTM zone 30N

@@ -22,6 +22,7 @@ from napari_imgreg.registration.quality import (
     classify,
     evaluate_rules,
     grade_of,
+    metric_trend,
     quality_q,
 )
 
@@ -384,3 +385,13 @@ def test_repeated_adaptation_stays_within_the_documented_ranges():
         assert 0.05 <= f.threshold_scale <= 4 and f.max_features <= 50_000
         assert 0.5 <= f.ratio <= 0.95 and 0.5 <= f.geometric_threshold_px <= 20
         assert 1 <= q.pose.reprojection_error_px <= 50
+
+
+def test_metric_trend_knows_which_way_is_better():
+    count = next(m for m in METRICS if m.key == "inliers_3d")
+    error = next(m for m in METRICS if m.key == "reprojection_error_px")
+    assert metric_trend(count, 40, 20) == 1 and metric_trend(count, 10, 20) == -1
+    assert metric_trend(error, 0.8, 2.0) == 1 and metric_trend(error, 3.0, 2.0) == -1
+    assert metric_trend(count, 20, 20) == 0
+    assert metric_trend(error, None, 2.0) == -1 and metric_trend(error, 1.0, None) == 1
+    assert metric_trend(error, None, None) == 0

@@ -9,13 +9,8 @@ import pytest
 
 from napari_imgreg import InputError, Intrinsics, Pose
 from napari_imgreg.geo import DEM, Georef
-from napari_imgreg.io.records import (
-    Sigma,
-    load_camera_and_pose,
-    load_sensor_record,
-    parse_sensor_record,
-    prior_from_record,
-)
+from napari_imgreg.io.records import Sigma, load_sensor_record, parse_sensor_record
+from napari_imgreg.prior import load_camera_and_pose, prior_from_record
 
 CONTRACT_EXAMPLE = {
     "camera": {"width": 1632, "height": 1224, "focal_length_mm": 3.92,
@@ -142,7 +137,7 @@ def test_result_json_pose_is_read_back(tmp_path):
 def test_prior_carries_the_sun_of_the_exif_capture_time():
     from napari_imgreg import Scene
     from napari_imgreg.io.photos import load_photo
-    from napari_imgreg.io.records import prior_for_photo
+    from napari_imgreg.prior import prior_for_photo
     from napari_imgreg.sample import load_truth, sample_scene
 
     folder = sample_scene("small")
@@ -160,9 +155,9 @@ def test_prior_carries_the_sun_of_the_exif_capture_time():
 def test_record_time_and_sun_override_exif(tmp_path):
     from napari_imgreg import Scene
     from napari_imgreg.io.photos import load_photo
-    from napari_imgreg.io.records import prior_for_photo
+    from napari_imgreg.prior import prior_for_photo
     from napari_imgreg.sample import sample_scene
-    from napari_imgreg.sun import meridian_convergence_deg
+    from napari_imgreg.solar import meridian_convergence_deg
 
     folder = sample_scene("small")
     scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
@@ -195,3 +190,41 @@ def test_bad_time_or_sun_fields_name_the_field(tmp_path, extra, words):
     with pytest.raises(InputError) as err:
         load_sensor_record(path)
     assert words in str(err.value) and "bad.json" in str(err.value)
+
+
+# ------------------------------------------------------- old paths (0.1)
+def test_moved_names_stay_importable_with_a_deprecation_warning():
+    import importlib
+    import sys
+
+    from napari_imgreg import geo, prior, solar
+    from napari_imgreg.io import exif, orientation_tables, rasters, records
+    from napari_imgreg.registration.stages import relight
+
+    moved = [
+        (records, "Prior", prior.Prior),
+        (records, "prior_for_photo", prior.prior_for_photo),
+        (records, "prior_from_record", prior.prior_from_record),
+        (records, "load_camera_and_pose", prior.load_camera_and_pose),
+        (records, "record_from_exif", exif.record_from_exif),
+        (records, "_dms", exif.gps_degrees),
+        (records, "DEFAULT_HEIGHT_ABOVE_GROUND_M", geo.DEFAULT_HEIGHT_ABOVE_GROUND_M),
+        (geo, "read_geotiff", rasters.read_geotiff),
+        (geo, "GeoRaster", rasters.GeoRaster),
+        (geo, "NODATA_WRITE", rasters.NODATA_WRITE),
+        (orientation_tables, "dji_gimbal_angles", exif.dji_gimbal_angles),
+        (orientation_tables, "attitude_from_dji_gimbal", exif.attitude_from_dji_gimbal),
+        (orientation_tables, "raw_xmp", exif.raw_xmp),
+    ]
+    for module, name, new in moved:
+        with pytest.warns(DeprecationWarning, match="moved to"):
+            assert getattr(module, name) is new
+    with pytest.raises(AttributeError):
+        records.no_such_name  # noqa: B018
+    # The old sun module: one view of its three new homes.
+    sys.modules.pop("napari_imgreg.sun", None)
+    with pytest.warns(DeprecationWarning, match="napari_imgreg.solar"):
+        sun = importlib.import_module("napari_imgreg.sun")
+    assert sun.sun_position is solar.sun_position
+    assert sun.read_capture_time is exif.read_capture_time
+    assert sun.render_sunlit is relight.render_sunlit and sun.GREY_ALBEDO == relight.GREY_ALBEDO

@@ -263,7 +263,7 @@ def test_photos_have_phone_exif(small):
 
 def test_exif_capture_time_gives_the_sun_the_photo_is_lit_by(small):
     from napari_imgreg.io.photos import load_photo
-    from napari_imgreg.sun import sun_for_photo
+    from napari_imgreg.solar import sun_for_photo
 
     georef = Georef.load(small / "georef.json")
     for ph in sorted(small.glob("IMG_*.jpg")):
@@ -278,7 +278,7 @@ def test_exif_capture_time_gives_the_sun_the_photo_is_lit_by(small):
 def test_time_for_sun_finds_the_instant_of_a_reachable_sun(azimuth, elevation):
     from napari_imgreg.sample.photo import sun_vector
     from napari_imgreg.sample.suntime import time_for_sun
-    from napari_imgreg.sun import sun_direction_local, sun_position
+    from napari_imgreg.solar import sun_direction_local, sun_position
 
     georef = Georef("EPSG:32630", np.array([579000.0, 5912000.0, 350.0]))
     center = np.array([10.0, -90.0, 2.0])

@@ -1,4 +1,7 @@
-"""Sun position, capture time, grid north and relighting (napari_imgreg.sun)."""
+"""Sun position, capture time, grid north and relighting.
+
+Modules: ``solar``, ``io.exif`` and ``registration.stages.relight``.
+"""
 
 from __future__ import annotations
 
@@ -11,18 +14,19 @@ import pytest
 
 from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.geo import Georef
-from napari_imgreg.render import render
-from napari_imgreg.scene import Scene
-from napari_imgreg.sun import (
+from napari_imgreg.io.exif import capture_time_from_exif, read_capture_time
+from napari_imgreg.registration.stages.relight import (
     GREY_ALBEDO,
-    SunPosition,
-    capture_time_from_exif,
     estimate_sun_from_photo,
-    meridian_convergence_deg,
-    read_capture_time,
     relight,
     render_sunlit,
     shadow_mask,
+)
+from napari_imgreg.render import render
+from napari_imgreg.scene import Scene
+from napari_imgreg.solar import (
+    SunPosition,
+    meridian_convergence_deg,
     sun_direction_local,
     sun_for_photo,
     sun_position,
@@ -474,3 +478,72 @@ def test_estimate_sun_from_a_synthetic_photo():
     rf = render(flat, intr, pose, mode="color")
     lit_flat = relight(rf, flat, sun, ambient=0.3, albedo="constant")
     assert estimate_sun_from_photo(lit_flat, rf, flat).confidence < 0.05
+
+
+# ------------------------------------------------------ the sun of a record
+def test_sun_of_a_record_is_one_reading_for_prior_and_survey(tmp_path):
+    """A record's ``time`` and its ``sun`` block give one sun, the one pvlib
+    computes for that instant and place, in the prior and in ``survey.json``."""
+    import json
+    from types import SimpleNamespace
+
+    import pandas as pd
+    import pyproj
+    from pvlib import atmosphere, solarposition
+
+    from napari_imgreg.io.photos import Photo
+    from napari_imgreg.io.records import parse_sensor_record
+    from napari_imgreg.prior import prior_for_photo
+    from napari_imgreg.scene import read_survey_sun
+    from napari_imgreg.solar import sun_from_record
+
+    georef = Georef(crs="EPSG:32630", origin=np.array([440000.0, 4470000.0, 600.0]))
+    where = np.array([350.0, -120.0, 12.0])  # local metres, central Spain
+    when = "2024-06-15T08:30:00+02:00"
+
+    # Known answer, without napari_imgreg: pvlib's SPA at the point's WGS84
+    # position (delta T estimated for the date, as solar does), turned from
+    # true to grid north by PROJ's meridian convergence.
+    e, n, h = where + georef.origin
+    to_wgs84 = pyproj.Transformer.from_crs("EPSG:32630", "EPSG:4326", always_xy=True)
+    lon, lat = to_wgs84.transform(e, n)
+    spa = solarposition.spa_python(pd.DatetimeIndex([pd.Timestamp(when)]), lat, lon, altitude=h,
+                                   pressure=atmosphere.alt2pres(h), temperature=12.0, delta_t=None)
+    azimuth_true = float(spa["azimuth"].iloc[0])
+    elevation = float(spa["apparent_elevation"].iloc[0])
+    convergence = pyproj.Proj("EPSG:32630").get_factors(lon, lat).meridian_convergence
+    a, el = math.radians(azimuth_true - convergence), math.radians(elevation)
+    expected = np.array([math.sin(a) * math.cos(el), math.cos(a) * math.cos(el), math.sin(el)])
+    assert 60.0 < azimuth_true < 90.0 and 10.0 < elevation < 25.0  # an early June morning
+
+    def angle_deg(v):
+        return math.degrees(math.acos(np.clip(np.asarray(v) @ expected, -1.0, 1.0)))
+
+    by_time = sun_from_record(parse_sensor_record({"time": when}), georef, where)
+    by_sun = sun_from_record(
+        parse_sensor_record({"sun": {"azimuth_deg": azimuth_true, "elevation_deg": elevation}}),
+        georef, where,
+    )
+    assert angle_deg(by_time) < 1e-5 and angle_deg(by_sun) < 1e-5
+    np.testing.assert_allclose(by_time, by_sun, atol=1e-12)
+    assert sun_from_record(parse_sensor_record({}), georef, where) is None
+    with pytest.raises(ValueError, match="georeference"):
+        sun_from_record(parse_sensor_record({"time": when}), None, where)
+
+    # The same vectors reach the prior of a photo (seen from its centre) ...
+    photo = Photo(np.zeros((30, 40, 3), np.uint8), {}, tmp_path / "IMG_0001.jpg")
+    scene = SimpleNamespace(georef=georef, dem=None, terrain_height=None)
+    base = {"camera": {"width": 40, "height": 30, "fx": 35.0},
+            "position": dict(zip("xyz", where.tolist())),
+            "orientation": {"trend_deg": 80.0, "plunge_deg": 0.0, "roll_deg": 0.0}}
+    sun_block = {"sun": {"azimuth_deg": azimuth_true, "elevation_deg": elevation}}
+    for block, vector in (({"time": when}, by_time), (sun_block, by_sun)):
+        photo.sidecar.write_text(json.dumps({**base, **block}))
+        prior = prior_for_photo(photo, scene)
+        np.testing.assert_allclose(prior.pose.center, where, atol=1e-9)
+        np.testing.assert_allclose(prior.sun, vector, atol=1e-12)
+        # ... and the survey sun of a model's texture.
+        survey = tmp_path / "survey.json"
+        survey.write_text(json.dumps(block))
+        np.testing.assert_allclose(read_survey_sun(survey, georef, where), vector, atol=1e-12)
+    assert prior.sun_source == "sensor record sun"

@@ -20,6 +20,7 @@ import importlib.util
 import sys
 import types
 import warnings
+from typing import Any, Callable
 
 #: old module (under ``napari_imgreg.``) -> its new home(s), first match wins.
 OLD_MODULES: dict[str, tuple[str, ...]] = {
@@ -37,12 +38,15 @@ OLD_MODULES: dict[str, tuple[str, ...]] = {
     "structural": ("interpret.structural",),
     "io.interpretations": ("interpret.files",),
     "cli_batch": ("cli.batch",),
-    "cli_interpret": ("cli.interpret",),
+    # cli.interpret forwards add_parsers and the cmd_* names (with a warning).
+    "cli_interpret": ("cli.interpret", "cli.project", "cli.measure"),
     "cli_orient": ("cli.orient",),
     "_layers": ("widgets._layers",),
+    "sun": ("solar", "io.exif", "registration.stages.relight"),
 }
 
 _PREFIX = "napari_imgreg."
+_MISSING = object()
 
 
 class _MergedModule(types.ModuleType):
@@ -57,8 +61,10 @@ class _MergedModule(types.ModuleType):
             raise AttributeError(attr)
         for home in self.__homes:
             module = importlib.import_module(_PREFIX + home)
-            if hasattr(module, attr):
-                return getattr(module, attr)
+            # One look-up: a home that forwards the name itself warns once.
+            value = getattr(module, attr, _MISSING)
+            if value is not _MISSING:
+                return value
         raise AttributeError(f"module {self.__name__!r} has no attribute {attr!r}")
 
 
@@ -97,3 +103,39 @@ def install() -> None:
     """Put the old-path finder on ``sys.meta_path`` (idempotent)."""
     if not any(isinstance(f, _OldPathFinder) for f in sys.meta_path):
         sys.meta_path.append(_OldPathFinder())
+
+
+def forward_moved_names(module: str, moved: dict[str, str]) -> Callable[[str], Any]:
+    """A module ``__getattr__`` (PEP 562) for names that moved in 0.2.
+
+    Parameters
+    ----------
+    module : str
+        The old module's ``__name__``.
+    moved : dict
+        Old name -> ``"napari_imgreg.new.module"`` or, for a renamed object,
+        ``"napari_imgreg.new.module:new_name"``.
+
+    Returns
+    -------
+    callable
+        Assign it to the old module's ``__getattr__``: it looks the name up
+        in its new home (by an import *string*, so the layer contracts see no
+        upward import) and warns once per access with a DeprecationWarning.
+    """
+
+    def __getattr__(name: str) -> Any:
+        target = moved.get(name)
+        if target is None:
+            raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        home, _, new_name = target.partition(":")
+        new_name = new_name or name
+        warnings.warn(
+            f"{module}.{name} moved to {home}.{new_name} in napari-imgreg 0.2; "
+            "the old name will be removed in a later release",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return getattr(importlib.import_module(home), new_name)
+
+    return __getattr__

@@ -31,7 +31,7 @@ def sample_outcrop_photo() -> list:
     The render sits on top at half opacity, so the prior's misfit shows.
     """
     from napari_imgreg.io.photos import load_photo
-    from napari_imgreg.io.records import prior_for_photo
+    from napari_imgreg.prior import prior_for_photo
     from napari_imgreg.render import render
 
     folder, scene = _sample_scene()

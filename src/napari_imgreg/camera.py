@@ -24,6 +24,10 @@ __all__ = [
     "Pose",
     "rotation_from_attitude",
     "attitude_from_rotation",
+    "match_scale",
+    "scaled_size",
+    "pixels_to_full",
+    "pixels_to_scaled",
     "SENSOR_WIDTHS_MM",
 ]
 
@@ -229,16 +233,16 @@ class Intrinsics:
         """
         if scale == 1.0:
             return self
-        w = max(1, int(round(self.width * scale)))
-        h = max(1, int(round(self.height * scale)))
+        w, h = scaled_size(self.width, self.height, scale)
+        # Per axis from the rounded size, so the scaled camera fits its image exactly.
         sx, sy = w / self.width, h / self.height
         return Intrinsics(
             w,
             h,
             self.fx * sx,
             self.fy * sy,
-            (self.cx + 0.5) * sx - 0.5,
-            (self.cy + 0.5) * sy - 0.5,
+            pixels_to_scaled(self.cx, sx),
+            pixels_to_scaled(self.cy, sy),
             self.dist,
         )
 
@@ -313,6 +317,113 @@ class Intrinsics:
             Camera-frame points.
         """
         return self.normalized_rays(pixels) * np.asarray(depth, dtype=np.float64).reshape(-1, 1)
+
+
+# --------------------------------------------------------- reduced resolution
+# Matching, previews and the coarse-to-fine stages work on reduced copies of
+# a photo. The convention is that of :meth:`Intrinsics.scaled`: pixel (0, 0) is
+# the *centre* of the first pixel, so an image ``w`` pixels wide spans x in
+# [-0.5, w - 0.5], and a reduction scales the pixel edges, not the centres.
+def match_scale(width_px: int, match_width_px: float) -> float:
+    """The factor that reduces an image to a working width, never enlarging it.
+
+    Parameters
+    ----------
+    width_px : int
+        Width of the full-resolution image, pixels.
+    match_width_px : float
+        The working width, pixels (e.g. ``RegistrationParams.match_width``).
+
+    Returns
+    -------
+    float
+        ``min(1, match_width_px / width_px)``: reduced size over full size.
+
+    Examples
+    --------
+    >>> match_scale(2000, 500)
+    0.25
+    >>> match_scale(800, 1024)  # a narrower image is used as it is
+    1.0
+    """
+    return min(1.0, match_width_px / width_px)
+
+
+def scaled_size(width_px: int, height_px: int, scale: float) -> tuple[int, int]:
+    """Size of an image reduced by ``scale``: that of :meth:`Intrinsics.scaled`.
+
+    Parameters
+    ----------
+    width_px, height_px : int
+        Full-resolution size, pixels.
+    scale : float
+        Reduced size over full size (:func:`match_scale`).
+
+    Returns
+    -------
+    (int, int)
+        ``(width, height)`` in pixels, each rounded and at least 1.
+
+    Examples
+    --------
+    >>> scaled_size(1632, 1224, 0.5)
+    (816, 612)
+    """
+    return max(1, int(round(width_px * scale))), max(1, int(round(height_px * scale)))
+
+
+def pixels_to_full(points, scale: float):
+    """Pixel coordinates in an image reduced by ``scale``, at full resolution.
+
+    Pixel (0, 0) is the centre of the first pixel; the reduction scales the
+    pixel edges, so ``p_full = (p + 0.5) / scale - 0.5``. The inverse of
+    :func:`pixels_to_scaled`.
+
+    Parameters
+    ----------
+    points : float or (..., 2) array
+        Pixel coordinates (x, y) in the reduced image.
+    scale : float
+        Reduced size over full size.
+
+    Returns
+    -------
+    float or (..., 2) array
+        Full-resolution pixel coordinates; an array keeps its float dtype.
+
+    Examples
+    --------
+    >>> pixels_to_full(0.0, 0.5)  # the first reduced pixel covers full pixels 0 and 1
+    0.5
+    >>> pixels_to_full(-0.5, 0.25)  # the image's left edge stays the left edge
+    -0.5
+    """
+    return (points + 0.5) / scale - 0.5
+
+
+def pixels_to_scaled(points, scale: float):
+    """Full-resolution pixel coordinates in an image reduced by ``scale``.
+
+    ``p_scaled = (p + 0.5) * scale - 0.5`` (pixel (0, 0) is the centre of the
+    first pixel); the inverse of :func:`pixels_to_full`.
+
+    Parameters
+    ----------
+    points : float or (..., 2) array
+        Pixel coordinates (x, y) at full resolution.
+    scale : float
+        Reduced size over full size.
+
+    Returns
+    -------
+    float or (..., 2) array
+
+    Examples
+    --------
+    >>> pixels_to_scaled(1.5, 0.5)  # the edge between reduced pixels 0 and 1
+    0.5
+    """
+    return (points + 0.5) * scale - 0.5
 
 
 def _distort(xn: np.ndarray, yn: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

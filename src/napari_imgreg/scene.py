@@ -20,6 +20,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from napari_imgreg.errors import InputError, input_error
+from napari_imgreg.io.rasters import read_geotiff
+from napari_imgreg.io.records import parse_sensor_record, read_json
+from napari_imgreg.solar import sun_from_record
 
 if TYPE_CHECKING:
     from napari_imgreg.geo import DEM, Georef
@@ -440,36 +443,39 @@ def read_survey_sun(path: str | os.PathLike, georef, where: np.ndarray) -> np.nd
     "elevation_deg"}}`` (azimuth clockwise from true north) or ``{"time":
     "2024-06-15T10:30:00+01:00"}`` — the capture time of the photos the
     texture was made from (with a georeference, the sun is computed there).
+    Read as a sensor record's ``sun`` and ``time`` are
+    (:func:`napari_imgreg.solar.sun_from_record`).
+
+    Parameters
+    ----------
+    path : path-like
+        ``survey.json``.
+    georef : Georef or None
+        The model's georeference (needed for a ``time``).
+    where : (3,) array
+        Where the sun is seen from (the middle of the model), local metres.
+
+    Returns
+    -------
+    (3,) float64 array
+        Unit vector toward the survey sun, local frame.
 
     Raises
     ------
     InputError
         Unreadable file or wrong fields; the message names the file.
     """
-    from napari_imgreg.errors import input_error
-    from napari_imgreg.io.records import parse_sensor_record, read_json
-    from napari_imgreg.sun import meridian_convergence_deg, sun_direction_local, sun_position, sun_vector_enu
-
     data = read_json(path)
     if not isinstance(data, dict) or ("sun" not in data and "time" not in data):
         raise input_error(path, "survey.json needs a 'sun' or a 'time' field")
     record = parse_sensor_record({k: data[k] for k in ("sun", "time") if k in data}, path)
-    if record.sun is not None:
-        conv = 0.0 if georef is None else meridian_convergence_deg(georef, where)
-        return sun_vector_enu(record.sun["azimuth_deg"] - conv, record.sun["elevation_deg"])
-    if georef is None:
+    if record.sun is None and georef is None:
         raise input_error(path, "a survey 'time' needs georef.json beside the mesh")
-    from datetime import datetime
-
-    lat, lon, alt = georef.local_to_geodetic(where)
-    when = datetime.fromisoformat(record.time.replace("Z", "+00:00"))
-    return sun_direction_local(sun_position(when, float(lat), float(lon), float(alt)), georef, where)
+    return sun_from_record(record, georef, where)
 
 
 def _orthophoto_uv(path: str | os.PathLike, enh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Texture coordinates of points (E, N, H) on a north-up RGB GeoTIFF."""
-    from napari_imgreg.geo import read_geotiff
-
     raster = read_geotiff(path)
     image = raster.data
     if image.ndim == 2:

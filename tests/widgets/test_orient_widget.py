@@ -7,7 +7,8 @@ import pytest
 
 from napari_imgreg.widgets._layers import napari_from_world, world_from_napari
 from napari_imgreg.io.orientation_tables import write_orientation_csv
-from napari_imgreg.orient.estimate import rotate_points, rotation_error_deg, simulate_survey
+from napari_imgreg.orient import rotate_points, rotation_error_deg
+from napari_imgreg.sample.survey import simulate_survey
 from napari_imgreg.widgets.orient_widget import STATUS_STYLE, OrientWidget
 
 

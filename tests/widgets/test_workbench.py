@@ -1,10 +1,13 @@
 """The registration workbench driven as a user would, in a real napari viewer
 (run under Xvfb): load the sample, nudge and move the pose, filter, register,
-restore a trial, and register manually from control points."""
+restore a trial, and register manually from control points.
+
+These prove the wiring — buttons, layers, docks following the workspace. The
+state's own rules (pose history, trials, suggestions, pairs, suns,
+interpretations) are tested without a viewer in ``tests/test_workspace.py``."""
 
 from __future__ import annotations
 
-import json
 import shutil
 
 import numpy as np
@@ -13,8 +16,9 @@ from qtpy.QtCore import QPoint, Qt
 
 from napari_imgreg.widgets._layers import napari_from_pixels
 from napari_imgreg.io.photos import load_photo
-from napari_imgreg.registration.manual import filtered_for_matching
-from napari_imgreg.io.records import load_sensor_record, prior_for_photo, prior_from_record
+from napari_imgreg.registration.filters import filtered_for_matching
+from napari_imgreg.io.records import load_sensor_record
+from napari_imgreg.prior import prior_for_photo, prior_from_record
 from napari_imgreg.registration.quality import GRADES, METRICS
 from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._controller import GAP, controller_for
@@ -87,6 +91,63 @@ def test_sample_shows_photo_beside_render_and_model_with_cameras_in_3d(workbench
     assert ctrl.last_render.cam_from_world is ctrl.current.pose
 
 
+def test_the_docks_are_views_of_the_workspace(workbench, qtbot):
+    """Edits made on the workspace itself, as a script would make them, reach
+    the docks and the layers; what is drawn in the Interpret tab is kept in it.
+    (The state's own rules: tests/test_workspace.py.)"""
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    ws = ctrl.workspace
+    assert ctrl.current is ws.current and wb.quality.ws is ws and wb.pose_panel.ws is ws
+
+    def full_render():
+        return qtbot.waitSignal(ctrl.render_shown, timeout=20_000,
+                                check_params_cb=lambda kind: kind == "full")
+
+    with full_render():
+        ws.select_photo(1)
+    assert wb.scene_panel.photo_list.currentRow() == 1
+    assert ctrl.photo_layer().name == "IMG_0002" and ctrl.photo_layer().visible
+    t0 = ws.current.pose.attitude[0]
+    with full_render():
+        ws.nudge("turn right 2", d_trend=2.0)
+    assert wb.pose_panel.trend_spin.value() == pytest.approx((t0 + 2.0) % 360, abs=0.01)
+    assert "turn right 2" in wb.pose_panel.title.text() and wb.pose_panel.undo_button.isEnabled()
+    assert ctrl.photo_layer().metadata["pose"] is ws.current.pose  # for the interpretation tools
+    assert ctrl.last_render.cam_from_world is ws.current.pose
+
+    box = wb.register_panel.sun_box
+    ws.set_sun_angles(200.0, 25.0)
+    assert box.azimuth_spin.value() == pytest.approx(200.0, abs=0.05)
+    assert "set by hand" in box.source_label.text() and box.reset_button.isEnabled()
+
+    # Pairs added to the workspace show as numbered points, in napari's (row, col).
+    with qtbot.waitSignal(ctrl.reference_ready, timeout=20_000):
+        ctrl.make_reference()
+    ws.add_pair([100.0, 200.0], [110.0, 190.0])
+    ws.add_pair([300.0, 250.0], [310.0, 240.0])
+    photo_layer, ref_layer = ctrl.layers.get("photo_pairs"), ctrl.layers.get("reference_pairs")
+    np.testing.assert_allclose(photo_layer.data, [[200.0, 100.0], [250.0, 300.0]])
+    np.testing.assert_allclose(ref_layer.data, [[190.0, 110.0], [240.0, 310.0]])
+    assert list(ref_layer.features["pair"]) == [1, 2] and wb.manual_panel.table.rowCount() == 2
+    ws.remove_pair(0)
+    assert len(photo_layer.data) == len(ref_layer.data) == 1
+    assert wb.manual_panel.table.rowCount() == 1
+
+    # Drawn on the photo in the Interpret tab: the photo's interpretations.
+    iw = wb.interpret_widget
+    assert iw.workspace is ws and iw.photo_combo.currentText() == "IMG_0002"
+    shapes = iw.new_interpretation_layer()
+    shapes.add(napari_from_pixels(np.array([[250.0, 420.0], [520.0, 400.0], [800.0, 430.0]])),
+               shape_type="path")
+    assert [i.label for i in ws.current.interpretations] == ["sandstone"]
+    np.testing.assert_allclose(ws.current.interpretations[0].pixels[0], [250.0, 420.0])
+    with qtbot.waitSignal(iw.projection_done, timeout=30_000):
+        iw.project()
+    assert ws.features_3d == iw.features and ws.features_3d[0].source == "IMG_0002.jpg"
+    assert ws.measurements == iw.measurements
+
+
 # ------------------------------------------------------------------- pose
 def test_pose_nudges_map_moves_undo_and_save_to_the_sensor_record(workbench, qtbot, tmp_path):
     wb = workbench
@@ -153,15 +214,11 @@ def test_pose_nudges_map_moves_undo_and_save_to_the_sensor_record(workbench, qtb
     qtbot.mouseClick(canvas, Qt.LeftButton, Qt.ShiftModifier, pos=_map_point(canvas, *target))
     assert ps.pose.attitude[0] == pytest.approx(45.0, abs=1.0)
 
-    # Save into the sensor record (atomically; sigma and camera kept).
-    original = json.loads((tmp_path / "IMG_0002.json").read_text())
+    # Save into the sensor record (what it keeps: tests/test_workspace.py).
     panel.save_button.click()
-    saved = json.loads((tmp_path / "IMG_0002.json").read_text())
-    assert saved["sigma"] == original["sigma"] and saved["camera"] == original["camera"]
     prior = prior_from_record(load_sensor_record(tmp_path / "IMG_0002.json"))
-    assert prior.pose.rotation_error_deg(ps.pose) < 1e-5  # acos resolution
     np.testing.assert_allclose(prior.pose.center, ps.pose.center, atol=1e-6)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["IMG_0002.jpg", "IMG_0002.json"]
+    assert "pose saved to IMG_0002.json" in wb.status_label.text()
     panel.prior_button.click()
     assert ps.pose is ps.prior.pose
 
@@ -346,15 +403,16 @@ def test_light_stage_checkboxes_edit_the_parameters_both_ways(workbench, qtbot):
         assert getattr(ctrl.params, name) is False
     panel.preset_combo.setCurrentIndex(panel.preset_combo.findData("ORB"))
     assert not any(c.isChecked() for c in checks.values())  # a preset is features only
-    ctrl.params.edge_align = True  # e.g. a restored trial's parameters
-    ctrl.params_changed.emit()
+    restored = ctrl.params.copy()  # e.g. a restored trial's parameters
+    restored.edge_align = True
+    ctrl.workspace.set_params(restored)
     assert panel.edge_align_check.isChecked() and not panel.dense_refine_check.isChecked()
 
 
 def test_sun_box_shows_the_exif_sun_and_a_hand_set_sun_is_the_one_registered(
         workbench, qtbot, monkeypatch):
     from napari_imgreg.registration import pipeline
-    from napari_imgreg.sun import sun_vector_enu
+    from napari_imgreg.solar import sun_vector_enu
 
     wb = workbench
     ctrl = _load_sample(wb, qtbot)
@@ -368,9 +426,8 @@ def test_sun_box_shows_the_exif_sun_and_a_hand_set_sun_is_the_one_registered(
     assert 0.5 < abs(conv) < 2.0  # the sample lies off its UTM zone's central meridian
     shown = sun_vector_enu(box.azimuth_spin.value() - conv, box.elevation_spin.value())
     assert _angle_deg(shown, exif_sun) < 0.1
-    az_true, el = ctrl.sun_angles()
-    grid_az = np.degrees(np.arctan2(exif_sun[0], exif_sun[1])) % 360
-    assert az_true == pytest.approx((grid_az + conv) % 360, abs=1e-6)  # true = grid + conv
+    az_true, el = ctrl.workspace.sun_angles()  # from true north (tests/test_workspace.py)
+    assert box.azimuth_spin.value() == pytest.approx(az_true, abs=0.05)
     assert not box.reset_button.isEnabled()
     assert box.note_label.isHidden()  # survey.json gives the texture's sun: it will relight
     wb.register_panel.sun_relight_check.setChecked(False)
@@ -403,11 +460,7 @@ def test_sun_box_shows_the_exif_sun_and_a_hand_set_sun_is_the_one_registered(
     box.reset_button.click()
     assert ps.sun_override is None and _angle_deg(ps.sun, exif_sun) < 1e-9
     assert box.azimuth_spin.value() == pytest.approx(az_true, abs=0.05)
-    _idle(wb, qtbot)
-    with qtbot.waitSignal(ctrl.registration_finished, timeout=10_000):
-        wb.register_panel.run_button.click()
-    np.testing.assert_allclose(seen[1][0].sun, exif_sun)
-    assert seen[1][0].sun_source.startswith("EXIF time")
+    assert "from EXIF time 2024-" in box.source_label.text() and not box.reset_button.isEnabled()
 
 
 def test_sun_lit_preview_and_the_sun_read_from_the_photo(workbench, qtbot):
@@ -459,7 +512,6 @@ def test_trial_history_says_where_each_pose_came_from_and_how_the_render_was_lit
         workbench, qtbot):
     from napari_imgreg.registration.params import RegistrationParams
     from napari_imgreg.registration.pipeline import Trial
-    from napari_imgreg.widgets._controller import TrialRecord
     from napari_imgreg.widgets._quality import HISTORY_COLUMNS
 
     wb = workbench
@@ -473,9 +525,9 @@ def test_trial_history_says_where_each_pose_came_from_and_how_the_render_was_lit
                       hints=[], pose=None, start_pose=ps.pose, rounds=1, converged=False,
                       verified=False, residual_flow_px=float("inf"), origin=origin,
                       render_mode=mode, matcher=matcher)
-        ps.trials.append(TrialRecord(trial, 1, "Auto"))
-    ctrl.trials_changed.emit()
+        ctrl.workspace.add_trial(trial, "Auto", run=1)  # the panel follows the workspace
     history = wb.quality.history
+    assert history.rowCount() == 6
     col = {name: HISTORY_COLUMNS.index(name) for name in ("trial", "from", "grade")}
     assert [history.item(r, col["from"]).text() for r in range(6)] == [
         "prior", "sun-lit render", "edges ☀", "mutual information", "area matching ☀",
@@ -487,12 +539,11 @@ def test_trial_history_says_where_each_pose_came_from_and_how_the_render_was_lit
     assert history.item(5, col["trial"]).text().endswith(": blocks")
     assert history.item(2, col["trial"]).text().endswith(": SIFT–SIFT")
     assert history.item(0, col["grade"]).text() == "poor"
-    assert ps.trials[2].label.endswith("(edges, sun-lit render)")
-    assert "blocks by correlation (edges, sun-lit render)" in ps.trials[5].label
+    assert history.item(2, col["trial"]).toolTip() == ps.trials[2].label
 
     # Correspondences of trials with many, then few lines, drawn while hidden
     # (napari does not re-slice a hidden layer: its colours must not go stale).
-    from napari_imgreg.registration.pipeline import Correspondences
+    from napari_imgreg.registration.round import Correspondences
 
     rng = np.random.default_rng(0)
     for rec, n in zip(ps.trials[:2], (40, 5)):
@@ -579,14 +630,10 @@ def test_manual_pairs_from_the_truth_recover_the_pose(workbench, qtbot):
     assert rec.kind == "Manual" and rec.trial.grade in ("excellent", "good")
     assert "manual pairs" in wb.quality.banner.text()
     assert "RMS" in panel.result_label.text()
-
-    # Six or more pairs can solve the focal length as well.
-    panel.focal_check.setChecked(True)
-    with qtbot.waitSignal(ctrl.manual_finished, timeout=60_000) as solved:
-        panel.solve_button.click()
-    sol = solved.args[0]
-    assert sol.focal_solved and sol.intrinsics.fx == pytest.approx(truth.intrinsics.fx, rel=0.02)
-    assert "focal length" in panel.result_label.text()
+    # The clicks are the workspace's pairs (the focal length: tests/test_workspace.py).
+    np.testing.assert_allclose(ctrl.workspace.pairs()[0], photo_px)
+    np.testing.assert_allclose(ctrl.workspace.pairs()[1], ref_px)
+    assert panel.focal_check.isEnabled()
 
 
 def test_reference_from_the_3d_view_sees_what_the_view_shows(workbench, qtbot):
@@ -623,7 +670,7 @@ def test_plugin_menu_docks_the_workbench_with_its_quality_panel(make_napari_view
 def test_demo_gui_opens_the_sample_in_the_workbench(make_napari_viewer, qtbot, monkeypatch):
     import napari
 
-    from napari_imgreg.cli import _demo_gui
+    from napari_imgreg.cli.demo import open_gui as _demo_gui
     from napari_imgreg.sample import sample_scene
 
     viewers = []

@@ -31,18 +31,37 @@ import csv
 import json
 import math
 import re
-import sys
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+from napari_imgreg._atomic import atomic_write
+from napari_imgreg._deprecated import forward_moved_names
+from napari_imgreg.cli._common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_OK,
+    load_scene,
+    one_line,
+    print_error,
+    progress_printer,
+    read_params,
+    write_json,
+)
 from napari_imgreg.errors import InputError, input_error
+from napari_imgreg.io.meshes import MESH_SUFFIXES
+from napari_imgreg.io.photos import PHOTO_SUFFIXES, load_photo
+from napari_imgreg.io.records import read_json
+from napari_imgreg.prior import prior_for_photo
 
-__all__ = ["add_parser", "cmd_batch", "find_scene_files", "SceneFiles", "SUMMARY_COLUMNS"]
+# The module, not its ``register``: looked up at call time, so tests can
+# substitute ``napari_imgreg.registration.pipeline.register``.
 
-EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+__all__ = [
+    "add_parser", "run", "exit_code_of", "find_scene_files", "SceneFiles", "SUMMARY_COLUMNS",
+]
 
 #: Columns of ``summary.csv``, in order.
 SUMMARY_COLUMNS = (
@@ -57,7 +76,7 @@ _GEOTIFF_TAGS = (33550, 33922, 34264, 34735)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``batch`` sub-command; its handler is :func:`cmd_batch`."""
+    """Register the ``batch`` sub-command; its handler is :func:`run`."""
     p = subparsers.add_parser(
         "batch",
         help="register every photo of a scene folder (writes RESULTS_DIR)",
@@ -77,7 +96,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--skip-existing", action="store_true",
                    help="keep photos whose RESULTS_DIR/<photo>.result.json exists (resume a batch)")
     p.add_argument("-v", "--verbose", action="store_true", help="print progress within each photo")
-    p.set_defaults(func=cmd_batch)
+    p.set_defaults(func=run)
     return p
 
 
@@ -203,9 +222,6 @@ def find_scene_files(
         No such folder, no mesh or several (without ``mesh``), several DEMs
         (without ``dem``), a given file missing, or no photos.
     """
-    from napari_imgreg.io.meshes import MESH_SUFFIXES
-    from napari_imgreg.io.photos import PHOTO_SUFFIXES
-
     folder = Path(folder)
     if not folder.exists():
         raise input_error(folder, "no such folder")
@@ -321,8 +337,6 @@ def _error_row(photo: str, status: str, message: str, seconds: float) -> dict[st
 
 def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
     """Write summary.csv and summary.json atomically (csv first, json last)."""
-    from napari_imgreg._atomic import atomic_write
-
     with atomic_write(out / "summary.csv", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(SUMMARY_COLUMNS)
@@ -331,12 +345,8 @@ def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]
     counts = {k: sum(1 for r in rows if r["status"] == k)
               for k in ("registered", "failed", "bad_input", "error")}
     counts["skipped"] = sum(1 for r in rows if r.get("skipped"))
-    with atomic_write(out / "summary.json", encoding="utf-8") as fh:
-        json.dump({**header, "n_done": len(rows), "counts": counts, "photos": rows}, fh, indent=2)
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
+    write_json(out / "summary.json",
+               {**header, "n_done": len(rows), "counts": counts, "photos": rows})
 
 
 def exit_code_of(rows: list[dict[str, Any]]) -> int:
@@ -349,14 +359,9 @@ def exit_code_of(rows: list[dict[str, Any]]) -> int:
 
 
 # ------------------------------------------------------------------- run
-def cmd_batch(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     """Run ``batch``: check the scene, register every photo, keep the summary current."""
-    from napari_imgreg._atomic import atomic_write
-    from napari_imgreg.io.photos import load_photo
-    from napari_imgreg.io.records import prior_for_photo, read_json
-    from napari_imgreg.registration.params import RegistrationParams, load_params
-    from napari_imgreg.registration.pipeline import register
-    from napari_imgreg.scene import Scene
+    from napari_imgreg.registration import pipeline
 
     t_start = time.perf_counter()
     out = Path(args.out)
@@ -364,8 +369,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
         raise input_error(out, "exists and is not a folder")
     # Everything about the scene is checked before anything is written.
     files = find_scene_files(args.scene_dir, args.mesh, args.dem, args.georef)
-    params = load_params(args.params) if args.params else RegistrationParams()
-    scene = Scene.load(files.mesh, georef=files.georef, dem=files.dem)
+    params = read_params(args.params)
+    scene = load_scene(files.mesh, georef=files.georef, dem=files.dem)
     scene.build_engine()
     n = len(files.photos)
     print(
@@ -395,10 +400,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
     }
     rows: list[dict[str, Any]] = []
     width = len(str(n))
-
-    def show(p) -> None:
-        if args.verbose and p.message:
-            print(f"      [{p.fraction:4.0%}] {p.message}", flush=True)
+    show = progress_printer(args.verbose, "      ")
 
     try:
         for i, photo_path in enumerate(files.photos, 1):
@@ -411,7 +413,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
                     if not isinstance(existing, dict) or "status" not in existing:
                         raise input_error(result_path, "not a registration result")
                 except InputError as exc:
-                    print(f"{tag}: existing result unreadable ({_one_line(exc)}): redoing it")
+                    print(f"{tag}: existing result unreadable ({one_line(exc)}): redoing it")
                 else:
                     row = _row_of_result(photo_path.name, existing, None)
                     row.update(skipped=True, result=result_path.name)
@@ -430,24 +432,24 @@ def cmd_batch(args: argparse.Namespace) -> int:
                         f"the camera is {prior.intrinsics.width}×{prior.intrinsics.height} px "
                         f"but the photo is {w}×{h} px",
                     )
-                reg = register(scene, photo.image, prior, params, photo_path.name, on_progress=show)
+                reg = pipeline.register(scene, photo.image, prior, params, photo_path.name,
+                                        on_progress=show)
             except InputError as exc:
-                status, message, label = "bad_input", _one_line(exc), "BAD INPUT"
+                status, message, label = "bad_input", one_line(exc), "BAD INPUT"
             except Exception as exc:  # noqa: BLE001 - one photo must not end the batch
                 status, label = "error", "ERROR"
-                message = f"{photo_path}: {type(exc).__name__}: {_one_line(exc)}"
+                message = f"{photo_path}: {type(exc).__name__}: {one_line(exc)}"
             else:
                 status = ""
             if status:
-                print(f"napari-imgreg batch: error: {message}", file=sys.stderr, flush=True)
+                print_error("batch", message)
                 row = _error_row(photo_path.name, status, message, time.perf_counter() - t0)
                 rows.append(row)
                 _write_summary(out, header, rows)
                 print(f"{tag}: {label} — {message}", flush=True)
                 continue
             result = reg.to_dict()
-            with atomic_write(result_path) as fh:
-                json.dump(result, fh, indent=2)
+            write_json(result_path, result)
             row = _row_of_result(photo_path.name, result, time.perf_counter() - t0)
             row.update(skipped=False, result=result_path.name, hints=list(reg.hints),
                        assumptions=list(reg.assumptions))
@@ -490,3 +492,10 @@ def cmd_batch(args: argparse.Namespace) -> int:
         + f" in {time.perf_counter() - t_start:.1f} s -> {out / 'summary.csv'}"
     )
     return exit_code_of(rows)
+
+
+#: 0.1 names of this module -> their new names here.
+_MOVED = {"cmd_batch": "napari_imgreg.cli.batch:run"}
+__getattr__ = forward_moved_names(__name__, _MOVED)
+
+

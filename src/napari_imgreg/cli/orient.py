@@ -58,7 +58,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def cmd_orient(args: argparse.Namespace) -> int:
     """Run ``orient``: read, estimate, write ORIENTATION.json, print a summary."""
     from napari_imgreg.io.orientation_tables import read_orientation_table
-    from napari_imgreg.orient.estimate import (
+    from napari_imgreg.orient import (
         MESH_OUT_SUFFIXES,
         apply_to_mesh_file,
         orient,

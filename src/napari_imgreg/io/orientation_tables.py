@@ -23,7 +23,6 @@ from __future__ import annotations
 import csv
 import math
 import os
-import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,8 +31,10 @@ from typing import Iterable, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from napari_imgreg._deprecated import forward_moved_names
 from napari_imgreg.camera import attitude_from_rotation, rotation_from_attitude
 from napari_imgreg.errors import input_error
+from napari_imgreg.io import exif
 
 __all__ = [
     "OrientationTable",
@@ -43,8 +44,6 @@ __all__ = [
     "read_metashape_xml",
     "read_colmap_images",
     "read_photo_attitudes",
-    "attitude_from_dji_gimbal",
-    "dji_gimbal_angles",
     "pair_tables",
     "write_orientation_csv",
     "CSV_COLUMNS",
@@ -55,6 +54,13 @@ _POSITION_COLUMNS = ("x", "y", "z")
 _PHOTO_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".dng", ".png")
 # Chunk translations farther than this from the origin are geocentric (ECEF).
 _GEOCENTRIC_M = 1.0e5
+
+#: The photo-metadata readers that moved to napari_imgreg.io.exif in 0.2.
+_MOVED = dict.fromkeys(
+    ("attitude_from_dji_gimbal", "dji_gimbal_angles", "raw_xmp", "_DJI_TAGS"), "napari_imgreg.io.exif")
+__getattr__ = forward_moved_names(__name__, _MOVED)
+
+
 
 
 # ------------------------------------------------------------------ table
@@ -570,23 +576,6 @@ def read_colmap_images(path: str | os.PathLike) -> OrientationTable:
 
 
 # ------------------------------------------------------------ photo metadata
-_DJI_TAGS = ("GimbalYawDegree", "GimbalPitchDegree", "GimbalRollDegree")
-
-
-def attitude_from_dji_gimbal(
-    yaw_deg: float, pitch_deg: float, roll_deg: float
-) -> tuple[float, float, float]:
-    """Contract trend, plunge, roll from DJI gimbal yaw, pitch, roll.
-
-    DJI writes aerospace (NED, Z-Y-X) Euler angles of the gimbal: yaw
-    clockwise from north, pitch positive nose-up (−90 looking straight
-    down), roll positive right side down. Hence trend = yaw mod 360,
-    plunge = −pitch, roll = roll (positive roll lowers the camera x axis,
-    as in contract §2).
-    """
-    return float(yaw_deg) % 360.0, -float(pitch_deg), float(roll_deg)
-
-
 def read_photo_attitudes(
     paths: Iterable[str | os.PathLike], source: str | os.PathLike | None = None
 ) -> OrientationTable:
@@ -594,9 +583,9 @@ def read_photo_attitudes(
 
     Tried per photo: DJI XMP ``drone-dji:GimbalYawDegree``,
     ``GimbalPitchDegree``, ``GimbalRollDegree`` (full attitude, see
-    :func:`attitude_from_dji_gimbal`); else EXIF ``GPSImgDirection`` (trend
-    only: the photo is listed but cannot enter the fit). Photos with neither
-    are skipped with a note. Positions are not read (GPS needs a
+    :func:`napari_imgreg.io.exif.attitude_from_dji_gimbal`); else EXIF
+    ``GPSImgDirection`` (trend only: the photo is listed but cannot enter
+    the fit). Photos with neither are skipped with a note. Positions are not read (GPS needs a
     georeference).
 
     Raises
@@ -604,8 +593,6 @@ def read_photo_attitudes(
     InputError
         No photo carries attitude metadata, or a photo cannot be read.
     """
-    from PIL import ExifTags, Image, UnidentifiedImageError
-
     paths = [Path(p) for p in paths]
     src = Path(source) if source is not None else (paths[0] if len(paths) == 1 else None)
     photos: list[str] = []
@@ -615,21 +602,13 @@ def read_photo_attitudes(
     for path in paths:
         if not path.exists():
             raise input_error(path, "no such file")
-        try:
-            with Image.open(path) as im:
-                xmp = im.info.get("xmp") or im.info.get("XML:com.adobe.xmp")
-                gps = im.getexif().get_ifd(ExifTags.IFD.GPSInfo)
-        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-            raise input_error(path, f"cannot read photo metadata ({exc})") from None
-        xmp_text = xmp.decode("utf-8", "replace") if isinstance(xmp, bytes) else xmp
-        if not xmp_text:
-            xmp_text = raw_xmp(path)
-        gimbal = dji_gimbal_angles(xmp_text or "")
+        xmp_text, gps = exif.read_photo_xmp_and_gps(path)
+        gimbal = exif.dji_gimbal_angles(xmp_text or "")
         if gimbal is not None:
             photos.append(path.name)
-            attitudes.append(attitude_from_dji_gimbal(*gimbal))
+            attitudes.append(exif.attitude_from_dji_gimbal(*gimbal))
             continue
-        direction = gps.get(ExifTags.GPS.GPSImgDirection) if gps else None
+        direction = gps.get("GPSImgDirection") if gps else None
         if direction is not None:
             try:
                 trend = float(direction)
@@ -638,7 +617,7 @@ def read_photo_attitudes(
             if math.isfinite(trend):
                 photos.append(path.name)
                 attitudes.append((trend % 360.0, math.nan, math.nan))
-                reference = str(gps.get(ExifTags.GPS.GPSImgDirectionRef, "T")).strip().upper()
+                reference = str(gps.get("GPSImgDirectionRef", "T")).strip().upper()
                 if reference.startswith("M"):
                     magnetic += 1
                 continue
@@ -666,39 +645,6 @@ def read_photo_attitudes(
     if skipped:
         table.notes.append(f"{len(skipped)} photo(s) without attitude metadata skipped")
     return table
-
-
-def raw_xmp(path: Path, limit: int = 1 << 20) -> str | None:
-    """The XMP packet found in the first ``limit`` bytes of a file, if any."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(limit)
-    except OSError:
-        return None
-    start = head.find(b"<x:xmpmeta")
-    end = head.find(b"</x:xmpmeta>", start)
-    if start < 0 or end < 0:
-        return None
-    return head[start : end + len(b"</x:xmpmeta>")].decode("utf-8", "replace")
-
-
-def dji_gimbal_angles(xmp: str) -> tuple[float, float, float] | None:
-    """(yaw, pitch, roll) from ``drone-dji:Gimbal*Degree`` (attribute or element form)."""
-    values = []
-    for tag in _DJI_TAGS:
-        match = re.search(
-            rf"drone-dji:{tag}\s*=\s*\"([^\"]+)\"|<drone-dji:{tag}>\s*([^<]+?)\s*</", xmp
-        )
-        if match is None:
-            return None
-        try:
-            value = float(match.group(1) or match.group(2))
-        except ValueError:
-            return None
-        if not math.isfinite(value):
-            return None
-        values.append(value)
-    return values[0], values[1], values[2]
 
 
 # ---------------------------------------------------------------- pairing

@@ -1,4 +1,8 @@
-"""Read field photographs (JPEG, PNG, TIFF) with their EXIF tags."""
+"""Read field photographs (JPEG, PNG, TIFF) with their EXIF tags.
+
+The pixels are read here; the tags are read and interpreted by
+:mod:`napari_imgreg.io.exif`.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from napari_imgreg.errors import input_error
+from napari_imgreg.io.exif import exif_of_image
 
 __all__ = ["Photo", "load_photo", "PHOTO_SUFFIXES", "save_image"]
 
@@ -46,14 +51,14 @@ class Photo:
 
 
 def load_photo(path: str | os.PathLike) -> Photo:
-    """Read a photo and its EXIF.
+    """Read a photo and its EXIF (tags by name, see :func:`napari_imgreg.io.exif.exif_of_image`).
 
     Raises
     ------
     InputError
         Missing file, unsupported format or unreadable image.
     """
-    from PIL import ExifTags, Image, ImageOps, UnidentifiedImageError
+    from PIL import Image, ImageOps, UnidentifiedImageError
 
     path = Path(path)
     if not path.exists():
@@ -62,20 +67,7 @@ def load_photo(path: str | os.PathLike) -> Photo:
         raise input_error(path, f"not a photo format (expected {', '.join(PHOTO_SUFFIXES)})")
     try:
         with Image.open(path) as im:
-            raw_exif = im.getexif()
-            exif: dict[str, Any] = {
-                ExifTags.TAGS.get(k, str(k)): v for k, v in raw_exif.items()
-            }
-            # Camera details (FocalLength, ...) live in the Exif sub-IFD.
-            for k, v in raw_exif.get_ifd(ExifTags.IFD.Exif).items():
-                exif[ExifTags.TAGS.get(k, str(k))] = v
-            gps = raw_exif.get_ifd(ExifTags.IFD.GPSInfo)
-            exif.pop("GPSInfo", None)  # the IFD offset, not the tags
-            if gps:
-                exif["GPSInfo"] = {ExifTags.GPSTAGS.get(k, str(k)): v for k, v in gps.items()}
-            xmp = im.info.get("xmp")
-            if xmp:
-                exif["XMP"] = xmp.decode("utf-8", "replace") if isinstance(xmp, bytes) else xmp
+            exif = exif_of_image(im)
             im = ImageOps.exif_transpose(im)
             image = np.asarray(im.convert("RGB"))
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:

@@ -15,6 +15,8 @@ from dataclasses import asdict, dataclass, fields
 import cv2
 import numpy as np
 
+from napari_imgreg.camera import match_scale, scaled_size
+
 __all__ = [
     "FilterParams",
     "apply_filters",
@@ -23,7 +25,8 @@ __all__ = [
     "wallis",
     "brightness_contrast",
     "clahe",
-    "gradient_magnitude",
+    "reduce_for_matching",
+    "filtered_for_matching",
     "illumination_invariant",
     "masked_gaussian",
     "INVARIANT_ALPHA",
@@ -215,14 +218,68 @@ def apply_filters(
     return gray
 
 
-def gradient_magnitude(gray: np.ndarray, sigma: float = 1.0) -> np.ndarray:
-    """Gradient magnitude of a Gaussian-smoothed image, float32 (H, W)."""
-    g = gray.astype(np.float32)
-    if sigma > 0:
-        g = cv2.GaussianBlur(g, (0, 0), sigma)
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    return cv2.magnitude(gx, gy)
+def reduce_for_matching(
+    image: np.ndarray, match_width: int, mask: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """An image (and its mask) at the registration's matching width.
+
+    A wider image is reduced by area averaging to
+    :func:`~napari_imgreg.camera.scaled_size` at
+    :func:`~napari_imgreg.camera.match_scale` — the size of the render at that
+    scale, so photo and render pixels coincide; a narrower one is returned as
+    it is (never enlarged).
+
+    Parameters
+    ----------
+    image : (H, W, 3) or (H, W) uint8 array
+    match_width : int
+        ``RegistrationParams.match_width``, pixels.
+    mask : (H, W) bool array, optional
+        Reduced by nearest neighbour.
+
+    Returns
+    -------
+    image : (h, w[, 3]) uint8 array
+        ``w = min(W, match_width)``.
+    mask : (h, w) bool array or None
+    """
+    h, w = image.shape[:2]
+    scale = match_scale(w, match_width)
+    if scale < 1.0:
+        size = scaled_size(w, h, scale)
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        if mask is not None:
+            mask = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    return image, mask
+
+
+def filtered_for_matching(
+    image: np.ndarray, params: FilterParams, match_width: int, mask: np.ndarray | None = None
+) -> np.ndarray:
+    """The grey image the feature detector reads, for previewing filters.
+
+    The registration matches at ``match_width`` pixels: the image is first
+    reduced (:func:`reduce_for_matching`), then filtered — so a Wallis window
+    of 41 pixels means 41 pixels at the matching resolution, as in the
+    registration.
+
+    Parameters
+    ----------
+    image : (H, W, 3) or (H, W) uint8 array
+        The photo or a render.
+    params : FilterParams
+    match_width : int
+        Matching width, pixels (``RegistrationParams.match_width``).
+    mask : (H, W) bool array, optional
+        Valid pixels (a render's surface), reduced with the image.
+
+    Returns
+    -------
+    (h, w) uint8 array
+        At ``min(W, match_width)`` pixels wide.
+    """
+    small, small_mask = reduce_for_matching(image, match_width, mask)
+    return apply_filters(small, params, mask=small_mask)
 
 
 #: Weight of the blue channel in :func:`illumination_invariant`, from a

@@ -9,11 +9,14 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field, fields, replace
 
-from napari_imgreg.registration.stages.area import AreaParams
 from napari_imgreg.errors import input_error
+from napari_imgreg.io.records import read_json
 from napari_imgreg.registration.features import FeatureParams
 from napari_imgreg.registration.filters import FilterParams
 from napari_imgreg.registration.pose import PoseParams
+from napari_imgreg.registration.stages.area import AreaParams
+from napari_imgreg.registration.stages.dense import DenseParams
+from napari_imgreg.registration.stages.edges import EdgeParams
 
 __all__ = ["RegistrationParams", "load_params"]
 
@@ -32,6 +35,16 @@ def _registration_features() -> FeatureParams:
     it stays off.)
     """
     return FeatureParams(upright=True, root_sift=True, invariant_channel=True)
+
+
+def _registration_dense() -> DenseParams:
+    """The registration's MI settings: the refinement's own, stopped after 6 s.
+
+    MI refinement is one stage among several, and keypoints are matched
+    again from its pose: 6 s of it is what the registration can spend (the
+    refinement's own limit, 10 s, suits a direct call).
+    """
+    return DenseParams(max_seconds=6.0)
 
 
 @dataclass
@@ -85,6 +98,11 @@ class RegistrationParams:
         to a photo of coloured rock.
     area : AreaParams
         Settings of the area-based matching.
+    edges : EdgeParams
+        Settings of the edge alignment (the start's position uncertainty and
+        search range come from the prior's ``sigma``).
+    dense : DenseParams
+        Settings of the MI refinement (here stopped after 6 s, not 10 s).
     """
 
     # Wallis on both images by default: it pulls the photo's and the render's
@@ -114,14 +132,14 @@ class RegistrationParams:
     dense_refine: bool = True
     area_match: bool = True
     area: AreaParams = field(default_factory=AreaParams)
+    edges: EdgeParams = field(default_factory=EdgeParams)
+    dense: DenseParams = field(default_factory=_registration_dense)
 
     @classmethod
     def baseline(cls) -> RegistrationParams:
         """The plain pipeline the benchmark compares against: SIFT, ratio test,
         EPnP, no filters, no re-rendering, no adaptation, no search, no
         verification."""
-        from napari_imgreg.registration.features import FeatureParams
-
         return cls(
             photo_filters=FilterParams(),
             render_filters=FilterParams(),
@@ -146,6 +164,8 @@ class RegistrationParams:
             features=replace(self.features),
             pose=replace(self.pose),
             area=replace(self.area),
+            edges=replace(self.edges),
+            dense=replace(self.dense),
         )
 
     def to_dict(self) -> dict:
@@ -170,6 +190,8 @@ class RegistrationParams:
             "features": FeatureParams,
             "pose": PoseParams,
             "area": AreaParams,
+            "edges": EdgeParams,
+            "dense": DenseParams,
         }
         names = {f.name for f in fields(cls)}
         kwargs = {}
@@ -180,7 +202,7 @@ class RegistrationParams:
                 if not isinstance(value, dict):
                     raise input_error(source, f"field '{key}' must be an object")
                 # Missing nested fields keep the registration's defaults
-                # (which differ from the stage's own for the features).
+                # (which differ from the stage's own for the features and MI).
                 base = getattr(cls(), key).to_dict()
                 try:
                     kwargs[key] = nested[key].from_dict({**base, **value})
@@ -217,18 +239,28 @@ def _check_types(obj, source, section: str = "") -> None:
             if not isinstance(value, str):
                 raise input_error(source, f"field '{name}' must be a string, got {value!r}")
         elif isinstance(default, tuple):
-            if len(value) != len(default) or not all(
-                isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value
-            ):
-                raise input_error(
-                    source, f"field '{name}' must be {len(default)} positive integers, got {list(value)!r}"
-                )
+            _check_tuple(value, default, f, name, source)
+
+
+def _check_tuple(value, default: tuple, f, name: str, source) -> None:
+    """InputError unless ``value`` is a tuple like ``default``: as long (unless
+    the field is annotated ``tuple[..., ...]``), of numbers when the default
+    holds floats, else of positive integers."""
+    any_length = "..." in str(f.type)
+    numbers = any(isinstance(v, float) for v in default)
+    size = "" if any_length else f"{len(default)} "
+    what = f"{size}numbers" if numbers else f"{size}positive integers"
+    if not isinstance(value, tuple) or (not any_length and len(value) != len(default)) or not all(
+        not isinstance(v, bool) and (isinstance(v, (int, float)) if numbers
+                                     else isinstance(v, int) and v > 0)
+        for v in value
+    ):
+        shown = list(value) if isinstance(value, (tuple, list)) else value
+        raise input_error(source, f"field '{name}' must be {what}, got {shown!r}")
 
 
 def load_params(path: str | os.PathLike) -> RegistrationParams:
     """Read a ``--params`` JSON file (any subset of the fields)."""
-    from napari_imgreg.io.records import read_json
-
     data = read_json(path)
     if not isinstance(data, dict):
         raise input_error(path, "parameters must be a JSON object")

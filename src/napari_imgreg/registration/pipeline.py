@@ -23,21 +23,33 @@ pose; this check is what keeps wrong poses from being called good.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Generator
 
-import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.registration.features import Features, Matches, detect_and_describe, match_features, match_guided
-from napari_imgreg.registration.filters import apply_filters, illumination_invariant
-from napari_imgreg.io.records import Prior
+from napari_imgreg.camera import Intrinsics, Pose, match_scale
+from napari_imgreg.registration.features import Features, detect_and_describe
+from napari_imgreg.registration.filters import apply_filters, illumination_invariant, reduce_for_matching
+from napari_imgreg.prior import Prior
 from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pose import PoseEstimate, estimate_pose
-from napari_imgreg.registration.quality import GRADES, evaluate_rules, grade_of, quality_q
+from napari_imgreg.registration.quality import GRADES, evaluate_rules
+from napari_imgreg.registration.round import (  # noqa: F401  (re-exported: the names' old home)
+    MIN_VERIFIED_INLIERS,
+    STAGE_Q_CEILING,
+    VERIFY_FLOW_PX,
+    Correspondences,
+    Round,
+    Trial,
+    grade_pose,
+    image_shift,
+    score_round,
+    trial_from_round,
+)
+from napari_imgreg.registration.stages.area import search_schedule
+from napari_imgreg.registration.stages.dense import refine_pose_mi
+from napari_imgreg.registration.stages.edges import align_edges
 from napari_imgreg.render import RenderResult, render
 from napari_imgreg.scene import Scene
 
@@ -52,11 +64,6 @@ __all__ = [
     "MIN_VERIFIED_INLIERS",
 ]
 
-#: Median residual flow (px at 1632 px width) between the photo's and the final
-#: render's matched keypoints below which a converged pose counts as verified.
-VERIFY_FLOW_PX = 2.5
-#: 3D inliers a verified pose needs at the least.
-MIN_VERIFIED_INLIERS = 15
 #: A trial has converged when the new estimate moves the inlier points by less
 #: than this in the image (median, px at 1632 px width) — or moves less than
 #: ``converged_deg`` and ``converged_m``. Far from the camera a rotation and a
@@ -86,78 +93,6 @@ class Progress:
     fraction: float
     message: str = ""
     trial: int | None = None
-
-
-@dataclass
-class Correspondences:
-    """The last round's matches, for drawing (pixels at full resolution).
-
-    Attributes
-    ----------
-    photo_points, render_points : (M, 2) arrays
-        Putative matches (after ratio and symmetry tests).
-    feature_inlier : (M,) bool
-        Passed the geometric verification.
-    lifted : (M,) bool
-        Has a 3D point.
-    pose_inlier : (M,) bool
-        Agrees with the estimated pose.
-    xyz : (M, 3) array, optional
-        The render keypoints' 3D points (NaN where not lifted).
-    """
-
-    photo_points: np.ndarray
-    render_points: np.ndarray
-    feature_inlier: np.ndarray
-    lifted: np.ndarray
-    pose_inlier: np.ndarray
-    xyz: np.ndarray | None = None
-
-
-@dataclass
-class Trial:
-    """One trial: its parameters, metrics, score and outcome."""
-
-    index: int
-    params: RegistrationParams
-    metrics: dict
-    q: float
-    grade: str
-    hints: list[str]
-    pose: Pose | None
-    start_pose: Pose
-    rounds: int
-    converged: bool
-    verified: bool
-    residual_flow_px: float
-    adaptation: str = ""
-    origin: str = "prior"
-    seconds: float = 0.0
-    correspondences: Correspondences | None = None
-    render_mode: str = "plain"
-    #: "keypoints" (detected and described features) or "area" (render
-    #: blocks found in the photo by correlation, :mod:`napari_imgreg.registration.stages.area`).
-    matcher: str = "keypoints"
-
-    def to_dict(self) -> dict:
-        return {
-            "index": self.index,
-            "origin": self.origin,
-            "render_mode": self.render_mode,
-            "matcher": self.matcher,
-            "params": self.params.to_dict(),
-            "metrics": self.metrics,
-            "Q": self.q,
-            "grade": self.grade,
-            "hints": self.hints,
-            "rounds": self.rounds,
-            "converged": self.converged,
-            "verified": self.verified,
-            "residual_flow_px": self.residual_flow_px,
-            "adaptation": self.adaptation,
-            "pose": None if self.pose is None else self.pose.to_dict(),
-            "seconds": round(self.seconds, 3),
-        }
 
 
 @dataclass
@@ -239,7 +174,7 @@ class _Context:
         intr = intrinsics or self.intrinsics
         t0 = time.perf_counter()
         if mode == "sunlit" and self.sun is not None:
-            from napari_imgreg.sun import render_sunlit
+            from napari_imgreg.registration.stages.relight import render_sunlit
 
             rendered = render_sunlit(self.scene, intr, pose, self.sun, scale=scale,
                                      survey_sun_dir=self.scene.survey_sun)
@@ -250,15 +185,10 @@ class _Context:
 
     def photo_at(self, width: int) -> tuple[np.ndarray, float]:
         """The photo resized to ``width`` (never enlarged) and the scale used."""
-        w = self.intrinsics.width
-        scale = min(1.0, width / w)
+        scale = match_scale(self.intrinsics.width, width)
         key = ("rgb", round(scale, 6))
         if key not in self._photo_cache:
-            if scale == 1.0:
-                img = self._photo_rgb
-            else:
-                size = (int(round(w * scale)), int(round(self.intrinsics.height * scale)))
-                img = cv2.resize(self._photo_rgb, size, interpolation=cv2.INTER_AREA)
+            img, _ = reduce_for_matching(self._photo_rgb, width)
             self._photo_cache[key] = (img, np.array(scale))
         img, s = self._photo_cache[key]
         return img, float(s)
@@ -331,181 +261,6 @@ def _pose_change(a: Pose, b: Pose) -> tuple[float, float]:
     return a.rotation_error_deg(b), float(np.linalg.norm(a.center - b.center))
 
 
-def _round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
-           near: bool = False, mode: str = "plain"):
-    """One render → match → lift → pose round. Returns (estimate, metrics, corr, render).
-
-    ``near``: the render is from a pose estimated in this trial, so it looks
-    much like the photo: the luminance features suffice (the invariant
-    channel is for distant starts), and with ``guided_radius_px`` > 0 they
-    are matched only near the same place (:func:`match_guided`).
-    """
-    fp = params.features
-    guided = near and fp.guided_radius_px > 0
-    invariant = fp.invariant_channel and not near
-    scale = min(1.0, width / ctx.intrinsics.width)
-    rendered = ctx.render(pose, scale, mode)
-    ctx.check()
-    photo_feats = ctx.photo_features(params, width, invariant)
-    ctx.check()
-    t0 = time.perf_counter()
-    # Keypoints on the rim of the surface sit on a depth edge: detect inside it.
-    mask = cv2.erode(rendered.mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    gray = apply_filters(rendered.rgb, params.render_filters, mask=rendered.mask)
-    inv = illumination_invariant(rendered.rgb, rendered.mask) if invariant else None
-    t1 = time.perf_counter()
-    render_feats = detect_and_describe(gray, fp, mask=mask, color=rendered.rgb)
-    if inv is not None:
-        render_feats = Features.concat([render_feats, detect_and_describe(inv, fp, mask=mask)])
-    if guided:
-        matches = match_guided(photo_feats, render_feats, fp)
-    else:
-        matches = match_features(photo_feats, render_feats, fp)
-    t2 = time.perf_counter()
-    ctx.timings["filter"] += t1 - t0
-    ctx.timings["detect_match"] += t2 - t1
-    ctx.check()
-
-    inl = matches.inlier
-    photo_pts_small = photo_feats.points[matches.idx_a] if len(matches) else np.zeros((0, 2))
-    render_pts_small = render_feats.points[matches.idx_b] if len(matches) else np.zeros((0, 2))
-    t0 = time.perf_counter()
-    xyz, lifted = rendered.lift(render_pts_small)
-    lifted &= inl
-    ctx.timings["lift_3d"] += time.perf_counter() - t0
-    to_full = lambda p: (p + 0.5) / scale - 0.5  # noqa: E731  pixel-centre convention
-    photo_pts = to_full(photo_pts_small)
-    render_pts = to_full(render_pts_small)
-
-    t0 = time.perf_counter()
-    estimate = estimate_pose(ctx.intrinsics, xyz[lifted], photo_pts[lifted], params.pose)
-    ctx.timings["pose"] += time.perf_counter() - t0
-
-    metrics, pose_inlier = _round_metrics(len(photo_feats), len(render_feats), inl, lifted,
-                                          estimate, rendered)
-    corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier, xyz)
-    return estimate, metrics, corr, rendered
-
-
-def _round_metrics(points_photo: int, points_render: int, inlier: np.ndarray,
-                   lifted: np.ndarray, estimate: PoseEstimate, rendered: RenderResult
-                   ) -> tuple[dict, np.ndarray]:
-    """A round's metrics (RESULT.json names) and which putative matches agree
-    with the pose. ``inlier``/``lifted``: per putative match, passed the
-    geometric check / has a 3D point (and passed)."""
-    n_putative = len(inlier)
-    n_inl = int(inlier.sum())
-    n_3d = int(lifted.sum())
-    pose_inlier = np.zeros(n_putative, bool)
-    if estimate.ok:
-        pose_inlier[np.flatnonzero(lifted)[estimate.inliers]] = True
-    metrics = {
-        "points_photo": points_photo,
-        "points_render": points_render,
-        "putative_matches": n_putative,
-        "feature_inliers": n_inl,
-        "correspondences_3d": n_3d,
-        "inlier_ratio_2d": round(n_inl / n_putative, 4) if n_putative else 0.0,
-        "inliers_3d": estimate.n_inliers if estimate.ok else 0,
-        "inlier_ratio_3d": round(estimate.n_inliers / n_3d, 4) if (n_3d and estimate.ok) else 0.0,
-        "reprojection_error_px": (
-            round(estimate.mean_error_px, 4) if estimate.ok else None
-        ),
-        "render_coverage": round(rendered.coverage, 4),
-    }
-    return metrics, pose_inlier
-
-
-def _area_round(ctx: _Context, pose: Pose, params: RegistrationParams, width: int,
-                radius: int, mode: str = "plain"):
-    """One render → block correlation → lift → pose round (area-based matching).
-
-    Same return values and metrics as :func:`_round`, so the seven metrics,
-    Q and the verification apply unchanged: the "points" of both images are
-    the render blocks searched, the feature inliers the blocks whose
-    correlation peak is high and unique.
-    """
-    from napari_imgreg.registration.stages.area import match_blocks, prepare_render
-
-    ap = params.area
-    scale = min(1.0, width / ctx.intrinsics.width)
-    rendered = ctx.render(pose, scale, mode)
-    ctx.check()
-    t0 = time.perf_counter()
-    photo_small, _ = ctx.photo_at(width)
-    if photo_small.shape[:2] != rendered.shape:
-        photo_small = cv2.resize(photo_small, (rendered.shape[1], rendered.shape[0]),
-                                 interpolation=cv2.INTER_AREA)
-    photo_bp = ctx.area_photo(photo_small, ap.band_sigma_px)
-    render_bp = prepare_render(rendered.rgb, rendered.mask, ap.band_sigma_px)
-    blocks = match_blocks(photo_bp, render_bp, rendered.mask, template_px=ap.template_px,
-                          search_px=radius, stride_px=ap.stride_px, min_score=ap.min_score,
-                          max_second_ratio=ap.max_second_ratio, min_texture=ap.min_texture,
-                          min_coverage=ap.min_coverage)
-    ctx.timings["area"] = ctx.timings.get("area", 0.0) + time.perf_counter() - t0
-    ctx.check()
-
-    inl = blocks.accepted
-    t0 = time.perf_counter()
-    xyz, lifted = rendered.lift(blocks.render_points)
-    lifted &= inl
-    ctx.timings["lift_3d"] += time.perf_counter() - t0
-    to_full = lambda p: (p + 0.5) / scale - 0.5  # noqa: E731  pixel-centre convention
-    photo_pts = to_full(blocks.photo_points)
-    render_pts = to_full(blocks.render_points)
-    t0 = time.perf_counter()
-    estimate = estimate_pose(ctx.intrinsics, xyz[lifted], photo_pts[lifted], params.pose)
-    ctx.timings["pose"] += time.perf_counter() - t0
-
-    metrics, pose_inlier = _round_metrics(blocks.n_blocks, blocks.n_blocks, inl, lifted,
-                                          estimate, rendered)
-    metrics.update(area_width_px=int(rendered.shape[1]), area_search_px=int(radius))
-    corr = Correspondences(photo_pts, render_pts, inl, lifted, pose_inlier, xyz)
-    return estimate, metrics, corr, rendered
-
-
-def _image_shift(intr: Intrinsics, a: Pose, b: Pose, corr: Correspondences) -> float:
-    """Median distance (pixels) by which the pose-inlier 3D points move in the
-    image from pose ``a`` to pose ``b``: how much a pose change *shows*.
-
-    Far from the camera, a rotation and a translation can nearly cancel in
-    the image; the change in angle and metres then overstates what moved.
-    """
-    if corr.xyz is None or corr.pose_inlier.sum() < 3:
-        return float("inf")
-    pts = corr.xyz[corr.pose_inlier]
-    return float(np.median(np.linalg.norm(a.project(intr, pts) - b.project(intr, pts), axis=1)))
-
-
-def _residual_flow(corr: Correspondences, regional_px: float | None = None) -> float:
-    """Median distance between matched photo and render points that agree
-    with the pose (pixels): near zero when the render is from the photo's pose.
-
-    With ``regional_px`` (area matching), the points are grouped in square
-    cells of that side and the flow is the median, over cells with five
-    points or more, of the length of each cell's median shift: a block's
-    correlation peak is noisier than a keypoint's position (a pixel or so
-    when shading is matched against a coloured photo), and what the test is
-    for is a systematic misfit of a part of the image, which survives the
-    cell's median while the noise does not.
-    """
-    sel = corr.pose_inlier
-    if sel.sum() < 3:
-        return float("inf")
-    shift = corr.photo_points[sel] - corr.render_points[sel]
-    plain = float(np.median(np.linalg.norm(shift, axis=1)))
-    if not regional_px:
-        return plain
-    cell = np.floor(corr.render_points[sel] / regional_px).astype(int)
-    keys = cell[:, 0] * 100_003 + cell[:, 1]
-    lengths = []
-    for key in np.unique(keys):
-        in_cell = keys == key
-        if in_cell.sum() >= 5:
-            lengths.append(float(np.linalg.norm(np.median(shift[in_cell], axis=0))))
-    return float(np.median(lengths)) if len(lengths) >= 3 else plain
-
-
 def _run_trial(
     ctx: _Context,
     index: int,
@@ -520,8 +275,11 @@ def _run_trial(
 ) -> Generator[tuple[int, int], None, Trial]:
     """Run one trial; yields (round, rounds) before each round, returns the Trial.
 
+    Each round is :func:`~napari_imgreg.registration.round.score_round` from
+    the last estimate; the trial is judged on the last round that found a pose
+    (:func:`~napari_imgreg.registration.round.trial_from_round`).
     ``matcher`` "area" matches render blocks by correlation instead of
-    keypoints (:func:`_area_round`), at widths and search radii that follow
+    keypoints, at widths and search radii that follow
     the pose's convergence (:func:`napari_imgreg.registration.stages.area.search_schedule`;
     ``far_start``: the start is the sensor prior, not a stage's estimate).
     A trial is converged only after a round at the full area width.
@@ -530,14 +288,12 @@ def _run_trial(
     width = width or params.match_width
     rounds = max_rounds or params.max_iterations
     pose = start
-    best: tuple[PoseEstimate, dict, Correspondences] | None = None
+    best: Round | None = None
     converged = False
     n_done = 0
     last_ok_pose: Pose | None = None
     area = matcher == "area"
     if area:
-        from napari_imgreg.registration.stages.area import search_schedule
-
         # Coarse rounds do not count: up to two more to reach the full width.
         rounds += 2
     last_shift = float("inf")
@@ -549,19 +305,21 @@ def _run_trial(
             a_width, radius = search_schedule(params.area, k == 0, far_start, last_shift,
                                               ctx.intrinsics.width)
             final_width = a_width >= min(params.area.width, ctx.intrinsics.width)
-            estimate, metrics, corr, _ = _area_round(ctx, pose, params, a_width, radius, mode)
+            this = score_round(ctx, pose, params, a_width, matcher="area", search_px=radius,
+                               mode=mode)
         else:
             # After a round that found a pose, the next render is close to the
             # photo: luminance features suffice.
-            estimate, metrics, corr, _ = _round(ctx, pose, params, width,
-                                                near=last_ok_pose is not None, mode=mode)
+            this = score_round(ctx, pose, params, width, near=last_ok_pose is not None,
+                               mode=mode)
+        estimate = this.estimate
         if not estimate.ok:
             if best is None:
-                best = (estimate, metrics, corr)
+                best = this
             break
-        best = (estimate, metrics, corr)
+        best = this
         d_rot, d_pos = _pose_change(pose, estimate.pose)
-        shift = _image_shift(ctx.intrinsics, pose, estimate.pose, corr)
+        shift = image_shift(ctx.intrinsics, pose, estimate.pose, this.correspondences)
         last_shift = shift
         last_ok_pose = estimate.pose
         pose = estimate.pose
@@ -571,56 +329,10 @@ def _run_trial(
         )):
             converged = True
             break
-    estimate, metrics, corr = best
-    scale_px = ctx.intrinsics.width / 1632.0
-    # Area matching: cells of a quarter of the photo's width.
-    flow = _residual_flow(corr, ctx.intrinsics.width / 4.0 if area else None)
-    verified = bool(
-        converged
-        and last_ok_pose is not None
-        and metrics["inliers_3d"] >= MIN_VERIFIED_INLIERS
-        and flow <= VERIFY_FLOW_PX * scale_px
-    )
-    metrics = {**metrics, "residual_flow_px": round(flow, 3) if math.isfinite(flow) else None}
-    q = quality_q(metrics, ctx.intrinsics.width)
-    grade = grade_of(q, pose_found=last_ok_pose is not None)
-    if last_ok_pose is not None and not verified and grade.name in ("excellent", "good", "fair"):
-        # Unverified: at best "fair" — at best "poor" for area matching, whose
-        # block counts (the "points") are high whatever the photo shows.
-        grade = grade_of(min(q, -0.01 if area else 0.59))
-    # The six rules tune keypoint detection and matching: no advice for blocks.
-    hits = [] if area else evaluate_rules(metrics, params, ctx.intrinsics.width)
-    hints = [h.hint for h in hits]
-    if area and last_ok_pose is None:
-        hints.append(f"Area matching found too few consistent blocks ({metrics['feature_inliers']} "
-                     f"of {metrics['points_render']} correlate clearly): the start may be too far "
-                     "off, or the photo shows little of the model's relief.")
-    if last_ok_pose is not None and not converged:
-        hints.append("The pose was still moving after the last round: not verified.")
-    elif last_ok_pose is not None and not verified:
-        hints.append(
-            f"Photo and final render disagree (residual flow {flow:.1f} px, "
-            f"{metrics['inliers_3d']} 3D inliers): pose not verified."
-        )
-    return Trial(
-        index=index,
-        params=params.copy(),
-        metrics=metrics,
-        q=q,
-        grade=grade.name,
-        hints=hints,
-        pose=last_ok_pose,
-        start_pose=start,
-        rounds=n_done,
-        converged=converged,
-        verified=verified,
-        residual_flow_px=flow,
-        origin=origin,
-        seconds=time.perf_counter() - t_start,
-        correspondences=corr,
-        render_mode=mode,
-        matcher=matcher,
-    )
+    return trial_from_round(
+        best, index=index, params=params, pose=last_ok_pose, start_pose=start, rounds=n_done,
+        converged=converged, origin=origin, seconds=time.perf_counter() - t_start,
+        image_width=ctx.intrinsics.width, render_mode=mode, matcher=matcher)
 
 
 def _trial_rank(t: Trial) -> tuple:
@@ -667,6 +379,10 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
     mode = "sunlit" if ctx.sun is not None else first_mode
     base = len(trials)
 
+    def render_fn(intrinsics: Intrinsics, pose: Pose, scale: float) -> RenderResult:
+        """The stages' :class:`~napari_imgreg.registration.stages.pyramid.RenderFn`."""
+        return ctx.render(pose, scale, mode, intrinsics)
+
     def stage_trial(start: Pose, origin: str, label: str, at: float, matcher: str = "keypoints",
                     far_start: bool = False):
         trial = yield from rounds_of(
@@ -712,15 +428,12 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
             return
 
     if options.edge_align:
-        from napari_imgreg.registration.stages.edges import align_edges
-
         yield progress("edges", "aligning the model's edges with the photo's", (base + 1.0) / n_budget)
         t0 = time.perf_counter()
         aligned = align_edges(
-            ctx.scene, ctx.photo, ctx.intrinsics, start_prior,
-            render_fn=lambda _scene, intr, pose, scale: ctx.render(pose, scale, mode, intr),
-            cancelled=_raising(ctx.check),
-            position_sigma_m=prior.sigma.position_m, search_position_m=prior.sigma.position_m)
+            ctx.scene, ctx.photo, ctx.intrinsics, start_prior, options.edges,
+            position_sigma_m=prior.sigma.position_m, search_position_m=prior.sigma.position_m,
+            render_fn=render_fn, cancelled=_raising(ctx.check))
         ctx.timings["edges"] = ctx.timings.get("edges", 0.0) + time.perf_counter() - t0
         if aligned.ok:
             extra = {"edge_inlier_fraction": round(aligned.inlier_fraction, 4),
@@ -736,16 +449,12 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
                                            "confirms the pose: not verified"))
 
     if options.dense_refine:
-        from napari_imgreg.registration.stages.dense import refine_pose_mi
-
         best = max(trials, key=_trial_rank)
         start = best.pose if best.pose is not None else start_prior
         yield progress("dense", "refining by mutual information", (base + 2.0) / n_budget)
         t0 = time.perf_counter()
-        refined = refine_pose_mi(
-            ctx.scene, ctx.photo, ctx.intrinsics, start,
-            render_fn=lambda pose, scale: ctx.render(pose, scale, mode),
-            cancelled=_raising(ctx.check), max_seconds=6.0)
+        refined = refine_pose_mi(ctx.scene, ctx.photo, ctx.intrinsics, start, options.dense,
+                                 render_fn=render_fn, cancelled=_raising(ctx.check))
         ctx.timings["dense"] = ctx.timings.get("dense", 0.0) + time.perf_counter() - t0
         if refined.improved:
             extra = {"mi_nmi": round(refined.nmi, 4),
@@ -766,10 +475,11 @@ def _stage_trial(index: int, keypoint_trial: Trial, pose: Pose, start: Pose, ori
     manual registration) but never graded above "poor" — an MI or edge optimum
     alone can be a wrong pose."""
     metrics = {**keypoint_trial.metrics, **extra}
-    q = min(keypoint_trial.q, -0.01)
+    q = min(keypoint_trial.q, STAGE_Q_CEILING)
     return Trial(
         index=index, params=keypoint_trial.params, metrics=metrics, q=q,
-        grade=grade_of(min(q, -0.01)).name, hints=[hint, *keypoint_trial.hints], pose=pose,
+        grade=grade_pose(q, pose_found=True, verified=False, ceiling=STAGE_Q_CEILING).name,
+        hints=[hint, *keypoint_trial.hints], pose=pose,
         start_pose=start, rounds=0, converged=False, verified=False,
         residual_flow_px=float("inf"), origin=origin, seconds=seconds,
         render_mode=keypoint_trial.render_mode)

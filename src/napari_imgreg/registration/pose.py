@@ -13,7 +13,14 @@ import numpy as np
 
 from napari_imgreg.camera import Intrinsics, Pose
 
-__all__ = ["PoseParams", "PoseEstimate", "estimate_pose", "reprojection_errors", "MIN_POINTS"]
+__all__ = [
+    "PoseParams",
+    "PoseEstimate",
+    "estimate_pose",
+    "pose_agreement",
+    "reprojection_errors",
+    "MIN_POINTS",
+]
 
 #: EPnP needs at least 4 points; RANSAC with fewer than 6 is meaningless.
 MIN_POINTS = 6
@@ -102,7 +109,7 @@ def estimate_pose(
     points_3d: np.ndarray,
     points_2d: np.ndarray,
     params: PoseParams | None = None,
-    initial: Pose | None = None,
+    *,
     rng_seed: int = 0,
 ) -> PoseEstimate:
     """RANSAC EPnP on 2D–3D correspondences, refined on the inliers.
@@ -116,8 +123,6 @@ def estimate_pose(
     points_2d : (N, 2) array
         Their pixel positions (x, y) in the photo.
     params : PoseParams, optional
-    initial : Pose, optional
-        Unused by EPnP's minimal solver; kept as a fallback reference.
     rng_seed : int
         Seeds OpenCV's RNG so results are reproducible.
 
@@ -195,4 +200,48 @@ def estimate_pose(
     in_front = pose.transform(p3[inliers])[:, 2] > 0
     if not in_front.all():
         return PoseEstimate(False, None, inliers, errors, "pose puts inliers behind the camera")
+    return PoseEstimate(True, pose, inliers, errors)
+
+
+def pose_agreement(
+    intrinsics: Intrinsics,
+    pose: Pose,
+    points_3d: np.ndarray,
+    points_2d: np.ndarray,
+    params: PoseParams | None = None,
+) -> PoseEstimate:
+    """How well a *given* pose explains 2D–3D correspondences, as an estimate.
+
+    The counterpart of :func:`estimate_pose` for a pose found elsewhere (from
+    picked control points, a nudge): nothing is solved; a correspondence is an
+    inlier when its 3D point projects within ``params.reprojection_error_px``
+    of its pixel. So a given pose is scored with the same metrics as an
+    estimated one.
+
+    Parameters
+    ----------
+    intrinsics : Intrinsics
+        The photo's camera.
+    pose : Pose
+        ``cam_from_world`` to test.
+    points_3d : (N, 3) array
+        Model-frame points, metres.
+    points_2d : (N, 2) array
+        Their pixel positions (x, y) in the photo.
+    params : PoseParams, optional
+        Only ``reprojection_error_px`` is used.
+
+    Returns
+    -------
+    PoseEstimate
+        ``ok`` (and ``pose`` set to the given pose) when at least one
+        correspondence agrees; ``errors_px`` for all (inf behind the camera).
+    """
+    params = params or PoseParams()
+    errors = reprojection_errors(intrinsics, pose, points_3d, points_2d)
+    inliers = errors < params.reprojection_error_px
+    if not inliers.any():
+        return PoseEstimate(False, None, inliers, errors,
+                            f"no correspondence within {params.reprojection_error_px:g} px "
+                            "of the pose")
     return PoseEstimate(True, pose, inliers, errors)

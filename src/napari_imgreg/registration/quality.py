@@ -15,6 +15,7 @@ with the photo's width.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -31,6 +32,7 @@ __all__ = [
     "grade_of",
     "evaluate_rules",
     "adapt",
+    "metric_trend",
     "REFERENCE_WIDTH_PX",
 ]
 
@@ -282,3 +284,36 @@ def adapt(
     if not hits:
         return params.copy(), None
     return hits[0].apply(params), hits[0]
+
+
+def metric_trend(metric: Metric, value: float | None, previous: float | None) -> int:
+    """Whether a metric got better (+1), worse (−1) or stayed (0) since the previous trial.
+
+    For the quality panel's arrows.
+
+    Parameters
+    ----------
+    metric : Metric
+        Knows whether lower is better (the reprojection error).
+    value, previous : float or None
+        A missing (None/NaN) value is the worst possible.
+
+    Examples
+    --------
+    >>> error = next(m for m in METRICS if m.key == "reprojection_error_px")
+    >>> metric_trend(error, 0.8, 2.0), metric_trend(error, None, 2.0)
+    (1, -1)
+    """
+    def known(v) -> bool:
+        return v is not None and v == v
+
+    if not known(value) and not known(previous):
+        return 0
+    if not known(previous):
+        return 1
+    if not known(value):
+        return -1
+    if math.isclose(float(value), float(previous), rel_tol=1e-9, abs_tol=1e-12):
+        return 0
+    up = float(value) > float(previous)
+    return (-1 if up else 1) if metric.lower_is_better else (1 if up else -1)

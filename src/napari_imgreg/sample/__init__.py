@@ -414,7 +414,7 @@ def write_survey(folder: Path, georef, survey_sun_local: np.ndarray,
     the survey instant at which the sun stood there (as a photogrammetry
     survey's EXIF would give it).
     """
-    from napari_imgreg.sun import meridian_convergence_deg
+    from napari_imgreg.solar import meridian_convergence_deg
 
     sun_time = time_for_sun(survey_sun_local, georef, where)
     d = np.asarray(survey_sun_local, np.float64)

@@ -22,7 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from napari_imgreg.geo import Georef
-from napari_imgreg.sun import sun_direction_local, sun_positions
+from napari_imgreg.solar import sun_direction_local, sun_positions
 
 __all__ = ["SunTime", "time_for_sun", "local_utc_offset"]
 
@@ -75,7 +75,7 @@ def time_for_sun(
 
     A coarse search (every 20 minutes of the year) is refined around its best
     instant (every 10 seconds over ±40 minutes on the same and the
-    neighbouring days). Vectorised through :func:`napari_imgreg.sun.sun_positions`.
+    neighbouring days). Vectorised through :func:`napari_imgreg.solar.sun_positions`.
 
     Parameters
     ----------

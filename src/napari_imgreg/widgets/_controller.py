@@ -1,54 +1,82 @@
-"""The workbench's state and orchestration: one controller per napari viewer.
+"""The workbench's Qt wiring: one controller per napari viewer.
 
-The controller owns what the docks share — the scene, the photos with their
-priors, pose histories and trials, the registration parameters — and the
-napari layers that show them. It runs every long job (scene and photo
-loading, renders, filters over full images, registration, manual solving and
-scoring) in a napari thread worker, so the viewer never freezes, and turns
-errors into one-line napari notifications.
+The workbench's state — the scene, the photos with their priors, pose
+histories and trials, the registration parameters, the control points, the
+suns and interpretations — is a Qt-free :class:`~napari_imgreg.workspace.Workspace`
+(``controller.workspace``). The controller builds it, follows its events, and
+does what needs Qt and napari:
+
+* it owns the napari layers that show the workspace (:class:`_Layers`): the
+  photo beside the render of its pose, filtered previews, correspondences,
+  the reference render and the pairs, and in 3D the model with the cameras;
+* it runs every long job (scene and photo loading, renders, filters over
+  full images, registration, manual solving and scoring, reading the sun)
+  through one :class:`~napari_imgreg.widgets._jobs.JobRunner`, so the viewer
+  never freezes, and turns errors into one-line napari notifications;
+* it relays the workspace's events as Qt signals to the docks, after it has
+  brought its layers up to date.
 
 It orchestrates only: rendering, filtering, registration and manual solving
 are the backend's (:mod:`~napari_imgreg.render`, :mod:`~napari_imgreg.registration.filters`,
-:mod:`~napari_imgreg.registration.pipeline`, :mod:`~napari_imgreg.registration.manual`).
+:mod:`~napari_imgreg.registration.pipeline`, :mod:`~napari_imgreg.registration.manual`),
+the state and its rules the workspace's.
 """
 
 from __future__ import annotations
 
-import functools
-import inspect
 import logging
-import math
-import threading
 import time
 import weakref
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
+import cv2
 import numpy as np
+from matplotlib.colors import to_rgba
 from qtpy.QtCore import QObject, QTimer, Signal
 
-from napari_imgreg.registration import manual
-from napari_imgreg.widgets._layers import napari_from_pixels, napari_from_world, pixels_from_napari, surface_layer_data
-from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg._deprecated import forward_moved_names
+from napari_imgreg.adjust import TerrainMap
+from napari_imgreg.camera import Intrinsics, Pose, match_scale
 from napari_imgreg.errors import InputError
-from napari_imgreg.registration.features import FeatureParams
-from napari_imgreg.io.records import Prior
+from napari_imgreg.prior import Prior
+from napari_imgreg.registration.filters import apply_filters, reduce_for_matching
 from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Cancelled, Registration, Trial
-from napari_imgreg.registration.quality import evaluate_rules
+from napari_imgreg.registration.pipeline import Trial
+from napari_imgreg.registration.stages.relight import render_sunlit
+from napari_imgreg.render import RenderResult, render
+from napari_imgreg.sample import sample_scene
+from napari_imgreg.widgets._jobs import JobRunner, in_python_thread
+from napari_imgreg.widgets._layers import (
+    INTERPRETATION_OF,
+    camera_from_view,
+    frustum_segments,
+    napari_from_pixels,
+    napari_from_world,
+    pixels_from_napari,
+    surface_layer_data,
+    view_from_camera,
+    world_from_napari,
+)
+from napari_imgreg.workspace import (
+    Job,
+    PhotoState,
+    WorkbenchError,
+    Workspace,
+    one_line,
+    read_photos,
+    read_scene,
+)
 
 if TYPE_CHECKING:
     import napari
 
-    from napari_imgreg.io.photos import Photo
-    from napari_imgreg.render import RenderResult
     from napari_imgreg.scene import Scene
 
 __all__ = [
     "WorkbenchController",
     "PhotoState",
-    "TrialRecord",
     "WorkbenchError",
     "controller_for",
     "one_line",
@@ -60,16 +88,20 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: Names that moved to the workspace in 0.2 (PhotoState, WorkbenchError and
+#: one_line are used here, so still imported); the old path warns.
+_MOVED = {"TrialRecord": "napari_imgreg.workspace", "SUN_ESTIMATE_WIDTH": "napari_imgreg.workspace"}
+
+
+__getattr__ = forward_moved_names(__name__, _MOVED)
+
+
 #: Width (pixels) of the reduced render shown while the pose is being edited.
 PREVIEW_WIDTH = 400
 #: Idle time after the last pose edit before the full-resolution render, ms.
 FULL_RENDER_DELAY_MS = 350
-#: Width (pixels) at which the sun is read from a photo (its shading is broad).
-SUN_ESTIMATE_WIDTH = 1024
 #: Render layer names: as textured, and relit for the photo's sun.
 RENDER_NAMES = {"plain": "render", "sunlit": "render (sun-lit)"}
-#: Metadata key of an interpretation layer naming its photo layer (interpret_widget).
-INTERPRETATION_OF = "imgreg_interpretation_of"
 #: Correspondence lines drawn at most (an even sample of them).
 MAX_LINES = 300
 #: Gap between the photo and the render on the canvas, as a fraction of the width.
@@ -84,177 +116,6 @@ PAIR_COLORS = (
 CORRESPONDENCE_COLORS = {
     "pose inlier": "#00e676", "feature inlier": "#ffd600", "outlier": "#ff1744",
 }
-
-_CANCELLED = object()
-
-
-class WorkbenchError(Exception):
-    """An error already worded for the user (one line)."""
-
-
-def one_line(exc: BaseException) -> str:
-    """The first line of an error's message, naming its type unless it is bad input."""
-    text = str(exc).strip()
-    first = text.splitlines()[0] if text else ""
-    if isinstance(exc, (InputError, WorkbenchError)):
-        return first or type(exc).__name__
-    return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
-
-
-def _guarded(fn: Callable) -> Callable:
-    """Wrap a job for a worker: cancellation returns a marker, errors become one line."""
-    if inspect.isgeneratorfunction(fn):
-
-        @functools.wraps(fn)
-        def gen(*args, **kwargs):
-            try:
-                return (yield from fn(*args, **kwargs))
-            except Cancelled:
-                return _CANCELLED
-            except Exception as exc:
-                raise WorkbenchError(one_line(exc)) from exc
-
-        return gen
-
-    @functools.wraps(fn)
-    def func(*args, **kwargs):
-        try:
-            return fn(*args, **kwargs)
-        except Cancelled:
-            return _CANCELLED
-        except Exception as exc:
-            raise WorkbenchError(one_line(exc)) from exc
-
-    return func
-
-
-def _enough_worker_threads(n: int = 6) -> None:
-    """Let napari's worker pool run a registration, a render and a filter at once.
-
-    napari's workers share Qt's global thread pool, sized to the CPU count: on
-    a two-core laptop a registration and a full render would hold the pool
-    and a filter preview would wait for them. The jobs spend their time in
-    NumPy, OpenCV and Embree, which release the GIL.
-    """
-    from qtpy.QtCore import QThreadPool
-
-    pool = QThreadPool.globalInstance()
-    if pool.maxThreadCount() < n:
-        pool.setMaxThreadCount(n)
-
-
-def _in_python_thread(fn: Callable, *args, **kwargs):
-    """Run ``fn`` in a short-lived Python thread and wait for it.
-
-    For jobs that may touch pyproj (georeference, DEM, geodetic priors):
-    pyproj 3.7 keeps per-thread PROJ contexts that can be freed under Qt's
-    worker threads, which Python did not create, and the next use crashes
-    the process (pyproj issues 1509 and 1622). A thread Python starts and
-    ends owns its context for its whole life.
-    """
-    box: dict[str, Any] = {}
-
-    def run() -> None:
-        try:
-            box["value"] = fn(*args, **kwargs)
-        except BaseException as exc:  # re-raised in the worker
-            box["error"] = exc
-
-    thread = threading.Thread(target=run, name="napari-imgreg-io", daemon=True)
-    thread.start()
-    thread.join()
-    if "error" in box:
-        raise box["error"]
-    return box.get("value")
-
-
-# ------------------------------------------------------------------ state
-@dataclass(eq=False)
-class TrialRecord:
-    """A trial in the photo's history: from which run, by which action."""
-
-    trial: Trial
-    run: int
-    kind: str  # "Run", "Auto" or "Manual"
-
-    @property
-    def label(self) -> str:
-        t = self.trial
-        if self.kind == "Manual":
-            return "manual pairs"
-        light = ", sun-lit render" if self.sunlit and t.origin != "sun-lit render" else ""
-        area = getattr(t, "matcher", "keypoints") == "area"
-        what = "blocks by correlation" if area else t.params.features.name
-        return f"{self.kind} {self.run}: {what} ({t.origin}{light})"
-
-    @property
-    def sunlit(self) -> bool:
-        """Matched against a render relit for the photo's sun."""
-        return getattr(self.trial, "render_mode", "plain") == "sunlit"
-
-
-@dataclass(eq=False)
-class PhotoState:
-    """One photo of the session and everything done to it.
-
-    Attributes
-    ----------
-    photo : Photo
-    prior : Prior
-        From its sensor record and metadata.
-    record_path : Path
-        The sidecar JSON the pose is saved to.
-    intrinsics : Intrinsics
-        The camera used now (the prior's, or with a solved focal length).
-    history : PoseHistory
-        The current pose and its undo/redo.
-    trials : list of TrialRecord
-    registration : Registration or None
-        The last automatic registration.
-    reference : RenderResult or None
-        The reference render of the manual registration.
-    """
-
-    photo: Photo
-    prior: Prior
-    record_path: Path
-    intrinsics: Intrinsics
-    history: manual.PoseHistory
-    trials: list[TrialRecord] = field(default_factory=list)
-    registration: Registration | None = None
-    manual_solution: manual.ManualSolution | None = None
-    reference: RenderResult | None = None
-    reference_source: str = ""
-    pairs_photo: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    pairs_reference: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    selected_trial: int | None = None
-    runs: int = 0
-    sun_override: np.ndarray | None = None
-    sun_override_source: str = ""
-    sun_estimate: Any = None  # the last SunEstimate read from the photo
-    _convergence: float | None = None
-
-    @property
-    def sun(self) -> np.ndarray | None:
-        """Toward the sun at capture, local frame: set by hand or read from the
-        photo (``sun_override``), else the prior's (None: unknown)."""
-        return self.sun_override if self.sun_override is not None else self.prior.sun
-
-    @property
-    def sun_source(self) -> str:
-        return self.sun_override_source if self.sun_override is not None else self.prior.sun_source
-
-    @property
-    def name(self) -> str:
-        return self.photo.path.name if self.photo.path is not None else "photo"
-
-    @property
-    def pose(self) -> Pose:
-        return self.history.current
-
-    @property
-    def size(self) -> tuple[int, int]:
-        return self.intrinsics.width, self.intrinsics.height
 
 
 _CONTROLLERS: weakref.WeakValueDictionary[int, WorkbenchController] = weakref.WeakValueDictionary()
@@ -566,14 +427,20 @@ def _set_geometry(layer, scale, translate) -> None:
 
 
 def _rgba(color: str) -> np.ndarray:
-    from matplotlib.colors import to_rgba
-
     return np.array(to_rgba(color), np.float32)
 
 
 # -------------------------------------------------------------- controller
 class WorkbenchController(QObject):
-    """State, layers and jobs of the workbench for one viewer (see module docstring)."""
+    """The workbench's Qt side for one viewer: it builds the :class:`Workspace`,
+    shows it in napari layers, runs its jobs and relays its events (see the
+    module docstring).
+
+    The workspace's state is reachable here too (``scene``, ``photos``,
+    ``current``, ``params``, ...) and its editing methods are wrapped, so a
+    dock calls one object; an error worded for the user becomes a napari
+    notification instead of an exception.
+    """
 
     scene_changed = Signal()
     photos_changed = Signal()
@@ -596,15 +463,13 @@ class WorkbenchController(QObject):
     status = Signal(str)
     failed = Signal(str, str)  # job, one-line message
 
-    def __init__(self, viewer: napari.viewer.Viewer) -> None:
+    def __init__(self, viewer: napari.viewer.Viewer, workspace: Workspace | None = None) -> None:
         super().__init__()
         self.viewer = viewer
-        self.scene: Scene | None = None
-        self.scene_files: dict[str, str] = {}
-        self.terrain: manual.TerrainMap | None = None
-        self.photos: list[PhotoState] = []
-        self.current: PhotoState | None = None
-        self.params = RegistrationParams()
+        #: The state the docks show and edit (Qt-free).
+        self.workspace = workspace if workspace is not None else Workspace()
+        #: Every long job runs here.
+        self.jobs = JobRunner(self)
         self.layers = _Layers(viewer)
         self.filter_preview = False
         self.show_outliers = False
@@ -617,12 +482,10 @@ class WorkbenchController(QObject):
         #: What the shown render is: ("plain",) or ("sunlit", sun direction).
         self.shown_look: tuple = ()
         self._shown_full_pose: Pose | None = None
-        self._workers: dict[str, Any] = {}
-        self._pending: dict[str, tuple] = {}
-        self._cancel = False
         self._closed = False
         self._docks = 0  # docks using this controller (see attach)
-        self._pairs_busy = False
+        self._pairs_busy = False  # the pair layers are being written: not an edit
+        self._pairs_from_layers = False  # the workspace takes an edit of the pair layers
         self.latency: dict[str, float] = {}
         self._cameras_dirty = True
         self._reduced: dict[str, tuple] = {}  # filter preview: images at the match width
@@ -632,79 +495,151 @@ class WorkbenchController(QObject):
         self._full_timer.setInterval(FULL_RENDER_DELAY_MS)
         self._full_timer.timeout.connect(lambda: self.request_render(full=True))
         viewer.dims.events.ndisplay.connect(self._on_ndisplay)
-        _enough_worker_threads()
+        self.jobs.busy_changed.connect(self.busy_changed.emit)
+        self.jobs.status.connect(self.status.emit)
+        self.jobs.failed.connect(self.failed.emit)
+        ws = self.workspace
+        self._followed = [
+            (ws.scene_changed, self._on_scene_changed),
+            (ws.photos_changed, self._on_photos_changed),
+            (ws.photo_changed, self._on_photo_changed),
+            (ws.pose_changed, self._pose_edited),
+            (ws.params_changed, self._on_params_changed),
+            (ws.trials_changed, self._on_trials_changed),
+            (ws.trial_selected, self._on_trial_selected),
+            (ws.reference_changed, self._on_reference_changed),
+            (ws.pairs_changed, self._on_pairs_changed),
+            (ws.sun_changed, self._on_sun_changed),
+        ]
+        for event, handler in self._followed:
+            event.connect(handler)
+
+    # ------------------------------------------------------ the workspace
+    @property
+    def scene(self) -> Scene | None:
+        return self.workspace.scene
+
+    @property
+    def scene_files(self) -> dict[str, str]:
+        return self.workspace.scene_files
+
+    @property
+    def terrain(self) -> TerrainMap | None:
+        return self.workspace.terrain
+
+    @property
+    def photos(self) -> list[PhotoState]:
+        return self.workspace.photos
+
+    @property
+    def current(self) -> PhotoState | None:
+        return self.workspace.current
+
+    @property
+    def params(self) -> RegistrationParams:
+        return self.workspace.params
+
+    @params.setter
+    def params(self, params: RegistrationParams) -> None:
+        self.workspace.set_params(params)
+
+    # Workspace events: bring the layers up to date, then tell the docks.
+    def _on_scene_changed(self) -> None:
+        self.layers.clear_photos()
+        self.layers.show_surface(self.scene)
+        self.scene_changed.emit()
+
+    def _on_photos_changed(self) -> None:
+        self.photos_changed.emit()
+        self._update_cameras()
+
+    def _on_photo_changed(self) -> None:
+        """Show the new current photo, its pose's render, its pairs and trials."""
+        ps = self.current
+        self.layers.show_photo(ps)
+        self.layers.set_camera(ps)
+        self._shown_full_pose = None
+        self.last_render = None
+        if (ref := self.layers.get("reference")) is not None:
+            ref.visible = ps.reference is not None
+            if ps.reference is not None:
+                self.layers.show_reference(ps.reference)
+        self._write_pair_layers()
+        self._restyle_pairs()
+        self.pairs_changed.emit()
+        self.photo_changed.emit()
+        self.pose_changed.emit("photo")
+        self.trials_changed.emit()
+        if ps.selected_trial is not None:
+            self.select_trial(ps.selected_trial)
+        else:
+            self.layers.show_correspondences(None, False, False)
+        self.request_render(full=False)  # quick first look (and warms the preview camera)
+        self.request_render(full=True)
+        self._update_cameras()
+        if self.viewer.dims.ndisplay == 2:
+            self.fit_2d()
+
+    def _on_params_changed(self) -> None:
+        self.params_changed.emit()
+
+    def _on_trials_changed(self) -> None:
+        self.trials_changed.emit()
+
+    def _on_trial_selected(self, index: int) -> None:
+        self.redraw_correspondences()
+        self.trial_selected.emit(index)
+
+    def _on_reference_changed(self) -> None:
+        ps = self.current
+        if ps is None or ps.reference is None:
+            return
+        self.layers.show_reference(ps.reference)
+        self.reference_ready.emit()
+
+    def _on_pairs_changed(self) -> None:
+        if not self._pairs_from_layers:  # an edit of the layers is shown already
+            self._write_pair_layers()
+        self._restyle_pairs()
+        self.pairs_changed.emit()
+
+    def _on_sun_changed(self, ps: PhotoState) -> None:
+        if ps is self.current:
+            self._sun_edited()
 
     # ------------------------------------------------------------ workers
     @property
     def busy(self) -> bool:
         """True while any job runs or waits (a render, a filter, a registration...)."""
-        return bool(self._workers) or bool(self._pending) or self._full_timer.isActive()
+        return self.jobs.busy or self._full_timer.isActive()
 
     def is_running(self, job: str) -> bool:
-        return job in self._workers
+        return self.jobs.is_running(job)
 
     def _start(self, job: str, fn: Callable, *args, on_returned: Callable,
                on_yielded: Callable | None = None, progress: dict | None = None,
                on_failed: Callable | None = None, **kwargs):
-        """Run ``fn`` in a napari thread worker named ``job``."""
-        from napari.qt.threading import create_worker
+        """Run ``fn`` in a napari thread worker named ``job`` (see :class:`JobRunner`)."""
+        return self.jobs.start(job, fn, *args, on_returned=on_returned, on_yielded=on_yielded,
+                               on_failed=on_failed, progress=progress, **kwargs)
 
-        def release() -> None:
-            # The job is over once it has returned or failed: its result
-            # handlers may start the next job of the same name.
-            if self._workers.get(job) is worker:
-                del self._workers[job]
-                self.busy_changed.emit()
+    def _job(self, make: Callable[[], Job]) -> Job | None:
+        """A workspace job, or None after telling the user why there is none."""
+        try:
+            return make()
+        except WorkbenchError as exc:
+            self.notify_error(str(exc))
+            return None
 
-        def returned(value):
-            release()
-            if self._closed:
-                return
-            if value is _CANCELLED:
-                self.status.emit(f"{job}: cancelled")
-                on_returned(None)
-                return
-            on_returned(value)
-
-        def errored(exc):
-            release()
-            msg = one_line(exc)
-            log.debug("%s failed: %s", job, msg, exc_info=exc)
-            if not self._closed:
-                self.status.emit(f"{job} failed: {msg}")
-                self.failed.emit(job, msg)
-                if on_failed is not None:
-                    on_failed(msg)
-
-        def finished():
-            release()
-            self.busy_changed.emit()
-            if job not in self._workers:
-                pending = self._pending.pop(job, None)
-                if pending is not None and not self._closed:
-                    pending[0]()
-
-        def aborted():
-            returned(_CANCELLED)
-
-        connect = {"returned": returned, "errored": errored, "finished": finished}
-        if on_yielded is not None:
-            connect["yielded"] = on_yielded
-        if inspect.isgeneratorfunction(fn):
-            connect["aborted"] = aborted  # quit() between two yields
-        extra = {"_progress": progress} if progress else {}
-        worker = create_worker(_guarded(fn), *args, _connect=connect, _start_thread=False,
-                               **extra, **kwargs)
-        self._workers[job] = worker
-        self.busy_changed.emit()
-        worker.start()
-        return worker
-
-    def _notify_error(self, message: str) -> None:
+    def notify_error(self, message: str) -> None:
+        """Say what went wrong: in the status line and as a napari notification."""
+        # napari is imported when needed: its import warns (pydantic) and is slow.
         from napari.utils.notifications import show_error
 
         self.status.emit(message)
         show_error(message)
+
+    _notify_error = notify_error  # the 0.1 name
 
     @property
     def closed(self) -> bool:
@@ -726,9 +661,9 @@ class WorkbenchController(QObject):
             return
         self._closed = True
         self._full_timer.stop()
-        self._cancel = True
-        for worker in list(self._workers.values()):
-            worker.quit()
+        self.jobs.shutdown()
+        for event, handler in self._followed:  # the workspace may live on (a script's)
+            event.disconnect(handler)
         try:
             self.viewer.dims.events.ndisplay.disconnect(self._on_ndisplay)
         except (TypeError, ValueError, RuntimeError):  # pragma: no cover
@@ -739,39 +674,13 @@ class WorkbenchController(QObject):
                    georef: str | Path | None = None, photos: list | None = None) -> None:
         """Load a mesh (or a DSM as GeoTIFF/.asc), optionally a DEM and georeference,
         in a worker; then add ``photos``."""
-        from napari_imgreg.scene import Scene
-
-        def job(mesh, dem, georef):
-            return _in_python_thread(load, mesh, dem, georef)
-
-        def load(mesh, dem, georef):
-            path = Path(mesh)
-            if path.suffix.lower() in (".tif", ".tiff", ".asc"):
-                from napari_imgreg.geo import Georef
-
-                g = Georef.load(georef) if georef else None
-                scene = Scene.from_dem(path, georef=g)
-                if dem:
-                    from napari_imgreg.geo import DEM
-
-                    scene.dem = DEM.load(dem)
-            else:
-                scene = Scene.load(path, georef=georef or None, dem=dem or None)
-            scene.build_engine()
-            return scene, manual.terrain_map(scene)
 
         def done(value):
             if value is None:
                 return
             scene, terrain = value
-            self.scene, self.terrain = scene, terrain
-            self.scene_files = {"mesh": str(mesh), "dem": str(dem or ""),
-                                "georef": str(georef or "")}
-            self.photos, self.current = [], None
-            self.layers.clear_photos()
-            self.layers.show_surface(scene)
-            self.scene_changed.emit()
-            self.photos_changed.emit()
+            self.workspace.load_scene(scene, terrain,
+                                      {"mesh": mesh, "dem": dem, "georef": georef})
             self.status.emit(f"opened {scene.name}: {scene.n_faces:,} triangles"
                              + (", DEM" if scene.dem is not None else "")
                              + (f", {scene.georef.crs}" if scene.georef is not None else ""))
@@ -781,15 +690,12 @@ class WorkbenchController(QObject):
                 self.add_photos(photos)
 
         self.status.emit(f"opening {Path(mesh).name}…")
-        self._start("open scene", job, mesh, dem, georef, on_returned=done,
-                    progress={"desc": f"Opening {Path(mesh).name}"})
+        # pyproj is touched (georeference, DEM): in a thread Python owns.
+        self._start("open scene", in_python_thread, read_scene, mesh, dem, georef,
+                    on_returned=done, progress={"desc": f"Opening {Path(mesh).name}"})
 
     def open_sample(self) -> None:
         """The generated sample outcrop with its DEM and its photos."""
-        from napari_imgreg.sample import sample_scene
-
-        def job():
-            return _in_python_thread(sample_scene, "small")
 
         def done(folder):
             if folder is None:
@@ -797,130 +703,61 @@ class WorkbenchController(QObject):
             self.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif",
                             photos=sorted(folder.glob("IMG_*.jpg")))
 
-        self._start("sample", job, on_returned=done, progress={"desc": "Sample scene"})
+        self._start("sample", in_python_thread, sample_scene, "small", on_returned=done,
+                    progress={"desc": "Sample scene"})
 
     # ------------------------------------------------------------- photos
     def add_photos(self, paths: list) -> None:
         """Load photos and their priors (sensor record, else EXIF/XMP) in a worker."""
-        if self.scene is None:
-            self._notify_error(
-                "Open a model first: the prior's altitude comes from its DEM or surface.")
+        try:
+            scene = self.workspace.require_scene()
+        except WorkbenchError as exc:
+            self.notify_error(str(exc))
             return
-        scene = self.scene
         paths = [Path(p) for p in paths]
-
-        def job():
-            return _in_python_thread(load)
-
-        def load():
-            from napari_imgreg.io.photos import load_photo
-            from napari_imgreg.io.records import prior_for_photo
-
-            loaded, errors = [], []
-            for p in paths:
-                try:
-                    photo = load_photo(p)
-                    prior = prior_for_photo(photo, scene)
-                except Exception as exc:  # one bad photo does not stop the others
-                    errors.append(one_line(exc))
-                    continue
-                loaded.append((photo, prior))
-            return loaded, errors
 
         def done(value):
             if value is None:
                 return
             loaded, errors = value
-            known = {ps.photo.path for ps in self.photos}
-            for photo, prior in loaded:
-                if photo.path in known:
-                    continue
-                self.photos.append(PhotoState(
-                    photo=photo, prior=prior, record_path=photo.sidecar,
-                    intrinsics=prior.intrinsics, history=manual.PoseHistory(prior.pose)))
-                self.photos[-1].history._current_label = "prior"
+            self.workspace.add_loaded_photos(loaded)
             for msg in errors:
-                self._notify_error(msg)
-            self.photos_changed.emit()
-            if self.current is None and self.photos:
-                self.select_photo(0)
-            self._update_cameras()
+                self.notify_error(msg)
 
-        self._start("load photos", job, on_returned=done,
-                    progress={"desc": f"Loading {len(paths)} photo(s)"})
+        self._start("load photos", in_python_thread, read_photos, paths, scene,
+                    on_returned=done, progress={"desc": f"Loading {len(paths)} photo(s)"})
 
     def select_photo(self, index: int) -> None:
         """Make a photo current: show it, its pose's render, its pairs and trials."""
-        if not 0 <= index < len(self.photos):
-            return
-        if self.current is not None:
-            self._store_pairs()
-        self.current = ps = self.photos[index]
-        self.layers.show_photo(ps)
-        self.layers.set_camera(ps)
-        self._shown_full_pose = None
-        self.last_render = None
-        if (ref := self.layers.get("reference")) is not None:
-            ref.visible = ps.reference is not None
-            if ps.reference is not None:
-                self.layers.show_reference(ps.reference)
-        self._restore_pairs()
-        self.photo_changed.emit()
-        self.pose_changed.emit("photo")
-        self.trials_changed.emit()
-        if ps.selected_trial is not None:
-            self.select_trial(ps.selected_trial)
-        else:
-            self.layers.show_correspondences(None, False, False)
-        self.request_render(full=False)  # quick first look (and warms the preview camera)
-        self.request_render(full=True)
-        self._update_cameras()
-        if self.viewer.dims.ndisplay == 2:
-            self.fit_2d()
+        self.workspace.select_photo(index)
+
+    def photo_layer(self):
+        """The current photo's Image layer (None before a photo is shown)."""
+        return self.layers.get("photo")
 
     # --------------------------------------------------------------- pose
     def set_pose(self, pose: Pose, label: str, continuing: bool = False) -> None:
         """Change the current photo's pose (an undoable edit unless ``continuing``)."""
-        ps = self.current
-        if ps is None:
-            return
-        if continuing:
-            ps.history.replace(pose)
-        else:
-            ps.history.push(pose, label)
-        self._pose_edited(label)
+        self.workspace.set_pose(pose, label, continuing=continuing)
 
     def nudge(self, label: str = "nudge", **amounts: float) -> None:
-        """Turn/move the camera by small amounts (see :func:`manual.nudge_pose`)."""
-        if self.current is None:
-            return
-        self.set_pose(manual.nudge_pose(self.current.pose, **amounts), label)
+        """Turn/move the camera by small amounts (see :func:`~napari_imgreg.adjust.nudge_pose`)."""
+        self.workspace.nudge(label, **amounts)
 
     def move_on_map(self, x: float, y: float, continuing: bool = False,
                     height: float | None = None) -> bool:
         """Move the camera to map point (x, y), keeping its height above the terrain."""
-        ps = self.current
-        if ps is None or self.scene is None:
-            return False
-        h = height if height is not None else self.height_above_ground()
-        if h is None:
-            h = 1.6
         try:
-            pose = manual.pose_at_ground(ps.pose, x, y, h, self.scene.terrain_height)
-        except (InputError, ValueError) as exc:
-            self._notify_error(f"({x:.1f}, {y:.1f}) is outside the terrain: {one_line(exc)}")
+            return self.workspace.move_on_map(x, y, continuing=continuing, height=height)
+        except WorkbenchError as exc:
+            self.notify_error(str(exc))
             return False
-        self.set_pose(pose, "moved on the map", continuing=continuing)
-        return True
 
     def turn_toward(self, x: float, y: float) -> None:
-        if self.current is not None:
-            self.set_pose(manual.turn_toward(self.current.pose, x, y), "turned on the map")
+        self.workspace.turn_toward(x, y)
 
     def height_above_ground(self) -> float | None:
-        if self.current is None or self.scene is None:
-            return None
-        return manual.height_above_ground(self.current.pose, self.scene.terrain_height)
+        return self.workspace.height_above_ground()
 
     def finish_drag(self) -> None:
         """A drag ended: render at full resolution now."""
@@ -928,38 +765,34 @@ class WorkbenchController(QObject):
         self.request_render(full=True)
 
     def undo(self) -> None:
-        if self.current is not None and self.current.history.undo() is not None:
-            self._pose_edited("undo")
+        self.workspace.undo()
 
     def redo(self) -> None:
-        if self.current is not None and self.current.history.redo() is not None:
-            self._pose_edited("redo")
+        self.workspace.redo()
 
     def reset_to_prior(self) -> None:
-        if self.current is not None:
-            self.set_pose(self.current.prior.pose, "prior")
+        self.workspace.reset_to_prior()
 
     def _pose_edited(self, label: str) -> None:
+        """The current pose changed: the reduced render now, the full one when
+        the edits stop; the cameras are redrawn in 3D, not on every nudge."""
         if self.current is not None:
             self.layers.set_camera(self.current)
         self.request_render(full=False)
         self._full_timer.start()
-        self._cameras_dirty = True  # redrawn in 3D, not on every nudge
+        self._cameras_dirty = True
         self.pose_changed.emit(label)
 
     def save_record(self) -> Path | None:
         """Save the current pose (and a solved camera) into the photo's sensor record."""
-        ps = self.current
-        if ps is None:
-            return None
-        camera = ps.intrinsics if ps.intrinsics != ps.prior.intrinsics else None
         try:
-            manual.save_pose_to_record(ps.record_path, ps.pose, camera=camera)
+            path = self.workspace.save_record()
         except (InputError, OSError) as exc:
-            self._notify_error(one_line(exc))
+            self.notify_error(one_line(exc))
             return None
-        self.status.emit(f"pose saved to {ps.record_path.name}")
-        return ps.record_path
+        if path is not None:
+            self.status.emit(f"pose saved to {path.name}")
+        return path
 
     # ------------------------------------------------------------- render
     def request_render(self, full: bool, since: float | None = None) -> None:
@@ -971,23 +804,15 @@ class WorkbenchController(QObject):
             return
         job = "render" if full else "preview"
         self._asked[job] = time.perf_counter()
-        if job in self._workers:
-            if job not in self._pending:
-                self._pending[job] = (lambda t=time.perf_counter(): self.request_render(full, t),)
+        if self.jobs.defer(job, lambda t=time.perf_counter(): self.request_render(full, t)):
             return
         pose, intr = ps.pose, ps.intrinsics
-        scale = 1.0 if full else min(1.0, PREVIEW_WIDTH / intr.width)
+        scale = 1.0 if full else match_scale(intr.width, PREVIEW_WIDTH)
         t0 = since if since is not None else time.perf_counter()
         look = self.render_look(ps)
 
         def job_fn():
-            import cv2
-
-            from napari_imgreg.render import render
-
             if look[0] == "sunlit":
-                from napari_imgreg.sun import render_sunlit
-
                 # As the pipeline renders for sun-lit matching.
                 result = render_sunlit(scene, intr, pose, np.asarray(look[1]), scale=scale,
                                        survey_sun_dir=scene.survey_sun)
@@ -1040,10 +865,8 @@ class WorkbenchController(QObject):
             return
         job = f"filter {which}"
         self._asked[job] = time.perf_counter()
-        if job in self._workers:
-            if job not in self._pending:
-                self._pending[job] = (lambda t=time.perf_counter(): self.request_filter_preview(
-                    which, since=t),)
+        if self.jobs.defer(job, lambda t=time.perf_counter(): self.request_filter_preview(
+                which, since=t)):
             return
         if which == "photo":
             image, mask = ps.photo.image, None
@@ -1059,12 +882,10 @@ class WorkbenchController(QObject):
         cache = self._reduced
 
         def job_fn():
-            from napari_imgreg.registration.filters import apply_filters
-
             # The reduced image does not change while a slider moves: reduce once.
             key = (which, id(image), width)
             if cache.get(which, (None,))[0] != key:
-                cache[which] = (key, *manual.reduce_for_matching(image, width, mask))
+                cache[which] = (key, *reduce_for_matching(image, width, mask))
             _, small, small_mask = cache[which]
             return apply_filters(small, params, mask=small_mask)
 
@@ -1088,157 +909,76 @@ class WorkbenchController(QObject):
     def run_registration(self, auto: bool) -> None:
         """Register the current photo from its current pose: one trial (Run) or
         trials adapted by the rules (Auto), in a worker with progress and Cancel."""
-        ps, scene = self.current, self.scene
-        if ps is None or scene is None:
-            self._notify_error("Load a scene and a photo first.")
-            return
         if self.is_running("registration"):
             return
-        try:
-            FeatureParams.from_dict(self.params.features.to_dict())
-        except (KeyError, ValueError, TypeError) as exc:
-            self._notify_error(one_line(exc))
+        cancelled = self.jobs.cancel_token("registration")
+        job = self._job(lambda: self.workspace.registration_job(auto, cancelled=cancelled))
+        if job is None:
             return
-        params = self.params.copy()
-        params.auto_adapt = auto
-        if not auto:
-            params.search_prior = False
-            params.max_trials = 1
-        prior = self.registration_prior(ps)
-        image, name = ps.photo.image, ps.name
-        kind = "Auto" if auto else "Run"
-        self._cancel = False
-
-        def job():
-            from napari_imgreg.registration.pipeline import register_photo
-
-            return (yield from register_photo(scene, image, prior, params, photo_name=name,
-                                              cancelled=lambda: self._cancel))
-
-        state = {"pbar": None}
+        ps, kind = job.photo, "Auto" if auto else "Run"
 
         def progress(p):
             self.registration_progress.emit(float(p.fraction), p.message)
-            worker = self._workers.get("registration")
-            pbar = getattr(worker, "pbar", None)
-            if pbar is not None:
-                pbar.n = int(round(100 * p.fraction))
-                pbar.set_description(f"{name}: {p.message}")
-                pbar.update(0)
 
         def done(reg):
             if reg is None:
                 self.registration_progress.emit(0.0, "cancelled")
                 self.registration_finished.emit(None)
                 return
-            self._registration_done(ps, reg, kind)
-
-        def failed(msg):
-            self.registration_finished.emit(None)
+            if reg.registered and ps is self.current:
+                self.set_blend(visible=True)  # the docks see it with the new pose
+            job.apply(reg)
+            secs = reg.timings_s.get("total", 0.0)
+            self.status.emit(f"{ps.name}: {reg.status} ({reg.grade}, Q = {reg.q:.2f}) "
+                             f"after {len(reg.trials)} trial(s) in {secs:.1f} s")
+            self.registration_progress.emit(1.0, f"{reg.status} ({reg.grade})")
+            self.registration_finished.emit(reg)
 
         self.registration_started.emit(kind)
-        self.status.emit(f"{kind}: registering {name}…")
-        worker = self._start("registration", job, on_returned=done, on_yielded=progress,
-                             on_failed=failed,
-                             progress={"total": 100, "desc": f"Registering {name}"})
-        state["pbar"] = getattr(worker, "pbar", None)
+        self.status.emit(f"{kind}: registering {ps.name}…")
+        self._start("registration", job.run, on_returned=done, on_yielded=progress,
+                    on_failed=lambda msg: self.registration_finished.emit(None),
+                    progress={"total": 100, "desc": job.description})
 
     def registration_prior(self, ps: PhotoState | None = None) -> Prior:
-        """The prior a registration of the photo starts from: its current camera
-        and pose, its prior's uncertainty and notes, and its sun (the one set
-        by hand or read from the photo, else the prior's)."""
-        ps = ps if ps is not None else self.current
-        sun = ps.sun
-        return replace(ps.prior, intrinsics=ps.intrinsics, pose=ps.pose,
-                       assumptions=list(ps.prior.assumptions),
-                       sun=None if sun is None else np.array(sun, float),
-                       sun_source=ps.sun_source)
+        """The prior a registration of the photo starts from (see
+        :meth:`Workspace.registration_prior`)."""
+        return self.workspace.registration_prior(ps)
 
     def cancel_registration(self) -> None:
         """Stop the running registration (or manual scoring) at its next step."""
-        self._cancel = True  # polled by the pipeline between steps
+        self.jobs.cancel("registration", "manual")  # polled by the pipeline between steps
         self.status.emit("cancelling…")
-
-    def _registration_done(self, ps: PhotoState, reg: Registration, kind: str) -> None:
-        ps.runs += 1
-        ps.registration = reg
-        first = len(ps.trials)
-        for t in reg.trials:
-            ps.trials.append(TrialRecord(t, ps.runs, kind))
-        best = first + next((k for k, t in enumerate(reg.trials) if t.index == reg.best_trial), 0)
-        if reg.registered and ps is self.current:
-            ps.history.push(reg.pose, f"{kind} {ps.runs} ({reg.grade})")
-            self.set_blend(visible=True)
-            self._pose_edited("registration")
-        ps.selected_trial = best
-        self.trials_changed.emit()
-        if ps is self.current:
-            self.select_trial(best)
-        secs = reg.timings_s.get("total", 0.0)
-        self.status.emit(f"{ps.name}: {reg.status} ({reg.grade}, Q = {reg.q:.2f}) "
-                         f"after {len(reg.trials)} trial(s) in {secs:.1f} s")
-        self.registration_progress.emit(1.0, f"{reg.status} ({reg.grade})")
-        self.registration_finished.emit(reg)
 
     # -------------------------------------------------------------- trials
     def select_trial(self, index: int) -> None:
         """Show a trial's metrics and correspondences (does not change the pose)."""
-        ps = self.current
-        if ps is None or not 0 <= index < len(ps.trials):
-            return
-        ps.selected_trial = index
-        self.redraw_correspondences()
-        self.trial_selected.emit(index)
+        self.workspace.select_trial(index)
 
     def redraw_correspondences(self) -> None:
-        ps = self.current
-        if ps is None or ps.selected_trial is None or not ps.trials:
-            return
-        trial = ps.trials[ps.selected_trial].trial
-        self.layers.show_correspondences(trial, self.show_outliers, self.show_correspondences)
+        rec = self.workspace.selected_trial()
+        if rec is not None:
+            self.layers.show_correspondences(rec.trial, self.show_outliers,
+                                             self.show_correspondences)
 
     def restore_trial(self, index: int) -> None:
         """Go back to a trial: its pose (or its start when it found none) and its parameters."""
-        ps = self.current
-        if ps is None or not 0 <= index < len(ps.trials):
-            return
-        rec = ps.trials[index]
-        self.params = self._keep_run_settings(rec.trial.params)
-        self.params_changed.emit()
-        pose = rec.trial.pose if rec.trial.pose is not None else rec.trial.start_pose
-        ps.history.push(pose, f"trial {index + 1} restored")
-        self._pose_edited("restore")
-        self.select_trial(index)
-        self.status.emit(f"restored trial {index + 1} ({rec.label})")
+        rec = self.workspace.restore_trial(index)
+        if rec is not None:
+            self.status.emit(f"restored trial {index + 1} ({rec.label})")
 
     def _keep_run_settings(self, params: RegistrationParams) -> RegistrationParams:
-        """A trial's parameters with this session's run settings (Run/Auto decide those)."""
-        new = params.copy()
-        for name in ("auto_adapt", "max_trials", "search_prior", "n_search", "verify"):
-            setattr(new, name, getattr(self.params, name))
-        return new
+        return self.workspace.keep_run_settings(params)
 
     def suggestion(self, index: int | None = None):
         """The first rule that fires for a trial (default: the selected one), or None."""
-        ps = self.current
-        if ps is None or not ps.trials:
-            return None
-        index = ps.selected_trial if index is None else index
-        if index is None:
-            return None
-        trial = ps.trials[index].trial
-        hits = evaluate_rules(trial.metrics, trial.params, ps.intrinsics.width)
-        return hits[0] if hits else None
+        return self.workspace.suggestion(index)
 
     def apply_suggestion(self, index: int | None = None) -> bool:
         """Take the selected trial's parameters with the rule's adaptation applied."""
-        ps = self.current
-        hit = self.suggestion(index)
-        if ps is None or hit is None:
+        hit = self.workspace.apply_suggestion(index)
+        if hit is None:
             return False
-        index = ps.selected_trial if index is None else index
-        self.params = self._keep_run_settings(hit.apply(ps.trials[index].trial.params))
-        self.params_changed.emit()
         self.status.emit(f"parameters adapted (rule {hit.rule}): {hit.adaptation}")
         return True
 
@@ -1251,58 +991,26 @@ class WorkbenchController(QObject):
         return ("plain",) if sun is None else ("sunlit", tuple(float(v) for v in sun))
 
     def convergence_deg(self, ps: PhotoState | None = None) -> float:
-        """Meridian convergence at the photo's prior camera, degrees: grid
-        azimuth = true azimuth − convergence (0 without a georeference, the
-        model's +Y then taken as true north)."""
-        ps = ps if ps is not None else self.current
-        scene = self.scene
-        if ps is None or scene is None or scene.georef is None:
-            return 0.0
-        if ps._convergence is None:
-            from napari_imgreg.sun import meridian_convergence_deg
-
-            ps._convergence = float(meridian_convergence_deg(scene.georef, ps.prior.pose.center))
-        return ps._convergence
+        """Meridian convergence at the photo's prior camera, degrees (see
+        :meth:`Workspace.convergence_deg`)."""
+        return self.workspace.convergence_deg(ps)
 
     def sun_angles(self, ps: PhotoState | None = None) -> tuple[float, float] | None:
         """The photo's sun as (azimuth from TRUE north, elevation), degrees; None: unknown."""
-        ps = ps if ps is not None else self.current
-        if ps is None or ps.sun is None:
-            return None
-        d = np.asarray(ps.sun, float)
-        d = d / np.linalg.norm(d)
-        grid_az = math.degrees(math.atan2(d[0], d[1]))
-        elevation = math.degrees(math.asin(float(np.clip(d[2], -1.0, 1.0))))
-        return (grid_az + self.convergence_deg(ps)) % 360.0, elevation
+        return self.workspace.sun_angles(ps)
 
     def set_sun(self, direction, source: str = "hand setting") -> None:
-        """Override the current photo's sun (unit vector toward it, local frame);
-        ``source`` completes "sun from the …" in the registration's notes."""
-        ps = self.current
-        if ps is None:
-            return
-        d = np.asarray(direction, float).reshape(3)
-        ps.sun_override = d / np.linalg.norm(d)
-        ps.sun_override_source = source
-        self._sun_edited()
+        """Override the current photo's sun (unit vector toward it, local frame)."""
+        self.workspace.set_sun(direction, source)
 
     def set_sun_angles(self, azimuth_true_deg: float, elevation_deg: float,
                        source: str = "hand setting") -> None:
         """Set the current photo's sun by its azimuth from TRUE north and its elevation."""
-        from napari_imgreg.sun import sun_vector_enu
-
-        if self.current is None:
-            return
-        grid = float(azimuth_true_deg) - self.convergence_deg()
-        self.set_sun(sun_vector_enu(grid, float(elevation_deg)), source)
+        self.workspace.set_sun_angles(azimuth_true_deg, elevation_deg, source)
 
     def reset_sun(self) -> None:
         """Back to the prior's sun (capture time or sensor record)."""
-        ps = self.current
-        if ps is None or ps.sun_override is None:
-            return
-        ps.sun_override, ps.sun_override_source = None, ""
-        self._sun_edited()
+        self.workspace.reset_sun()
 
     def set_sun_preview(self, on: bool) -> None:
         """Show the render relit for the photo's sun instead of as textured."""
@@ -1328,37 +1036,18 @@ class WorkbenchController(QObject):
     def estimate_sun(self) -> None:
         """Read the current photo's sun from its light and shade against a render
         from the current pose (in a worker); the result becomes its sun."""
-        ps, scene = self.current, self.scene
-        if ps is None or scene is None:
-            self._notify_error("Load a scene and a photo first.")
-            return
         if self.is_running("sun"):
             return
-        intr, pose, image = ps.intrinsics, ps.pose, ps.photo.image
-        survey = scene.survey_sun
-
-        def job():
-            import cv2
-
-            from napari_imgreg.render import render
-            from napari_imgreg.sun import estimate_sun_from_photo
-
-            rendered = render(scene, intr, pose, scale=min(1.0, SUN_ESTIMATE_WIDTH / intr.width))
-            h, w = rendered.shape
-            photo = image if image.shape[:2] == (h, w) else cv2.resize(
-                image, (w, h), interpolation=cv2.INTER_AREA)
-            return estimate_sun_from_photo(photo, rendered, scene=scene, survey_sun_dir=survey)
+        job = self._job(self.workspace.sun_estimate_job)
+        if job is None:
+            return
+        ps = job.photo
 
         def done(est):
             if est is None:
                 self.sun_estimated.emit(None)
                 return
-            ps.sun_estimate = est
-            ps.sun_override = np.asarray(est.direction, float)
-            ps.sun_override_source = (f"photo's shading (fit r = {est.correlation:.2f}, "
-                                      f"confidence {est.confidence:.2f})")
-            if ps is self.current:
-                self._sun_edited()
+            job.apply(est)
             az, el = self.sun_angles(ps)
             weak = ("; low confidence: the pose may be off or the light flat — compare the "
                     "sun-lit preview with the photo" if est.confidence < 0.3 else "")
@@ -1366,59 +1055,47 @@ class WorkbenchController(QObject):
                              f"elevation {el:.1f}°, ±{est.spread_deg:.0f}°{weak}")
             self.sun_estimated.emit(est)
 
-        self._start("sun", job, on_returned=done, on_failed=lambda m: self.sun_estimated.emit(None),
-                    progress={"desc": "Reading the sun from the photo"})
+        self._start("sun", job.run, on_returned=done,
+                    on_failed=lambda m: self.sun_estimated.emit(None),
+                    progress={"desc": job.description})
 
     # -------------------------------------------------------------- manual
     def make_reference(self, source: str = "pose") -> None:
         """Render the reference image for manual pairs: from the current pose, or
         from the current 3D view (``source="view"``) of the napari camera."""
-        ps, scene = self.current, self.scene
-        if ps is None or scene is None:
-            self._notify_error("Load a scene and a photo first.")
+        if self.current is None or self.scene is None:
+            self.notify_error("Load a scene and a photo first.")
             return
+        intr = pose = None
         if source == "view":
             if self.viewer.dims.ndisplay != 3:
-                self._notify_error(
+                self.notify_error(
                     "Switch to the 3D view and fly to a viewpoint like the photo's first.")
                 return
             intr, pose = self.camera_from_3d_view()
-        else:
-            intr, pose = ps.intrinsics, ps.pose
-
-        def job():
-            from napari_imgreg.render import render
-
-            return render(scene, intr, pose)
+        job = self._job(lambda: self.workspace.reference_job(intr, pose, source))
+        if job is None:
+            return
 
         def done(result):
-            if result is None or self.current is not ps:
+            if result is None or self.current is not job.photo:
                 return
-            ps.reference, ps.reference_source = result, source
             if self.viewer.dims.ndisplay == 3:
                 self.show_2d()
-            self.layers.show_reference(result)
-            ref = self.pair_layers()[1]
-            with ref.events.data.blocker():
-                ref.data = np.zeros((0, 2))
-            self._restyle_pairs()
-            self.reference_ready.emit()
-            self.pairs_changed.emit()
+            job.apply(result)
             where = "3D view" if source == "view" else "current pose"
             self.status.emit(f"reference rendered from the {where}:"
                              " pick the same points on the photo and on the reference")
 
-        self._start("reference", job, on_returned=done, progress={"desc": "Reference render"})
+        self._start("reference", job.run, on_returned=done, progress={"desc": job.description})
 
     def camera_from_3d_view(self) -> tuple[Intrinsics, Pose]:
         """The camera that sees what the 3D view shows (photo's size and focal length)."""
-        from napari_imgreg.widgets._layers import world_from_napari
-
         ps = self.current
         cam = self.camera
         visible = self.canvas_px() / cam.zoom
         intr = ps.intrinsics
-        return manual.camera_from_view(
+        return camera_from_view(
             world_from_napari(np.asarray(cam.center, float)),
             world_from_napari(np.asarray(cam.view_direction, float)),
             world_from_napari(np.asarray(cam.up_direction, float)),
@@ -1427,6 +1104,7 @@ class WorkbenchController(QObject):
         )
 
     def pair_layers(self):
+        """The two Points layers of the control points (photo, reference), made when missing."""
         ps = self.current
         if ps is not None and ps.reference is not None:
             scale, translate = self.layers.image_geometry(ps.reference, right=True)
@@ -1448,45 +1126,21 @@ class WorkbenchController(QObject):
 
     def pairs(self) -> tuple[np.ndarray, np.ndarray]:
         """Complete pairs: photo pixels (N, 2) and reference pixels (N, 2), (x, y)."""
-        photo, ref = self.layers.get("photo_pairs"), self.layers.get("reference_pairs")
-        if photo is None or ref is None:
-            return np.zeros((0, 2)), np.zeros((0, 2))
-        n = min(len(photo.data), len(ref.data))
-        return pixels_from_napari(np.asarray(photo.data[:n], float)), \
-            pixels_from_napari(np.asarray(ref.data[:n], float))
+        return self.workspace.pairs()
 
     def pair_points_3d(self) -> tuple[np.ndarray, np.ndarray]:
         """3D points under the reference picks (N, 3) and whether each has one."""
-        ps = self.current
-        _, ref_px = self.pairs()
-        if ps is None or ps.reference is None or not len(ref_px):
-            return np.full((len(ref_px), 3), np.nan), np.zeros(len(ref_px), bool)
-        return ps.reference.lift(ref_px)
+        return self.workspace.pair_points_3d()
 
     def delete_pair(self, index: int) -> None:
-        photo, ref = self.pair_layers()
-        self._pairs_busy = True
-        try:
-            for layer in (photo, ref):
-                if index < len(layer.data):
-                    layer.data = np.delete(np.asarray(layer.data), index, axis=0)
-        finally:
-            self._pairs_busy = False
-        self._restyle_pairs()
-        self.pairs_changed.emit()
+        self.workspace.remove_pair(index)
 
     def clear_pairs(self) -> None:
-        photo, ref = self.pair_layers()
-        self._pairs_busy = True
-        try:
-            photo.data = np.zeros((0, 2))
-            ref.data = np.zeros((0, 2))
-        finally:
-            self._pairs_busy = False
-        self._restyle_pairs()
-        self.pairs_changed.emit()
+        self.workspace.clear_pairs()
 
     def _on_pairs_data(self, event) -> None:
+        """A pair layer was edited in the viewer: keep pairs matched, tell the workspace."""
+        # napari is imported here, when a layer already exists.
         from napari.layers.base._base_constants import ActionType
 
         if self._pairs_busy:
@@ -1517,10 +1171,33 @@ class WorkbenchController(QObject):
                     nxt.mode = "add"
         finally:
             self._pairs_busy = False
-        self._restyle_pairs()
-        self.pairs_changed.emit()
+        self._pairs_from_layers = True
+        try:
+            self.workspace.set_pair_points(pixels_from_napari(np.asarray(photo.data, float)),
+                                           pixels_from_napari(np.asarray(ref.data, float)))
+        finally:
+            self._pairs_from_layers = False
+
+    def _write_pair_layers(self) -> None:
+        """Show the current photo's picks in the pair layers (made when needed)."""
+        ps = self.current
+        if ps is None:
+            return
+        if (self.layers.get("photo_pairs") is None and not len(ps.photo_points_px)
+                and ps.reference is None):
+            return
+        photo, ref = self.pair_layers()
+        self._pairs_busy = True
+        try:
+            photo.data = np.ascontiguousarray(napari_from_pixels(ps.photo_points_px))
+            ref.data = np.ascontiguousarray(napari_from_pixels(ps.reference_points_px))
+        finally:
+            self._pairs_busy = False
 
     def _restyle_pairs(self) -> None:
+        """Number and colour the picks: pair k alike on the photo and the reference."""
+        if self.layers.get("photo_pairs") is None or self.layers.get("reference_pairs") is None:
+            return
         photo, ref = self.pair_layers()
         self._pairs_busy = True
         try:
@@ -1536,81 +1213,34 @@ class WorkbenchController(QObject):
         finally:
             self._pairs_busy = False
 
-    def _store_pairs(self) -> None:
-        ps = self.current
-        photo, ref = self.layers.get("photo_pairs"), self.layers.get("reference_pairs")
-        if ps is None or photo is None or ref is None:
-            return
-        ps.pairs_photo = np.asarray(photo.data, float).copy()
-        ps.pairs_reference = np.asarray(ref.data, float).copy()
-
-    def _restore_pairs(self) -> None:
-        ps = self.current
-        if self.layers.get("photo_pairs") is None and not len(ps.pairs_photo):
-            return
-        photo, ref = self.pair_layers()
-        self._pairs_busy = True
-        try:
-            photo.data = ps.pairs_photo
-            ref.data = ps.pairs_reference
-        finally:
-            self._pairs_busy = False
-        self._restyle_pairs()
-        self.pairs_changed.emit()
-
     def solve_manual(self, solve_focal: bool = False) -> None:
         """Solve the photo's pose from the pairs and score it, in a worker."""
-        ps, scene = self.current, self.scene
-        if ps is None or scene is None or ps.reference is None:
-            self._notify_error("Make a reference render and pick pairs first.")
+        cancelled = self.jobs.cancel_token("manual")
+        job = self._job(lambda: self.workspace.manual_job(solve_focal, cancelled=cancelled))
+        if job is None:
             return
-        photo_px, _ = self.pairs()
-        xyz, valid = self.pair_points_3d()
-        if int(valid.sum()) < manual.MIN_PAIRS:
-            self._notify_error(f"{int(valid.sum())} pairs with a 3D point: pick at least "
-                               f"{manual.MIN_PAIRS} (the reference point must lie on the model)")
-            return
-        intr, initial, image = ps.intrinsics, ps.pose, ps.photo.image
-        params = self.params.copy()
-        self._cancel = False
-
-        def job():
-            sol = manual.solve_manual(intr, photo_px, xyz, initial=initial, solve_focal=solve_focal)
-            trial = None
-            if sol.ok:
-                trial = manual.score_pose(scene, image, sol.intrinsics, sol.pose, params,
-                                          cancelled=lambda: self._cancel)
-            return sol, trial
+        ps = job.photo
 
         def done(value):
             if value is None:
                 self.manual_finished.emit(None)
                 return
             sol, trial = value
-            ps.manual_solution = sol
+            if sol.ok and ps is self.current:
+                self.set_blend(visible=True)  # the docks see it with the new pose
+            job.apply(value)
             if not sol.ok:
-                self._notify_error(f"manual registration: {sol.reason}")
+                self.notify_error(f"manual registration: {sol.reason}")
                 self.manual_finished.emit(sol)
                 return
-            if sol.focal_solved:
-                ps.intrinsics = sol.intrinsics
-            ps.trials.append(TrialRecord(trial, ps.runs, "Manual"))
-            ps.selected_trial = len(ps.trials) - 1
-            if ps is self.current:
-                ps.history.push(sol.pose, f"manual ({sol.n_inliers} pairs)")
-                self.set_blend(visible=True)
-                self._pose_edited("manual")
-            self.trials_changed.emit()
-            if ps is self.current:
-                self.select_trial(ps.selected_trial)
             focal = f", focal {sol.intrinsics.fx:.1f} px" if sol.focal_solved else ""
-            self.status.emit(f"manual pose from {sol.n_inliers}/{len(photo_px)} pairs: RMS "
+            self.status.emit(f"manual pose from {sol.n_inliers}/{len(sol.inliers)} pairs: RMS "
                              f"{sol.rms_px:.2f} px{focal}; {trial.grade} (Q = {trial.q:.2f})")
             self.manual_finished.emit(sol)
 
-        self._start("manual", job, on_returned=done,
+        self._start("manual", job.run, on_returned=done,
                     on_failed=lambda m: self.manual_finished.emit(None),
-                    progress={"desc": "Manual registration"})
+                    progress={"desc": job.description})
 
     # --------------------------------------------------------------- views
     @property
@@ -1670,7 +1300,7 @@ class WorkbenchController(QObject):
             d = self.last_render.depth
             if np.isfinite(d).any():
                 depth = float(np.nanmedian(d))
-        view = manual.view_from_camera(ps.intrinsics, ps.pose, depth, self.canvas_px())
+        view = view_from_camera(ps.intrinsics, ps.pose, depth, self.canvas_px())
         cam = self.camera
         cam.perspective = view["fov_deg"]
         cam.center = tuple(napari_from_world(view["center"]))
@@ -1683,7 +1313,7 @@ class WorkbenchController(QObject):
             return
         centers = np.array([ps.pose.center for ps in self.photos])
         size = float(np.linalg.norm(np.diff(self.scene.bounds, axis=0)))
-        segs = np.concatenate([manual.frustum_segments(ps.intrinsics, ps.pose, 0.1 * size)
+        segs = np.concatenate([frustum_segments(ps.intrinsics, ps.pose, 0.1 * size)
                                for ps in self.photos])
         current = self.photos.index(self.current) if self.current in self.photos else -1
         self.layers.show_cameras(centers, segs, current)

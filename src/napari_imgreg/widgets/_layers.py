@@ -1,20 +1,26 @@
-"""Layer data for napari, built without importing napari.
+"""Layer data and cameras for napari, built without importing napari.
 
-The one place where the package's axis orders meet napari's:
+The one place where the package's axis orders and cameras meet napari's:
 
 * 3D: the model frame is (x east, y north, z up). napari draws its data axes
   (0, 1, 2) towards the viewer, down and right (a right-handed frame), so the
   plain reversal (z, y, x) would show every outcrop mirrored. The cyclic
   order (z, x, y) keeps handedness: napari axis 0 is height, 1 east, 2 north.
 * 2D: image features are pixel (x = column, y = row); napari is (row, col).
+* Cameras: a 3D viewer orbits a centre point along a view direction
+  (:func:`camera_from_view`, :func:`view_from_camera`); a photo's camera is a
+  pinhole with a ``cam_from_world`` pose, drawn as its view pyramid
+  (:func:`frustum_segments`).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
+from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.scene import Scene
 
 __all__ = [
@@ -23,13 +29,21 @@ __all__ = [
     "napari_from_pixels",
     "pixels_from_napari",
     "surface_layer_data",
+    "camera_from_view",
+    "view_from_camera",
+    "frustum_segments",
     "NAPARI_AXIS_LABELS",
+    "INTERPRETATION_OF",
 ]
 
 LayerDataTuple = tuple[Any, dict[str, Any], str]
 
 
 NAPARI_AXIS_LABELS = ("z (up)", "x (east)", "y (north)")
+
+#: Metadata key of an interpretation Shapes layer: the name of the photo layer
+#: it is drawn on (made by the interpretation dock, followed by the workbench).
+INTERPRETATION_OF = "imgreg_interpretation_of"
 
 
 def napari_from_world(xyz: np.ndarray) -> np.ndarray:
@@ -73,3 +87,137 @@ def surface_layer_data(scene: Scene, name: str | None = None) -> LayerDataTuple:
     else:
         kwargs.update(shading="smooth")
     return (data, kwargs, "surface")
+
+
+# ============================================== viewer camera <-> photo camera
+def _unit(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, np.float64).reshape(3)
+    n = np.linalg.norm(v)
+    if n == 0:
+        raise ValueError("zero-length direction")
+    return v / n
+
+
+def camera_from_view(
+    center: np.ndarray,
+    view_direction: np.ndarray,
+    up_direction: np.ndarray,
+    visible_height: float,
+    width: int,
+    height: int,
+    fov_deg: float | None = None,
+    intrinsics: Intrinsics | None = None,
+) -> tuple[Intrinsics, Pose]:
+    """A pinhole camera that sees what a 3D viewer shows.
+
+    A 3D viewer (napari, vispy) orbits a ``center`` point: it looks along
+    ``view_direction``, ``up_direction`` points up on the canvas and
+    ``visible_height`` world units span the canvas height at the centre. This
+    places a pinhole camera of ``width`` × ``height`` pixels so that it frames
+    the centre the same way, for the reference render of a manual
+    registration.
+
+    Parameters
+    ----------
+    center : (3,) array
+        The point the view orbits, model frame (metres).
+    view_direction, up_direction : (3,) arrays
+        Model-frame directions (need not be unit or orthogonal; ``up`` is
+        made orthogonal to ``view``).
+    visible_height : float
+        World extent across the image height at the centre, metres.
+    width, height : int
+        Size of the camera image, pixels.
+    fov_deg : float, optional
+        Vertical field of view (a perspective viewer). When None or 0 (an
+        orthographic viewer) the focal length of ``intrinsics`` is used, or
+        a 50° vertical field of view without it.
+    intrinsics : Intrinsics, optional
+        A camera whose focal length (scaled to ``height``) to use.
+
+    Returns
+    -------
+    intrinsics : Intrinsics
+        Square pixels, principal point at the image centre.
+    pose : Pose
+        ``cam_from_world``; the camera sits ``distance`` in front of the
+        centre, where the visible height at the centre is ``visible_height``.
+    """
+    z = _unit(view_direction)
+    up = np.asarray(up_direction, np.float64).reshape(3)
+    up = up - (up @ z) * z
+    y = -_unit(up)  # image rows run down the canvas
+    x = np.cross(y, z)
+    R = np.stack([x, y, z])
+    if fov_deg:
+        f = (height / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
+    elif intrinsics is not None:
+        f = intrinsics.fy * height / intrinsics.height
+    else:
+        f = (height / 2.0) / math.tan(math.radians(25.0))
+    distance = float(visible_height) * f / height
+    cam_center = np.asarray(center, np.float64).reshape(3) - distance * z
+    intr = Intrinsics(int(width), int(height), f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+    return intr, Pose.from_center(R, cam_center)
+
+
+def view_from_camera(
+    intrinsics: Intrinsics, pose: Pose, distance: float, canvas_px: float
+) -> dict:
+    """The 3D-viewer camera that looks from a photo's pose (inverse of :func:`camera_from_view`).
+
+    Parameters
+    ----------
+    intrinsics : Intrinsics
+    pose : Pose
+    distance : float
+        How far in front of the camera the viewer's orbit centre is, metres
+        (e.g. the depth at the image centre).
+    canvas_px : float
+        The viewer canvas' smaller side, pixels.
+
+    Returns
+    -------
+    dict
+        ``center`` (3,) model-frame point, ``view_direction`` and
+        ``up_direction`` (3,) model-frame unit vectors, ``zoom`` (canvas
+        pixels per metre at the centre) and ``fov_deg`` (vertical field of
+        view).
+    """
+    z = pose.view_direction
+    up = -pose.R[1]
+    visible = distance * intrinsics.height / intrinsics.fy
+    fov = 2.0 * math.degrees(math.atan2(intrinsics.height / 2.0, intrinsics.fy))
+    return {
+        "center": pose.center + distance * z,
+        "view_direction": z,
+        "up_direction": up,
+        "zoom": float(canvas_px) / visible,
+        "fov_deg": fov,
+    }
+
+
+def frustum_segments(intrinsics: Intrinsics, pose: Pose, depth: float) -> np.ndarray:
+    """Line segments of a camera's view pyramid, for drawing cameras in 3D.
+
+    Parameters
+    ----------
+    intrinsics : Intrinsics
+    pose : Pose
+    depth : float
+        Distance of the pyramid's base along the view direction, metres.
+
+    Returns
+    -------
+    (8, 2, 3) array
+        Start and end points (model frame): four edges from the centre to the
+        image corners at ``depth``, then the four sides of the base.
+    """
+    w, h = intrinsics.width, intrinsics.height
+    corners_px = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
+    cam = intrinsics.unproject(corners_px, np.full(4, float(depth)))
+    corners = pose.inverse_transform(cam)
+    c = pose.center
+    segs = [(c, corners[k]) for k in range(4)]
+    segs += [(corners[k], corners[(k + 1) % 4]) for k in range(4)]
+    return np.array(segs, np.float64)

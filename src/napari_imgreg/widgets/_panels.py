@@ -1,22 +1,28 @@
 """The workbench's pages: scene and photos, pose and DEM map, filters,
 registration, manual control points.
 
-Each page only reads and edits the shared :class:`WorkbenchController`; the
-controller runs the jobs and draws the layers.
+Each page is a view of the workbench's :class:`~napari_imgreg.workspace.Workspace`
+(``self.ws``): it shows its state and follows its changes through the
+signals of the shared :class:`WorkbenchController`, and acts through the
+controller, which runs the jobs, draws the layers and words the errors.
 """
 
 from __future__ import annotations
 
 import math
 import re
+from dataclasses import replace
 from datetime import datetime
 from pathlib import Path
 from typing import Callable
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
+from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 from qtpy.QtCore import Qt
+from qtpy.QtGui import QColor
 from qtpy.QtWidgets import (
     QAbstractItemView,
     QButtonGroup,
@@ -43,7 +49,9 @@ from qtpy.QtWidgets import (
 )
 from superqt import QLabeledDoubleSlider, QLabeledSlider
 
+from napari_imgreg.camera import Pose
 from napari_imgreg.registration.features import DESCRIPTORS, DETECTORS, PRESETS, available
+from napari_imgreg.registration.filters import FilterParams
 from napari_imgreg.io.photos import PHOTO_SUFFIXES
 from napari_imgreg.registration.manual import MIN_PAIRS, MIN_PAIRS_FOCAL
 from napari_imgreg.widgets._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
@@ -116,6 +124,7 @@ class ScenePanel(QWidget):
     def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
         self.mesh_edit = QLineEdit()
         self.mesh_edit.setPlaceholderText("textured mesh (OBJ, PLY, GLB) or a DSM (GeoTIFF, .asc)")
         self.dem_edit = QLineEdit()
@@ -204,7 +213,7 @@ class ScenePanel(QWidget):
     def open_model(self) -> None:
         mesh = self.mesh_edit.text().strip()
         if not mesh:
-            self.ctrl._notify_error("Choose a model file first.")
+            self.ctrl.notify_error("Choose a model file first.")
             return
         self.ctrl.open_scene(mesh, self.dem_edit.text().strip() or None,
                              self.georef_edit.text().strip() or None)
@@ -221,16 +230,16 @@ class ScenePanel(QWidget):
             self.ctrl.add_photos(paths)
 
     def _photo_chosen(self, row: int) -> None:
-        current = self.ctrl.current
-        if row >= 0 and (current is None or self.ctrl.photos.index(current) != row):
+        current = self.ws.current
+        if row >= 0 and (current is None or self.ws.photos.index(current) != row):
             self.ctrl.select_photo(row)
 
     def _scene_changed(self) -> None:
-        scene = self.ctrl.scene
+        scene = self.ws.scene
         if scene is None:
             self.scene_label.setText("No model yet: open one, or try the sample outcrop.")
             return
-        files = self.ctrl.scene_files
+        files = self.ws.scene_files
         for edit, key in ((self.mesh_edit, "mesh"), (self.dem_edit, "dem"),
                           (self.georef_edit, "georef")):
             if files.get(key):
@@ -251,14 +260,14 @@ class ScenePanel(QWidget):
     def _photos_changed(self) -> None:
         self.photo_list.blockSignals(True)
         self.photo_list.clear()
-        for ps in self.ctrl.photos:
+        for ps in self.ws.photos:
             self.photo_list.addItem(ps.name)
-        if self.ctrl.current in self.ctrl.photos:
-            self.photo_list.setCurrentRow(self.ctrl.photos.index(self.ctrl.current))
+        if self.ws.current in self.ws.photos:
+            self.photo_list.setCurrentRow(self.ws.photos.index(self.ws.current))
         self.photo_list.blockSignals(False)
 
     def _photo_changed(self) -> None:
-        ps = self.ctrl.current
+        ps = self.ws.current
         if ps is None:
             self.prior_label.setText("")
             return
@@ -279,10 +288,6 @@ _BG, _FG = "#262930", "#d0d3d8"  # napari's dark theme
 
 
 def _land_colormap():
-    import matplotlib
-
-    from matplotlib.colors import ListedColormap
-
     terrain = matplotlib.colormaps["terrain"]
     return ListedColormap(terrain(np.linspace(0.25, 0.95, 256)), name="land")
 
@@ -297,6 +302,7 @@ class TerrainMapCanvas(FigureCanvasQTAgg):
         self.figure = Figure(figsize=(4.0, 3.6), layout="constrained", facecolor=_BG)
         super().__init__(self.figure)
         self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
         self.ax = self.figure.add_subplot(111)
         self.ax.set_aspect("equal")
         self._dragging = False
@@ -315,7 +321,7 @@ class TerrainMapCanvas(FigureCanvasQTAgg):
         ax.clear()
         self._artists = {}
         self._background = None
-        tmap, scene = self.ctrl.terrain, self.ctrl.scene
+        tmap, scene = self.ws.terrain, self.ws.scene
         if tmap is None or scene is None:
             self.draw_idle()
             return
@@ -346,7 +352,7 @@ class TerrainMapCanvas(FigureCanvasQTAgg):
             return
         left, right, bottom, top = self._extent
         xs, ys = [left, right], [bottom, top]
-        for ps in self.ctrl.photos:
+        for ps in self.ws.photos:
             xs.append(ps.pose.center[0])
             ys.append(ps.pose.center[1])
         pad = 0.03 * max(max(xs) - min(xs), max(ys) - min(ys))
@@ -373,7 +379,7 @@ class TerrainMapCanvas(FigureCanvasQTAgg):
 
     def update_cameras(self) -> None:
         """Move the camera markers and the view wedge to the current poses."""
-        ps = self.ctrl.current
+        ps = self.ws.current
         if self._extent is None or not self._artists:
             return
         a = self._artists
@@ -383,7 +389,7 @@ class TerrainMapCanvas(FigureCanvasQTAgg):
         else:
             for artist in a.values():
                 artist.set_visible(True)
-            others = np.array([p.pose.center[:2] for p in self.ctrl.photos
+            others = np.array([p.pose.center[:2] for p in self.ws.photos
                                if p is not ps]).reshape(-1, 2)
             a["others"].set_data(others[:, 0], others[:, 1])
             pc = ps.prior.pose.center
@@ -465,6 +471,7 @@ class PosePanel(QWidget):
     def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
         self.title = QLabel("No photo.")
         self.undo_button = QPushButton("Undo")
         self.redo_button = QPushButton("Redo")
@@ -590,7 +597,7 @@ class PosePanel(QWidget):
         self._pose_changed("photo")
 
     def _pose_changed(self, source: str) -> None:
-        ps = self.ctrl.current
+        ps = self.ws.current
         enabled = ps is not None
         for w in (self.x_spin, self.y_spin, self.z_spin, self.agl_spin, self.trend_spin,
                   self.plunge_spin, self.roll_spin, self.save_button, self.prior_button,
@@ -611,11 +618,11 @@ class PosePanel(QWidget):
                             (self.trend_spin, trend), (self.plunge_spin, plunge),
                             (self.roll_spin, roll)):
             _set_quietly(spin, float(value))
-        agl = self.ctrl.height_above_ground()
+        agl = self.ws.height_above_ground()
         self.agl_spin.setEnabled(agl is not None)
         if agl is not None:
             _set_quietly(self.agl_spin, agl)
-        scene = self.ctrl.scene
+        scene = self.ws.scene
         if scene is not None and scene.georef is not None:
             o = scene.georef.origin
             self.crs_label.setText(f"E {x + o[0]:,.1f}  N {y + o[1]:,.1f}  H {z + o[2]:,.1f}"
@@ -626,9 +633,7 @@ class PosePanel(QWidget):
 
     def _typed(self, name: str, value: float) -> None:
         """One value typed: only that component changes (the others keep full precision)."""
-        from napari_imgreg.camera import Pose
-
-        ps = self.ctrl.current
+        ps = self.ws.current
         if ps is None:
             return
         center = ps.pose.center.copy()
@@ -641,7 +646,7 @@ class PosePanel(QWidget):
         self.ctrl.set_pose(pose, f"{name} typed")
 
     def _typed_agl(self) -> None:
-        ps = self.ctrl.current
+        ps = self.ws.current
         if ps is None:
             return
         x, y, _ = ps.pose.center
@@ -678,6 +683,7 @@ class FilterEditor(QWidget):
                  on_edit: Callable[[str], None], parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.ctrl, self.which, self.on_edit = controller, which, on_edit
+        self.ws = controller.workspace
         self.widgets: dict[str, QWidget] = {}
         self.wallis_check = QCheckBox("Wallis filter (local mean and contrast)")
         self.clahe_check = QCheckBox("CLAHE (adaptive histogram equalisation)")
@@ -713,7 +719,7 @@ class FilterEditor(QWidget):
 
     @property
     def params(self):
-        p = self.ctrl.params
+        p = self.ws.params
         return p.photo_filters if self.which == "photo" else p.render_filters
 
     def refresh(self) -> None:
@@ -744,8 +750,6 @@ class FilterEditor(QWidget):
         self.on_edit(self.which)
 
     def reset(self) -> None:
-        from napari_imgreg.registration.filters import FilterParams
-
         fresh = FilterParams()
         for name in fresh.to_dict():
             setattr(self.params, name, getattr(fresh, name))
@@ -759,6 +763,7 @@ class FiltersPanel(QWidget):
     def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
         self.preview_check = QCheckBox(
             "Preview: show the filtered images (grey, as the detector sees them)")
         self.link_check = QCheckBox("Same filters for photo and render")
@@ -787,14 +792,12 @@ class FiltersPanel(QWidget):
 
     def _edited(self, which: str) -> None:
         if self.link_check.isChecked():
-            from dataclasses import replace
-
             other = "render" if which == "photo" else "photo"
             src = self.editor(which).params
             if other == "render":
-                self.ctrl.params.render_filters = replace(src)
+                self.ws.params.render_filters = replace(src)
             else:
-                self.ctrl.params.photo_filters = replace(src)
+                self.ws.params.photo_filters = replace(src)
             self.editor(other).refresh()
             self.ctrl.filters_edited(other)
         self.ctrl.filters_edited(which)
@@ -817,6 +820,7 @@ class RegisterPanel(QWidget):
     def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
         self.preset_combo = QComboBox()
         self.preset_combo.addItem("(custom)", "")
         for name in PRESETS:
@@ -1009,7 +1013,7 @@ class RegisterPanel(QWidget):
         self.refresh()
 
     def _set(self, group: str | None, name: str, value) -> None:
-        target = self.ctrl.params if group is None else getattr(self.ctrl.params, group)
+        target = self.ws.params if group is None else getattr(self.ws.params, group)
         setattr(target, name, value)
         if group == "features":
             self._match_preset()
@@ -1020,18 +1024,16 @@ class RegisterPanel(QWidget):
         name = self.preset_combo.currentData()
         if not name:
             return
-        from dataclasses import replace
-
-        self.ctrl.params.features = replace(PRESETS[name])
+        self.ws.params.features = replace(PRESETS[name])
         self.refresh()
 
     def _match_preset(self) -> None:
-        f = self.ctrl.params.features
+        f = self.ws.params.features
         name = next((k for k, p in PRESETS.items() if p == f), "")
         _set_quietly(self.preset_combo, name)
 
     def refresh(self) -> None:
-        p = self.ctrl.params
+        p = self.ws.params
         f = p.features
         _set_quietly(self.detector_combo, f.detector)
         _set_quietly(self.descriptor_combo, f.descriptor)
@@ -1122,6 +1124,7 @@ class SunBox(QGroupBox):
     def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
         super().__init__("Sun at capture", parent)
         self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
         self.source_label = QLabel("No photo.")
         self.source_label.setWordWrap(True)
         self.azimuth_spin = _spin(0.0, 360.0, 1, 1.0, "°")
@@ -1180,7 +1183,7 @@ class SunBox(QGroupBox):
         self.ctrl.set_sun_angles(self.azimuth_spin.value(), self.elevation_spin.value())
 
     def refresh(self) -> None:
-        ctrl, ps = self.ctrl, self.ctrl.current
+        ctrl, ws, ps = self.ctrl, self.ws, self.ws.current
         _set_quietly(self.preview_check, ctrl.sun_preview)
         for w in (self.azimuth_spin, self.elevation_spin, self.estimate_button,
                   self.preview_check):
@@ -1191,7 +1194,7 @@ class SunBox(QGroupBox):
             self.north_label.setText("")
             self.refresh_notes()
             return
-        angles = ctrl.sun_angles()
+        angles = ws.sun_angles()
         text = sun_source_text(ps.sun_source)
         if angles is None:
             self.source_label.setText(
@@ -1208,9 +1211,9 @@ class SunBox(QGroupBox):
         for spin in (self.azimuth_spin, self.elevation_spin):
             spin.setStyleSheet(grey)  # greyed: a placeholder until a sun is set
         self.reset_button.setEnabled(ps.sun_override is not None)
-        scene = ctrl.scene
+        scene = ws.scene
         if scene is not None and scene.georef is not None:
-            conv = ctrl.convergence_deg()
+            conv = ws.convergence_deg()
             side = "east" if conv >= 0 else "west"
             self.north_label.setText(
                 f"Azimuth from true north; the model's grid north is {abs(conv):.2f}° {side} of "
@@ -1223,11 +1226,11 @@ class SunBox(QGroupBox):
 
     def refresh_notes(self) -> None:
         """Say when the registration will not relight, and why."""
-        ctrl, ps, scene = self.ctrl, self.ctrl.current, self.ctrl.scene
+        ws, ps, scene = self.ws, self.ws.current, self.ws.scene
         notes = []
         if ps is not None and scene is not None:
             textured = scene.has_texture or scene.vertex_colors is not None
-            if not ctrl.params.sun_relight:
+            if not ws.params.sun_relight:
                 notes.append("Sun-lit matching is off (checkbox above).")
             elif ps.sun is None:
                 notes.append("Registration cannot relight until this photo's sun is known.")
@@ -1241,7 +1244,7 @@ class SunBox(QGroupBox):
 
     def _busy(self) -> None:
         running = self.ctrl.is_running("sun")
-        self.estimate_button.setEnabled(self.ctrl.current is not None and not running)
+        self.estimate_button.setEnabled(self.ws.current is not None and not running)
         self.estimate_button.setText("Reading…" if running else "From photo")
 
 
@@ -1252,6 +1255,7 @@ class ManualPanel(QWidget):
     def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
         self.ref_pose_button = QPushButton("Reference from the current pose")
         self.ref_view_button = QPushButton("Reference from the 3D view")
         self.ref_view_button.setToolTip(
@@ -1331,7 +1335,7 @@ class ManualPanel(QWidget):
             self.ctrl.delete_pair(rows[0].row())
 
     def _reference_ready(self) -> None:
-        ps = self.ctrl.current
+        ps = self.ws.current
         if ps is None or ps.reference is None:
             self.reference_label.setText("No reference render yet.")
         else:
@@ -1345,14 +1349,12 @@ class ManualPanel(QWidget):
         self.refresh()
 
     def refresh(self) -> None:
-        empty = np.zeros((0, 2))
-        photo_px, ref_px = self.ctrl.pairs() if self.ctrl.current is not None else (empty, empty)
-        photo_layer = self.ctrl.layers.get("photo_pairs")
-        ref_layer = self.ctrl.layers.get("reference_pairs")
-        n_photo = len(photo_layer.data) if photo_layer is not None else 0
-        n_ref = len(ref_layer.data) if ref_layer is not None else 0
-        valid = (self.ctrl.pair_points_3d()[1] if self.ctrl.current is not None
-                 else np.zeros(0, bool))
+        ps = self.ws.current
+        photo_px, ref_px = self.ws.pairs()
+        # Picked so far on each image (one may wait for its partner).
+        n_photo = len(ps.photo_points_px) if ps is not None else 0
+        n_ref = len(ps.reference_points_px) if ps is not None else 0
+        valid = self.ws.pair_points_3d()[1]
         n = max(n_photo, n_ref)
         self.table.setRowCount(n)
         res = self._residuals
@@ -1370,7 +1372,7 @@ class ManualPanel(QWidget):
                 if j == 0:
                     item.setBackground(_qcolor(PAIR_COLORS[i % len(PAIR_COLORS)]))
                 if j == 4 and res is not None and i < len(res) and np.isfinite(res[i]):
-                    sol = self.ctrl.current.manual_solution if self.ctrl.current else None
+                    sol = self.ws.current.manual_solution if self.ws.current else None
                     bad = sol is not None and not sol.inliers[i]
                     item.setForeground(_qcolor("#ff1744" if bad else "#00c853"))
                 self.table.setItem(i, j, item)
@@ -1378,9 +1380,9 @@ class ManualPanel(QWidget):
         self.refresh_buttons()
 
     def refresh_buttons(self) -> None:
-        ps = self.ctrl.current
+        ps = self.ws.current
         has_ref = ps is not None and ps.reference is not None
-        _, valid = self.ctrl.pair_points_3d() if ps is not None else (None, np.zeros(0, bool))
+        _, valid = self.ws.pair_points_3d() if ps is not None else (None, np.zeros(0, bool))
         busy = self.ctrl.is_running("manual")
         self.solve_button.setEnabled(has_ref and int(valid.sum()) >= MIN_PAIRS and not busy)
         self.pick_button.setEnabled(has_ref)
@@ -1398,7 +1400,7 @@ class ManualPanel(QWidget):
             self.refresh()
             return
         self._residuals = sol.errors_px
-        ps = self.ctrl.current
+        ps = self.ws.current
         trial = ps.trials[-1].trial if ps is not None and ps.trials else None
         focal = (f"; focal length {sol.intrinsics.fx:.1f} px ({sol.intrinsics.hfov_deg:.1f}° wide)"
                  if sol.focal_solved else "")
@@ -1413,6 +1415,4 @@ class ManualPanel(QWidget):
 
 
 def _qcolor(hex_color: str):
-    from qtpy.QtGui import QColor
-
     return QColor(hex_color)

@@ -22,8 +22,13 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from napari_imgreg.registration.manual import metric_trend
-from napari_imgreg.registration.quality import GRADES, METRICS, REFERENCE_WIDTH_PX, classify
+from napari_imgreg.registration.quality import (
+    GRADES,
+    METRICS,
+    REFERENCE_WIDTH_PX,
+    classify,
+    metric_trend,
+)
 from napari_imgreg.widgets._controller import WorkbenchController
 
 __all__ = ["QualityPanel", "CLASS_COLORS", "TREND_ARROWS", "HISTORY_COLUMNS", "SUNLIT_MARK",
@@ -103,6 +108,7 @@ class QualityPanel(QWidget):
     def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
         self.banner = QLabel("No trial yet: Run or Auto (Register tab), or solve manual pairs.")
         self.banner.setWordWrap(True)
         self.banner.setAlignment(Qt.AlignCenter)
@@ -211,7 +217,7 @@ class QualityPanel(QWidget):
 
     # ------------------------------------------------------------ history
     def refresh_history(self) -> None:
-        ps = self.ctrl.current
+        ps = self.ws.current
         records = ps.trials if ps is not None else []
         self.history.blockSignals(True)
         self.history.setRowCount(len(records))
@@ -263,7 +269,7 @@ class QualityPanel(QWidget):
 
     def _photo_changed(self) -> None:
         self.refresh_history()
-        ps = self.ctrl.current
+        ps = self.ws.current
         if ps is None or ps.selected_trial is None:
             self.show_trial(None)
 
@@ -278,7 +284,7 @@ class QualityPanel(QWidget):
 
     def show_trial(self, index: int | None) -> None:
         """Show a trial of the current photo (None: nothing yet)."""
-        ps = self.ctrl.current
+        ps = self.ws.current
         if ps is None or index is None or not 0 <= index < len(ps.trials):
             self._style_banner(None)
             self.banner.setText("No trial yet: Run or Auto (Register tab), or solve manual pairs.")
@@ -340,7 +346,7 @@ class QualityPanel(QWidget):
             self.hint_label.show()
         else:
             self.hint_label.hide()
-        hit = self.ctrl.suggestion(index)
+        hit = self.ws.suggestion(index)
         if hit is not None:
             self.adapt_label.setText(f"Suggested for the next trial (rule {hit.rule}): "
                                      f"{html.escape(hit.adaptation)}")

@@ -14,11 +14,14 @@ over it, one label class at a time (sandstone yellow, mudstone grey, fault
 red, or your own). *Project* casts every interpretation layer onto the model in
 a napari thread worker and shows one 3D layer per photo (togglable), coloured
 by label, with the measurements table and the stereonet.
+
+Docked in the registration workbench, the widget also keeps what is drawn on
+the workbench's photos, and the last projection, in its
+:class:`~napari_imgreg.workspace.Workspace`.
 """
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -27,6 +30,7 @@ from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
 from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
 from qtpy.QtCore import Signal
+from qtpy.QtGui import QColor
 from qtpy.QtWidgets import (
     QCheckBox,
     QComboBox,
@@ -43,28 +47,34 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from napari_imgreg.widgets._layers import napari_from_pixels, napari_from_world, pixels_from_napari
+from napari_imgreg._atomic import atomic_path
 from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.errors import InputError
-from napari_imgreg.interpret.project import (
-    LABEL_COLORS,
-    Feature3D,
-    Interpretation,
-    label_color,
-    merge_interpretations,
-    project_interpretations,
+from napari_imgreg.interpret.files import (
+    export_features,
+    read_interpretations,
+    write_interpretations,
+    write_measurements_csv,
 )
+from napari_imgreg.interpret.project import LABEL_COLORS, Feature3D, Interpretation, label_color
 from napari_imgreg.interpret.structural import Measurement, draw_stereonet
+from napari_imgreg.io.records import read_json
+from napari_imgreg.widgets._jobs import JobRunner
+from napari_imgreg.widgets._layers import (
+    INTERPRETATION_OF,
+    napari_from_pixels,
+    napari_from_world,
+    pixels_from_napari,
+)
+from napari_imgreg.workspace import PhotoState, Workspace, project_interpretation_sets
 
 if TYPE_CHECKING:
     import napari
 
 __all__ = ["InterpretWidget", "camera_of_layer", "interpretations_from_shapes"]
 
-log = logging.getLogger(__name__)
-
 #: Metadata keys on the layers this widget makes.
-INTERP_KEY = "imgreg_interpretation_of"  # Shapes layer: name of its photo layer
+INTERP_KEY = INTERPRETATION_OF  # Shapes layer: name of its photo layer
 PROJECTED_KEY = "imgreg_projected_from"  # 3D layer: name of its photo layer
 _GEOJSON_FILTER = "GeoJSON (*.geojson *.json);;All files (*)"
 _EXPORT_FILTER = "3D GeoJSON (*.geojson);;CSV vertices (*.csv);;OBJ polylines (*.obj);;PLY polylines (*.ply)"
@@ -120,33 +130,28 @@ def interpretations_from_shapes(layer) -> list[Interpretation]:
     return out
 
 
-def _project_all(scene, jobs: list[tuple[Intrinsics, Pose, list[Interpretation], str]]):
-    """Worker body: project each photo's interpretations; one merged set."""
-    sets = [project_interpretations(scene, intr, pose, items, source=source)
-            for intr, pose, items, source in jobs]
-    features = merge_interpretations(*sets)
-    measurements = [f.measure() for f in features if f.n_points or (
-        f.patch_points is not None and len(f.patch_points))]
-    return features, measurements
-
-
 class InterpretWidget(QWidget):
     """Draw interpretations on registered photos, project them in 3D, measure them.
 
     Parameters
     ----------
     napari_viewer : napari.viewer.Viewer
+    workspace : Workspace, optional
+        The workbench's: what is drawn on its photos, and the projection, are
+        kept there too.
     """
 
     projection_done = Signal(object)  # list of Feature3D
     projection_failed = Signal(str)
 
-    def __init__(self, napari_viewer: napari.viewer.Viewer, parent: QWidget | None = None) -> None:
+    def __init__(self, napari_viewer: napari.viewer.Viewer, parent: QWidget | None = None, *,
+                 workspace: Workspace | None = None) -> None:
         super().__init__(parent)
         self.viewer = napari_viewer
+        self.workspace = workspace
         self.features: list[Feature3D] = []
         self.measurements: list[Measurement] = []
-        self._worker = None
+        self.jobs = JobRunner(self)
         self._labels: dict[str, str] = dict(LABEL_COLORS)
 
         # ---- inputs
@@ -312,12 +317,37 @@ class InterpretWidget(QWidget):
         )
         layer.current_edge_color = self._labels[label]
         layer.current_face_color = "transparent"
+        layer.events.data.connect(lambda event, layer=layer: self._shapes_edited(event, layer))
         self._draw_mode(layer)
         layer.mode = "add_path"
         self.status_label.setText(
             f"Drawing {label!r} on {photo_layer.name}: click the vertices, double-click to end "
             "a line; pick the polygon tool for facets.")
         return layer
+
+    def _photo_state(self, photo_layer) -> PhotoState | None:
+        """The workspace's photo a photo layer shows (None: not one of its photos)."""
+        if self.workspace is None or photo_layer is None:
+            return None
+        return self.workspace.photo_at_path(photo_layer.metadata.get("photo_path"))
+
+    def _shapes_edited(self, event, layer) -> None:
+        """A shape was added, removed or changed (not while it is being drawn)."""
+        # napari is imported here, when a layer already exists.
+        from napari.layers.base._base_constants import ActionType
+
+        if getattr(event, "action", None) in (ActionType.ADDED, ActionType.REMOVED,
+                                               ActionType.CHANGED):
+            self._keep_in_workspace(layer)
+
+    def _keep_in_workspace(self, layer) -> None:
+        """What is drawn on a workspace photo is that photo's interpretations."""
+        photo_name = layer.metadata.get(INTERP_KEY)
+        if self.workspace is None or photo_name not in self.viewer.layers:
+            return
+        ps = self._photo_state(self.viewer.layers[photo_name])
+        if ps is not None:
+            self.workspace.set_interpretations(interpretations_from_shapes(layer), ps)
 
     def _draw_mode(self, layer) -> None:
         """Drawing happens on the photo, in 2D: leave the 3D canvas, show photo and layer."""
@@ -361,8 +391,6 @@ class InterpretWidget(QWidget):
     # ------------------------------------------------------------- I/O
     def attach_result(self, path: str | Path, layer=None) -> None:
         """Attach a RESULT.json's camera and pose to an Image layer."""
-        from napari_imgreg.io.records import read_json
-
         layer = layer or self.photo_layer
         data = read_json(path)
         if not isinstance(data, dict) or "camera" not in data or "pose" not in data:
@@ -374,8 +402,6 @@ class InterpretWidget(QWidget):
 
     def load_geojson(self, path: str | Path, photo_layer=None):
         """Add the interpretations of a pixel GeoJSON to the photo's interpretation layer."""
-        from napari_imgreg.interpret.files import read_interpretations
-
         items = read_interpretations(path)
         layer = self.interpretation_layer(photo_layer, create=True)
         if layer is None:
@@ -401,8 +427,6 @@ class InterpretWidget(QWidget):
 
     def save_geojson(self, path: str | Path, photo_layer=None) -> int:
         """Save the photo's interpretation layer as pixel GeoJSON; returns the count."""
-        from napari_imgreg.interpret.files import write_interpretations
-
         layer = self.interpretation_layer(photo_layer)
         items = interpretations_from_shapes(layer) if layer is not None else []
         write_interpretations(path, items)
@@ -422,12 +446,11 @@ class InterpretWidget(QWidget):
                 continue
             intr, pose, source = camera
             jobs.append((intr, pose, items, source))
+            self._keep_in_workspace(layer)
         return jobs
 
     def project(self):
         """Project every interpretation layer in a napari thread worker; returns it."""
-        from napari.qt.threading import create_worker
-
         scene = self.scene
         if scene is None:
             self._fail("Choose the model (a Surface layer opened by napari-imgreg).")
@@ -441,32 +464,25 @@ class InterpretWidget(QWidget):
         n = sum(len(j[2]) for j in jobs)
         self.status_label.setText(f"Projecting {n} interpretation(s) from {len(jobs)} photo(s)…")
         self.status_label.setStyleSheet("")
-        worker = create_worker(_project_all, scene, jobs, _ignore_errors=True)
-        worker.returned.connect(self._on_result)
-        worker.errored.connect(self._on_error)
-        worker.finished.connect(self._on_finished)
-        self._worker = worker
-        worker.start()
-        return worker
+        # Errors come back as one line (bugs are logged with their traceback).
+        return self.jobs.start("projection", project_interpretation_sets, scene, jobs,
+                               on_returned=self._on_result, on_failed=self._fail,
+                               on_finished=self._on_finished)
 
     def _on_finished(self) -> None:
-        self._worker = None
         self.project_button.setEnabled(True)
-
-    def _on_error(self, exc: BaseException) -> None:
-        if isinstance(exc, InputError):
-            self._fail(str(exc))
-        else:
-            log.error("projection failed", exc_info=exc)
-            self._fail(f"{type(exc).__name__}: {exc}")
 
     def _fail(self, message: str) -> None:
         self.status_label.setText(message)
         self.status_label.setStyleSheet("color: #e65100;")
         self.projection_failed.emit(message)
 
-    def _on_result(self, result: tuple[list[Feature3D], list[Measurement]]) -> None:
+    def _on_result(self, result: tuple[list[Feature3D], list[Measurement]] | None) -> None:
+        if result is None:  # cancelled
+            return
         self.features, self.measurements = result
+        if self.workspace is not None:
+            self.workspace.record_projection(self.features, self.measurements)
         self._show_layers(self.features)
         self._show_table(self.measurements)
         self.draw_stereonet()
@@ -574,8 +590,6 @@ class InterpretWidget(QWidget):
     # ---------------------------------------------------------- exports
     def export(self, path: str | Path, georeferenced: bool | None = None) -> None:
         """Write the projected set (.geojson, .csv, .obj, .ply)."""
-        from napari_imgreg.interpret.files import export_features
-
         scene = self.scene
         georef = getattr(scene, "georef", None)
         geo = self.georef_check.isChecked() if georeferenced is None else georeferenced
@@ -583,14 +597,10 @@ class InterpretWidget(QWidget):
         self.status_label.setText(f"Exported {len(self.features)} feature(s) to {Path(path).name}.")
 
     def save_measurements(self, path: str | Path) -> None:
-        from napari_imgreg.interpret.files import write_measurements_csv
-
         write_measurements_csv(path, self.measurements)
         self.status_label.setText(f"Saved {len(self.measurements)} measurement(s).")
 
     def save_stereonet(self, path: str | Path) -> None:
-        from napari_imgreg._atomic import atomic_path
-
         with atomic_path(path) as tmp:
             self.figure.savefig(tmp, dpi=120)
 
@@ -637,6 +647,4 @@ class InterpretWidget(QWidget):
 
 
 def _qcolor(color: str) -> Any:
-    from qtpy.QtGui import QColor
-
     return QColor(to_hex(color))

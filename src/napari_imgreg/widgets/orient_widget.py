@@ -1,4 +1,4 @@
-"""Dock widget: orient a model from phone camera attitudes (backend: :mod:`napari_imgreg.orient.estimate`).
+"""Dock widget: orient a model from phone camera attitudes (backend: :mod:`napari_imgreg.orient`).
 
 Load the model's camera orientations (ESTIMATED) and the phone's (MEASURED),
 choose the estimator, Run (in a napari thread worker, the viewer stays
@@ -9,7 +9,6 @@ quality flags and the Δξ/Δρ plots, then rotate a Surface layer.
 from __future__ import annotations
 
 import html
-import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -18,6 +17,7 @@ from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
 from matplotlib.figure import Figure
 from qtpy.QtCore import Qt, Signal
 from qtpy.QtWidgets import (
+    QApplication,
     QComboBox,
     QDoubleSpinBox,
     QFileDialog,
@@ -34,9 +34,10 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
+from napari_imgreg.scene import Scene
+from napari_imgreg.widgets._jobs import JobRunner
 from napari_imgreg.widgets._layers import napari_from_world, world_from_napari
-from napari_imgreg.errors import InputError
-from napari_imgreg.orient.estimate import (
+from napari_imgreg.orient import (
     METHODS,
     OrientationResult,
     lower_hemisphere_axis,
@@ -51,8 +52,6 @@ if TYPE_CHECKING:
     import napari
 
 __all__ = ["OrientWidget"]
-
-log = logging.getLogger(__name__)
 
 STATUS_STYLE = {
     "pass": ("#2e7d32", "✓ pass"),
@@ -84,7 +83,7 @@ class OrientWidget(QWidget):
         super().__init__(parent)
         self.viewer = napari_viewer
         self.result: OrientationResult | None = None
-        self._worker = None
+        self.jobs = JobRunner(self)
 
         # ---- inputs
         self.estimated_edit = QLineEdit()
@@ -190,8 +189,6 @@ class OrientWidget(QWidget):
         box.addWidget(button)
 
         def browse() -> None:
-            from qtpy.QtWidgets import QApplication
-
             if folder and QApplication.keyboardModifiers() & Qt.ShiftModifier:
                 path = QFileDialog.getExistingDirectory(self, "Folder of photos")
             else:
@@ -212,14 +209,12 @@ class OrientWidget(QWidget):
         return self.method_combo.currentData()
 
     def _method_changed(self) -> None:
-        if self.result is not None and self._worker is None:
+        if self.result is not None and not self.jobs.is_running("orientation"):
             self.run()
 
     # --------------------------------------------------------------- run
     def run(self):
         """Estimate in a napari thread worker; returns the worker (started)."""
-        from napari.qt.threading import create_worker
-
         estimated, measured = self.estimated_edit.text().strip(), self.measured_edit.text().strip()
         if not estimated or not measured:
             self._fail("Choose both tables first.")
@@ -227,35 +222,24 @@ class OrientWidget(QWidget):
         self.run_button.setEnabled(False)
         self.status_label.setText("Estimating…")
         self.status_label.setStyleSheet("")
-        # Errors are shown in the widget (_ignore_errors: not re-raised in the GUI thread).
-        worker = create_worker(
-            orient_files, estimated, measured, method=self.method,
-            declination_deg=self.declination_spin.value(), _ignore_errors=True,
+        # Errors are shown in the widget as one line (bugs are logged with their traceback).
+        return self.jobs.start(
+            "orientation", orient_files, estimated, measured, method=self.method,
+            declination_deg=self.declination_spin.value(),
+            on_returned=self._on_result, on_failed=self._fail, on_finished=self._on_finished,
         )
-        worker.returned.connect(self._on_result)
-        worker.errored.connect(self._on_error)
-        worker.finished.connect(self._on_finished)
-        self._worker = worker
-        worker.start()
-        return worker
 
     def _on_finished(self) -> None:
-        self._worker = None
         self.run_button.setEnabled(True)
-
-    def _on_error(self, exc: BaseException) -> None:
-        if isinstance(exc, InputError):
-            self._fail(str(exc))
-        else:  # a bug, not bad input: keep the traceback for the log
-            log.error("orientation failed", exc_info=exc)
-            self._fail(f"{type(exc).__name__}: {exc}")
 
     def _fail(self, message: str) -> None:
         self.status_label.setText(message)
         self.status_label.setStyleSheet(f"color: {STATUS_STYLE['warn'][0]};")
         self.orientation_failed.emit(message)
 
-    def _on_result(self, result: OrientationResult) -> None:
+    def _on_result(self, result: OrientationResult | None) -> None:
+        if result is None:  # cancelled
+            return
         self.result = result
         n_warn = len(result.warnings)
         self.status_label.setText(
@@ -369,8 +353,6 @@ class OrientWidget(QWidget):
 
         scene = meta.get("imgreg_unoriented_scene", meta.get("imgreg_scene"))
         if scene is not None:
-            from napari_imgreg.scene import Scene
-
             meta["imgreg_unoriented_scene"] = scene
             meta["imgreg_scene"] = Scene(
                 rotate_points(scene.vertices, Q, c), scene.faces, scene.uv, scene.texture,

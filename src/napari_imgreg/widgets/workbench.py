@@ -1,6 +1,8 @@
 """The registration workbench: napari docks for the whole photo-to-model workflow.
 
-Two docks share one :class:`~._controller.WorkbenchController` per viewer:
+Two docks share one :class:`~._controller.WorkbenchController` per viewer, and
+through it one :class:`~napari_imgreg.workspace.Workspace` (the Qt-free state
+they show: ``workbench.controller.workspace``):
 
 * **Registration workbench** (tabs): *Scene* (model, DEM, georeference,
   photos with their sensor records, 2D/3D views), *Pose* (values, nudges, the
@@ -23,14 +25,16 @@ on the right (2D), or the textured model with the cameras (3D).
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING
 
-from qtpy.QtCore import QTimer
-from qtpy.QtWidgets import QLabel, QScrollArea, QTabWidget, QVBoxLayout, QWidget
+from qtpy.QtCore import Qt, QTimer
+from qtpy.QtWidgets import QLabel, QMainWindow, QScrollArea, QTabWidget, QVBoxLayout, QWidget
 
 from napari_imgreg.widgets._controller import WorkbenchController, controller_for
 from napari_imgreg.widgets._panels import FiltersPanel, ManualPanel, PosePanel, RegisterPanel, ScenePanel
 from napari_imgreg.widgets._quality import QualityPanel
+from napari_imgreg.widgets.interpret_widget import InterpretWidget
 
 if TYPE_CHECKING:
     import napari
@@ -44,8 +48,6 @@ INTERPRET_TAB = "Interpret"
 
 def _scrolled(widget: QWidget) -> QScrollArea:
     """A page that scrolls down, never sideways (it follows the dock's width)."""
-    from qtpy.QtCore import Qt
-
     area = QScrollArea()
     area.setWidgetResizable(True)
     area.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
@@ -135,19 +137,11 @@ class Workbench(QWidget):
         self.tabs.addTab(_scrolled(widget), name)
 
     def _try_interpret_widget(self) -> None:
-        """Dock the interpretation widget in its tab when the module is there."""
+        """Dock the interpretation tools in their tab; what is drawn on the
+        workbench's photos is kept in its workspace."""
         try:
-            from napari_imgreg.widgets import interpret_widget  # noqa: F401  (built separately)
-        except ImportError:
-            return
-        cls = getattr(interpret_widget, "InterpretWidget", None)
-        if cls is None:
-            return
-        try:
-            widget = cls(self.viewer)
+            widget = InterpretWidget(self.viewer, workspace=self.controller.workspace)
         except Exception as exc:  # pragma: no cover - the other widget's problem, not ours
-            import logging
-
             logging.getLogger(__name__).warning("interpretation tools not docked: %s", exc)
             return
         self.add_tab(widget, INTERPRET_TAB)
@@ -158,7 +152,7 @@ class Workbench(QWidget):
     def _interpret_follows_photo(self) -> None:
         """The interpretation tools work on the photo chosen here."""
         combo = getattr(getattr(self, "interpret_widget", None), "photo_combo", None)
-        layer = self.controller.layers.get("photo")
+        layer = self.controller.photo_layer()
         if combo is None or layer is None:
             return
         i = combo.findText(layer.name)
@@ -189,16 +183,12 @@ class QualityDock(QWidget):
 
 def _main_window(dock):
     """The QMainWindow holding a dock (its Qt parent; napari keeps its own reference private)."""
-    from qtpy.QtWidgets import QMainWindow
-
     window = dock.parentWidget() if dock is not None else None
     return window if isinstance(window, QMainWindow) else None
 
 
 def _right_column_full_height(dock) -> None:
     """Let the right dock column (the workbench) run down past the bottom docks."""
-    from qtpy.QtCore import Qt
-
     window = _main_window(dock)
     if window is not None:
         window.setCorner(Qt.Corner.BottomRightCorner, Qt.DockWidgetArea.RightDockWidgetArea)
@@ -206,8 +196,6 @@ def _right_column_full_height(dock) -> None:
 
 def _grow(dock, fraction: float) -> None:
     """Give a bottom dock ``fraction`` of the height it shares with the canvas."""
-    from qtpy.QtCore import Qt
-
     try:
         window = _main_window(dock)
         if window is None:

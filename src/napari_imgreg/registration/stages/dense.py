@@ -52,19 +52,30 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Callable, ClassVar, Sequence
 
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.camera import Intrinsics, Pose, match_scale
 from napari_imgreg.registration.filters import masked_gaussian
-from napari_imgreg.render import RenderResult, _light_direction, render
+from napari_imgreg.registration.stages.pyramid import (
+    PyramidLevel,
+    RenderFn,
+    as_render_fn,
+    bilinear_taps,
+    check_ranges,
+    level_widths,
+    scene_renderer,
+    with_keywords,
+)
+from napari_imgreg.render import RenderResult, _light_direction
 from napari_imgreg.scene import Scene
 
 __all__ = [
     "DENSE_MODES",
+    "DenseParams",
     "DenseLevel",
     "DenseResult",
     "mutual_information",
@@ -408,10 +419,10 @@ def _local_contrast(img: np.ndarray, mask: np.ndarray | None, sigma: float) -> n
 
 
 def _photo_level(
-    photo_lum: np.ndarray, width: int, height: int, bins: int, blur_px: float,
+    level: PyramidLevel, photo_lum: np.ndarray, bins: int, blur_px: float,
     channels: set[str], detail_px: float,
 ) -> _PhotoLevel:
-    img = cv2.resize(photo_lum, (width, height), interpolation=cv2.INTER_AREA)
+    img = level.resize(photo_lum)
     if blur_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_px)
     out = {}
@@ -424,7 +435,7 @@ def _photo_level(
         gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
         mag = cv2.GaussianBlur(np.sqrt(gx * gx + gy * gy), (0, 0), max(blur_px, 0.7))
         out["grad"] = _with_gradients(_equalized(mag, bins))
-    return _PhotoLevel(out, (height, width), bins)
+    return _PhotoLevel(out, (level.height, level.width), bins)
 
 
 def _with_gradients(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -602,30 +613,6 @@ def _project(points: np.ndarray, pose: Pose, intr: Intrinsics) -> tuple[np.ndarr
     return pc, intr.fx * pc[0] * inv_z + intr.cx, intr.fy * pc[1] * inv_z + intr.cy
 
 
-def _bilinear(planes: Sequence[np.ndarray], shape: tuple[int, int], u: np.ndarray,
-              v: np.ndarray) -> list[np.ndarray]:
-    """Bilinear samples of flat (H * W,) images at points inside them.
-
-    Exact weights: cv2.remap rounds positions to 1/32 px, which makes the
-    objective a staircase under the optimiser's small steps.
-    """
-    h, w = shape
-    x0 = np.minimum(u.astype(np.intp), w - 2)
-    y0 = np.minimum(v.astype(np.intp), h - 2)
-    fx = (u - x0).astype(np.float32)
-    fy = (v - y0).astype(np.float32)
-    i00 = y0 * w + x0
-    i10 = i00 + w
-    out = []
-    for p in planes:
-        # np.take: several times faster than fancy indexing for 1-D gathers.
-        a, b = np.take(p, i00), np.take(p, i00 + 1)
-        c, d = np.take(p, i10), np.take(p, i10 + 1)
-        top = a + fx * (b - a)
-        out.append(top + fy * (c + fx * (d - c) - top))
-    return out
-
-
 def _projection_jacobian(pc: np.ndarray, u: np.ndarray, v: np.ndarray,
                          intr_level: Intrinsics, n_params: int) -> tuple[np.ndarray, np.ndarray]:
     """d(u, v) / d(ω, δ[, φ]) at camera-frame points (3, N): two (P, N) arrays.
@@ -731,7 +718,10 @@ def _parzen_terms(planes, shape, u, v, bins, jac, weight):
     value's derivative with respect to the step parameters (P, N) (None
     without ``jac``).
     """
-    sampled = _bilinear(planes if jac is not None else planes[:1], shape, u, v)
+    # One set of taps for the value and its two derivatives; float32 weights
+    # as the planes (these gathers dominate a step's memory traffic).
+    taps = bilinear_taps(u, v, shape, dtype=np.float32)
+    sampled = [taps.sample(p) for p in (planes if jac is not None else planes[:1])]
     t = sampled[0].astype(np.float64)
     inside = (t > 0) & (t < bins - 1)
     t = np.clip(t, 0, bins - 1)
@@ -902,9 +892,6 @@ def _rms_shift_px(samples: _Samples, pose_a: Pose, pose_b: Pose, intr_a: Intrins
 # --------------------------------------------------------------------------
 # Public entry points
 # --------------------------------------------------------------------------
-RenderFn = Callable[[Pose, float], RenderResult]
-
-
 def _resolve_modes(scene: Scene | None, modes: Sequence[str] | None, render_fn) -> tuple[str, ...]:
     coloured = render_fn is not None or (
         scene is not None and (scene.has_texture or scene.vertex_colors is not None))
@@ -922,33 +909,32 @@ def _resolve_modes(scene: Scene | None, modes: Sequence[str] | None, render_fn) 
     return modes
 
 
-def _renderer(scene: Scene | None, render_fn: RenderFn | None, modes: Sequence[str]):
-    """A ``(intrinsics, pose, scale) -> RenderResult`` for the chosen modes."""
+def _renderer(scene: Scene | None, render_fn: RenderFn | None, modes: Sequence[str],
+              where: str) -> RenderFn:
+    """The :class:`RenderFn` of a refinement: ``render_fn``, or the scene rendered for ``modes``."""
     if render_fn is not None:
-        return lambda intr, pose, scale: render_fn(pose, scale)
+        return as_render_fn(render_fn, scene, where)
     if scene is None:
         raise ValueError("give a scene or a render_fn")
     # Colour only when needed; otherwise the cheapest mode (normals come anyway).
-    mode = "color" if ("color" in modes or "detail" in modes) else "normal"
-    return lambda intr, pose, scale: render(scene, intr, pose, scale=scale, mode=mode)
+    return scene_renderer(scene, "color" if ("color" in modes or "detail" in modes) else "normal")
 
 
-class _Level:
-    """Everything one pyramid level needs: photo, samples, cameras."""
+class _Level(PyramidLevel):
+    """Everything one pyramid level needs: photo, samples, cameras.
+
+    ``scaled(intr)`` gives a (possibly focal-refined) camera at the level's
+    resolution.
+    """
 
     def __init__(self, width: int, intrinsics: Intrinsics, photo_lum: np.ndarray, bins: int,
                  blur_px: float, modes: Sequence[str], supersample: int) -> None:
-        self.scale = width / intrinsics.width
-        shape_intr = intrinsics.scaled(self.scale)
-        self.width, self.height = shape_intr.width, shape_intr.height
+        self.scale = match_scale(intrinsics.width, width)  # width <= the photo's
+        super().__init__(intrinsics, self.scale)
         # Render finer than the level (never finer than the photo) and low-pass.
         self.stride = max(1, min(supersample, int(1.0 / self.scale + 1e-9)))
-        self.photo = _photo_level(photo_lum, self.width, self.height, bins, blur_px,
+        self.photo = _photo_level(self, photo_lum, bins, blur_px,
                                   {_PHOTO_CHANNEL[m] for m in modes}, _DETAIL_PX)
-
-    def intrinsics(self, intr: Intrinsics) -> Intrinsics:
-        """The (possibly focal-refined) camera at this level's resolution."""
-        return intr.scaled(self.scale)
 
 
 def mi_scores(
@@ -994,9 +980,10 @@ def mi_scores(
         Toward the light (world frame) for ``shaded``.
     use_background : bool
         Count pixels where the model is not seen (sky) as a class of their own.
-    render_fn : callable, optional
-        ``render_fn(pose, scale) -> RenderResult`` replacing :func:`render`
-        (e.g. a sun-lit renderer for the ``color`` mode).
+    render_fn : RenderFn, optional
+        ``render_fn(intrinsics, pose, scale) -> RenderResult`` replacing
+        :func:`~napari_imgreg.render.render` (e.g. a sun-lit renderer for the
+        ``color`` mode).
     sharpness_px : float
         Turn (pixels at ``width``) used to measure ``sharpness``.
 
@@ -1013,10 +1000,11 @@ def mi_scores(
     modes = _resolve_modes(scene, modes, render_fn)
     level = _Level(min(width, intrinsics.width), intrinsics, _luminance(photo_rgb), bins,
                    blur_px, modes, supersample)
-    rr = _renderer(scene, render_fn, modes)(intrinsics, pose, level.scale * level.stride)
+    rr = _renderer(scene, render_fn, modes, "mi_scores")(intrinsics, pose,
+                                                         level.scale * level.stride)
     samples = _samples_from_render(rr, modes, bins, level.stride, blur_px, light_direction,
                                    use_background, max_samples=10**9)
-    intr_level = level.intrinsics(intrinsics)
+    intr_level = level.scaled(intrinsics)
     per_mode = {}
     for k, mode in enumerate(modes):
         ev = _evaluate(samples.only(k), level.photo, pose, intr_level, 6, False)
@@ -1050,32 +1038,146 @@ def mi_score(
     return s["nmi"] if normalized else s["mi"]
 
 
+@dataclass
+class DenseParams:
+    """Settings of the MI refinement (:func:`refine_pose_mi`), each with its valid range.
+
+    Attributes
+    ----------
+    modes : tuple of str or None
+        Model attributes compared with the photo, their MI summed (see
+        :data:`DENSE_MODES`). None: ``("detail", "normal")`` for coloured
+        models, ``("shaded", "normal")`` otherwise.
+    levels : tuple of int
+        Pyramid widths, px, coarse to fine (capped at the photo width), each in
+        [32, 16384]. Adding 1024 (or the photo width) halves the final error
+        for about 0.5–1 s more.
+    bins : int
+        Photo bins (and render bins per continuous mode) at levels of 256 px
+        and more; half as many below (fewer samples), [8, 256].
+    optimize_focal : bool
+        Also refine the focal length (``fx`` and ``fy`` by the same factor).
+    max_seconds : float
+        Stop (keeping the best pose so far) after this long, seconds, [0, 3600].
+    use_background : bool
+        Use pixels where the model is not seen (sky) as points at infinity:
+        the skyline then constrains the rotation. Switch off when the mesh
+        ends inside the view in front of unmodelled terrain.
+    blur_px : float
+        Gaussian blur (pixels at each level) of photo and render values, [0, 10].
+    supersample : int
+        Renders are made this many times finer than the level (never finer
+        than the photo) and low-passed, so that texture detail does not
+        alias, [1, 8].
+    max_iterations : int
+        Steps per render, [1, 1000].
+    tol_px : float
+        A level has converged when a step moves the image less than this
+        (RMS, pixels at the level), [0, 10].
+    rerender_px : float
+        Render again when the pose has moved the image this much since the
+        last render (visibility may have changed), px at the level, [0, 100].
+    max_renders_per_level : int
+        [1, 20].
+    max_rotation_deg : float
+        Give up (``reason="diverged"``) when the pose turns further than this
+        from the start, degrees, [0, 180].
+    max_samples : int
+        Samples per level at most (a fixed random subset above), [1000, 10⁹].
+    max_step_px : float
+        Largest step (RMS image motion, pixels at the level), [0.01, 100].
+    curvature : bool
+        Include the joint histogram's own curvature in the Hessian model
+        (more exact, costs 3 × 6 extra histograms per step; in tests it
+        changed neither the steps needed nor the result).
+    full_pose_from : int
+        Levels narrower than this (px) refine the rotation (and focal) only,
+        [0, 16384]. At a coarse level a shift and a turn move the far surface
+        alike; when only badly predicted near ground tells them apart (other
+        light), the position can drift along that valley. In tests on the
+        sample scenes all-6-DoF from the first level converged more often,
+        hence 0.
+    """
+
+    modes: tuple[str, ...] | None = None
+    levels: tuple[int, ...] = (128, 256, 512)
+    bins: int = 32
+    optimize_focal: bool = False
+    max_seconds: float = 10.0
+    use_background: bool = True
+    blur_px: float = 1.0
+    supersample: int = 2
+    max_iterations: int = 25
+    tol_px: float = 0.01
+    rerender_px: float = 1.5
+    max_renders_per_level: int = 3
+    max_rotation_deg: float = 10.0
+    max_samples: int = 120_000
+    max_step_px: float = 2.0
+    curvature: bool = False
+    full_pose_from: int = 0
+
+    #: Inclusive valid range of each numeric field (every element of a tuple).
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "levels": (32, 16384),
+        "bins": (8, 256),
+        "max_seconds": (0.0, 3600.0),
+        "blur_px": (0.0, 10.0),
+        "supersample": (1, 8),
+        "max_iterations": (1, 1000),
+        "tol_px": (0.0, 10.0),
+        "rerender_px": (0.0, 100.0),
+        "max_renders_per_level": (1, 20),
+        "max_rotation_deg": (0.0, 180.0),
+        "max_samples": (1000, 10**9),
+        "max_step_px": (0.01, 100.0),
+        "full_pose_from": (0, 16384),
+    }
+
+    def __post_init__(self) -> None:
+        # JSON brings lists; keep tuples (hashable, compared as the defaults).
+        self.levels = tuple(self.levels)
+        if not self.levels:
+            raise ValueError("levels must name at least one width")
+        if any(isinstance(w, bool) or not isinstance(w, int) for w in self.levels):
+            raise ValueError(f"levels must be integers (px), not {list(self.levels)!r}")
+        if self.modes is not None:
+            if isinstance(self.modes, str):
+                raise ValueError(f"modes must be a list of names, not {self.modes!r}")
+            self.modes = tuple(self.modes)
+            if not self.modes:
+                raise ValueError("modes must not be empty (null: the default for the model)")
+            for m in self.modes:
+                if m not in DENSE_MODES:
+                    raise ValueError(f"unknown mode {m!r}; choose from {', '.join(DENSE_MODES)}")
+        check_ranges(self)
+
+    def to_dict(self) -> dict:
+        """JSON-ready (tuples as lists)."""
+        d = asdict(self)
+        d["levels"] = list(self.levels)
+        d["modes"] = None if self.modes is None else list(self.modes)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DenseParams:
+        unknown = set(d) - {f.name for f in fields(cls)}
+        if unknown:
+            raise KeyError(f"unknown dense parameter(s): {', '.join(sorted(unknown))}")
+        return cls(**d)
+
+
 def refine_pose_mi(
     scene: Scene | None,
     photo_rgb: np.ndarray,
     intrinsics: Intrinsics,
     start: Pose,
+    params: DenseParams | None = None,
     *,
-    modes: Sequence[str] | None = None,
-    levels: Sequence[int] = (128, 256, 512),
-    bins: int = 32,
-    optimize_focal: bool = False,
-    max_seconds: float = 10.0,
-    cancelled: Callable[[], bool] | None = None,
     light_direction: np.ndarray | None = None,
     render_fn: RenderFn | None = None,
-    use_background: bool = True,
-    blur_px: float = 1.0,
-    supersample: int = 2,
-    max_iterations: int = 25,
-    tol_px: float = 0.01,
-    rerender_px: float = 1.5,
-    max_renders_per_level: int = 3,
-    max_rotation_deg: float = 10.0,
-    max_samples: int = 120_000,
-    max_step_px: float = 2.0,
-    curvature: bool = False,
-    full_pose_from: int = 0,
+    cancelled: Callable[[], bool] | None = None,
+    **deprecated_keywords,
 ) -> DenseResult:
     """Refine a camera pose by maximising MI between the photo and the model.
 
@@ -1092,66 +1194,21 @@ def refine_pose_mi(
         within a few pixels of its place at the coarsest level: 1° and 1 m
         when all the surface is 30 m away or more; 1° and 0.25 m with ground
         4 m from the camera (see the module notes).
-    modes : sequence of str, optional
-        Model attributes compared with the photo, their MI summed (see
-        :data:`DENSE_MODES`). Default ``("detail", "normal")`` for coloured
-        models, ``("shaded", "normal")`` otherwise.
-    levels : sequence of int
-        Pyramid widths in pixels, coarse to fine (capped at the photo width).
-        Adding 1024 (or the photo width) halves the final error for about
-        0.5–1 s more.
-    bins : int
-        Photo bins (and render bins per continuous mode) at levels of 256 px
-        and more; half as many below (fewer samples).
-    optimize_focal : bool
-        Also refine the focal length (``fx`` and ``fy`` by the same factor).
-    max_seconds : float
-        Stop (keeping the best pose so far) after this long.
+    params : DenseParams, optional
+        The refinement's settings (default ``DenseParams()``).
+    light_direction : (3,) array, optional
+        Toward the light, world frame, for the ``shaded`` mode.
+    render_fn : RenderFn, optional
+        ``render_fn(intrinsics, pose, scale) -> RenderResult`` replacing
+        :func:`~napari_imgreg.render.render` (e.g. a sun-lit renderer). Only
+        its ``xyz``, ``mask``, ``normal``, ``depth``, ``rgb`` and camera are
+        used, so a focal change need not reach it.
     cancelled : callable, optional
         Polled between steps; when it returns True the refinement stops
         with ``reason="cancelled"``. It may raise instead.
-    light_direction : (3,) array, optional
-        Toward the light, world frame, for the ``shaded`` mode.
-    render_fn : callable, optional
-        ``render_fn(pose, scale) -> RenderResult`` replacing :func:`render`
-        (e.g. a sun-lit renderer). Only its ``xyz``, ``mask``, ``normal``,
-        ``depth``, ``rgb`` and camera are used, so a focal change need not
-        reach it.
-    use_background : bool
-        Use pixels where the model is not seen (sky) as points at infinity:
-        the skyline then constrains the rotation. Switch off when the mesh
-        ends inside the view in front of unmodelled terrain.
-    blur_px : float
-        Gaussian blur (pixels at each level) of photo and render values.
-    supersample : int
-        Renders are made this many times finer than the level (never finer
-        than the photo) and low-passed, so that texture detail does not alias.
-    max_iterations : int
-        Steps per render.
-    tol_px : float
-        A level has converged when a step moves the image less than this
-        (RMS, pixels at the level).
-    rerender_px : float
-        Render again when the pose has moved the image this much since the
-        last render (visibility may have changed).
-    max_renders_per_level : int
-    max_rotation_deg : float
-        Give up (``reason="diverged"``) when the pose turns further than this
-        from ``start``.
-    max_samples : int
-        Samples per level at most (a fixed random subset above).
-    max_step_px : float
-        Largest step (RMS image motion, pixels at the level).
-    full_pose_from : int
-        Levels narrower than this refine the rotation (and focal) only. At a
-        coarse level a shift and a turn move the far surface alike; when only
-        badly predicted near ground tells them apart (other light), the
-        position can drift along that valley. In tests on the sample scenes
-        all-6-DoF from the first level converged more often, hence 0.
-    curvature : bool
-        Include the joint histogram's own curvature in the Hessian model
-        (more exact, costs 3 × 6 extra histograms per step; in tests it
-        changed neither the steps needed nor the result).
+    **deprecated_keywords
+        Fields of :class:`DenseParams` as keywords, as before version 0.2
+        (DeprecationWarning).
 
     Returns
     -------
@@ -1165,17 +1222,16 @@ def refine_pose_mi(
     >>> result.pose, result.score, result.sharpness                       # doctest: +SKIP
     """
     t_start = time.perf_counter()
-    modes = _resolve_modes(scene, modes, render_fn)
-    render_at = _renderer(scene, render_fn, modes)
+    params = with_keywords(params or DenseParams(), deprecated_keywords, "refine_pose_mi")
+    modes = _resolve_modes(scene, params.modes, render_fn)
+    render_at = _renderer(scene, render_fn, modes, "refine_pose_mi")
     photo_lum = _luminance(photo_rgb)
     if photo_lum.shape != (intrinsics.height, intrinsics.width):
         raise ValueError(
             f"photo is {photo_lum.shape[1]}x{photo_lum.shape[0]} but the camera is "
             f"{intrinsics.width}x{intrinsics.height}")
-    n_params = 7 if optimize_focal else 6
-    widths = sorted({min(int(w), intrinsics.width) for w in levels})
-    if not widths:
-        raise ValueError("levels must not be empty")
+    n_params = 7 if params.optimize_focal else 6
+    widths = level_widths(params.levels, intrinsics.width)
 
     pose, intr = start, intrinsics
     history: list[DenseLevel] = []
@@ -1188,39 +1244,41 @@ def refine_pose_mi(
     def stop_reason() -> str:
         if cancelled is not None and cancelled():
             return "cancelled"
-        if time.perf_counter() - t_start > max_seconds:
+        if time.perf_counter() - t_start > params.max_seconds:
             return "time limit"
         return ""
 
     for width in widths:
         t_level = time.perf_counter()
-        level_bins = bins if width >= 256 else max(8, bins // 2)
-        level = _Level(width, intrinsics, photo_lum, level_bins, blur_px, modes, supersample)
-        free_params = [0, 1, 2] if width < full_pose_from else list(range(6))
-        if optimize_focal:
+        level_bins = params.bins if width >= 256 else max(8, params.bins // 2)
+        level = _Level(width, intrinsics, photo_lum, level_bins, params.blur_px, modes,
+                       params.supersample)
+        free_params = [0, 1, 2] if width < params.full_pose_from else list(range(6))
+        if params.optimize_focal:
             free_params.append(6)
         mi_level_start = math.nan
         iterations = renders = 0
         step_px = math.nan
         level_converged = False
-        radius = max_step_px
-        while renders < max_renders_per_level and not reason:
+        radius = params.max_step_px
+        while renders < params.max_renders_per_level and not reason:
             rr = render_at(intr, pose, level.scale * level.stride)
             renders += 1
             n_render += 1
             if rr.mask.sum() < _MIN_HITS:
                 reason = "the model is hardly in view"
                 break
-            samples = _samples_from_render(rr, modes, level_bins, level.stride, blur_px,
-                                           light_direction, use_background, max_samples)
+            samples = _samples_from_render(rr, modes, level_bins, level.stride, params.blur_px,
+                                           light_direction, params.use_background,
+                                           params.max_samples)
             render_pose, render_intr = pose, intr
             last = (samples, level)
-            current = _evaluate(samples, level.photo, pose, level.intrinsics(intr), n_params,
-                                True, curvature)
+            current = _evaluate(samples, level.photo, pose, level.scaled(intr), n_params,
+                                True, params.curvature)
             n_eval += 1
             if math.isnan(mi_level_start):
                 mi_level_start = current.value
-            for _ in range(max_iterations):
+            for _ in range(params.max_iterations):
                 reason = stop_reason()
                 if reason or not np.isfinite(current.value):
                     break
@@ -1232,33 +1290,33 @@ def refine_pose_mi(
                 step[free] = sub_step
                 step_px = float(math.sqrt(max(step @ current.pixel_metric @ step, 0.0)))
                 new_pose, new_intr = _apply_step(pose, intr, step)
-                trial = _evaluate(samples, level.photo, new_pose, level.intrinsics(new_intr),
+                trial = _evaluate(samples, level.photo, new_pose, level.scaled(new_intr),
                                   n_params, False)
                 n_eval += 1
                 iterations += 1
                 gain = trial.value - current.value
                 if gain > 0:
                     pose, intr = new_pose, new_intr
-                    current = _evaluate(samples, level.photo, pose, level.intrinsics(intr),
-                                        n_params, True, curvature)
+                    current = _evaluate(samples, level.photo, pose, level.scaled(intr),
+                                        n_params, True, params.curvature)
                     n_eval += 1
                     ratio = gain / predicted if predicted > 0 else 0.0
                     if ratio > 0.75 and step_px > 0.8 * radius:
-                        radius = min(2.0 * radius, max_step_px)
+                        radius = min(2.0 * radius, params.max_step_px)
                     elif ratio < 0.25:
                         radius *= 0.5
                 else:
                     radius = 0.5 * min(radius, step_px)
-                if step_px < tol_px or radius < tol_px:
+                if step_px < params.tol_px or radius < params.tol_px:
                     level_converged = True
                     break
             final_eval = current
-            if start.rotation_error_deg(pose) > max_rotation_deg:
+            if start.rotation_error_deg(pose) > params.max_rotation_deg:
                 reason = "diverged"
                 break
-            moved = _rms_shift_px(samples, render_pose, pose, level.intrinsics(render_intr),
-                                  level.intrinsics(intr))
-            if moved < rerender_px:
+            moved = _rms_shift_px(samples, render_pose, pose, level.scaled(render_intr),
+                                  level.scaled(intr))
+            if moved < params.rerender_px:
                 break
         history.append(DenseLevel(
             width=level.width, mi_start=float(mi_level_start),
@@ -1280,7 +1338,7 @@ def refine_pose_mi(
     # turn of mi_scores' default (2 px at 256 px width).
     sharp_px = 2.0 * level.width / 256.0
     if pose is not start:
-        start_eval = _evaluate(samples, level.photo, start, level.intrinsics(intrinsics),
+        start_eval = _evaluate(samples, level.photo, start, level.scaled(intrinsics),
                                n_params, False)
         n_eval += 1
     else:
@@ -1289,7 +1347,7 @@ def refine_pose_mi(
         # Never hand back a pose that explains the photo worse than the start.
         reason = reason or "no improvement over the start pose"
         pose, intr, final_eval, converged = start, intrinsics, start_eval, False
-    sharpness = _sharpness(samples, level.photo, pose, level.intrinsics(intr), final_eval.value,
+    sharpness = _sharpness(samples, level.photo, pose, level.scaled(intr), final_eval.value,
                            sharp_px)
     n_eval += 4
     return DenseResult(pose, intr, final_eval.value, start_eval.value, final_eval.nmi, sharpness,

@@ -57,16 +57,27 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Callable
+from dataclasses import asdict, dataclass, field, fields
+from typing import Callable, ClassVar
 
 import cv2
 import numpy as np
 from scipy import ndimage
 from scipy.optimize import least_squares
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.render import RenderResult, render
+from napari_imgreg.camera import Intrinsics, Pose, match_scale, pixels_to_full
+from napari_imgreg.registration.stages.pyramid import (
+    PyramidLevel,
+    RenderFn,
+    as_render_fn,
+    check_ranges,
+    level_widths,
+    resize_to,
+    sample_bilinear,
+    scene_renderer,
+    with_keywords,
+)
+from napari_imgreg.render import RenderResult
 from napari_imgreg.scene import Scene
 
 __all__ = [
@@ -78,6 +89,7 @@ __all__ = [
     "EDGE_KINDS",
     "DEFAULT_KIND_WEIGHTS",
     "REFERENCE_WIDTH",
+    "EdgeParams",
     "EdgeSet",
     "PhotoEdges",
     "EdgeCorrespondences",
@@ -515,7 +527,7 @@ def detect_skyline(
         Pixels above the skyline.
     """
     h, w = photo_rgb.shape[:2]
-    s = min(1.0, work_width / w)
+    s = match_scale(w, work_width)
     small = photo_rgb if s == 1.0 else cv2.resize(
         photo_rgb, (max(8, round(w * s)), max(8, round(h * s))), interpolation=cv2.INTER_AREA)
     sh, sw = small.shape[:2]
@@ -744,24 +756,6 @@ def _oriented_distances(edges: np.ndarray, orientation: np.ndarray) -> np.ndarra
 
 
 # ============================================================ chamfer sampling
-def _bilinear(stack: np.ndarray, layer: np.ndarray, x: np.ndarray, y: np.ndarray,
-              outside: float) -> np.ndarray:
-    """Bilinear samples of ``stack[layer]`` at (x, y); ``outside`` off the image."""
-    _, h, w = stack.shape
-    inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1) & np.isfinite(x) & np.isfinite(y)
-    xs = np.where(inside, x, 0.0)
-    ys = np.where(inside, y, 0.0)
-    x0 = np.minimum(np.floor(xs).astype(np.int64), w - 2)
-    y0 = np.minimum(np.floor(ys).astype(np.int64), h - 2)
-    fx = xs - x0
-    fy = ys - y0
-    flat = stack.reshape(-1)
-    base = layer.astype(np.int64) * (h * w) + y0 * w + x0
-    top = flat[base] + fx * (flat[base + 1] - flat[base])
-    bottom = flat[base + w] + fx * (flat[base + w + 1] - flat[base + w])
-    return np.where(inside, top + fy * (bottom - top), outside)
-
-
 class _Chamfer:
     """Truncated (oriented) distance fields of one photo size, for sampling.
 
@@ -850,7 +844,8 @@ class _Chamfer:
 
     def sample(self, layer: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Truncated distances at positions ``uv`` (N, 2) on the given layers (N,)."""
-        return _bilinear(self.stack, layer, uv[..., 0], uv[..., 1], self.truncate)
+        return sample_bilinear(self.stack, uv[..., 0], uv[..., 1], layer=layer,
+                               outside=self.truncate)
 
 
 def chamfer_distances(
@@ -957,18 +952,125 @@ class EdgeAlignment:
     agreement: float = float("nan")
 
 
-RenderFn = Callable[[Scene, Intrinsics, Pose, float], RenderResult]
+@dataclass
+class EdgeParams:
+    """Settings of edge alignment (:func:`align_edges`), each with its valid range ``[low, high]``.
 
+    Attributes
+    ----------
+    levels : tuple of int
+        Image widths, px, coarse to fine (capped at the photo's), each in
+        [64, 16384]. The rotation and position searches run at the first, the
+        6-DoF refinement at the others (at the first when it is the only one).
+    search_rotation_deg : (yaw, pitch, roll)
+        Half-ranges of the rotation search about the start, degrees, each in
+        [0, 45] (yaw about the image's vertical, pitch about its horizontal,
+        roll about the view direction).
+    search_step_deg : float
+        Grid step of the rotation search, degrees, [0.05, 10].
+    keep : int
+        Distinct best rotations refined at the first level, [1, 20].
+    truncate_px : float
+        Distances are capped at this, px at :data:`REFERENCE_WIDTH`, [2, 400]:
+        an edge point farther from every photo edge is an outlier, whatever
+        the distance.
+    inlier_px : float
+        An edge point within this of a photo edge (px at the reference width)
+        is an inlier, [0.1, 100].
+    max_points : int
+        Edge points per level (:meth:`EdgeSet.thinned`; half at the first
+        level, which is searched over many poses), [100, 1 000 000].
+    max_rounds : int
+        Re-render and refine rounds per level while the pose still moves the
+        edge points by more than a pixel, [0, 50].
+    oriented : bool
+        Oriented chamfer: match edges of similar direction only.
+    min_inlier_fraction : float
+        Below this weighted inlier fraction the alignment is reported as
+        failed, [0, 1].
+    min_agreement : float
+        Below this edge score (:func:`edge_agreement`: agreement above
+        chance, about 0.45–0.6 for right poses of the sample, ≤ 0.2 for poses
+        a degree or more off) the alignment is reported as failed, [−1, 1].
+    min_step_m : float
+        Smallest step of the position search, metres, [0.01, 100].
+    kind_weights : dict of str to float
+        Weights in chamfer scores that replace :data:`DEFAULT_KIND_WEIGHTS`,
+        by kind name (``skyline``, ``occluding``, ``crease``, ``albedo``,
+        ``model_border``), each in [0, 100]; 0 leaves a kind out.
+    """
 
-def _default_render(scene: Scene, intrinsics: Intrinsics, pose: Pose, scale: float
-                    ) -> RenderResult:
-    return render(scene, intrinsics, pose, scale=scale)
+    levels: tuple[int, ...] = (320, 768)
+    search_rotation_deg: tuple[float, float, float] = (12.0, 6.0, 4.0)
+    search_step_deg: float = 1.0
+    keep: int = 3
+    truncate_px: float = 40.0
+    inlier_px: float = 4.0
+    max_points: int = 3000
+    max_rounds: int = 3
+    oriented: bool = True
+    min_inlier_fraction: float = 0.3
+    min_agreement: float = 0.25
+    min_step_m: float = 0.6
+    kind_weights: dict[str, float] = field(default_factory=dict)
 
+    #: Inclusive valid range of each numeric field (every element of a tuple).
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "levels": (64, 16384),
+        "search_rotation_deg": (0.0, 45.0),
+        "search_step_deg": (0.05, 10.0),
+        "keep": (1, 20),
+        "truncate_px": (2.0, 400.0),
+        "inlier_px": (0.1, 100.0),
+        "max_points": (100, 1_000_000),
+        "max_rounds": (0, 50),
+        "min_inlier_fraction": (0.0, 1.0),
+        "min_agreement": (-1.0, 1.0),
+        "min_step_m": (0.01, 100.0),
+    }
 
-def _resize_to(photo: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    if photo.shape[1] == size[0] and photo.shape[0] == size[1]:
-        return photo
-    return cv2.resize(photo, size, interpolation=cv2.INTER_AREA)
+    def __post_init__(self) -> None:
+        # JSON brings lists; keep tuples (hashable, compared as the defaults).
+        self.levels = tuple(self.levels)
+        self.search_rotation_deg = tuple(self.search_rotation_deg)
+        if not self.levels:
+            raise ValueError("levels must name at least one width")
+        if len(self.search_rotation_deg) != 3:
+            raise ValueError("search_rotation_deg must be 3 numbers (yaw, pitch, roll), not "
+                             f"{list(self.search_rotation_deg)!r}")
+        if any(isinstance(w, bool) or not isinstance(w, int) for w in self.levels):
+            raise ValueError(f"levels must be integers (px), not {list(self.levels)!r}")
+        check_ranges(self)
+        self.search_rotation_deg = tuple(float(v) for v in self.search_rotation_deg)
+        if not isinstance(self.kind_weights, dict):
+            raise ValueError(f"kind_weights must be an object, not {self.kind_weights!r}")
+        self.kind_weights = dict(self.kind_weights)  # a copy per instance
+        known = set(EDGE_KINDS.values())
+        for name, weight in self.kind_weights.items():
+            if name not in known:
+                raise ValueError(f"unknown edge kind {name!r} in kind_weights; choose from "
+                                 f"{', '.join(EDGE_KINDS.values())}")
+            if isinstance(weight, bool) or not isinstance(weight, (int, float)) \
+                    or not 0.0 <= weight <= 100.0:
+                raise ValueError(f"kind_weights[{name!r}] must be within [0, 100], not {weight!r}")
+
+    def weights_by_kind(self) -> dict[int, float]:
+        """:attr:`kind_weights` keyed by the kind constants (:data:`SKYLINE`, ...)."""
+        code = {name: kind for kind, name in EDGE_KINDS.items()}
+        return {code[name]: float(weight) for name, weight in self.kind_weights.items()}
+
+    def to_dict(self) -> dict:
+        """JSON-ready (tuples as lists)."""
+        d = asdict(self)
+        d["levels"], d["search_rotation_deg"] = list(self.levels), list(self.search_rotation_deg)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> EdgeParams:
+        unknown = set(d) - {f.name for f in fields(cls)}
+        if unknown:
+            raise KeyError(f"unknown edges parameter(s): {', '.join(sorted(unknown))}")
+        return cls(**d)
 
 
 def _rotation_grid(half_range_deg: tuple[float, float, float], step_deg: float
@@ -1000,16 +1102,15 @@ def _rotation_grid(half_range_deg: tuple[float, float, float], step_deg: float
     return np.array(rots), np.degrees(angles)
 
 
-class _Level:
+class _Level(PyramidLevel):
     """One image size of an alignment: scaled camera, photo edges, chamfer fields."""
 
     def __init__(self, intrinsics: Intrinsics, photo_rgb: np.ndarray, width: int,
                  truncate_ref_px: float, oriented: bool) -> None:
-        scale = min(1.0, width / intrinsics.width)
-        self.scale = scale
-        self.intr = intrinsics.scaled(scale)
+        scale = match_scale(intrinsics.width, width)
+        super().__init__(intrinsics, scale)
         self.to_ref = REFERENCE_WIDTH / self.intr.width  # level px -> reference px
-        small = _resize_to(photo_rgb, (self.intr.width, self.intr.height))
+        small = self.resize(photo_rgb)
         self.photo = small
         self.edges = photo_edges(small)
         self.truncate = max(2.0, truncate_ref_px / self.to_ref)
@@ -1298,24 +1399,13 @@ def align_edges(
     photo_rgb: np.ndarray,
     intrinsics: Intrinsics,
     start: Pose,
+    params: EdgeParams | None = None,
     *,
-    render_fn: RenderFn | None = None,
-    levels: tuple[int, ...] = (320, 768),
-    search_rotation_deg: tuple[float, float, float] = (12.0, 6.0, 4.0),
-    search_step_deg: float = 1.0,
-    keep: int = 3,
-    truncate_px: float = 40.0,
-    inlier_px: float = 4.0,
-    max_points: int = 3000,
-    max_rounds: int = 3,
-    oriented: bool = True,
-    min_inlier_fraction: float = 0.3,
-    min_agreement: float = 0.25,
     position_sigma_m: float | None = 5.0,
     search_position_m: float | None = 5.0,
-    min_step_m: float = 0.6,
-    weights: dict[int, float] | None = None,
+    render_fn: RenderFn | None = None,
     cancelled: Callable[[], bool] | None = None,
+    **deprecated_keywords,
 ) -> EdgeAlignment:
     """Register a photo by aligning the model's structure edges to the photo's edges.
 
@@ -1328,59 +1418,28 @@ def align_edges(
         The photo's camera.
     start : Pose
         The start ``cam_from_world`` (sensor prior): heading within
-        ``search_rotation_deg``, position within a few metres.
-    render_fn : callable, optional
-        ``render_fn(scene, intrinsics, pose, scale) -> RenderResult``
-        (default :func:`~napari_imgreg.render.render` in ``auto`` mode). It
-        is called with the photo's camera or, for the first search, a copy
-        widened by the search range.
-    levels : tuple of int
-        Image widths, coarse to fine (capped at the photo's). The rotation
-        and position searches run at the first, the 6-DoF refinement at the
-        others (at the first when it is the only one).
-    search_rotation_deg : (yaw, pitch, roll)
-        Half-ranges of the rotation search about the start, degrees (yaw
-        about the image's vertical, pitch about its horizontal, roll about
-        the view direction).
-    search_step_deg : float
-        Grid step of the search, degrees.
-    keep : int
-        Distinct best rotations refined at the first level.
-    truncate_px : float
-        Distances are capped at this (px at :data:`REFERENCE_WIDTH`): an
-        edge point farther from every photo edge is an outlier, whatever the
-        distance.
-    inlier_px : float
-        An edge point within this of a photo edge (px at the reference width)
-        is an inlier.
-    max_points : int
-        Edge points per level (:meth:`EdgeSet.thinned`).
-    max_rounds : int
-        Re-render and refine rounds per level while the pose still moves the
-        edge points by more than a pixel.
-    oriented : bool
-        Oriented chamfer: match edges of similar direction only.
-    min_inlier_fraction : float
-        Below this the alignment is reported as failed.
-    min_agreement : float
-        Below this edge score (:func:`edge_agreement`: agreement above
-        chance, about 0.45–0.6 for right poses of the sample, ≤ 0.2 for poses
-        a degree or more off) the alignment is reported as failed.
+        ``params.search_rotation_deg``, position within a few metres.
+    params : EdgeParams, optional
+        The alignment's settings (default ``EdgeParams()``).
     position_sigma_m : float or None
         Uncertainty of the start's position, metres: a prior that keeps the
         camera centre near the start where the edges cannot place it (None:
-        no prior).
+        no prior). The registration passes its prior's ``sigma``.
     search_position_m : float or None
         How far from the start the camera centre is searched at the first
         level, metres (a pattern search with steps from half this down to
-        ``min_step_m``); None or 0: rotations only.
-    min_step_m : float
-        Smallest step of the position search, metres.
-    weights : dict, optional
-        Weight per edge kind (:data:`DEFAULT_KIND_WEIGHTS`).
+        ``params.min_step_m``); None or 0: rotations only.
+    render_fn : RenderFn, optional
+        ``render_fn(intrinsics, pose, scale) -> RenderResult`` (default
+        :func:`~napari_imgreg.render.render` of ``scene`` in ``auto`` mode).
+        It is called with the photo's camera or, for the first search, a copy
+        widened by the search range.
     cancelled : callable, optional
         Polled between steps; when it returns True the alignment stops and
         reports ``reason="cancelled"``.
+    **deprecated_keywords
+        Fields of :class:`EdgeParams` as keywords, and ``weights`` (by kind
+        constant), as before version 0.2 (DeprecationWarning).
 
     Returns
     -------
@@ -1389,9 +1448,15 @@ def align_edges(
         says why.
     """
     t_start = time.perf_counter()
-    render_fn = render_fn or _default_render
+    if "weights" in deprecated_keywords:
+        weights = deprecated_keywords.pop("weights") or {}
+        deprecated_keywords["kind_weights"] = {EDGE_KINDS[k]: w for k, w in weights.items()}
+    params = with_keywords(params or EdgeParams(), deprecated_keywords, "align_edges")
+    render_fn = (scene_renderer(scene) if render_fn is None
+                 else as_render_fn(render_fn, scene, "align_edges"))
+    weights = params.weights_by_kind()
     history: list[dict] = []
-    widths = sorted({min(int(w), intrinsics.width) for w in levels})
+    widths = level_widths(params.levels, intrinsics.width)
 
     def fail(reason: str, pose: Pose = start) -> EdgeAlignment:
         return EdgeAlignment(False, pose, start, float("nan"), float("nan"), 0.0, 0, history,
@@ -1416,9 +1481,9 @@ def align_edges(
     def edges_at(level: _Level, pose: Pose, margin_deg: tuple[float, float] = (0.0, 0.0)
                  ) -> tuple[EdgeSet, np.ndarray]:
         camera = _widened(intrinsics, *margin_deg) if any(margin_deg) else intrinsics
-        rendered = render_fn(scene, camera, pose, level.scale)
+        rendered = render_fn(camera, pose, level.scale)
         # The first level is searched over many poses: half the points.
-        n_points = max_points // 2 if level is coarse else max_points
+        n_points = params.max_points // 2 if level is coarse else params.max_points
         es = render_edges(rendered, weights=weights, max_points=n_points)
         es = es.select(es.weight > 0)
         return es, level.chamfer.layers_for(es.kind, es.orientation)
@@ -1447,7 +1512,7 @@ def align_edges(
             both = _union(es, es_new)
             layer_both = np.concatenate([layer, layer_new])
             s_old, _ = _score_pose(level, both, pose, layer_both, 1.0)
-            s_new, frac = _score_pose(level, both, new, layer_both, inlier_px / level.to_ref)
+            s_new, frac = _score_pose(level, both, new, layer_both, params.inlier_px / level.to_ref)
             if s_new >= s_old:
                 break
             pose, es, layer = new, es_new, layer_new
@@ -1460,20 +1525,20 @@ def align_edges(
     if stop():
         return fail("cancelled")
     t0 = time.perf_counter()
-    coarse = _Level(intrinsics, photo_rgb, widths[0], truncate_px, oriented)
+    coarse = _Level(intrinsics, photo_rgb, widths[0], params.truncate_px, params.oriented)
     if not coarse.edges.edges.any():
         return fail("the photo has no edges")
     # A render wider than the photo by the search range: a turned camera
     # sees edges that the start's view does not.
-    yaw_r, pitch_r, roll_r = search_rotation_deg
+    yaw_r, pitch_r, roll_r = params.search_rotation_deg
     diag = math.radians(roll_r) * 0.5 * math.hypot(intrinsics.width, intrinsics.height)
     margin = (yaw_r + math.degrees(diag / intrinsics.fx) + 1.0,
               pitch_r + math.degrees(diag / intrinsics.fy) + 1.0)
     es, layer = edges_at(coarse, start, margin)
     if len(es) < 30:
         return fail(f"the render from the start pose shows only {len(es)} structure edge points")
-    seeds, best_score = _search_turns(coarse, es, layer, start, search_rotation_deg,
-                                      search_step_deg, keep)
+    seeds, best_score = _search_turns(coarse, es, layer, start, params.search_rotation_deg,
+                                      params.search_step_deg, params.keep)
     record("rotation search", coarse, Pose.from_center(seeds[0], start.center), best_score,
            float("nan"), t0)
     if stop():
@@ -1487,7 +1552,7 @@ def align_edges(
         if len(es_i) < 30:
             continue
         pose = _refine_turn(coarse, es_i, pose, layer_i, robust_px=coarse.robust)
-        s, f = _score_pose(coarse, es_i, pose, layer_i, max(inlier_px / coarse.to_ref, 1.0))
+        s, f = _score_pose(coarse, es_i, pose, layer_i, max(params.inlier_px / coarse.to_ref, 1.0))
         record("rotation", coarse, pose, s, f, t0)
         candidates.append((s, pose))
         if stop():
@@ -1506,7 +1571,7 @@ def align_edges(
         turns, _ = _rotation_grid((1.5, 1.5, 0.0), 0.25)
         step = search_position_m / 2.0
         n_eval = 0
-        while step >= min_step_m and n_eval < 40:
+        while step >= params.min_step_m and n_eval < 40:
             moves = []
             for dx, dy in ((step, 0.0), (-step, 0.0), (0.0, step), (0.0, -step)):
                 centre = pose.center + np.array([dx, dy, 0.0])
@@ -1538,8 +1603,8 @@ def align_edges(
     level = coarse
     for width in widths[1:] or widths:
         if width != widths[0]:
-            level = _Level(intrinsics, photo_rgb, width, truncate_px, oriented)
-        out = refine_rounds(level, pose, max_rounds)
+            level = _Level(intrinsics, photo_rgb, width, params.truncate_px, params.oriented)
+        out = refine_rounds(level, pose, params.max_rounds)
         if out is None:
             return fail("the render shows too few structure edge points", pose)
         pose, es, layer = out
@@ -1547,7 +1612,7 @@ def align_edges(
             return fail("cancelled", pose)
 
     # ---- scores of the result and of the start, correspondences, verdict
-    inl = inlier_px / level.to_ref
+    inl = params.inlier_px / level.to_ref
     s, f = _score_pose(level, es, pose, layer, inl)
     es0, layer0 = edges_at(level, start)
     s0, _ = _score_pose(level, es0, start, layer0, inl)
@@ -1555,9 +1620,8 @@ def align_edges(
     uv = pose.project(level.intr, es.xyz)
     nearest, _, dist = level.chamfer.nearest(layer, uv)
     close = dist <= inl
-    to_full = lambda p: (p + 0.5) / level.scale - 0.5  # noqa: E731  pixel-centre convention
     corr = EdgeCorrespondences(
-        photo_points=to_full(nearest[close]),
+        photo_points=pixels_to_full(nearest[close], level.scale),
         xyz=es.xyz[close],
         kind=es.kind[close],
         distance_px=dist[close] / level.scale,
@@ -1565,12 +1629,12 @@ def align_edges(
     score, start_score = s * level.to_ref, s0 * level.to_ref
     agreement = _agreement(level.edges, es, uv, inl).score
     ok, reason = True, ""
-    if f < min_inlier_fraction:
+    if f < params.min_inlier_fraction:
         ok, reason = False, (f"only {f:.0%} of the edge points lie on photo edges "
-                             f"(need {min_inlier_fraction:.0%})")
-    elif agreement < min_agreement:
+                             f"(need {params.min_inlier_fraction:.0%})")
+    elif agreement < params.min_agreement:
         ok, reason = False, (f"the edges agree little better than chance (edge score "
-                             f"{agreement:.2f}, need {min_agreement:.2f})")
+                             f"{agreement:.2f}, need {params.min_agreement:.2f})")
     elif score >= start_score:
         ok, reason = False, "the edges fit no better than from the start pose"
     return EdgeAlignment(ok, pose, start, score, start_score, f, len(es), history,
@@ -1632,6 +1696,9 @@ def edge_agreement(
         Render width with a Scene.
     kinds : tuple of int
         Edge kinds that count.
+    render_fn : RenderFn, optional
+        ``render_fn(intrinsics, pose, scale) -> RenderResult`` with a Scene
+        (default :func:`~napari_imgreg.render.render` in ``auto`` mode).
 
     Returns
     -------
@@ -1640,8 +1707,10 @@ def edge_agreement(
     if isinstance(source, Scene):
         if pose is None or intrinsics is None:
             raise ValueError("edge_agreement needs pose and intrinsics with a Scene")
-        scale = min(1.0, width / intrinsics.width)
-        rendered = (render_fn or _default_render)(source, intrinsics, pose, scale)
+        scale = match_scale(intrinsics.width, width)
+        render_fn = (scene_renderer(source) if render_fn is None
+                     else as_render_fn(render_fn, source, "edge_agreement"))
+        rendered = render_fn(intrinsics, pose, scale)
     else:
         rendered = source
     h, w = rendered.shape
@@ -1650,7 +1719,7 @@ def edge_agreement(
             raise ValueError(f"photo edges are {photo.shape}, the render is {(h, w)}")
         pe = photo
     else:
-        pe = photo_edges(_resize_to(photo, (w, h)))
+        pe = photo_edges(resize_to(photo, (w, h)))
     es = render_edges(rendered, max_points=4000)
     es = es.select(np.isin(es.kind, kinds))
     return _agreement(pe, es, es.points_px, within_px / (REFERENCE_WIDTH / w))

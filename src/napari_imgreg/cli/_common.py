@@ -1,0 +1,93 @@
+"""What every ``napari-imgreg`` command shares: exit codes, the error line,
+atomic output files, ``--params`` and scene loading.
+
+Exit codes (contract §8): :data:`EXIT_OK` (0) success, :data:`EXIT_FAILED` (1)
+a registration that failed its quality bar, :data:`EXIT_BAD_INPUT` (2) bad
+input, reported as one line on stderr naming the file and the problem;
+:data:`EXIT_INTERRUPTED` (130) after Ctrl-C, as a shell reports SIGINT.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from napari_imgreg._atomic import atomic_path, atomic_write
+from napari_imgreg.scene import Scene
+
+if TYPE_CHECKING:  # the commands import their backend when run: a fast --help
+    from napari_imgreg.registration.params import RegistrationParams
+
+__all__ = [
+    "EXIT_OK",
+    "EXIT_FAILED",
+    "EXIT_BAD_INPUT",
+    "EXIT_INTERRUPTED",
+    "one_line",
+    "print_error",
+    "write_json",
+    "write_npy",
+    "read_params",
+    "load_scene",
+    "progress_printer",
+]
+
+EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_INTERRUPTED = 130
+
+
+def one_line(exc: BaseException) -> str:
+    """The message of ``exc`` with its whitespace runs (newlines too) made single
+    spaces; the exception's type name when it has no message."""
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def print_error(command: str, message: object) -> None:
+    """Print ``napari-imgreg COMMAND: error: MESSAGE`` on stderr."""
+    print(f"napari-imgreg {command}: error: {message}", file=sys.stderr, flush=True)
+
+
+def write_json(path: str | os.PathLike, data: Any) -> None:
+    """Write ``data`` as indented JSON, atomically: an interrupted write leaves
+    the old file (or none), never half a file."""
+    # json.dump escapes non-ASCII, so the bytes do not depend on the encoding.
+    with atomic_write(path, encoding="utf-8") as fh:
+        json.dump(data, fh, indent=2)
+
+
+def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
+    """Write ``array`` as a NumPy ``.npy`` file, atomically."""
+    with atomic_path(path) as tmp:
+        np.save(tmp, array)
+
+
+def read_params(path: str | os.PathLike | None) -> RegistrationParams:
+    """The registration parameters of a ``--params`` JSON file (any subset of
+    the fields), or the defaults when no file was given."""
+    from napari_imgreg.registration.params import RegistrationParams, load_params
+
+    return load_params(path) if path else RegistrationParams()
+
+
+def load_scene(
+    mesh: str | os.PathLike,
+    georef: str | os.PathLike | None = None,
+    dem: str | os.PathLike | None = None,
+) -> Scene:
+    """The mesh with its georeference and DEM (see :meth:`Scene.load`)."""
+    return Scene.load(mesh, georef=georef, dem=dem)
+
+
+def progress_printer(verbose: bool, indent: str) -> Callable[[Any], None]:
+    """An ``on_progress`` callback for :func:`~napari_imgreg.registration.pipeline.register`
+    that prints ``[ 40%] message`` lines, indented by ``indent``, when ``verbose``."""
+
+    def show(progress) -> None:
+        if verbose and progress.message:
+            print(f"{indent}[{progress.fraction:4.0%}] {progress.message}", flush=True)
+
+    return show

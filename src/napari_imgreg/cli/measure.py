@@ -1,0 +1,111 @@
+"""``napari-imgreg measure``: orientations of projected traces and facets (contract §6, §8).
+
+Fits each trace's 3D line (plunge/trend) and, where it crosses enough relief,
+its plane (dip/dip direction); fits each facet's plane to the surface inside
+it; writes MEASUREMENTS.csv and optionally a stereonet. Bad input raises
+:class:`~napari_imgreg.errors.InputError`, which the main command turns into
+one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from napari_imgreg.cli._common import EXIT_OK
+from napari_imgreg.errors import input_error
+
+__all__ = ["add_parser", "run"]
+
+#: Why a plane was rejected: (a word of its ``note``, the summary's wording).
+_REJECTIONS = (
+    ("planarity", "planarity below the threshold (a line or a blob)"),
+    ("relief", "trace nearly straight (too little relief)"),
+    ("outcrop surface", "plane is the outcrop surface (surface effect)"),
+    ("points", "too few points"),
+)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``measure`` sub-command; its handler is :func:`run`."""
+    p = subparsers.add_parser(
+        "measure",
+        help="plunge/trend and dip/dip direction of projected traces and facets (CSV)",
+        description="Fit each trace's best 3D line (plunge/trend) and, where it crosses "
+        "enough relief, its best plane (dip/dip direction); fit each facet's plane to the "
+        "surface inside it. Planes are vetted as CloudCompare's Compass does (planarity, "
+        "surface effect) plus a relief test; rejected ones leave the cells empty and say "
+        "why in 'note'. Writes MEASUREMENTS.csv (contract §6) and optionally a stereonet.",
+    )
+    p.add_argument("lines3d", metavar="LINES3D.geojson", help="output of `project`")
+    p.add_argument("--out", required=True, metavar="MEASUREMENTS.csv")
+    p.add_argument("--stereonet", metavar="PNG",
+                   help="also draw poles, great circles, Fisher means and α95 per label")
+    p.add_argument("--min-planarity", type=float, default=0.75,
+                   help="Compass planarity 1 - λ3/λ2 a plane needs (default 0.75)")
+    p.add_argument("--surface-effect", type=float, default=10.0, metavar="DEG",
+                   help="reject a trace's plane within this angle of the outcrop surface "
+                   "(default 10°)")
+    p.add_argument("--min-relief", type=float, default=0.05,
+                   help="sqrt(λ2/λ1) a trace needs to define a plane (default 0.05)")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``measure``: fit lines and planes, write MEASUREMENTS.csv (and a stereonet)."""
+    from napari_imgreg.interpret.structural import (
+        FitThresholds,
+        dip_dip_direction,
+        fisher_mean,
+        pole_of_plane,
+        save_stereonet,
+        vector_from_plunge_trend,
+    )
+    from napari_imgreg.interpret.project import measure_features
+    from napari_imgreg.interpret.files import read_features_geojson, write_measurements_csv
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".csv":
+        raise input_error(out, "output must be a .csv file")
+    if args.stereonet and Path(args.stereonet).suffix.lower() not in (".png", ".svg", ".pdf"):
+        raise input_error(args.stereonet, "stereonet must be .png, .svg or .pdf")
+    if not 0.0 <= args.min_planarity <= 1.0:
+        raise input_error(None, "--min-planarity must be in [0, 1]")
+    features, frame = read_features_geojson(args.lines3d)
+    thresholds = FitThresholds(
+        min_planarity=args.min_planarity, surface_effect_deg=args.surface_effect,
+        min_relief=args.min_relief,
+    )
+    measurements = measure_features(features, thresholds)
+    write_measurements_csv(out, measurements)
+    n_planes = sum(m.has_plane for m in measurements)
+    n_traces = sum(m.kind == "trace" for m in measurements)
+    n_facets = sum(m.kind == "facet" for m in measurements)
+    print(
+        f"{len(measurements)} feature(s) measured from {args.lines3d}: {n_traces} trace(s), "
+        f"{n_facets} facet(s); {n_planes} with a well-posed plane"
+    )
+    for label in sorted({m.label for m in measurements}):
+        planes = [m for m in measurements if m.label == label and m.has_plane]
+        if not planes:
+            continue
+        poles = [vector_from_plunge_trend(*pole_of_plane(m.dip_deg, m.dip_direction_deg))
+                 for m in planes]
+        fm = fisher_mean(poles)
+        dip, ddir = dip_dip_direction(fm.vector)
+        a95 = f", α95 {fm.alpha95_deg:.1f}°, k {fm.kappa:.0f}" if fm.alpha95_deg is not None else ""
+        print(f"  {label}: {len(planes)} plane(s), Fisher mean dip {dip:.1f}° toward "
+              f"{ddir:.1f}°{a95}")
+    for key, why in _REJECTIONS:
+        n = sum(1 for m in measurements if m.note.startswith("no plane") and key in m.note)
+        if n:
+            print(f"  no plane for {n}: {why}")
+    if frame.get("frame") == "crs":
+        print(f"  centroids in {frame.get('crs', 'the file CRS')}")
+    if args.stereonet:
+        save_stereonet(args.stereonet, measurements,
+                       colors={m.label: m.color for m in measurements if m.color})
+        print(f"  stereonet -> {args.stereonet}")
+    print(f"  -> {out}")
+    return EXIT_OK

@@ -1,0 +1,142 @@
+"""``napari-imgreg project``: lines drawn on a registered photo onto the mesh (contract §5, §8).
+
+Casts the lines and polygons of LINES.geojson (pixel coordinates) through the
+registered camera of RESULT.json onto the mesh, or onto a DEM used as the
+surface, and writes 3D GeoJSON (or CSV / OBJ / PLY by the ``--out`` suffix).
+Bad input raises :class:`~napari_imgreg.errors.InputError`, which the main
+command turns into one line on stderr and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import Counter
+from pathlib import Path
+
+from napari_imgreg.cli._common import EXIT_OK, load_scene
+from napari_imgreg.errors import input_error
+from napari_imgreg.geo import Georef
+from napari_imgreg.io.records import read_json
+from napari_imgreg.prior import load_camera_and_pose
+from napari_imgreg.scene import Scene
+
+__all__ = ["add_parser", "run"]
+
+#: A ``MESH`` with one of these suffixes is a DEM, used as the surface.
+_DEM_SUFFIXES = (".tif", ".tiff", ".asc")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``project`` sub-command; its handler is :func:`run`."""
+    p = subparsers.add_parser(
+        "project",
+        help="project lines drawn on a registered photo onto the mesh (3D GeoJSON)",
+        description="Cast the lines and polygons of LINES.geojson (pixel [col, row] "
+        "coordinates, properties.label) through the registered camera of RESULT.json onto "
+        "MESH. Lines follow the relief (about one ray per pixel) and are split where they "
+        "leave the surface (sky, holes, occluding ridges), never bridged. Writes 3D "
+        "GeoJSON (or .csv / .obj / .ply by the --out suffix) with properties.source naming "
+        "the photo. Several RESULT.json/LINES.geojson pairs merge into one file.",
+    )
+    p.add_argument("result", metavar="RESULT.json",
+                   help="registration result (a sensor record works too: its prior pose)")
+    p.add_argument("mesh", metavar="MESH",
+                   help="OBJ+MTL+image, PLY, GLB/GLTF, or a DEM (.tif/.asc) as the surface")
+    p.add_argument("lines", metavar="LINES.geojson", help="interpretations drawn on the photo")
+    p.add_argument("--also", nargs=2, action="append", default=[],
+                   metavar=("RESULT.json", "LINES.geojson"),
+                   help="another photo's result and lines, merged into the same output "
+                   "(repeatable)")
+    p.add_argument("--out", required=True, metavar="LINES3D.geojson",
+                   help="3D output: .geojson, .csv (vertices), .obj or .ply (polylines)")
+    p.add_argument("--georeferenced", action="store_true",
+                   help="write CRS coordinates (local + georef origin) instead of local ones")
+    p.add_argument("--georef", help="georef.json (default: the one beside MESH, if any)")
+    p.add_argument("--dem", help="DEM GeoTIFF or .asc (altitude for a sensor-record pose)")
+    p.add_argument("--step", type=float, default=1.0, metavar="PX",
+                   help="sample spacing along the lines, pixels (default 1)")
+    p.add_argument("--grazing", type=float, default=5.0, metavar="DEG",
+                   help="split where the surface would be seen more obliquely than this "
+                   "(default 5°)")
+    p.set_defaults(func=run)
+    return p
+
+
+def _load_surface(mesh: str, georef: str | None, dem: str | None) -> Scene:
+    """The mesh, or the DEM given as ``MESH`` (with the georef.json beside it,
+    unless ``--georef`` names one)."""
+    path = Path(mesh)
+    if not path.exists():
+        raise input_error(path, "no such file")
+    if path.suffix.lower() in _DEM_SUFFIXES:
+        g = Georef.load(georef) if georef else None
+        if g is None and (path.parent / "georef.json").exists():
+            g = Georef.load(path.parent / "georef.json")
+        return Scene.from_dem(path, georef=g)
+    return load_scene(path, georef, dem)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``project``: cast the drawn lines onto the mesh, write LINES3D."""
+    from napari_imgreg.interpret.files import (
+        EXPORT_SUFFIXES,
+        export_features,
+        read_interpretations,
+    )
+    from napari_imgreg.interpret.project import (
+        ProjectionParams,
+        merge_interpretations,
+        project_interpretations,
+    )
+
+    out = Path(args.out)
+    if out.suffix.lower() not in EXPORT_SUFFIXES + (".gpkg",):
+        raise input_error(out, f"output must be one of {', '.join(EXPORT_SUFFIXES)}")
+    if args.step <= 0:
+        raise input_error(None, "--step must be positive")
+    pairs = [(args.result, args.lines)] + [tuple(p) for p in args.also]
+    for result, lines in pairs:
+        for f in (result, lines):
+            if not Path(f).exists():
+                raise input_error(f, "no such file")
+    # Read every input before the (slower) mesh, so bad input fails fast.
+    drawn = [read_interpretations(lines) for _, lines in pairs]
+    scene = _load_surface(args.mesh, args.georef, args.dem)
+    if args.georeferenced and scene.georef is None:
+        raise input_error(
+            args.mesh, "--georeferenced needs a georeference (georef.json beside the mesh "
+            "or --georef)")
+    params = ProjectionParams(step_px=args.step, grazing_deg=args.grazing)
+    sets = []
+    for (result, lines), items in zip(pairs, drawn):
+        intr, pose, kind, notes = load_camera_and_pose(
+            result, scene.georef, scene.dem, scene.terrain_height)
+        data = read_json(result)
+        photo = str(data.get("photo") or Path(result).stem) if isinstance(data, dict) else ""
+        status = data.get("status") if isinstance(data, dict) else None
+        if kind == "prior":
+            print(f"  warning: {result} is a sensor record: projecting with the PRIOR pose")
+        elif status and status != "registered":
+            print(f"  warning: {result} status is {status!r}: lines may be misplaced")
+        features = project_interpretations(scene, intr, pose, items, source=photo, params=params)
+        sets.append(features)
+        n_parts = sum(len(f.parts) for f in features)
+        split = sum(1 for f in features if len(f.parts) > 1)
+        off = sum(1 for f in features if not f.parts)
+        print(
+            f"{photo}: {len(features)} feature(s) from {lines} -> {n_parts} part(s) on "
+            f"{scene.name}" + (f"; {split} split where they left the surface" if split else "")
+            + (f"; {off} entirely off the surface" if off else "")
+        )
+        for note in notes:
+            print(f"  assumed: {note}")
+    merged = merge_interpretations(*sets)
+    export_features(out, merged, scene.georef, args.georeferenced)
+    labels = Counter(f.label for f in merged)
+    frame = f"{scene.georef.crs} (local + origin)" if args.georeferenced else "local frame"
+    print(
+        f"  {len(merged)} feature(s) ("
+        + ", ".join(f"{n} {label}" for label, n in sorted(labels.items()))
+        + f"), {frame} -> {out}"
+    )
+    return EXIT_OK

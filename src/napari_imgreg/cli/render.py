@@ -1,0 +1,84 @@
+"""``napari-imgreg render``: render a mesh from a prior or a registered pose (contract §8).
+
+The pose comes from a sensor record (contract §3: the prior) or a
+RESULT.json (§4: the registered pose). Writes the colour image and, on
+request, the z-depth and per-pixel model coordinates as ``.npy`` arrays.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from napari_imgreg.cli._common import EXIT_OK, load_scene, write_npy
+from napari_imgreg.errors import input_error
+from napari_imgreg.io.photos import save_image
+from napari_imgreg.prior import load_camera_and_pose
+from napari_imgreg.render import render
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``render`` sub-command; its handler is :func:`run`."""
+    p = subparsers.add_parser(
+        "render",
+        help="render a mesh from a prior (sensor record) or a RESULT.json pose",
+        description="Render colour (and optionally depth / xyz) of MESH from the pose in "
+        "PRIOR_OR_RESULT.json: a sensor record (contract §3) or a registration result (§4).",
+    )
+    p.add_argument("mesh", metavar="MESH", help="OBJ+MTL+image, PLY or GLB/GLTF")
+    p.add_argument("pose_file", metavar="PRIOR_OR_RESULT.json")
+    p.add_argument("--out", required=True, metavar="RENDER.png", help="colour image to write")
+    p.add_argument("--depth", metavar="DEPTH.npy", help="also write z-depth (metres, NaN = no hit)")
+    p.add_argument("--xyz", metavar="XYZ.npy", help="also write per-pixel model coordinates (H, W, 3)")
+    p.add_argument("--dem", help="DEM GeoTIFF or .asc (altitude for priors without one)")
+    p.add_argument("--georef", help="georef.json (default: the one beside MESH, if any)")
+    p.add_argument("--scale", type=float, default=1.0, help="resolution factor (default 1)")
+    p.add_argument(
+        "--mode", default="auto", choices=["auto", "color", "shaded", "color_shaded", "normal"],
+        help="colouring (default: texture or colours, shading for plain meshes)",
+    )
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``render``: load the scene and the pose, render, write the images."""
+    out = Path(args.out)
+    if out.suffix.lower() not in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+        raise input_error(out, "output must be .png, .jpg or .tif")
+    if args.depth and Path(args.depth).suffix.lower() != ".npy":
+        raise input_error(args.depth, "depth output must be a .npy file")
+    pose_file = Path(args.pose_file)
+    if not pose_file.exists():
+        raise input_error(pose_file, "no such file")
+    scene = load_scene(args.mesh, args.georef, args.dem)
+    intr, pose, kind, notes = load_camera_and_pose(
+        pose_file, scene.georef, scene.dem, scene.terrain_height
+    )
+    t0 = time.perf_counter()
+    result = render(scene, intr, pose, scale=args.scale, mode=args.mode)
+    elapsed = time.perf_counter() - t0
+    save_image(out, result.rgb)
+    if args.depth:
+        write_npy(args.depth, result.depth)
+    if args.xyz:
+        write_npy(args.xyz, result.xyz)
+    trend, plunge, roll = pose.attitude
+    x, y, z = pose.center
+    print(
+        f"rendered {scene.name} ({scene.n_faces:,} triangles) from the {kind} pose "
+        f"at ({x:.1f}, {y:.1f}, {z:.1f}) m, trend {trend:.1f}° plunge {plunge:.1f}° "
+        f"roll {roll:.1f}°"
+    )
+    for note in notes + scene.warnings:
+        print(f"  assumed: {note}")
+    h, w = result.shape
+    print(
+        f"  {w}×{h} px in {elapsed:.2f} s, surface covers {result.coverage:.0%} "
+        f"of the image -> {out}"
+        + (f", depth -> {args.depth}" if args.depth else "")
+    )
+    return EXIT_OK

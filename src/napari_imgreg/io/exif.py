@@ -1,0 +1,500 @@
+"""Photo metadata: EXIF capture time, GPS position and DJI XMP gimbal angles.
+
+The one place where EXIF and XMP tags are read and interpreted:
+
+* :func:`exif_of_image`: the tags of an open PIL image by name, as
+  :func:`napari_imgreg.io.photos.load_photo` stores them in ``Photo.exif``;
+* :func:`read_capture_time`: when the photo was taken, time zone included,
+  and how that was found (Exif 2.31 offsets, GPS time, an assumed zone);
+* :func:`gps_degrees`: EXIF GPS degrees/minutes/seconds to signed degrees;
+* :func:`dji_gimbal_angles` / :func:`attitude_from_dji_gimbal`: a drone's
+  camera attitude from its XMP packet (:func:`raw_xmp` finds the packet in
+  files PIL does not parse it from);
+* :func:`record_from_exif`: a sensor record (contract §3) from all of these.
+
+Tags are looked up by name (``"DateTimeOriginal"``, GPS tags in a
+``"GPSInfo"`` mapping, the XMP packet under ``"XMP"``); values may be str or
+bytes, rationals PIL ``IFDRational``, numbers or ``(num, den)`` pairs.
+
+This module is backend only: no Qt or napari imports.
+
+References
+----------
+.. [1] CIPA DC-008-2016 (Exif 2.31): ``OffsetTimeOriginal`` and the GPS
+   time tags.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta, timezone, tzinfo
+from pathlib import Path
+from typing import Any, Mapping
+
+from napari_imgreg.camera import Intrinsics
+from napari_imgreg.errors import InputError, input_error
+from napari_imgreg.io.records import SensorRecord
+
+__all__ = [
+    "CaptureTime",
+    "read_capture_time",
+    "capture_time_from_exif",
+    "gps_degrees",
+    "exif_of_image",
+    "read_photo_xmp_and_gps",
+    "raw_xmp",
+    "dji_gimbal_angles",
+    "attitude_from_dji_gimbal",
+    "record_from_exif",
+]
+
+
+# ---------------------------------------------------------------------------
+# capture time
+# ---------------------------------------------------------------------------
+
+_EXIF_DATETIME = re.compile(
+    r"^\s*(\d{4})[:\-](\d{2})[:\-](\d{2})[ T](\d{2}):(\d{2}):(\d{2})(?:[.,](\d+))?\s*$"
+)
+_EXIF_DATE = re.compile(r"^\s*(\d{4})[:\-](\d{2})[:\-](\d{2})\s*$")
+_UTC_OFFSET = re.compile(r"^\s*(?:(Z)|([+-])(\d{2}):?(\d{2}))\s*$")
+
+
+@dataclass(frozen=True)
+class CaptureTime:
+    """When a photo was taken, and how we know.
+
+    Attributes
+    ----------
+    when : datetime or None
+        Time-zone aware capture instant; None when the EXIF cannot fix it.
+    source : str
+        ``"DateTimeOriginal+OffsetTimeOriginal"`` (or ``+OffsetTimeDigitized``,
+        ``+OffsetTime``), ``"GPSDateStamp+GPSTimeStamp"``,
+        ``"DateTimeOriginal+assumed time zone"`` or ``"none"``.
+    notes : tuple of str
+        What was assumed or found odd, for the user (e.g. a guessed time zone).
+    """
+
+    when: datetime | None
+    source: str
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def _text(value: Any) -> str | None:
+    """EXIF ASCII value (str or bytes, NUL padded) → stripped str, or None."""
+    if value is None:
+        return None
+    if isinstance(value, (bytes, bytearray)):
+        value = bytes(value).decode("ascii", "replace")
+    s = str(value).strip("\x00 \t")
+    return s or None
+
+
+def _parse_local_datetime(value: Any, subsec: Any = None) -> datetime | None:
+    """``"YYYY:MM:DD HH:MM:SS"`` (+ SubSecTime digits) → naive datetime, None if blank/bad."""
+    if isinstance(value, datetime):
+        return value.replace(tzinfo=None) if value.tzinfo is None else value
+    s = _text(value)
+    m = _EXIF_DATETIME.match(s) if s else None
+    if m is None:
+        return None
+    y, mo, d, hh, mm, ss, frac = m.groups()
+    sub = frac or _text(subsec)
+    micro = 0
+    if sub and sub.isdigit():
+        micro = int(round(float("0." + sub) * 1e6))
+    try:
+        return datetime(int(y), int(mo), int(d), int(hh), int(mm), int(ss)) + timedelta(
+            microseconds=micro
+        )
+    except ValueError:  # "0000:00:00 00:00:00" and other placeholders
+        return None
+
+
+def _parse_offset(value: Any) -> timezone | None:
+    """``"+02:00"`` / ``"-0700"`` / ``"Z"`` → fixed-offset tzinfo, None if blank/bad."""
+    s = _text(value)
+    m = _UTC_OFFSET.match(s) if s else None
+    if m is None:
+        return None
+    if m.group(1):
+        return timezone.utc
+    sign = -1 if m.group(2) == "-" else 1
+    hours, minutes = int(m.group(3)), int(m.group(4))
+    if hours > 14 or minutes >= 60:
+        return None
+    return timezone(sign * timedelta(hours=hours, minutes=minutes))
+
+
+def _number(v: Any) -> float:
+    """An EXIF rational (IFDRational, (num, den) tuple, number) → float."""
+    if isinstance(v, (tuple, list)) and len(v) == 2:
+        return float(v[0]) / float(v[1])
+    return float(v)
+
+
+def _gps_utc(gps: Mapping[str, Any]) -> datetime | None:
+    """GPSDateStamp + GPSTimeStamp (UTC by definition) → aware datetime, or None."""
+    date_s = _text(gps.get("GPSDateStamp"))
+    stamp = gps.get("GPSTimeStamp")
+    dm = _EXIF_DATE.match(date_s) if date_s else None
+    if dm is None or stamp is None:
+        return None
+    try:
+        if isinstance(stamp, (str, bytes)):
+            hms = [float(p) for p in (_text(stamp) or "").split(":")]
+        else:
+            hms = [_number(p) for p in stamp]
+        if len(hms) != 3 or not all(math.isfinite(v) for v in hms):
+            return None
+        seconds = hms[0] * 3600.0 + hms[1] * 60.0 + hms[2]
+        if not 0.0 <= seconds < 86400.5:
+            return None
+        day = datetime(int(dm.group(1)), int(dm.group(2)), int(dm.group(3)), tzinfo=timezone.utc)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return day + timedelta(seconds=seconds)
+
+
+def _as_tzinfo(zone: str | timedelta | tzinfo) -> tzinfo:
+    """``"+02:00"``, an IANA name (``"Europe/Madrid"``), a timedelta or a tzinfo → tzinfo."""
+    if isinstance(zone, tzinfo):
+        return zone
+    if isinstance(zone, timedelta):
+        return timezone(zone)
+    tz = _parse_offset(zone)
+    if tz is not None:
+        return tz
+    from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+    try:
+        return ZoneInfo(str(zone))
+    except (ZoneInfoNotFoundError, ValueError):
+        raise InputError(
+            f"time zone {zone!r} is neither a UTC offset like '+02:00' nor a known "
+            "IANA name like 'Europe/Madrid'"
+        ) from None
+
+
+def _tz_label(tz: tzinfo, at: datetime) -> str:
+    off = tz.utcoffset(at) or timedelta(0)
+    total = int(off.total_seconds() // 60)
+    sign = "-" if total < 0 else "+"
+    label = f"UTC{sign}{abs(total) // 60:02d}:{abs(total) % 60:02d}"
+    key = getattr(tz, "key", None)  # ZoneInfo name
+    return f"{key} ({label})" if key else label
+
+
+def read_capture_time(
+    exif: Mapping[str, Any],
+    assume_time_zone: str | timedelta | tzinfo | None = None,
+) -> CaptureTime:
+    """The capture instant of a photo from its EXIF, with how it was found.
+
+    Order: (1) ``DateTimeOriginal`` (+ ``SubsecTimeOriginal``) with its
+    Exif 2.31 offset ``OffsetTimeOriginal`` (else ``OffsetTimeDigitized``,
+    else ``OffsetTime``: phones write them alike); (2) the GPS fix time
+    ``GPSDateStamp`` + ``GPSTimeStamp`` (UTC); (3) a ``DateTimeOriginal``
+    without any zone: only with ``assume_time_zone``, and the note says the
+    zone was assumed. Otherwise ``when`` is None: the time zone is never
+    guessed silently (an hour off moves the sun ~15° in azimuth).
+
+    Parameters
+    ----------
+    exif : mapping
+        Tags by name as :func:`napari_imgreg.io.photos.load_photo` gives
+        them: EXIF and IFD0 tags at the top level, GPS tags in a
+        ``"GPSInfo"`` mapping (GPS tags at the top level are accepted too).
+        Values may be str or bytes; rationals as PIL ``IFDRational``,
+        numbers or ``(num, den)`` pairs.
+    assume_time_zone : str, timedelta or tzinfo, optional
+        Zone for a zone-less ``DateTimeOriginal``: ``"+02:00"`` or, better
+        (daylight saving is then right), an IANA name ``"Europe/Madrid"``.
+
+    Returns
+    -------
+    CaptureTime
+    """
+    gps = exif.get("GPSInfo")
+    if not isinstance(gps, Mapping):  # an empty GPS IFD leaves its offset (an int)
+        gps = exif
+    local = _parse_local_datetime(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal"))
+    gps_time = _gps_utc(gps)
+    notes: list[str] = []
+
+    if local is not None and local.tzinfo is not None:  # an aware datetime was given
+        return CaptureTime(local, "DateTimeOriginal", ())
+    if local is not None:
+        for tag in ("OffsetTimeOriginal", "OffsetTimeDigitized", "OffsetTime"):
+            tz = _parse_offset(exif.get(tag))
+            if tz is None:
+                continue
+            when = local.replace(tzinfo=tz)
+            if tag != "OffsetTimeOriginal":
+                notes.append(f"time zone of DateTimeOriginal taken from EXIF {tag}")
+            if gps_time is not None:
+                gap_min = abs((when - gps_time).total_seconds()) / 60.0
+                if gap_min > 5.0:
+                    notes.append(
+                        f"camera clock and GPS time differ by {gap_min:.0f} min; "
+                        "using the camera clock"
+                    )
+            return CaptureTime(when, f"DateTimeOriginal+{tag}", tuple(notes))
+    if gps_time is not None:
+        notes.append("capture time from the GPS time stamp (UTC)")
+        return CaptureTime(gps_time, "GPSDateStamp+GPSTimeStamp", tuple(notes))
+    if local is not None:
+        if assume_time_zone is not None:
+            tz = _as_tzinfo(assume_time_zone)
+            when = local.replace(tzinfo=tz)
+            notes.append(
+                f"EXIF capture time {local.isoformat(sep=' ')} has no time zone: "
+                f"assumed {_tz_label(tz, when)}"
+            )
+            return CaptureTime(when, "DateTimeOriginal+assumed time zone", tuple(notes))
+        notes.append(
+            f"EXIF capture time {local.isoformat(sep=' ')} has no time zone (no "
+            "OffsetTimeOriginal, no GPS time stamp): capture time unknown; give the "
+            "photo's time zone to use it"
+        )
+        return CaptureTime(None, "none", tuple(notes))
+    return CaptureTime(None, "none", ("no capture time in the photo's EXIF",))
+
+
+def capture_time_from_exif(
+    exif: Mapping[str, Any],
+    assume_time_zone: str | timedelta | tzinfo | None = None,
+) -> datetime | None:
+    """The time-zone-aware capture instant from EXIF, or None.
+
+    A ``DateTimeOriginal`` without ``OffsetTime*`` and without GPS time gives
+    None unless ``assume_time_zone`` is given; see :func:`read_capture_time`
+    (which also says how the time was found) for the rules.
+    """
+    return read_capture_time(exif, assume_time_zone).when
+
+
+# ---------------------------------------------------------------------------
+# GPS position
+# ---------------------------------------------------------------------------
+
+
+def gps_degrees(value: Any, ref: Any) -> float | None:
+    """EXIF GPS degrees/minutes/seconds (+ N/S/E/W reference) to signed degrees.
+
+    Parameters
+    ----------
+    value : sequence of 3 numbers
+        ``GPSLatitude`` or ``GPSLongitude``: degrees, minutes, seconds
+        (rationals or numbers).
+    ref : str or bytes
+        ``GPSLatitudeRef`` / ``GPSLongitudeRef``: ``"S"`` and ``"W"`` are
+        negative.
+
+    Returns
+    -------
+    float or None
+        Degrees (north and east positive); None when ``value`` is missing or
+        not three finite numbers.
+    """
+    try:
+        d, m, sec = (float(v) for v in value)
+    except (TypeError, ValueError):
+        return None
+    deg = d + m / 60.0 + sec / 3600.0
+    if not math.isfinite(deg):
+        return None
+    return -deg if str(ref).strip().upper() in ("S", "W") else deg
+
+
+# ---------------------------------------------------------------------------
+# reading the tags of a file
+# ---------------------------------------------------------------------------
+
+
+def exif_of_image(im: Any) -> dict[str, Any]:
+    """The EXIF tags of an open PIL image, by name.
+
+    Parameters
+    ----------
+    im : PIL.Image.Image
+        An opened image (its pixels need not be decoded).
+
+    Returns
+    -------
+    dict
+        IFD0 and Exif sub-IFD tags at the top level (``FocalLength``,
+        ``Model``, ``DateTimeOriginal``, ...); GPS tags as a dict by name
+        under ``"GPSInfo"`` (absent without GPS); the XMP packet as text
+        under ``"XMP"`` (absent without XMP).
+    """
+    from PIL import ExifTags
+
+    raw_exif = im.getexif()
+    exif: dict[str, Any] = {ExifTags.TAGS.get(k, str(k)): v for k, v in raw_exif.items()}
+    # Camera details (FocalLength, ...) live in the Exif sub-IFD.
+    for k, v in raw_exif.get_ifd(ExifTags.IFD.Exif).items():
+        exif[ExifTags.TAGS.get(k, str(k))] = v
+    gps = raw_exif.get_ifd(ExifTags.IFD.GPSInfo)
+    exif.pop("GPSInfo", None)  # the IFD offset, not the tags
+    if gps:
+        exif["GPSInfo"] = {ExifTags.GPSTAGS.get(k, str(k)): v for k, v in gps.items()}
+    xmp = im.info.get("xmp")
+    if xmp:
+        exif["XMP"] = xmp.decode("utf-8", "replace") if isinstance(xmp, bytes) else xmp
+    return exif
+
+
+def read_photo_xmp_and_gps(path: str | os.PathLike) -> tuple[str | None, dict[str, Any]]:
+    """The XMP packet and the GPS tags of a photo file, without decoding its pixels.
+
+    The XMP packet is PIL's (JPEG ``xmp``, PNG ``XML:com.adobe.xmp``), else
+    the one found in the file's first MiB (TIFF, DNG: see :func:`raw_xmp`).
+
+    Returns
+    -------
+    xmp : str or None
+    gps : dict
+        GPS tags by name (``GPSImgDirection``, ...); empty without GPS.
+
+    Raises
+    ------
+    InputError
+        The file cannot be read as an image.
+    """
+    from PIL import ExifTags, Image, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            xmp = im.info.get("xmp") or im.info.get("XML:com.adobe.xmp")
+            gps = im.getexif().get_ifd(ExifTags.IFD.GPSInfo)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise input_error(path, f"cannot read photo metadata ({exc})") from None
+    xmp_text = xmp.decode("utf-8", "replace") if isinstance(xmp, bytes) else xmp
+    if not xmp_text:
+        xmp_text = raw_xmp(path)
+    return xmp_text, {ExifTags.GPSTAGS.get(k, str(k)): v for k, v in gps.items()}
+
+
+def raw_xmp(path: Path, limit: int = 1 << 20) -> str | None:
+    """The XMP packet found in the first ``limit`` bytes of a file, if any."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(limit)
+    except OSError:
+        return None
+    start = head.find(b"<x:xmpmeta")
+    end = head.find(b"</x:xmpmeta>", start)
+    if start < 0 or end < 0:
+        return None
+    return head[start : end + len(b"</x:xmpmeta>")].decode("utf-8", "replace")
+
+
+# ---------------------------------------------------------------------------
+# DJI gimbal angles (XMP)
+# ---------------------------------------------------------------------------
+
+_DJI_TAGS = ("GimbalYawDegree", "GimbalPitchDegree", "GimbalRollDegree")
+
+
+def dji_gimbal_angles(xmp: str) -> tuple[float, float, float] | None:
+    """(yaw, pitch, roll) from ``drone-dji:Gimbal*Degree`` (attribute or element form)."""
+    values = []
+    for tag in _DJI_TAGS:
+        match = re.search(
+            rf"drone-dji:{tag}\s*=\s*\"([^\"]+)\"|<drone-dji:{tag}>\s*([^<]+?)\s*</", xmp
+        )
+        if match is None:
+            return None
+        try:
+            value = float(match.group(1) or match.group(2))
+        except ValueError:
+            return None
+        if not math.isfinite(value):
+            return None
+        values.append(value)
+    return values[0], values[1], values[2]
+
+
+def attitude_from_dji_gimbal(
+    yaw_deg: float, pitch_deg: float, roll_deg: float
+) -> tuple[float, float, float]:
+    """Contract trend, plunge, roll from DJI gimbal yaw, pitch, roll.
+
+    DJI writes aerospace (NED, Z-Y-X) Euler angles of the gimbal: yaw
+    clockwise from north, pitch positive nose-up (−90 looking straight
+    down), roll positive right side down. Hence trend = yaw mod 360,
+    plunge = −pitch, roll = roll (positive roll lowers the camera x axis,
+    as in contract §2).
+    """
+    return float(yaw_deg) % 360.0, -float(pitch_deg), float(roll_deg)
+
+
+# ---------------------------------------------------------------------------
+# a sensor record from the metadata
+# ---------------------------------------------------------------------------
+
+
+def record_from_exif(photo) -> tuple[SensorRecord, list[str]]:
+    """A sensor record from the photo's metadata, and where each block came from.
+
+    Camera: EXIF focal length (see :meth:`Intrinsics.from_exif`). Position:
+    EXIF GPS latitude/longitude/altitude. Orientation: DJI XMP gimbal angles
+    (drone photos), else EXIF ``GPSImgDirection`` for the trend only.
+
+    Parameters
+    ----------
+    photo : Photo
+        A photo as :func:`napari_imgreg.io.photos.load_photo` reads it.
+
+    Returns
+    -------
+    record : SensorRecord
+        Its ``source`` is the photo's path; blocks the metadata lack are None.
+    notes : list of str
+        One per block found ("position from EXIF GPS", ...).
+    """
+    exif = photo.exif or {}
+    notes: list[str] = []
+    record = SensorRecord(source=photo.path)
+    w, h = photo.size
+    try:
+        record.camera = Intrinsics.from_exif(exif, w, h).to_dict()
+        notes.append("camera from EXIF focal length")
+    except ValueError:
+        pass
+    gps = exif.get("GPSInfo")
+    if not isinstance(gps, Mapping):  # an empty GPS IFD leaves its offset (an int)
+        gps = {}
+    lat = gps_degrees(gps.get("GPSLatitude"), gps.get("GPSLatitudeRef", "N"))
+    lon = gps_degrees(gps.get("GPSLongitude"), gps.get("GPSLongitudeRef", "E"))
+    if lat is not None and lon is not None:
+        record.position = {"lat": lat, "lon": lon}
+        alt = gps.get("GPSAltitude")
+        try:
+            alt = float(alt) if alt is not None else None
+        except (TypeError, ValueError):
+            alt = None
+        if alt is not None and math.isfinite(alt):
+            below = gps.get("GPSAltitudeRef") in (1, b"\x01")
+            record.position["alt"] = -alt if below else alt
+        notes.append("position from EXIF GPS")
+    gimbal = dji_gimbal_angles(exif.get("XMP") or "")
+    if gimbal is not None:
+        trend, plunge, roll = attitude_from_dji_gimbal(*gimbal)
+        record.orientation = {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
+        notes.append("attitude from DJI gimbal angles (XMP)")
+    elif gps.get("GPSImgDirection") is not None:
+        try:
+            record.orientation = {"trend_deg": float(gps["GPSImgDirection"]) % 360.0}
+            notes.append("trend from EXIF GPSImgDirection")
+            if str(gps.get("GPSImgDirectionRef", "T")).strip().upper().startswith("M"):
+                notes.append("trend is a magnetic heading: declination not applied")
+        except (TypeError, ValueError):
+            pass
+    return record, notes

@@ -1,0 +1,430 @@
+"""The orientation of a model from its camera attitudes: :func:`orient` and its result.
+
+:func:`orient` pairs the model's camera orientations with the phone's, runs
+the three estimators, and reads the chosen rotation's residuals into the
+paper's diagnostics; :class:`OrientationResult` holds it all and writes
+ORIENTATION.json.
+
+The rotation is applied about a centre ``c``:
+``X_world = Q (X_model − c) + c``. By default ``c`` is the centroid of the
+estimated camera centres (the model stays where it was, only turned);
+without camera centres it is the model origin.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from napari_imgreg._atomic import atomic_write
+from napari_imgreg.camera import attitude_from_rotation
+from napari_imgreg.errors import input_error
+from napari_imgreg.io.orientation_tables import (
+    OrientationTable,
+    PairedOrientations,
+    pair_tables,
+    read_orientation_table,
+)
+from napari_imgreg.orient.apply import rotate_cameras
+from napari_imgreg.orient.diagnostics import (
+    LinearFit,
+    QualityFlag,
+    fit_line,
+    quality_flags,
+    residual_angles,
+    survey_path_position,
+    unwrap_trend,
+)
+from napari_imgreg.orient.estimate import (
+    METHODS,
+    PAPER_STEP_DEG,
+    RotationEstimate,
+    _axis_angle,
+    _trend_plunge,
+    estimate_rotation_lsq,
+    estimate_rotation_paper,
+    estimate_rotation_robust,
+    lower_hemisphere_axis,
+    rotation_error_deg,
+)
+
+__all__ = ["OrientationResult", "orient", "orient_files", "save_orientation"]
+
+@dataclass
+class OrientationResult:
+    """The orientation of a model and its diagnostics (ORIENTATION.json).
+
+    Attributes
+    ----------
+    method : str
+        The estimator whose rotation is the result.
+    estimates : dict of str to RotationEstimate
+        All three estimators' results.
+    center : (3,) array
+        Rotation centre in the model frame, metres.
+    center_source : str
+        ``"cameras"`` (centroid of estimated camera centres), ``"origin"``
+        or ``"given"``.
+    photos : list of str
+        Paired photos, in capture order of the MEASURED table.
+    delta_xi_deg, delta_rho_deg : (N,) arrays
+        Signed residuals under the chosen rotation, degrees.
+    path_position : (N,) array
+        Position along the survey path, 0–1.
+    path_position_source : str
+    measured_trend_deg : (N,) array
+        Measured trend unwrapped about its circular mean, degrees.
+    measured : (N, 3, 3) array
+        ``cam_from_world`` measured.
+    oriented : (N, 3, 3) array
+        ``cam_from_world`` of the estimated cameras after rotation.
+    oriented_positions : (N, 3) array or None
+        Estimated camera centres after rotation, metres.
+    fits : dict of str to LinearFit or None
+        ``delta_xi_vs_path``, ``delta_rho_vs_path``, ``delta_xi_vs_trend``,
+        ``delta_rho_vs_trend``.
+    flags : list of QualityFlag
+    notes : list of str
+    inputs : dict
+        Where the tables came from.
+    """
+
+    method: str
+    estimates: dict[str, RotationEstimate]
+    center: np.ndarray
+    center_source: str
+    photos: list[str]
+    delta_xi_deg: np.ndarray
+    delta_rho_deg: np.ndarray
+    path_position: np.ndarray
+    path_position_source: str
+    measured_trend_deg: np.ndarray
+    measured: np.ndarray
+    oriented: np.ndarray
+    oriented_positions: np.ndarray | None
+    fits: dict[str, LinearFit | None]
+    flags: list[QualityFlag]
+    notes: list[str] = field(default_factory=list)
+    inputs: dict[str, Any] = field(default_factory=dict)
+
+    # ------------------------------------------------------------ views
+    @property
+    def chosen(self) -> RotationEstimate:
+        return self.estimates[self.method]
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """``Q``, world_from_model, (3, 3)."""
+        return self.chosen.rotation
+
+    @property
+    def angle_deg(self) -> float:
+        return self.chosen.angle_deg
+
+    @property
+    def axis(self) -> np.ndarray:
+        return self.chosen.axis
+
+    @property
+    def transform(self) -> np.ndarray:
+        """4 × 4 world_from_model: ``X_world = Q (X − c) + c``."""
+        T = np.eye(4)
+        T[:3, :3] = self.rotation
+        T[:3, 3] = self.center - self.rotation @ self.center
+        return T
+
+    @property
+    def used(self) -> np.ndarray:
+        """(N,) bool: photos the chosen estimator rests on (the diagnostics use these)."""
+        return self.chosen.inliers
+
+    @property
+    def mean_abs_delta_xi_deg(self) -> float:
+        """Mean |Δξ| over the photos used, degrees."""
+        return float(np.mean(np.abs(self.delta_xi_deg[self.used])))
+
+    @property
+    def mean_abs_delta_rho_deg(self) -> float:
+        """Mean |Δρ| over the photos used, degrees."""
+        return float(np.mean(np.abs(self.delta_rho_deg[self.used])))
+
+    @property
+    def outliers(self) -> list[str]:
+        """Photos the robust estimator set aside."""
+        keep = self.estimates["robust"].inliers
+        return [p for p, k in zip(self.photos, keep) if not k]
+
+    @property
+    def warnings(self) -> list[QualityFlag]:
+        return [f for f in self.flags if f.status == "warn"]
+
+    def summary_lines(self) -> list[str]:
+        """A short human summary (used by the CLI and the widget)."""
+        trend, plunge, angle = lower_hemisphere_axis(self.axis, self.angle_deg)
+        names = {
+            "paper": f"paper (J tensor + {self.estimates['paper'].details['step_deg']:g}° search)",
+            "lsq": "least squares",
+            "robust": "robust",
+        }
+        sense = "clockwise" if angle >= 0 else "anticlockwise"
+        lines = [
+            f"{len(self.photos)} photos paired; {names[self.method]}: rotation {abs(angle):.2f}° "
+            f"{sense} looking down an axis plunging {plunge:.1f}° toward {trend:.1f}° "
+            f"(about the {self._center_text()})",
+        ]
+        for name in METHODS:
+            if name == self.method:
+                continue
+            est = self.estimates[name]
+            lines.append(
+                f"  {names[name]}: {est.angle_deg:.2f}°, "
+                f"{rotation_error_deg(est.rotation, self.rotation):.2f}° from the "
+                f"{self.method} result"
+            )
+        if self.outliers:
+            shown = ", ".join(self.outliers[:6]) + (", ..." if len(self.outliers) > 6 else "")
+            lines.append(f"  robust fit set aside {len(self.outliers)} photo(s): {shown}")
+        lines.append(
+            f"mean |Δξ| {self.mean_abs_delta_xi_deg:.2f}°, "
+            f"mean |Δρ| {self.mean_abs_delta_rho_deg:.2f}°"
+        )
+        for flag in self.flags:
+            label = {"pass": "ok", "warn": "WARNING", "n/a": "n/a"}[flag.status]
+            lines.append(f"  [{label}] {flag.reading}")
+        return lines
+
+    def _center_text(self) -> str:
+        c = ", ".join(f"{v:.2f}" for v in self.center)
+        return {
+            "cameras": f"camera centroid ({c})",
+            "origin": "model origin",
+            "given": f"point ({c})",
+        }[self.center_source]
+
+    # ------------------------------------------------------------- JSON
+    def to_dict(self) -> dict[str, Any]:
+        """ORIENTATION.json content (JSON-ready)."""
+        axis, angle = _axis_angle(self.rotation)
+        trend, plunge = _trend_plunge(axis)
+        lower_trend, lower_plunge, lower_angle = lower_hemisphere_axis(axis, angle)
+        robust_keep = self.estimates["robust"].inliers
+        measured_att = [attitude_from_rotation(R) for R in self.measured]
+        oriented_att = [attitude_from_rotation(R) for R in self.oriented]
+        photos = []
+        for i, name in enumerate(self.photos):
+            entry: dict[str, Any] = {
+                "photo": name,
+                "delta_xi_deg": float(self.delta_xi_deg[i]),
+                "delta_rho_deg": float(self.delta_rho_deg[i]),
+                "path_position": float(self.path_position[i]),
+                "measured_trend_deg": float(self.measured_trend_deg[i]) % 360.0,
+                "measured": dict(zip(("trend_deg", "plunge_deg", "roll_deg"), measured_att[i])),
+                "oriented": dict(zip(("trend_deg", "plunge_deg", "roll_deg"), oriented_att[i])),
+                "robust_outlier": bool(not robust_keep[i]),
+                "used": bool(self.used[i]),
+            }
+            if self.oriented_positions is not None:
+                entry["oriented"]["position"] = self.oriented_positions[i].tolist()
+            photos.append(entry)
+        units = {
+            "delta_xi_vs_path": "degrees per survey path length",
+            "delta_rho_vs_path": "degrees per survey path length",
+            "delta_xi_vs_trend": "degrees per degree of measured trend",
+            "delta_rho_vs_trend": "degrees per degree of measured trend",
+        }
+        slopes = {}
+        for key, fit in self.fits.items():
+            slopes[key] = None if fit is None else {**fit.to_dict(), "units": units[key]}
+        return {
+            "method": self.method,
+            "rotation": {
+                "matrix": self.rotation.tolist(),
+                "axis": axis.tolist(),
+                "axis_trend_deg": trend,
+                "axis_plunge_deg": plunge,
+                "angle_deg": angle,
+                "lower_hemisphere": {
+                    "axis_trend_deg": lower_trend,
+                    "axis_plunge_deg": lower_plunge,
+                    "angle_deg": lower_angle,
+                    "sense": "positive clockwise looking down the plunge",
+                },
+                "center": self.center.tolist(),
+                "center_source": self.center_source,
+                "transform_4x4": self.transform.tolist(),
+                "convention": "X_world = matrix @ (X_model - center) + center; right-handed "
+                "about axis; world +X east, +Y north, +Z up",
+            },
+            "estimators": {name: est.to_dict(self.photos) for name, est in self.estimates.items()},
+            "residuals": {
+                "mean_abs_delta_xi_deg": self.mean_abs_delta_xi_deg,
+                "mean_abs_delta_rho_deg": self.mean_abs_delta_rho_deg,
+                "mean_abs_delta_xi_all_deg": float(np.mean(np.abs(self.delta_xi_deg))),
+                "mean_abs_delta_rho_all_deg": float(np.mean(np.abs(self.delta_rho_deg))),
+                "n_used": int(self.used.sum()),
+                "sign": "positive when the measured vector is clockwise (seen from above) of "
+                "the estimated-and-rotated one",
+                "photos": photos,
+            },
+            "path_position": {
+                "source": self.path_position_source,
+                "definition": "0 at one end of the survey, 1 at the other; grows in capture order",
+            },
+            "slopes": slopes,
+            "flags": [f.to_dict() for f in self.flags],
+            "notes": list(self.notes),
+            "inputs": dict(self.inputs),
+        }
+
+
+# -------------------------------------------------------------- pipeline
+def orient(
+    estimated: OrientationTable | PairedOrientations,
+    measured: OrientationTable | None = None,
+    method: str = "robust",
+    weights: Mapping[str, float] | None = None,
+    center: np.ndarray | str | None = None,
+    step_deg: float = PAPER_STEP_DEG,
+    declination_deg: float = 0.0,
+) -> OrientationResult:
+    """Orient a model from estimated and measured camera attitudes.
+
+    Parameters
+    ----------
+    estimated : OrientationTable or PairedOrientations
+        The model's camera orientations (its frame), or tables already
+        paired by :func:`~napari_imgreg.io.orientation_tables.pair_tables`.
+    measured : OrientationTable
+        The phone's (true north); omit when ``estimated`` is paired.
+    method : {"robust", "lsq", "paper"}
+        Estimator whose rotation is the result (all three are reported).
+    weights : mapping of photo name to weight, optional
+        Per-photo weights for ``lsq`` and ``robust`` (missing names: 1).
+    center : (3,) array, "cameras" or "origin", optional
+        Rotation centre in the model frame. Default: the centroid of the
+        estimated camera centres when known, else the origin.
+    step_deg : float
+        Angle increment of the paper's search, degrees.
+    declination_deg : float
+        Magnetic declination, degrees east of true north, added to the
+        measured trends (for a phone that logs magnetic headings).
+
+    Returns
+    -------
+    OrientationResult
+
+    Raises
+    ------
+    InputError
+        The tables do not pair (see ``pair_tables``).
+    ValueError
+        Unknown ``method``.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if isinstance(estimated, PairedOrientations):
+        paired = estimated
+        inputs: dict[str, Any] = {}
+    else:
+        if measured is None:
+            raise ValueError("give both the estimated and the measured table")
+        paired = pair_tables(estimated, measured)
+        inputs = {
+            "estimated": str(estimated.source) if estimated.source else None,
+            "estimated_format": estimated.kind,
+            "measured": str(measured.source) if measured.source else None,
+            "measured_format": measured.kind,
+        }
+    inputs["n_photos"] = len(paired)
+    inputs["declination_deg"] = float(declination_deg)
+    w = None
+    if weights is not None:
+        w = np.array([float(weights.get(p, 1.0)) for p in paired.photos])
+
+    E, M = paired.estimated, paired.measured
+    if declination_deg:
+        # Turning every measured axis clockwise (seen from above) adds to its trend.
+        M = M @ Rotation.from_rotvec([0.0, 0.0, declination_deg], degrees=True).as_matrix()
+    estimates = {
+        "paper": estimate_rotation_paper(E, M, step_deg),
+        "lsq": estimate_rotation_lsq(E, M, w),
+        "robust": estimate_rotation_robust(E, M, w),
+    }
+    Q = estimates[method].rotation
+
+    positions = paired.estimated_positions
+    if isinstance(center, str):
+        if center == "cameras" and positions is None:
+            raise input_error(
+                inputs.get("estimated"), "no camera centres to rotate about (use the origin)"
+            )
+        if center not in ("cameras", "origin"):
+            raise ValueError(f"center must be 'cameras', 'origin' or a point, got {center!r}")
+        center_source = center
+    elif center is not None:
+        center_source = "given"
+    else:
+        center_source = "cameras" if positions is not None else "origin"
+    if center_source == "cameras":
+        c = positions.mean(axis=0)
+    elif center_source == "origin":
+        c = np.zeros(3)
+    else:
+        c = np.asarray(center, dtype=np.float64).reshape(3)
+
+    d_xi, d_rho = residual_angles(Q, E, M)
+    path_source_positions = positions if positions is not None else paired.measured_positions
+    path_position, path_source = survey_path_position(path_source_positions, paired.capture_order)
+    trend = unwrap_trend(np.degrees(np.arctan2(M[:, 2, 0], M[:, 2, 1])))
+    # Photos the chosen estimator set aside (gross sensor errors) would drive
+    # the fits; they are reported, not fitted.
+    used = estimates[method].inliers
+    fits = {
+        "delta_xi_vs_path": fit_line(path_position[used], d_xi[used]),
+        "delta_rho_vs_path": fit_line(path_position[used], d_rho[used]),
+        "delta_xi_vs_trend": fit_line(trend[used], d_xi[used]),
+        "delta_rho_vs_trend": fit_line(trend[used], d_rho[used]),
+    }
+    mean_abs = max(float(np.mean(np.abs(d_xi[used]))), float(np.mean(np.abs(d_rho[used]))))
+    flags = quality_flags(mean_abs, fits["delta_xi_vs_path"], fits["delta_xi_vs_trend"])
+    oriented, oriented_positions = rotate_cameras(E, positions, Q, c)
+    return OrientationResult(
+        method=method,
+        estimates=estimates,
+        center=c,
+        center_source=center_source,
+        photos=list(paired.photos),
+        delta_xi_deg=d_xi,
+        delta_rho_deg=d_rho,
+        path_position=path_position,
+        path_position_source=path_source,
+        measured_trend_deg=trend,
+        measured=M,
+        oriented=oriented,
+        oriented_positions=oriented_positions,
+        fits=fits,
+        flags=flags,
+        notes=list(paired.notes),
+        inputs=inputs,
+    )
+
+
+def orient_files(
+    estimated_path: str | os.PathLike, measured_path: str | os.PathLike, **kwargs
+) -> OrientationResult:
+    """Read two orientation tables (any supported format) and :func:`orient` them."""
+    estimated = read_orientation_table(estimated_path)
+    measured = read_orientation_table(measured_path)
+    return orient(estimated, measured, **kwargs)
+
+
+def save_orientation(result: OrientationResult, path: str | os.PathLike) -> None:
+    """Write ORIENTATION.json atomically."""
+    with atomic_write(path, encoding="utf-8") as fh:
+        json.dump(result.to_dict(), fh, indent=2, ensure_ascii=False)
+        fh.write("\n")

@@ -1,0 +1,352 @@
+"""The prior of a photo: a camera and a first pose, with what was assumed.
+
+A sensor record (``PHOTO.json``, contract §3, read by
+:mod:`napari_imgreg.io.records`) says what a phone logged for one photo; the
+photo's EXIF/XMP (:mod:`napari_imgreg.io.exif`) may say more.
+:func:`prior_from_record` turns a record into a camera and a prior pose,
+filling gaps (altitude from the DEM, intrinsics from a default) and saying
+what it assumed; :func:`prior_for_photo` does so for a photo, completing its
+record from the metadata and adding the sun at capture
+(:mod:`napari_imgreg.solar`). The prior is the registration's input.
+
+This module is backend only: no Qt or napari imports.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from napari_imgreg._atomic import atomic_write
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.errors import InputError, input_error
+from napari_imgreg.geo import DEFAULT_HEIGHT_ABOVE_GROUND_M, DEM, Georef
+from napari_imgreg.io.exif import record_from_exif
+from napari_imgreg.io.records import (
+    SensorRecord,
+    Sigma,
+    load_sensor_record,
+    parse_sensor_record,
+    read_json,
+)
+from napari_imgreg.solar import sun_for_photo, sun_from_record
+
+__all__ = [
+    "DEFAULT_HEIGHT_ABOVE_GROUND_M",
+    "Prior",
+    "prior_from_record",
+    "prior_for_photo",
+    "load_camera_and_pose",
+    "save_pose_to_record",
+]
+
+
+@dataclass
+class Prior:
+    """A camera and its prior pose, with what was assumed to build it.
+
+    Attributes
+    ----------
+    intrinsics : Intrinsics
+    pose : Pose
+        ``cam_from_world`` of the prior.
+    sigma : Sigma
+    assumptions : list of str
+        Plain-language notes ("altitude from DEM + 1.6 m", ...).
+    sun : (3,) array or None
+        Unit vector toward the sun at capture, local frame (None: unknown).
+    sun_source : str
+        How the sun was found ("EXIF time", "record time", "record sun", ...).
+    """
+
+    intrinsics: Intrinsics
+    pose: Pose
+    sigma: Sigma = field(default_factory=Sigma)
+    assumptions: list[str] = field(default_factory=list)
+    sun: np.ndarray | None = None
+    sun_source: str = ""
+
+
+def prior_from_record(
+    record: SensorRecord,
+    georef: Georef | None = None,
+    dem: DEM | None = None,
+    terrain_height=None,
+    image_size: tuple[int, int] | None = None,
+    height_above_ground_m: float = DEFAULT_HEIGHT_ABOVE_GROUND_M,
+) -> Prior:
+    """Camera and prior pose from a sensor record.
+
+    Parameters
+    ----------
+    record : SensorRecord
+    georef : Georef, optional
+        Needed for geodetic positions and for DEM look-ups in CRS coordinates.
+    dem : DEM, optional
+        Gives the altitude when the record has none.
+    terrain_height : callable, optional
+        ``f(x, y) -> z`` in the local frame, used when there is no DEM (e.g.
+        :meth:`Scene.terrain_height`).
+    image_size : (width, height), optional
+        The photo's size, used when the camera block has none.
+    height_above_ground_m : float
+        Camera height above the DEM surface.
+
+    Returns
+    -------
+    Prior
+
+    Raises
+    ------
+    InputError
+        The record lacks what a pose needs (camera, position, orientation),
+        or a geodetic position comes without a georeference.
+    """
+    src = record.source
+    notes: list[str] = []
+    intrinsics = _intrinsics_of(record, image_size, notes)
+
+    if record.position is None:
+        raise input_error(src, "no 'position' block (needs x, y[, z] or lat, lon[, alt])")
+    pos = record.position
+    if "lat" in pos:
+        if georef is None:
+            raise input_error(src, "geodetic position (lat/lon) needs a georef.json")
+        xyz = np.asarray(
+            georef.geodetic_to_local(float(pos["lat"]), float(pos["lon"]), pos.get("alt")),
+            dtype=np.float64,
+        ).reshape(3)
+        x, y = float(xyz[0]), float(xyz[1])
+        z = float(xyz[2]) if pos.get("alt") is not None else None
+    else:
+        x, y = float(pos["x"]), float(pos["y"])
+        z = float(pos["z"]) if pos.get("z") is not None else None
+    if z is None:
+        if dem is not None:
+            ox, oy, oz = (georef.origin if georef is not None else (0.0, 0.0, 0.0))
+            try:
+                ground = float(dem.height_at(x + ox, y + oy)) - oz
+            except ValueError as exc:
+                raise InputError(f"{src}: {exc}") from None
+            notes.append(f"altitude from DEM + {height_above_ground_m:g} m")
+        elif terrain_height is not None:
+            ground = float(terrain_height(x, y))
+            notes.append(f"altitude from the model surface + {height_above_ground_m:g} m")
+        else:
+            raise input_error(src, "no altitude in 'position' and no DEM to take it from")
+        z = ground + height_above_ground_m
+
+    o = record.orientation
+    if o is None or o.get("trend_deg") is None:
+        raise input_error(src, "no 'orientation.trend_deg' (compass heading) in the record")
+    trend = float(o["trend_deg"])
+    plunge = float(o.get("plunge_deg") or 0.0)
+    roll = float(o.get("roll_deg") or 0.0)
+    if o.get("plunge_deg") is None:
+        notes.append("plunge assumed 0° (level camera)")
+    if o.get("roll_deg") is None:
+        notes.append("roll assumed 0°")
+    pose = Pose.from_attitude(trend, plunge, roll, np.array([x, y, z]))
+    return Prior(intrinsics, pose, record.sigma, notes)
+
+
+def _intrinsics_of(
+    record: SensorRecord, image_size: tuple[int, int] | None, notes: list[str]
+) -> Intrinsics:
+    cam = dict(record.camera or {})
+    if image_size is not None:
+        if "width" in cam and (int(cam["width"]), int(cam["height"])) != tuple(image_size):
+            # The photo may have been resized after logging: scale the camera.
+            notes.append(
+                f"camera block is {cam['width']}×{cam['height']}, photo is "
+                f"{image_size[0]}×{image_size[1]}: intrinsics scaled"
+            )
+            base = Intrinsics.from_dict(cam) if _has_focal(cam) else None
+            if base is not None:
+                return base.scaled(image_size[0] / base.width)
+        cam.setdefault("width", image_size[0])
+        cam.setdefault("height", image_size[1])
+    if "width" not in cam or "height" not in cam:
+        raise input_error(record.source, "no camera width/height in the record and no photo")
+    if not _has_focal(cam):
+        notes.append("no focal length: assumed a 65° horizontal field of view (phone camera)")
+        return Intrinsics.from_fov(int(cam["width"]), int(cam["height"]), 65.0)
+    try:
+        return Intrinsics.from_dict(cam)
+    except (KeyError, ValueError) as exc:
+        raise input_error(record.source, f"field 'camera': {exc}") from None
+
+
+def _has_focal(cam: Mapping) -> bool:
+    return "fx" in cam or ("focal_length_mm" in cam and "sensor_width_mm" in cam) or (
+        "focal_length_35mm" in cam
+    )
+
+
+def load_camera_and_pose(
+    path: str | os.PathLike,
+    georef: Georef | None = None,
+    dem: DEM | None = None,
+    terrain_height=None,
+) -> tuple[Intrinsics, Pose, str, list[str]]:
+    """Camera and pose from either a RESULT.json or a sensor record.
+
+    Returns
+    -------
+    intrinsics, pose, kind, notes
+        ``kind`` is ``"result"`` or ``"prior"``.
+    """
+    data = read_json(path)
+    if isinstance(data, dict) and isinstance(data.get("pose"), dict) and "R" in data["pose"]:
+        try:
+            intr = Intrinsics.from_dict(data["camera"])
+            pose = Pose.from_dict(data["pose"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise input_error(path, f"bad 'camera' or 'pose' in result ({exc})") from None
+        R = pose.R
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
+            raise input_error(path, "field 'pose.R' is not a rotation matrix")
+        return intr, pose, "result", []
+    record = parse_sensor_record(data, path)
+    prior = prior_from_record(record, georef, dem, terrain_height)
+    return prior.intrinsics, prior.pose, "prior", prior.assumptions
+
+
+def save_pose_to_record(
+    path: str | os.PathLike, pose: Pose, camera: Intrinsics | None = None
+) -> dict:
+    """Write a pose into a sensor record (``PHOTO.json``) atomically: the next prior.
+
+    The record's ``position`` becomes the local ``{"x", "y", "z"}`` of the
+    camera centre and its ``orientation`` the pose's trend, plunge and roll
+    (contract §3); every other field (``sigma``, unknown extras) is kept. A
+    missing file is created. With ``camera``, the ``camera`` block is
+    replaced by its pixel form (a solved focal length).
+
+    Parameters
+    ----------
+    path : path-like
+        The sidecar JSON beside the photo.
+    pose : Pose
+    camera : Intrinsics, optional
+
+    Returns
+    -------
+    dict
+        What was written.
+
+    Raises
+    ------
+    InputError
+        The existing file is not a JSON object.
+    """
+    path = Path(path)
+    data: dict = {}
+    if path.exists():
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise input_error(path, f"cannot read the sensor record ({exc})") from None
+        if not isinstance(data, dict):
+            raise input_error(path, "a sensor record must be a JSON object")
+    trend, plunge, roll = pose.attitude
+    x, y, z = (float(v) for v in pose.center)
+    data["position"] = {"x": x, "y": y, "z": z}
+    data["orientation"] = {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
+    if camera is not None:
+        data["camera"] = camera.to_dict()
+    with atomic_write(path, encoding="utf-8") as fh:
+        json.dump(data, fh, indent=1)
+        fh.write("\n")
+    return data
+
+
+def prior_for_photo(
+    photo,
+    scene=None,
+    record_path: str | os.PathLike | None = None,
+    height_above_ground_m: float = DEFAULT_HEIGHT_ABOVE_GROUND_M,
+) -> Prior:
+    """The prior of a photo: its sensor record, completed from its metadata.
+
+    The sensor record (``record_path``, by default the ``.json`` beside the
+    photo) wins; blocks it lacks come from EXIF/XMP (:func:`record_from_exif`),
+    then from defaults. The prior's ``assumptions`` say which.
+
+    Parameters
+    ----------
+    photo : Photo
+    scene : Scene, optional
+        Gives the georeference, the DEM and, without a DEM, the terrain.
+    record_path : path-like, optional
+        Sensor record; defaults to the photo's sidecar.
+
+    Raises
+    ------
+    InputError
+        Neither a record nor metadata gives a position and a heading.
+    """
+    record_path = Path(record_path) if record_path is not None else photo.sidecar
+    from_exif, exif_notes = record_from_exif(photo)
+    notes: list[str] = []
+    if record_path is not None and record_path.exists():
+        record = load_sensor_record(record_path)
+        for block in ("camera", "position", "orientation"):
+            if getattr(record, block) is None and getattr(from_exif, block) is not None:
+                setattr(record, block, getattr(from_exif, block))
+                notes += [n for n in exif_notes if n.split()[0] in _NOTE_WORDS[block]]
+        if record.camera is not None and not _has_focal(record.camera) and from_exif.camera:
+            record.camera = {**from_exif.camera, **{k: v for k, v in record.camera.items()
+                                                    if k not in ("width", "height")}}
+            notes.append("focal length from EXIF")
+    else:
+        if from_exif.position is None or from_exif.orientation is None:
+            raise input_error(
+                photo.path,
+                "no sensor record (.json beside the photo) and no GPS position and "
+                "compass heading in its EXIF/XMP",
+            )
+        record = from_exif
+        notes += exif_notes
+    prior = prior_from_record(
+        record,
+        georef=getattr(scene, "georef", None),
+        dem=getattr(scene, "dem", None),
+        terrain_height=getattr(scene, "terrain_height", None),
+        image_size=photo.size,
+        height_above_ground_m=height_above_ground_m,
+    )
+    prior.assumptions = notes + prior.assumptions
+    _attach_sun(prior, record, photo, getattr(scene, "georef", None))
+    return prior
+
+
+def _attach_sun(prior: Prior, record: SensorRecord, photo, georef: Georef | None) -> None:
+    """Give the prior the sun at capture: record ``sun``, else record ``time``, else EXIF."""
+    center = prior.pose.center
+    if record.sun is not None or record.time is not None:
+        if record.sun is None and georef is None:
+            prior.assumptions.append("capture time given but no georeference: sun unknown")
+            return
+        prior.sun = sun_from_record(record, georef, center)
+        prior.sun_source = (
+            "sensor record sun" if record.sun is not None else f"sensor record time {record.time}"
+        )
+        return
+    direction, sun, sun_notes = sun_for_photo(photo.exif or {}, georef, center)
+    if direction is None:
+        # Not an assumption: the sun is simply not used (said where it matters).
+        prior.sun_source = "unknown: " + "; ".join(sun_notes or ["no capture time"])
+        return
+    prior.sun = direction
+    prior.sun_source = f"EXIF time {sun.when.isoformat()}"
+    prior.assumptions += [f"sun: {n}" for n in sun_notes]
+
+
+_NOTE_WORDS = {"camera": ("camera",), "position": ("position",),
+               "orientation": ("attitude", "trend")}
