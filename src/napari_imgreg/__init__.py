@@ -1,13 +1,22 @@
-"""napari-imgreg: register field photographs to textured 3D outcrop models.
+"""napari-imgreg: register field photographs to 3D outcrop models.
 
-Public API (backend, no Qt):
+The functions a script calls first (backend, no Qt):
 
-* :class:`Scene` — a textured mesh with its ray engine, georeference and DEM.
-* :func:`render` — colour and per-pixel 3D coordinates from a camera pose.
-* :class:`Intrinsics`, :class:`Pose` — the camera model and ``cam_from_world``.
+* :func:`register` — a photo + its sensor record → a verified camera pose
+  (:class:`Registration`, the RESULT.json of ``docs/formats.md``).
+* :func:`render` — colour and the 3D point behind every pixel from a camera pose.
+* :func:`project` — lines and polygons drawn on a registered photo → the model.
+* :func:`measure` — plunge/trend of traces, dip/dip direction of facets.
+* :func:`orient` — orient a photogrammetry model from phone camera attitudes.
+* :class:`Scene` — the model with its ray engine, georeference and DEM;
+  :class:`Intrinsics`, :class:`Pose` — the camera model and ``cam_from_world``.
+
+``docs/architecture.md`` says which package does what.
 """
 
 from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
 
@@ -20,13 +29,56 @@ from napari_imgreg.errors import InputError
 from napari_imgreg.render import RenderResult, render
 from napari_imgreg.scene import Scene
 
+# Loaded on first use, so that ``import napari_imgreg`` (done by napari when
+# it reads the plugin manifest) does not pull in OpenCV and the pipeline.
+_LAZY = {
+    "register": "napari_imgreg.api",
+    "project": "napari_imgreg.api",
+    "measure": "napari_imgreg.api",
+    "Registration": "napari_imgreg.registration.pipeline",
+    "RegistrationParams": "napari_imgreg.registration.params",
+    "Prior": "napari_imgreg.prior",
+    "Feature3D": "napari_imgreg.interpret.project",
+    "Interpretation": "napari_imgreg.interpret.project",
+    "Measurement": "napari_imgreg.interpret.structural",
+    "OrientationResult": "napari_imgreg.orient",
+}
+
+
+def __getattr__(name: str):
+    if name == "orient":
+        # The package napari_imgreg.orient, which is callable as orient():
+        # Python would bind the subpackage over a function of that name.
+        return importlib.import_module("napari_imgreg.orient")
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'napari_imgreg' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY) | {"orient"})
+
+
 __all__ = [
-    "Intrinsics",
+    "Feature3D",
     "InputError",
+    "Interpretation",
+    "Intrinsics",
+    "Measurement",
+    "OrientationResult",
     "Pose",
+    "Prior",
+    "Registration",
+    "RegistrationParams",
     "RenderResult",
     "Scene",
     "attitude_from_rotation",
+    "measure",
+    "orient",
+    "project",
+    "register",
     "render",
     "rotation_from_attitude",
 ]
