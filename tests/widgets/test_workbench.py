@@ -147,6 +147,17 @@ def test_the_docks_are_views_of_the_workspace(workbench, qtbot):
     assert ws.features_3d == iw.features and ws.features_3d[0].source == "IMG_0002.jpg"
     assert ws.measurements == iw.measurements
 
+    # An unverified pose with a high Q: the banner says why it is only fair.
+    from napari_imgreg.registration.round import Trial
+
+    unverified = Trial(index=0, params=ws.params, metrics={}, q=1.6, grade="fair", hints=[],
+                       pose=ws.current.pose, start_pose=ws.current.pose, rounds=1,
+                       converged=True, verified=False, residual_flow_px=3.0)
+    ws.add_trial(unverified, kind="Manual")
+    ws.select_trial(len(ws.current.trials) - 1)
+    text = wb.quality.banner.text()
+    assert text.startswith("FAIR · Q = 1.60 (Q alone: excellent; capped, not verified)")
+
 
 # ------------------------------------------------------------------- pose
 def test_pose_nudges_map_moves_undo_and_save_to_the_sensor_record(workbench, qtbot, tmp_path):

@@ -27,6 +27,7 @@ from napari_imgreg.registration.quality import (
     METRICS,
     REFERENCE_WIDTH_PX,
     classify,
+    grade_of,
     metric_trend,
 )
 from napari_imgreg.widgets._controller import WorkbenchController
@@ -183,6 +184,11 @@ class QualityPanel(QWidget):
             lay.setContentsMargins(0, 0, 0, 0)
         ll.addWidget(self.banner)
         ll.addLayout(legend)
+        cap_note = QLabel("Only a verified pose can be good or excellent: an unverified one is "
+                          "graded at most fair (keypoints) or poor (blocks, edges, MI).")
+        cap_note.setWordWrap(True)
+        cap_note.setStyleSheet("font-size:10px; color:#aaa;")
+        ll.addWidget(cap_note)
         ll.addWidget(self.table)
         ll.addStretch(1)
         rl.addWidget(self.hint_label)
@@ -304,7 +310,12 @@ class QualityPanel(QWidget):
         grade = next(g for g in GRADES if g.name == t.grade)
         self._style_banner(grade)
         verified = "verified" if t.verified else "not verified"
-        self.banner.setText(f"{grade.name.upper()} · Q = {t.q:.2f} — {grade.text}"
+        # An unverified pose is graded below what its Q alone would give:
+        # say so, or "FAIR · Q = 1.60" contradicts the legend's Q ranges.
+        by_q = grade_of(t.q, t.pose is not None)
+        capped = (f" (Q alone: {by_q.name}; capped, {verified})"
+                  if by_q.name != grade.name and grade.name != "failed" else "")
+        self.banner.setText(f"{grade.name.upper()} · Q = {t.q:.2f}{capped} — {grade.text}"
                             "<br><span style='font-size:11px; font-weight:normal'>"
                             f"trial {index + 1}: "
                             f"{html.escape(rec.label)}, {verified}</span>")
