@@ -180,6 +180,57 @@ def main() -> None:
     wb.show_tab("Interpret")
     shot("interpret")
 
+    # 9b. Snapping: two clicks on a bed boundary, the line follows the contact.
+    iw = wb.interpret_widget
+    if iw is not None and (not args.only or "snap" in args.only):
+        scene_truth = load_truth(Path(ps.photo.path).parent)
+        photo_layer = iw.photo_layer
+        image = np.asarray(photo_layer.data)
+        ph, pw = image.shape[:2]
+        best = None
+        for feat in scene_truth.lines["features"]:
+            if feat["properties"]["label"] != "bed_boundary":
+                continue
+            px = truth.pose.project(truth.intrinsics, np.asarray(feat["geometry"]["coordinates"]))
+            ok = np.isfinite(px).all(1) & (px > 30).all(1) & (px[:, 0] < pw - 30) & (px[:, 1] < ph - 30)
+            if ok.all():
+                bend = np.ptp(px[:, 1] - np.interp(px[:, 0], px[[0, -1], 0], px[[0, -1], 1]))
+                length = np.linalg.norm(px[-1] - px[0])
+                if 200 < length < 450 and (best is None or bend > best[1]):
+                    best = (px, bend)
+        iw.snap_check.setChecked(True)
+        shapes = iw.new_interpretation_layer()
+        clicks = best[0][[0, -1]]
+        shapes.add(napari_from_pixels(clicks), shape_type="path")
+        iw.snap_shape(shapes, len(shapes.data) - 1)
+        # The two clicks, as white points.
+        viewer.add_points(napari_from_pixels(clicks), name="the two clicks", size=9,
+                          face_color="white", border_color="black",
+                          scale=photo_layer.scale[-2:], translate=photo_layer.translate[-2:])
+        shapes.mode = "pan_zoom"
+        shapes.selected_data = set()
+        viewer.layers.selection.active = shapes
+        centre = best[0].mean(axis=0)
+        cam = viewer.camera
+        world = photo_layer.data_to_world(napari_from_pixels(centre[None])[0])
+        cam.center = (cam.center[0],) * (len(cam.center) - 2) + tuple(world[-2:])
+        _, canvas_w = viewer.canvas.size
+        cam.zoom = 0.85 * canvas_w / (np.ptp(best[0][:, 0]) * float(photo_layer.scale[-1]))
+        from napari.layers import Points
+
+        hidden = []
+        for layer in viewer.layers:  # the manual pairs' points step back
+            if isinstance(layer, Points) and layer.name != "the two clicks" and layer.visible:
+                layer.visible = False
+                hidden.append(layer)
+        pump(0.5)
+        shot("snap")
+        # Back as the next steps expect it.
+        viewer.layers.remove("the two clicks")
+        for layer in hidden:
+            layer.visible = True
+        iw.snap_check.setChecked(False)
+
     # 10. Another sun: the third photo (a low morning sun from the east; the
     # texture was lit from the south-south-east). A Run with a detector too
     # strict for keypoints to verify goes through the stages for another

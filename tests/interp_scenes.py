@@ -85,3 +85,34 @@ def combine(*scenes: Scene) -> Scene:
         faces.append(s.faces + n)
         n += len(s.vertices)
     return Scene(np.concatenate(vertices), np.concatenate(faces), name="combined")
+
+
+def flat_face(x_range, y_of, z_range=WALL_Z, n: int = 41, along: str = "x"):
+    """A flat vertical face as a grid (n, n, 3): ``along="x"`` spans x with
+    ``y = y_of(x, z)``; ``along="y"`` spans y (``x_range`` is then y's range)
+    at ``x = y_of(y, z)``."""
+    u = np.linspace(*x_range, n)
+    z = np.linspace(*z_range, n)
+    U, Z = np.meshgrid(u, z)
+    W = y_of(U, Z)
+    pts = np.stack([U, W, Z], -1) if along == "x" else np.stack([W, U, Z], -1)
+    return pts
+
+
+def corner_scene() -> tuple[Scene, np.ndarray, np.ndarray]:
+    """Two flat faces meeting at a corner: one facing south (y = 0), one
+    facing west (x = 45). A plane's trace on each is a straight line, so each
+    photo's trace alone defines no plane; together they do."""
+    south = flat_face((-40.0, 45.0), lambda u, z: np.zeros_like(u))
+    west = flat_face((0.0, 80.0), lambda u, z: np.full_like(u, 45.0), along="y")
+    scenes = []
+    for g in (south, west):
+        nz, nx = g.shape[:2]
+        scenes.append(Scene(g.reshape(-1, 3), grid_faces(nz, nx), name="face"))
+    return combine(*scenes), south, west
+
+
+def camera_at(center, trend_deg: float, width: int = 1200, height: int = 900, f: float = 1000.0):
+    """A level camera at ``center`` looking toward ``trend_deg``."""
+    intr = Intrinsics(width, height, f, f, (width - 1) / 2, (height - 1) / 2, ())
+    return intr, Pose.from_attitude(trend_deg, 0.0, 0.0, np.asarray(center, np.float64))

@@ -523,3 +523,14 @@ def test_raster_files_are_plain_arrays_that_dem_builds_on(tmp_path, suffix):
     assert saved.read_bytes() == path.read_bytes()
     assert DEM.load(path) == DEM(grid.data, grid.x0, grid.y0, grid.dx, grid.dy, crs=grid.crs)
     assert rasters.GeoError is GeoError
+
+
+def test_a_raster_larger_than_the_limit_is_refused_before_decoding(tmp_path, monkeypatch):
+    from napari_imgreg.io import rasters
+
+    dem = DEM.from_array(np.zeros((4, 5)), 0.0, 100.0, 10.0, 10.0, crs="EPSG:32630")
+    path = tmp_path / "dem.tif"
+    dem.save_geotiff(path)
+    monkeypatch.setattr(rasters, "MAX_RASTER_CELLS", 19)
+    with pytest.raises(rasters.GeoError, match=r"dem.tif: 5×4 cells is more than 19"):
+        DEM.load(path)

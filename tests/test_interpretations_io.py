@@ -136,7 +136,9 @@ def test_georeferenced_export_equals_local_plus_origin(tmp_path, projected):
     assert geo["crs"]["properties"]["name"] == "urn:ogc:def:crs:EPSG::32630"
     assert geo["napari_imgreg"] == {"frame": "crs", "crs": "EPSG:32630",
                                     "origin": [579000.0, 5912000.0, 350.0]}
-    assert local["napari_imgreg"]["frame"] == "local" and "crs" not in local
+    assert local["napari_imgreg"]["frame"] == "local"
+    # A local-frame file names a local engineering CRS, so GDAL never reads it as WGS84.
+    assert local["crs"]["properties"]["name"].startswith("ENGCRS[")
     for fl, fg in zip(local["features"], geo["features"]):
         if fl["geometry"] is None:
             assert fg["geometry"] is None
@@ -166,11 +168,17 @@ def test_exported_geojson_opens_with_standard_readers(tmp_path, projected):
 
 def test_exported_geojson_opens_with_gdal(tmp_path, projected):
     pyogrio = pytest.importorskip("pyogrio", reason="pyogrio (GDAL) not installed")
+    from pyogrio.raw import read as read_raw
+
     *_, features = projected
     path = tmp_path / "lines3d.geojson"
     write_features_geojson(path, features, GEOREF, georeferenced=True)
     info = pyogrio.read_info(path)
-    assert "Z" in info["geometry_type"] or "25D" in str(info["geometry_type"])
+    assert info["crs"] == "EPSG:32630"
+    # Mixed geometry types make the layer "Unknown": check each geometry's Z.
+    shapely = pytest.importorskip("shapely")
+    _, _, geoms, _ = read_raw(path)
+    assert all(shapely.from_wkb(g).has_z for g in geoms if g is not None)
 
 
 def test_csv_obj_ply_exports(tmp_path, projected):
@@ -199,10 +207,8 @@ def test_csv_obj_ply_exports(tmp_path, projected):
     cloud = trimesh.load(tmp_path / "l.ply", process=False)  # a standard PLY reader
     assert len(cloud.vertices) == n_vertices
 
-    with pytest.raises(InputError, match="ogr2ogr"):
-        export_features(tmp_path / "l.gpkg", features)
     with pytest.raises(InputError, match="unknown format"):
-        export_features(tmp_path / "l.shp", features)
+        export_features(tmp_path / "l.txt", features)
 
 
 def test_measurements_csv_has_contract_columns_and_empty_cells(tmp_path, projected):
@@ -327,3 +333,118 @@ def test_project_onto_a_dem_surface(tmp_path, capsys):
     pts = f.parts[0]
     # On the hillside: z_local = 0.5 * y_local (origin height 350 m, origin northing 5912000).
     np.testing.assert_allclose(pts[:, 2], 0.5 * pts[:, 1], atol=1e-3)
+
+
+# ------------------------------------------------------------ GIS frames and formats
+def test_local_geojson_names_its_frame_so_gdal_never_reads_wgs84(tmp_path, projected):
+    pyogrio = pytest.importorskip("pyogrio", reason="pyogrio (GDAL) not installed")
+    *_, features = projected
+    for georef in (None, GEOREF):
+        path = tmp_path / f"local_{georef is not None}.geojson"
+        write_features_geojson(path, features, georef, georeferenced=False)
+        crs = pyogrio.read_info(path)["crs"]
+        assert crs and "LOCAL_CS" in crs and "4326" not in crs and "4979" not in crs
+        doc = json.loads(path.read_text())
+        assert doc["napari_imgreg"]["frame"] == "local"
+    assert "579000.000" in crs  # the origin is named in the datum
+    geo = tmp_path / "geo.geojson"
+    write_features_geojson(geo, features, GEOREF, georeferenced=True)
+    assert pyogrio.read_info(geo)["crs"] == "EPSG:32630"
+    # A file without the member (before this version) is what GDAL takes for WGS84:
+    doc = json.loads(geo.read_text())
+    del doc["crs"]
+    old = tmp_path / "old.geojson"
+    old.write_text(json.dumps(doc))
+    assert "4326" in pyogrio.read_info(old)["crs"] or "4979" in pyogrio.read_info(old)["crs"]
+
+
+def _wkb_points(wkb: bytes) -> np.ndarray:
+    shapely = pytest.importorskip("shapely")
+    return np.asarray(shapely.get_coordinates(shapely.from_wkb(wkb), include_z=True))
+
+
+@pytest.mark.parametrize("suffix", [".gpkg", ".shp"])
+def test_gis_export_keeps_z_crs_and_every_attribute(tmp_path, projected, suffix):
+    pytest.importorskip("pyogrio", reason="pyogrio (GDAL) not installed")
+    from napari_imgreg.interpret.files import GIS_LAYERS, read_gis_layers
+
+    *_, features = projected
+    measurements = measure_features(features)
+    path = tmp_path / f"lines3d{suffix}"
+    export_features(path, features, GEOREF, measurements=measurements)
+    layers = read_gis_layers(path)
+    assert set(layers) == set(GIS_LAYERS)
+    for _, _, crs in layers.values():
+        assert crs == "EPSG:32630"
+    # traces: the geometry, in the CRS, with Z, and their properties
+    geoms, data, _ = layers["traces"]
+    traces = [f for f in features if f.kind == "trace"]
+    assert len(geoms) == len(traces)
+    for f, wkb, fid in zip(traces, geoms, data["id"]):
+        assert fid == f.id
+        if not f.parts:
+            assert wkb is None
+            continue
+        pts = _wkb_points(wkb)
+        np.testing.assert_allclose(pts, np.concatenate(f.parts) + GEOREF.origin, atol=1e-6)
+    bed = list(data["id"]).index(traces[0].id)
+    assert data["label"][bed] == "sandstone" and data["source"][bed] == "IMG_0007.jpg"
+    assert int(data["bed"][bed]) == 3 and int(data["n_parts"][bed]) == len(traces[0].parts)
+    assert float(data["length_m"][bed]) == pytest.approx(traces[0].length_m, abs=1e-4)
+    normal_col = "surface_normal" if suffix == ".gpkg" else "surf_norm"
+    np.testing.assert_allclose(json.loads(data[normal_col][bed]), traces[0].surface_normal,
+                               atol=1e-6)
+    # facets: a 3D polygon
+    geoms, data, _ = layers["facets"]
+    (facet,) = [f for f in features if f.kind == "facet"]
+    assert data["label"][0] == "mudstone"
+    if facet.ring_complete:
+        pts = _wkb_points(geoms[0])
+        assert np.ptp(pts[:, 2]) > 0.1 and np.all(pts[:, 0] > 500000)
+    # measurements: every field, undefined as null, at the centroid
+    geoms, data, _ = layers["measurements"]
+    assert len(geoms) == len(measurements)
+    names = {"dip_direction_deg": "dip_dir", "dip_deg": "dip"} if suffix == ".shp" else {}
+    for k, m in enumerate(measurements):
+        np.testing.assert_allclose(_wkb_points(geoms[k])[0], m.centroid + GEOREF.origin, atol=1e-6)
+        dip = data[names.get("dip_deg", "dip_deg")][k]
+        if m.dip_deg is None:
+            assert dip is None or np.isnan(dip)
+        else:
+            assert float(dip) == pytest.approx(m.dip_deg, abs=1e-9)
+        assert data["id"][k] == m.id and (data["note"][k] or "") == m.note
+
+
+def test_geopackage_in_local_frame_without_georef_and_camera_layer(tmp_path, projected):
+    pyogrio = pytest.importorskip("pyogrio", reason="pyogrio (GDAL) not installed")
+    from napari_imgreg.interpret.files import read_gis_layers, write_features_gis
+
+    *_, _intr, pose, _, features = projected
+    path = tmp_path / "local.gpkg"
+    path.write_text("an older file")  # replaced only when the new one is complete
+    write_features_gis(path, features, None, cameras={"IMG_0007.jpg": pose.center})
+    layers = read_gis_layers(path)
+    assert all("LOCAL_CS" in crs for _, _, crs in layers.values())
+    geoms, data, _ = layers["cameras"]
+    names = list(data["photo"])
+    assert "IMG_0007.jpg" in names
+    k = names.index("IMG_0007.jpg")
+    np.testing.assert_allclose(_wkb_points(geoms[k])[0], pose.center, atol=1e-9)
+    info = pyogrio.read_info(path, layer="traces")
+    assert info["geometry_type"] == "MultiLineString Z"
+    assert info["layer_metadata"]["napari_imgreg_frame"] == "local"
+
+
+def test_project_command_writes_geopackage_and_shapefile(files, capsys):
+    pytest.importorskip("pyogrio", reason="pyogrio (GDAL) not installed")
+    from napari_imgreg.interpret.files import read_gis_layers
+
+    tmp, mesh, result, lines = files
+    for name in ("lines3d.gpkg", "lines3d.shp"):
+        out = tmp / name
+        assert run_cli(["project", str(result), str(mesh), str(lines), "--out", str(out)]) == 0
+        layers = read_gis_layers(out)
+        geoms, data, crs = layers["traces"]
+        assert crs == "EPSG:32630" and len(geoms) == 2  # georef.json beside the mesh
+        assert _wkb_points(next(g for g in geoms if g is not None))[0, 0] > 500000
+    assert (tmp / "lines3d_measurements.shp").exists() and (tmp / "lines3d.prj").exists()

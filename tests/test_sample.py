@@ -369,3 +369,132 @@ def test_survey_json_gives_the_scene_the_texture_sun(small):
     expected = sun_vector(sun["azimuth_deg"], sun["elevation_deg"])
     # survey.json states the true azimuth; the scene turns it to grid north.
     assert np.degrees(np.arccos(np.clip(scene.survey_sun @ expected, -1, 1))) < 0.01
+
+
+# ------------------------------------------------ rough true surface (issue 13)
+def _vertical_face(rows: int = 200, cols: int = 60):
+    """A vertical cliff y = 0, 40 m high and 30 m wide, facing −Y (grid, normals)."""
+    z = np.linspace(0.0, 40.0, rows)
+    x = np.linspace(-15.0, 15.0, cols)
+    X = np.stack(np.broadcast_arrays(x[None, :], np.zeros((rows, cols)), z[:, None]), axis=-1)
+    normals = np.broadcast_to(np.array([0.0, -1.0, 0.0]), X.shape).copy()
+    return X.astype(float), normals
+
+
+def test_rough_beds_stand_proud_by_the_drawn_amounts():
+    from napari_imgreg.sample.rough import RoughSpec, rough_displacement
+
+    X, n = _vertical_face()
+    spec = RoughSpec(bedding_dip_deg=0.0, n_gullies=0, roughness_m=0.0, bed_edge_m=0.05)
+    d = rough_displacement(X, n, spec, seed=1)
+    assert d.min() >= 0.0 and d.max() <= 1.2 + 1e-9
+    per_row = d[:, 0]
+    np.testing.assert_allclose(d, per_row[:, None] + 0 * d)  # horizontal beds: rows are constant
+    proud = per_row[per_row > 0.05]
+    assert 0.3 < proud.size / per_row.size < 0.7  # sandstone and mudstone alternate
+    assert np.percentile(proud, 90) >= 0.4 and np.percentile(proud, 10) >= 0.2  # edges rounded
+    assert (per_row < 1e-9).mean() > 0.2  # recessed mudstone
+
+
+def test_rough_gullies_cut_into_the_face_and_roughness_has_its_rms():
+    from napari_imgreg.sample.rough import RoughSpec, rough_displacement
+
+    X, n = _vertical_face()
+    gullies = rough_displacement(X, n, RoughSpec(bed_relief_m=(0.0, 0.0), roughness_m=0.0,
+                                                 n_gullies=3), seed=2)
+    assert gullies.max() <= 1e-12 and gullies.min() <= -0.8
+    rough = rough_displacement(X, n, RoughSpec(bed_relief_m=(0.0, 0.0), n_gullies=0,
+                                               roughness_m=0.15), seed=2)
+    assert rough.std() == pytest.approx(0.15, rel=1e-6)
+    # Ground (normal up) gets a third of the face's roughness.
+    ground_n = np.broadcast_to(np.array([0.0, 0.0, 1.0]), X.shape).copy()
+    flat = rough_displacement(X, ground_n, RoughSpec(n_gullies=0, roughness_m=0.15), seed=2)
+    assert flat.std() == pytest.approx(0.05, rel=1e-6)
+
+
+def test_model_keeps_only_the_broad_relief():
+    from napari_imgreg.sample.rough import RoughSpec, rough_displacement, smoothed
+
+    X, n = _vertical_face()
+    ramp = X[..., 2] * 0.1
+    np.testing.assert_allclose(smoothed(ramp, X, 1.0)[20:-20], ramp[20:-20], atol=1e-9)
+    d = rough_displacement(X, n, RoughSpec(bedding_dip_deg=0.0), seed=3)
+    lost = d - smoothed(d, X, 1.0)
+    assert lost.std() > 0.1  # bed edges and roughness are not in the model
+
+
+def test_capture_time_only_where_the_sun_is_possible():
+    from napari_imgreg.sample.rough import RoughSpec, capture_time
+
+    georef = Georef("EPSG:32630", np.array([579000.0, 5912000.0, 350.0]))
+    centre = np.array([0.0, -90.0, 2.0])
+    spec = RoughSpec()
+    possible = PhotoConditions(sun_azimuth_deg=250.0, sun_elevation_deg=25.0)
+    moved, when = capture_time(possible, georef, centre, spec)
+    assert when is not None and when.miss_deg <= spec.exif_max_miss_deg
+    assert moved.sun_azimuth_deg == pytest.approx(250.0, abs=0.6)
+    # 53° N: the sun never stands 40° high in the north.
+    impossible = PhotoConditions(sun_azimuth_deg=0.0, sun_elevation_deg=40.0)
+    same, none = capture_time(impossible, georef, centre, spec)
+    assert none is None and same == impossible
+
+
+def test_exif_without_a_capture_time():
+    from PIL import Image
+    from PIL.ExifTags import IFD
+
+    from napari_imgreg.sample.photo import make_exif
+
+    exif = Image.Exif()
+    exif.load(make_exif("m", "p", 4.25, 26, None, 53.0, -1.8, 300.0, 160, 120))
+    assert 0x9003 not in exif.get_ifd(IFD.Exif) and 0x0132 not in exif
+    assert exif.get_ifd(IFD.Exif)[41989] == 26
+
+
+def test_rough_conditions_rake_the_face_low_and_obliquely():
+    from napari_imgreg.sample.noise import rng_for
+    from napari_imgreg.sample.rough import RoughSpec, rough_conditions
+
+    spec = RoughSpec()
+    for k in range(20):
+        c = rough_conditions(rng_for(5, k), spec, (170.0, 60.0))
+        assert 10.0 <= c.sun_elevation_deg <= 40.0
+        off = abs((c.sun_azimuth_deg - 180.0 + 180.0) % 360.0 - 180.0)
+        assert 45.0 <= off <= 80.0
+        assert c.ambient == spec.photo_ambient and c.shadows
+
+
+def test_rough_scene_model_true_surface_and_check_points_over_the_frame(cheap_pair, tmp_path):
+    from napari_imgreg.sample.rough import (
+        RoughScene,
+        RoughSpec,
+        build_rough_scene,
+        frame_check_points,
+    )
+
+    folder = cheap_pair[0]
+    spec = RoughSpec(check_grid=(8, 6))
+    out = build_rough_scene(folder, tmp_path / "rough", spec)
+    model = Scene.load(out / "outcrop.obj")
+    base = Scene.load(folder / "outcrop.obj")
+    assert model.faces.shape == base.faces.shape
+    true_v = np.load(out / "true_vertices.npy")
+    moved = np.linalg.norm(true_v - base.vertices, axis=1)
+    assert moved.max() > 0.4  # beds proud, gullies
+    assert np.linalg.norm(true_v - model.vertices, axis=1).mean() > 0.01  # model is smoother
+    manifest = json.loads((out / "scene.json").read_text())
+    assert manifest["rough"]["relief_not_in_model_rms_m"] > 0.05
+    assert (out / "survey.json").is_file()
+    rough = RoughScene(out)
+    truth = load_truth(folder / "IMG_0001.jpg")
+    cps = frame_check_points(rough.scene, truth.intrinsics, truth.pose, spec.check_grid)
+    pix = np.array([c["pixel"] for c in cps])
+    xyz = np.array([c["xyz"] for c in cps])
+    np.testing.assert_allclose(truth.pose.project(truth.intrinsics, xyz), pix, atol=1e-6)
+    w, h = truth.intrinsics.width, truth.intrinsics.height
+    assert (pix[:, 1] > 0.75 * h).any()  # the near ground at the bottom of the frame
+    assert pix[:, 0].min() < 0.2 * w and pix[:, 0].max() > 0.8 * w
+    assert {c["surface"] for c in cps} >= {"ground"}
+    img = rough.photo(truth.intrinsics, truth.pose, PhotoConditions(sun_azimuth_deg=250.0,
+                                                                   sun_elevation_deg=20.0), 1.0)
+    assert img.shape == (h, w, 3) and img.std() > 10

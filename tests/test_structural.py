@@ -208,3 +208,119 @@ def test_stereonet_picture(tmp_path):
     assert img.shape[0] > 500 and img.shape[1] > 500
     texts = " ".join(t.get_text() for t in fig.axes[0].texts)
     assert "sandstone: 3 planes" in texts and "α95" in texts and "1 trace" in texts
+
+
+# ----------------------------------------------------------- issue 14: uncertainty
+def test_viewing_plane_spread_known_answer():
+    from napari_imgreg.interpret.uncertainty import viewing_plane
+
+    cam = np.array([0.0, -100.0, 10.0])
+    # Points in the plane z = 10 (through the camera): no spread.
+    pts = np.array([[x, y, 10.0] for x, y in [(0, 0), (5, 3), (-7, 8), (2, -4)]])
+    n, s = viewing_plane(pts, cam)
+    assert s < 1e-9 and abs(abs(n[2]) - 1) < 1e-9
+    # (±5, 0, 10 ± 0.5) in all four combinations: symmetric about z = 10, so
+    # the best plane through C stays z = 10 and the RMS spread is 0.5 m.
+    off = np.array([[x, 0.0, 10.0 + dz] for x in (-5, 5) for dz in (-0.5, 0.5)])
+    assert viewing_plane(off, cam)[1] == pytest.approx(0.5, rel=1e-6)
+
+
+def test_point_sigma_and_angle_sigmas_known_answers():
+    from napari_imgreg.interpret.uncertainty import angle_sigmas, point_sigma
+
+    # 1.5 px at 100 m with f = 1000 px: 0.15 m; at 60° incidence twice that.
+    s = point_sigma(np.array([100.0, 100.0]), np.array([1.0, 0.5]), 1000.0, 1.5, 0.0)
+    assert s == pytest.approx([0.15, 0.30])
+    assert point_sigma(np.array([100.0]), np.array([1.0]), 1000.0, 0.0, 0.2)[0] == pytest.approx(0.2)
+    # Azimuths wrap at 360°.
+    assert angle_sigmas((10.0, 0.0), np.array([[9.0, 358.0], [11.0, 2.0]])) == (1.0, 2.0)
+
+
+def test_pose_uncertainty_from_the_result_or_a_default():
+    from napari_imgreg.interpret.uncertainty import PoseUncertainty
+
+    u = PoseUncertainty.from_result(
+        {"status": "registered", "pose": {}, "uncertainty": {
+            "reprojection_px": 0.8, "position_m": 0.05, "rotation_deg": 0.02}}, 1000.0)
+    assert (u.reprojection_px, u.position_m, u.rotation_deg, u.source) == (0.8, 0.05, 0.02, "result")
+    d = PoseUncertainty.from_result({"status": "registered", "pose": {},
+                                     "metrics": {"reprojection_error_px": 2.0}}, 1000.0, 50.0)
+    assert d.source == "default" and d.reprojection_px == 2.0
+    assert d.rotation_deg == pytest.approx(np.degrees(0.002)) and d.position_m == pytest.approx(0.1)
+    # A NaN block is not trusted; a sensor record gets prior-sized errors.
+    bad = PoseUncertainty.from_result({"status": "registered", "pose": {}, "uncertainty": {
+        "reprojection_px": float("nan"), "position_m": 0.05, "rotation_deg": 0.02}}, 1000.0)
+    assert bad.source == "default"
+    assert PoseUncertainty.from_result({"camera": {}}, 1000.0).position_m == 5.0
+
+
+def test_monte_carlo_sigma_of_a_straight_stroke_matches_the_closed_form():
+    """A stroke between two drawn vertices, each off by isotropic noise of
+    RMS σ: the line through the perturbed ends tilts by |Δ⊥| / L, whose RMS
+    is 2 σ/√3 / L radians (two perpendicular axes, two ends)."""
+    from napari_imgreg.interpret.uncertainty import ErrorModel, UncertaintyParams, monte_carlo
+
+    L, sigma = 20.0, 0.1
+    pts = np.linspace(0, 1, 50)[:, None] * np.array([L, 0.0, 0.0])
+    model = ErrorModel(camera_position=np.array([10.0, -100.0, 0]), relative_m=sigma,
+                       n_vertices=2)
+    mc = monte_carlo([[pts]], [model], UncertaintyParams(samples=4000, seed=1))
+    tilt = []
+    for (q,) in mc:
+        d = q[-1] - q[0]
+        tilt.append(np.arccos(abs(d[0]) / np.linalg.norm(d)))
+    expected = 2 * (sigma / np.sqrt(3)) / L
+    assert np.sqrt(np.mean(np.square(tilt))) == pytest.approx(expected, rel=0.05)
+    # The stroke stays straight: the interpolation is linear between the vertices.
+    q = mc[0][0]
+    assert np.linalg.svd(q - q.mean(0), compute_uv=False)[1] < 1e-9
+
+
+def test_facet_gets_sigmas_and_csv_has_the_columns(tmp_path):
+    import csv
+
+    from napari_imgreg.interpret.files import write_measurements_csv
+    from napari_imgreg.interpret.uncertainty import ErrorModel
+
+    model = ErrorModel(camera_position=np.array([0, -80.0, 0]), relative_m=0.05, mesh_m=0.02,
+                       rotation_deg=0.05, position_m=0.02)
+    f = measure_facet(_plane_points(30, 120, noise=0.02, seed=2), id="f", label="x", source="a.jpg",
+                      error_model=model)
+    assert f.has_plane and 0 < f.dip_sigma_deg < 1.0 and f.dip_direction_sigma_deg > 0
+    t = measure_trace([np.linspace(0, 10, 20)[:, None] * vector_from_plunge_trend(20, 40)],
+                      id="t", label="x")
+    path = tmp_path / "m.csv"
+    write_measurements_csv(path, [f, t])
+    rows = list(csv.DictReader(path.open()))
+    for col in ("dip_sigma_deg", "dip_direction_sigma_deg", "plunge_sigma_deg",
+                "trend_sigma_deg", "photo"):
+        assert col in rows[0]
+    assert float(rows[0]["dip_sigma_deg"]) > 0 and rows[0]["photo"] == "a.jpg"
+    # No error model: every σ is empty, never a made-up number.
+    assert rows[1]["plunge_sigma_deg"] == "" and rows[1]["dip_sigma_deg"] == ""
+
+
+def test_kamb_density_peaks_on_a_cluster():
+    from napari_imgreg.interpret.structural import kamb_density
+
+    rng = np.random.default_rng(0)
+    v = vector_from_plunge_trend(60.0, 30.0) + rng.normal(0, 0.05, (50, 3))
+    x, y, d = kamb_density(v, 61)
+    k = np.nanargmax(d)
+    px, py = equal_area(60.0, 30.0)
+    assert np.hypot(x.ravel()[k] - px, y.ravel()[k] - py) < 0.08
+    assert np.nanmax(d) > 10 and np.nanmin(d) < 0.5
+
+
+def test_stereonet_draws_cones_and_contours(tmp_path):
+    from napari_imgreg.interpret.uncertainty import ErrorModel
+
+    model = ErrorModel(camera_position=np.array([0, -80.0, 0]), relative_m=0.1, mesh_m=0.02)
+    ms = [measure_facet(_plane_points(12 + k % 3, 200 + k, noise=0.05, seed=k), id=str(k),
+                        label="bed", error_model=model) for k in range(8)]
+    assert all(m.dip_sigma_deg for m in ms)
+    fig = save_stereonet(tmp_path / "net.png", ms)
+    ax = fig.axes[0]
+    assert len(ax.collections) > 0  # the Kamb contours
+    # One cone per pole at least, beyond the great circles, α95 and frame.
+    assert len(ax.lines) >= 8 * 2 + 8

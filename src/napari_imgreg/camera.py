@@ -19,6 +19,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from napari_imgreg.validate import MAX_IMAGE_SIDE_PX, FieldValueError, check_number
+
 __all__ = [
     "Intrinsics",
     "Pose",
@@ -30,6 +32,15 @@ __all__ = [
     "pixels_to_scaled",
     "SENSOR_WIDTHS_MM",
 ]
+
+#: Focal length bounds per image side: fx ≥ this × width (a view under 170°).
+MIN_FOCAL_PER_SIDE = 0.5 / math.tan(math.radians(85.0))
+#: fx ≤ this × the longer side (a view of 0.006°, beyond any telephoto).
+MAX_FOCAL_PER_SIDE = 10_000.0
+#: Largest magnitude of a local-frame coordinate, metres (beyond the Earth).
+MAX_COORDINATE_M = 1e8
+#: Largest magnitude of a distortion coefficient (fisheye lenses stay below 10).
+MAX_DISTORTION = 1000.0
 
 # Sensor widths (mm) of common field cameras, used when EXIF lacks both the
 # 35 mm equivalent focal length and the focal-plane resolution.
@@ -63,6 +74,16 @@ class Intrinsics:
         Principal point in pixels (pixel centres at integers).
     dist : tuple of float
         OpenCV distortion ``(k1, k2, p1, p2, k3)``; empty for none.
+
+    Raises
+    ------
+    FieldValueError
+        (a ``ValueError``) when a value is not finite or out of its range:
+        width and height whole numbers in [1, 65535]; fx at least
+        0.044 × width and fy 0.044 × height (a view under 170°), at most
+        10 000 × the longer side; cx in [−width, 2 width], cy likewise; at
+        most 5 distortion coefficients, each within ±1000. The message
+        names the field (``field 'fx' ...``).
     """
 
     width: int
@@ -74,9 +95,40 @@ class Intrinsics:
     dist: tuple[float, ...] = field(default_factory=tuple)
 
     def __post_init__(self) -> None:
+        # Checked here, where every camera is made (records, RESULT.json, the
+        # GUI, scaling): a focal length of 0 or a NaN would otherwise hang the
+        # ray caster or run a registration on nonsense.
+        w = check_number(self.width, "width", 1, MAX_IMAGE_SIDE_PX, integer=True)
+        h = check_number(self.height, "height", 1, MAX_IMAGE_SIDE_PX, integer=True)
+        object.__setattr__(self, "width", w)
+        object.__setattr__(self, "height", h)
+        # A pinhole sees less than 180°: a focal length below ~1/23 of the
+        # image side (a 170° view) is a wrong unit or a typo, as is one of
+        # 10 000 image sides (a 0.006° view).
+        for name, side in (("fx", w), ("fy", h)):
+            value = getattr(self, name)
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value <= 0:
+                raise FieldValueError(
+                    name, f"must be a positive focal length in pixels, got {value!r}")
+            check_number(getattr(self, name), name, MIN_FOCAL_PER_SIDE * side,
+                         MAX_FOCAL_PER_SIDE * max(w, h))
+            object.__setattr__(self, name, float(getattr(self, name)))
+        # The principal point may lie off the image (a crop), not far off.
+        check_number(self.cx, "cx", -w, 2 * w)
+        check_number(self.cy, "cy", -h, 2 * h)
+        object.__setattr__(self, "cx", float(self.cx))
+        object.__setattr__(self, "cy", float(self.cy))
         # Hashable and comparable whatever sequence the caller gave (a list
         # from JSON / to_dict): render caches rays per Intrinsics.
-        object.__setattr__(self, "dist", tuple(float(k) for k in self.dist))
+        if isinstance(self.dist, (str, bytes)) or not hasattr(self.dist, "__iter__"):
+            raise FieldValueError("dist", f"must be a list of numbers, got {self.dist!r}")
+        dist = tuple(self.dist)
+        if len(dist) > 5:
+            raise FieldValueError(
+                "dist", f"has {len(dist)} coefficients; only OpenCV's (k1, k2, p1, p2, k3) "
+                "are supported")
+        object.__setattr__(self, "dist", tuple(
+            float(check_number(k, "dist", -MAX_DISTORTION, MAX_DISTORTION)) for k in dist))
 
     # ------------------------------------------------------------------ build
     @classmethod
@@ -161,32 +213,40 @@ class Intrinsics:
         ------
         KeyError, ValueError
             If the block has neither pixel intrinsics nor a focal length and
-            sensor width.
+            sensor width; :class:`~napari_imgreg.validate.FieldValueError`
+            (a ``ValueError`` naming the field) when a value is not a finite
+            number in its range (see the class).
         """
-        width, height = int(d["width"]), int(d["height"])
+        width = check_number(d["width"], "width", 1, MAX_IMAGE_SIDE_PX, integer=True)
+        height = check_number(d["height"], "height", 1, MAX_IMAGE_SIDE_PX, integer=True)
+
+        def positive(key: str) -> float:
+            return check_number(d[key], key, 0.0, math.inf, low_open=True)
+
         if "fx" in d:
-            fx = float(d["fx"])
-            fy = float(d.get("fy", fx))
-            cx = float(d.get("cx", (width - 1) / 2.0))
-            cy = float(d.get("cy", (height - 1) / 2.0))
+            # The values go to __post_init__ as given, which checks them.
+            fx = d["fx"]
+            fy = d.get("fy", fx)
+            cx = d.get("cx", (width - 1) / 2.0)
+            cy = d.get("cy", (height - 1) / 2.0)
             intr = cls(width, height, fx, fy, cx, cy)
         elif "focal_length_mm" in d and "sensor_width_mm" in d:
             intr = cls.from_focal_length_mm(
                 width,
                 height,
-                float(d["focal_length_mm"]),
-                float(d["sensor_width_mm"]),
-                float(d["sensor_height_mm"]) if d.get("sensor_height_mm") else None,
+                positive("focal_length_mm"),
+                positive("sensor_width_mm"),
+                positive("sensor_height_mm") if d.get("sensor_height_mm") else None,
             )
         elif "focal_length_35mm" in d:
-            intr = cls.from_35mm_equivalent(width, height, float(d["focal_length_35mm"]))
+            intr = cls.from_35mm_equivalent(width, height, positive("focal_length_35mm"))
         else:
             raise ValueError(
                 "camera needs fx (pixels) or focal_length_mm with sensor_width_mm"
             )
         dist = d.get("dist")
         if dist:
-            intr = replace(intr, dist=tuple(float(k) for k in dist))
+            intr = replace(intr, dist=dist)
         return intr
 
     def to_dict(self) -> dict[str, Any]:
@@ -231,6 +291,7 @@ class Intrinsics:
         Pixel centres stay at integers: a pixel at ``p`` maps to
         ``(p + 0.5) * scale - 0.5``.
         """
+        check_number(scale, "scale", 0.0, math.inf, low_open=True)
         if scale == 1.0:
             return self
         w, h = scaled_size(self.width, self.height, scale)
@@ -245,6 +306,41 @@ class Intrinsics:
             pixels_to_scaled(self.cy, sy),
             self.dist,
         )
+
+    def rotated(self, quarter_turns: int) -> Intrinsics:
+        """The same camera with its image turned by quarter turns, as an EXIF
+        orientation turns a photo for display.
+
+        Parameters
+        ----------
+        quarter_turns : int
+            +1: the image turned 90° clockwise (EXIF orientation 6); -1: 90°
+            anticlockwise (orientation 8); 2: half a turn (orientation 3).
+
+        Returns
+        -------
+        Intrinsics
+            Of the turned image: width and height, focal lengths and the
+            principal point exchanged as the pixels are, the tangential
+            distortion turned with them (radial terms do not change).
+            :meth:`Pose.rotated` turns the pose to match.
+        """
+        q = quarter_turns % 4
+        if q == 0:
+            return self
+        d = self.dist_coeffs
+        k1, k2, p1, p2, k3 = d
+        w, h = self.width, self.height
+        if q == 1:  # (u, v) -> (h - 1 - v, u)
+            out = Intrinsics(h, w, self.fy, self.fx, h - 1 - self.cy, self.cx,
+                             (k1, k2, p2, -p1, k3))
+        elif q == 3:  # (u, v) -> (v, w - 1 - u)
+            out = Intrinsics(h, w, self.fy, self.fx, self.cy, w - 1 - self.cx,
+                             (k1, k2, -p2, p1, k3))
+        else:  # (u, v) -> (w - 1 - u, h - 1 - v)
+            out = Intrinsics(w, h, self.fx, self.fy, w - 1 - self.cx, h - 1 - self.cy,
+                             (k1, k2, -p1, -p2, k3))
+        return out if self.dist else replace(out, dist=())
 
     # ------------------------------------------------------ project/unproject
     def project(self, points_cam: np.ndarray) -> np.ndarray:
@@ -591,8 +687,33 @@ class Pose:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Pose:
-        """Pose from the contract's ``pose`` block (``R`` and ``t``)."""
-        return cls(np.array(d["R"], dtype=np.float64), np.array(d["t"], dtype=np.float64))
+        """Pose from the contract's ``pose`` block (``R`` and ``t``).
+
+        Raises
+        ------
+        KeyError
+            ``R`` or ``t`` missing.
+        FieldValueError
+            (a ``ValueError``) ``R`` is not a finite 3 × 3 rotation matrix
+            (orthonormal to 1e-4, determinant +1), or ``t`` not 3 finite
+            numbers of at most 1e8 m.
+        """
+        try:
+            R = np.array(d["R"], dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            raise FieldValueError("R", "must be 3 rows of 3 numbers") from None
+        try:
+            t = np.array(d["t"], dtype=np.float64)
+        except (TypeError, ValueError, OverflowError):
+            raise FieldValueError("t", "must be 3 numbers") from None
+        if R.shape != (3, 3) or not np.isfinite(R).all():
+            raise FieldValueError("R", "must be 3 rows of 3 finite numbers")
+        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-4) and np.linalg.det(R) > 0):
+            raise FieldValueError("R", "is not a rotation matrix (orthonormal, determinant +1)")
+        if t.shape != (3,) or not np.isfinite(t).all() or np.abs(t).max() > MAX_COORDINATE_M:
+            raise FieldValueError("t", f"must be 3 finite numbers within ±{MAX_COORDINATE_M:g} m, "
+                                  f"got {np.asarray(d['t']).tolist()!r}")
+        return cls(R, t)
 
     @property
     def center(self) -> np.ndarray:
@@ -651,6 +772,17 @@ class Pose:
         d = intrinsics.normalized_rays(pixels) @ self.R
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return self.center, d
+
+    def rotated(self, quarter_turns: int) -> Pose:
+        """The pose of the same camera with its image turned by quarter turns
+        (see :meth:`Intrinsics.rotated`): the centre stays, the camera turns
+        about its view direction (+1, image turned clockwise: roll − 90°)."""
+        q = quarter_turns % 4
+        Q = {0: np.eye(3),
+             1: np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+             2: np.diag([-1.0, -1.0, 1.0]),
+             3: np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])}[q]
+        return Pose(Q @ self.R, Q @ self.t)
 
     def with_center(self, center: np.ndarray) -> Pose:
         return Pose.from_center(self.R, center)

@@ -31,6 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from napari_imgreg._atomic import atomic_path
+from napari_imgreg._json import dumps as strict_json_dumps
 from napari_imgreg._deprecated import forward_moved_names
 from napari_imgreg.io.rasters import GeoError, read_dem_raster, write_dem_asc, write_dem_geotiff
 
@@ -229,7 +230,7 @@ class Georef:
 
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write ``georef.json`` atomically (temp file + ``os.replace``)."""
-        text = json.dumps(self.to_dict(), indent=2) + "\n"
+        text = strict_json_dumps(self.to_dict(), indent=2) + "\n"
 
         def write(tmp: str) -> None:
             with open(tmp, "w", encoding="utf-8") as f:

@@ -23,6 +23,7 @@ from typing import Mapping
 import numpy as np
 
 from napari_imgreg._atomic import atomic_write
+from napari_imgreg._json import dump as strict_json_dump
 from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.errors import InputError, input_error
 from napari_imgreg.geo import DEFAULT_HEIGHT_ABOVE_GROUND_M, DEM, Georef
@@ -35,6 +36,7 @@ from napari_imgreg.io.records import (
     read_json,
 )
 from napari_imgreg.solar import sun_for_photo, sun_from_record
+from napari_imgreg.validate import FieldValueError
 
 __all__ = [
     "DEFAULT_HEIGHT_ABOVE_GROUND_M",
@@ -79,6 +81,7 @@ def prior_from_record(
     terrain_height=None,
     image_size: tuple[int, int] | None = None,
     height_above_ground_m: float = DEFAULT_HEIGHT_ABOVE_GROUND_M,
+    exif_orientation: int | None = None,
 ) -> Prior:
     """Camera and prior pose from a sensor record.
 
@@ -96,6 +99,12 @@ def prior_from_record(
         The photo's size, used when the camera block has none.
     height_above_ground_m : float
         Camera height above the DEM surface.
+    exif_orientation : int, optional
+        The photo's EXIF ``Orientation`` (its pixels already turned by it).
+        A camera block of the photo's size turned by 90° is the sensor's: with
+        orientation 6 or 8 the camera and its attitude are turned as the
+        pixels were (a portrait phone photo with its landscape record);
+        without, the record is refused with a line that says how to fix it.
 
     Returns
     -------
@@ -109,7 +118,7 @@ def prior_from_record(
     """
     src = record.source
     notes: list[str] = []
-    intrinsics = _intrinsics_of(record, image_size, notes)
+    intrinsics, turns = _intrinsics_of(record, image_size, notes, exif_orientation)
 
     if record.position is None:
         raise input_error(src, "no 'position' block (needs x, y[, z] or lat, lon[, alt])")
@@ -117,10 +126,14 @@ def prior_from_record(
     if "lat" in pos:
         if georef is None:
             raise input_error(src, "geodetic position (lat/lon) needs a georef.json")
-        xyz = np.asarray(
-            georef.geodetic_to_local(float(pos["lat"]), float(pos["lon"]), pos.get("alt")),
-            dtype=np.float64,
-        ).reshape(3)
+        try:
+            xyz = np.asarray(
+                georef.geodetic_to_local(float(pos["lat"]), float(pos["lon"]), pos.get("alt")),
+                dtype=np.float64,
+            ).reshape(3)
+        except (ValueError, TypeError, OverflowError) as exc:  # GeoError, pyproj's
+            raise input_error(src, f"field 'position' (lat {pos.get('lat')}, lon "
+                                   f"{pos.get('lon')}): {exc}") from None
         x, y = float(xyz[0]), float(xyz[1])
         z = float(xyz[2]) if pos.get("alt") is not None else None
     else:
@@ -152,34 +165,105 @@ def prior_from_record(
     if o.get("roll_deg") is None:
         notes.append("roll assumed 0°")
     pose = Pose.from_attitude(trend, plunge, roll, np.array([x, y, z]))
+    if turns:  # the record's attitude is the sensor's: turn it with the pixels
+        pose = pose.rotated(turns)
     return Prior(intrinsics, pose, record.sigma, notes)
 
 
+#: EXIF orientation -> quarter turns (clockwise) that display the stored pixels.
+_EXIF_TURNS = {1: 0, 3: 2, 6: 1, 8: -1}
+#: EXIF orientations that mirror the photo (not a camera's image).
+_EXIF_MIRRORED = (2, 4, 5, 7)
+
+
+def _camera_from_block(cam: Mapping, source) -> Intrinsics:
+    """The camera of a record's block; one InputError naming the file and field."""
+    try:
+        return Intrinsics.from_dict(cam)
+    except FieldValueError as exc:
+        raise input_error(source, exc.within("camera")) from None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise input_error(source, f"field 'camera': {exc}") from None
+
+
 def _intrinsics_of(
-    record: SensorRecord, image_size: tuple[int, int] | None, notes: list[str]
-) -> Intrinsics:
+    record: SensorRecord,
+    image_size: tuple[int, int] | None,
+    notes: list[str],
+    exif_orientation: int | None = None,
+) -> tuple[Intrinsics, int]:
+    """The record's camera for the photo, and the quarter turns its pose needs.
+
+    A camera block of the photo's size turned by 90° is the sensor's (a phone
+    photo stored landscape and shown portrait through its EXIF orientation):
+    the camera, and its pose, are turned as the pixels were.
+    """
+    src = record.source
     cam = dict(record.camera or {})
+    turns = 0
     if image_size is not None:
-        if "width" in cam and (int(cam["width"]), int(cam["height"])) != tuple(image_size):
+        photo = (int(image_size[0]), int(image_size[1]))
+        if "width" in cam and "height" in cam:
+            block = (int(cam["width"]), int(cam["height"]))
+            if block != photo and _swapped_aspect(block, photo):
+                turns = _turns_for_portrait(block, photo, exif_orientation, src)
+        if turns:
+            base = (_camera_from_block(cam, src) if _has_focal(cam) else
+                    Intrinsics.from_fov(int(cam["width"]), int(cam["height"]), 65.0))
+            if not _has_focal(cam):
+                notes.append("no focal length: assumed a 65° horizontal field of view of the "
+                              "sensor (phone camera)")
+            turned = base.rotated(turns)
+            notes.append(
+                f"camera block is the sensor's {base.width}×{base.height}; the photo is shown "
+                f"{photo[0]}×{photo[1]} (EXIF orientation {exif_orientation}): camera and "
+                f"attitude turned {90 * turns:+d}° with the pixels")
+            if (turned.width, turned.height) != photo:
+                notes.append(f"photo is {photo[0]}×{photo[1]}: intrinsics scaled")
+                turned = turned.scaled(photo[0] / turned.width)
+            return turned, turns
+        if "width" in cam and (int(cam["width"]), int(cam["height"])) != photo:
             # The photo may have been resized after logging: scale the camera.
             notes.append(
                 f"camera block is {cam['width']}×{cam['height']}, photo is "
-                f"{image_size[0]}×{image_size[1]}: intrinsics scaled"
+                f"{photo[0]}×{photo[1]}: intrinsics scaled"
             )
-            base = Intrinsics.from_dict(cam) if _has_focal(cam) else None
-            if base is not None:
-                return base.scaled(image_size[0] / base.width)
-        cam.setdefault("width", image_size[0])
-        cam.setdefault("height", image_size[1])
+            if _has_focal(cam):
+                return _camera_from_block(cam, src).scaled(photo[0] / int(cam["width"])), 0
+            cam["width"], cam["height"] = photo
+        cam.setdefault("width", photo[0])
+        cam.setdefault("height", photo[1])
     if "width" not in cam or "height" not in cam:
-        raise input_error(record.source, "no camera width/height in the record and no photo")
+        raise input_error(src, "no camera width/height in the record and no photo")
     if not _has_focal(cam):
         notes.append("no focal length: assumed a 65° horizontal field of view (phone camera)")
-        return Intrinsics.from_fov(int(cam["width"]), int(cam["height"]), 65.0)
-    try:
-        return Intrinsics.from_dict(cam)
-    except (KeyError, ValueError) as exc:
-        raise input_error(record.source, f"field 'camera': {exc}") from None
+        return Intrinsics.from_fov(int(cam["width"]), int(cam["height"]), 65.0), 0
+    return _camera_from_block(cam, src), 0
+
+
+def _swapped_aspect(block: tuple[int, int], photo: tuple[int, int]) -> bool:
+    """True when the photo is the block turned by 90° (maybe resized): one is
+    portrait, the other landscape, with the same aspect ratio to 1 %."""
+    (bw, bh), (pw, ph) = block, photo
+    if (bw > bh) == (pw > ph) or bw == bh:
+        return False
+    return abs((bw / bh) / (ph / pw) - 1.0) < 0.01
+
+
+def _turns_for_portrait(block, photo, exif_orientation, src) -> int:
+    """Quarter turns from the EXIF orientation, or one InputError that says how to fix it."""
+    if exif_orientation in (6, 8):
+        return _EXIF_TURNS[exif_orientation]
+    shape = "portrait" if photo[1] > photo[0] else "landscape"
+    if exif_orientation in _EXIF_MIRRORED:
+        raise input_error(src, f"the photo's EXIF orientation {exif_orientation} mirrors it; "
+                               "save the photo unmirrored and register again")
+    raise input_error(
+        src, f"field 'camera' is {block[0]}×{block[1]} but the photo is {photo[0]}×{photo[1]} "
+             f"({shape}) and its EXIF orientation does not turn it (tag "
+             f"{exif_orientation if exif_orientation is not None else 'absent'}); give the "
+             f"camera of the photo as shown: width {photo[0]}, height {photo[1]}, fx and fy "
+             "exchanged, cx and cy exchanged (or drop the camera block)")
 
 
 def _has_focal(cam: Mapping) -> bool:
@@ -203,11 +287,22 @@ def load_camera_and_pose(
     """
     data = read_json(path)
     if isinstance(data, dict) and isinstance(data.get("pose"), dict) and "R" in data["pose"]:
+        # A NaN translation or fx 0 would otherwise give renders and
+        # projections of nothing (exit 0 with an empty file).
+        if not isinstance(data.get("camera"), dict):
+            raise input_error(path, "field 'camera' of the result must be an object")
         try:
             intr = Intrinsics.from_dict(data["camera"])
-            pose = Pose.from_dict(data["pose"])
+        except FieldValueError as exc:
+            raise input_error(path, exc.within("camera")) from None
         except (KeyError, TypeError, ValueError) as exc:
-            raise input_error(path, f"bad 'camera' or 'pose' in result ({exc})") from None
+            raise input_error(path, f"bad 'camera' in result ({exc})") from None
+        try:
+            pose = Pose.from_dict(data["pose"])
+        except FieldValueError as exc:
+            raise input_error(path, exc.within("pose")) from None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise input_error(path, f"bad 'pose' in result ({exc})") from None
         R = pose.R
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
             raise input_error(path, "field 'pose.R' is not a rotation matrix")
@@ -261,7 +356,7 @@ def save_pose_to_record(
     if camera is not None:
         data["camera"] = camera.to_dict()
     with atomic_write(path, encoding="utf-8") as fh:
-        json.dump(data, fh, indent=1)
+        strict_json_dump(data, fh, indent=1)
         fh.write("\n")
     return data
 
@@ -320,10 +415,21 @@ def prior_for_photo(
         terrain_height=getattr(scene, "terrain_height", None),
         image_size=photo.size,
         height_above_ground_m=height_above_ground_m,
+        exif_orientation=_exif_orientation(photo),
     )
     prior.assumptions = notes + prior.assumptions
     _attach_sun(prior, record, photo, getattr(scene, "georef", None))
     return prior
+
+
+def _exif_orientation(photo) -> int | None:
+    """The photo's EXIF ``Orientation`` tag (1–8), None when absent or unreadable."""
+    value = (getattr(photo, "exif", None) or {}).get("Orientation")
+    try:
+        value = int(value)
+    except (TypeError, ValueError):
+        return None
+    return value if 1 <= value <= 8 else None
 
 
 def _attach_sun(prior: Prior, record: SensorRecord, photo, georef: Georef | None) -> None:

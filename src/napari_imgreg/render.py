@@ -9,6 +9,7 @@ coordinate, which is sampled bilinearly from the texture.
 from __future__ import annotations
 
 import functools
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -16,8 +17,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.camera import Intrinsics, Pose, scaled_size
+from napari_imgreg.errors import InputError
 from napari_imgreg.scene import Scene, ray_threads
+from napari_imgreg.validate import FieldValueError, check_number, check_render_size
 
 __all__ = ["RenderResult", "render", "RENDER_MODES"]
 
@@ -162,6 +165,8 @@ def render(
     scale : float
         Render at ``scale`` times the camera's resolution (e.g. 0.25 for a
         quick preview); the result's ``intrinsics`` is the scaled camera.
+        Positive and finite; the render may have at most
+        :data:`~napari_imgreg.validate.MAX_RENDER_PIXELS` pixels.
     mode : {"auto", "color", "shaded", "color_shaded", "normal"}
         ``color``: texture or vertex colours (grey when the mesh has none);
         ``shaded``: grey Lambert shading; ``color_shaded``: colour times
@@ -178,11 +183,24 @@ def render(
     Returns
     -------
     RenderResult
+
+    Raises
+    ------
+    InputError
+        A scale that is not a positive number, or a render larger than
+        :data:`~napari_imgreg.validate.MAX_RENDER_PIXELS`.
     """
     if mode not in RENDER_MODES:
         raise ValueError(f"mode must be one of {RENDER_MODES}, not {mode!r}")
     if mode == "auto":
         mode = "color" if (scene.has_texture or scene.vertex_colors is not None) else "shaded"
+    # Bounded work: refuse a render too large for memory before allocating it
+    # (``render --scale 100`` of a 12 MP photo would need 7 TB).
+    try:
+        scale = check_number(scale, "scale", 0.0, math.inf, low_open=True)
+    except FieldValueError as exc:
+        raise InputError(f"render scale {exc.problem}") from None
+    check_render_size(*scaled_size(intrinsics.width, intrinsics.height, scale))
     intr = intrinsics.scaled(scale)
     h, w = intr.height, intr.width
     n_pix = h * w

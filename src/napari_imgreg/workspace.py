@@ -21,8 +21,13 @@ lives, e.g. in the GUI thread). Each ``*_job`` method has a blocking
 counterpart that runs the job at once (:meth:`Workspace.register`,
 :meth:`Workspace.solve_manual`, ...).
 
-The state is plain dataclasses with ``to_dict`` (what a saved workspace will
-hold); saving and reopening are not here yet.
+The state is plain dataclasses. :meth:`Workspace.save` writes it into a
+workspace folder (``campaign.imgreg/``, see docs/formats.md "Workspace
+folder" and :mod:`napari_imgreg.io.workspace_files`) and binds the workspace
+to it: from then on every change is saved atomically as its event is emitted
+(each photo into its own files, the manifest last), so a crash loses at most
+the action in progress. :meth:`Workspace.open` reads a folder back into an
+equal state and keeps saving it.
 
 Examples
 --------
@@ -39,10 +44,13 @@ turn right 1
 
 from __future__ import annotations
 
+import gc
 import inspect
 import math
+import os
+import weakref
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -52,23 +60,29 @@ from psygnal import Signal
 
 from napari_imgreg import adjust
 from napari_imgreg.camera import Intrinsics, Pose, match_scale
-from napari_imgreg.errors import InputError
+from napari_imgreg.errors import InputError, input_error
 from napari_imgreg.geo import DEM, Georef
+from napari_imgreg.interpret import files as interpret_files
 from napari_imgreg.interpret.project import (
     Feature3D,
     Interpretation,
+    label_color,
     merge_interpretations,
     project_interpretations,
 )
 from napari_imgreg.interpret.structural import Measurement
+from napari_imgreg.io import workspace_files as wsfiles
 from napari_imgreg.io.photos import Photo, load_photo
+from napari_imgreg.io.records import Sigma
 from napari_imgreg.prior import Prior, prior_for_photo, save_pose_to_record
 from napari_imgreg.registration import manual, pipeline
 from napari_imgreg.registration.features import FeatureParams
 from napari_imgreg.registration.params import RegistrationParams
 from napari_imgreg.registration.pipeline import Registration, Trial
 from napari_imgreg.registration.quality import RuleHit, evaluate_rules
+from napari_imgreg.registration.round import Correspondences
 from napari_imgreg.registration.stages.relight import SunEstimate, estimate_sun_from_photo
+from napari_imgreg.registration.uncertainty import Uncertainty
 from napari_imgreg.render import RenderResult, render
 from napari_imgreg.scene import Scene
 from napari_imgreg.solar import meridian_convergence_deg, sun_vector_enu
@@ -434,6 +448,11 @@ class Workspace:
         The last projection of the interpretations.
     measurements : list of Measurement
         Their measurements.
+    folder : Path or None
+        The workspace folder it is saved into as it changes (:meth:`save`,
+        :meth:`open`); None: not saved.
+    open_problems : list of str
+        What :meth:`open` could not restore, one line each.
     """
 
     #: A scene was loaded (the photos were cleared).
@@ -461,6 +480,9 @@ class Workspace:
     interpretations_changed = Signal(object)
     #: The interpretations were projected (``features_3d``, ``measurements``).
     projection_changed = Signal()
+    #: Saving into the workspace folder failed (one line: the file and why);
+    #: the state in memory is intact and the next change tries again.
+    autosave_failed = Signal(str)
 
     def __init__(self, params: RegistrationParams | None = None) -> None:
         self.scene: Scene | None = None
@@ -471,6 +493,9 @@ class Workspace:
         self.params = params if params is not None else RegistrationParams()
         self.features_3d: list[Feature3D] = []
         self.measurements: list[Measurement] = []
+        #: What could not be restored when the workspace was opened (one line each).
+        self.open_problems: list[str] = []
+        self._store: _FolderStore | None = None
 
     # -------------------------------------------------------------- scene
     def load_scene(self, scene: Scene, terrain: adjust.TerrainMap | None = None,
@@ -1101,3 +1126,727 @@ class Workspace:
             "photos": [ps.to_dict() for ps in self.photos],
             "current": self.current_index,
         }
+
+    @property
+    def folder(self) -> Path | None:
+        """The workspace folder this workspace is saved into (None: not saved)."""
+        return None if self._store is None else self._store.folder
+
+    def save(self, folder: str | Path) -> Path:
+        """Write the whole workspace into ``folder`` and keep it saved there.
+
+        From then on every change is written as its event is emitted (see
+        the module docstring). Saving into another folder later moves the
+        binding there ("save as"); the old folder stays as it was.
+
+        Parameters
+        ----------
+        folder : path-like
+            A new or empty folder, or an existing workspace folder
+            (conventionally named ``*.imgreg``).
+
+        Returns
+        -------
+        Path
+            The manifest written.
+
+        Raises
+        ------
+        InputError
+            ``folder`` is a file, or a non-empty folder that is not a workspace.
+        OSError
+            It cannot be written (nothing already saved there is lost).
+        """
+        folder = Path(folder)
+        if folder.exists() and not folder.is_dir():
+            raise input_error(folder, "is a file, not a workspace folder")
+        if (folder.is_dir() and any(folder.iterdir()) and not wsfiles.is_workspace(folder)):
+            raise input_error(
+                folder, "is not empty and holds no workspace.json: choose a new folder")
+        self.detach()
+        store = _FolderStore(self, folder)
+        store.lock()
+        try:
+            store.save_all()
+        except BaseException:
+            store.unlock()
+            raise
+        self._store = store
+        store.connect()
+        return wsfiles.manifest_path(folder)
+
+    def flush(self) -> None:
+        """Write what changed without an event (the parameters edited in place)
+        into the workspace folder; nothing happens when it is not saved."""
+        if self._store is not None:
+            self._store.save_all()
+
+    def detach(self) -> None:
+        """Stop saving into the workspace folder (the files stay as they are)
+        and let another session open it."""
+        if self._store is not None:
+            self._store.disconnect()
+            self._store.unlock()
+            self._store = None
+
+    @classmethod
+    def open(cls, folder: str | Path, scene: Scene | None = None,
+             terrain: adjust.TerrainMap | None = None, autosave: bool = True) -> Workspace:
+        """Read a workspace folder back: scene, photos and everything done to them.
+
+        Parameters
+        ----------
+        folder : path-like
+            Holding ``workspace.json`` (version 1, or version 0, which is
+            migrated and written back as version 1 with the old manifest kept
+            as ``workspace.v0.json``).
+        scene : Scene, optional
+            The scene already read (it is not read again); by default the
+            manifest's mesh, DEM and georeference are read.
+        terrain : TerrainMap, optional
+        autosave : bool
+            Keep saving changes into ``folder`` (default).
+
+        Returns
+        -------
+        Workspace
+            Photos that could not be read again (moved, corrupt files) are
+            listed in ``open_problems``, one line each, and kept in the
+            manifest (their files are not touched), so nothing saved is lost.
+
+        Raises
+        ------
+        InputError
+            No workspace there, a corrupt manifest, a version this
+            napari-imgreg does not read (one line naming the file and the
+            version), a scene file that cannot be read, or (``autosave``)
+            another live session saving into the folder (its
+            ``workspace.lock``; open it with ``autosave=False`` to read it).
+        """
+        return _open_workspace(cls, Path(folder), scene, terrain, autosave)
+
+
+# ============================================================ workspace folder
+# The conversion between the state above and the plain dicts of a workspace
+# folder (docs/formats.md "Workspace folder"); the files themselves are
+# io.workspace_files' (JSON, arrays) and interpret.files' (GeoJSON, CSV).
+_CORRESPONDENCE_ARRAYS = ("photo_points", "render_points", "feature_inlier", "lifted",
+                          "pose_inlier", "xyz")
+
+
+def _num(value, default: float = math.nan) -> float:
+    """A stored number; ``null`` (a non-finite number in strict JSON) is ``default``."""
+    return default if value is None else float(value)
+
+
+def _pose_or_none(d) -> Pose | None:
+    return None if d is None else Pose.from_dict(d)
+
+
+def _history_to_dict(history: adjust.PoseHistory) -> dict:
+    # adjust.PoseHistory has no accessor for its stacks: read them here, and
+    # rebuild them through its public edits (_history_from_dict).
+    # The stacks keep R and t only: the attitude of 200 poses is slow to compute
+    # at every edit, and Pose.from_dict reads R and t.
+    return {"current": history.current.to_dict(), "label": history.label,
+            "undo": [{"pose": _pose_rt(p), "label": lab} for p, lab in history._undo],
+            "redo": [{"pose": _pose_rt(p), "label": lab} for p, lab in history._redo],
+            "limit": history.limit}
+
+
+def _pose_rt(pose: Pose) -> dict:
+    return {"R": pose.R.tolist(), "t": pose.t.tolist()}
+
+
+def _history_from_dict(d: dict, default: Pose) -> adjust.PoseHistory:
+    """A pose history with its undo and redo stacks as saved (``redo``'s last
+    entry is the next redo)."""
+    undo = [(Pose.from_dict(e["pose"]), str(e.get("label", ""))) for e in d.get("undo") or []]
+    redo = [(Pose.from_dict(e["pose"]), str(e.get("label", ""))) for e in d.get("redo") or []]
+    current = _pose_or_none(d.get("current")) or default
+    limit = int(d.get("limit", 200))
+    # Push the undo stack, the current pose and the redo stack (next redo
+    # first), then undo back to the current pose: the stacks come out as saved.
+    chain = undo + [(current, str(d.get("label", "prior")))] + redo[::-1]
+    history = adjust.PoseHistory(chain[0][0], limit=max(limit, len(chain)))
+    history._current_label = chain[0][1]
+    for pose, label in chain[1:]:
+        history.push(pose, label)
+    for _ in redo:
+        history.undo()
+    history.limit = limit
+    return history
+
+
+def _prior_to_dict(prior: Prior) -> dict:
+    return {"camera": prior.intrinsics.to_dict(), "pose": prior.pose.to_dict(),
+            "sigma": prior.sigma.to_dict(), "assumptions": list(prior.assumptions),
+            "sun": None if prior.sun is None else np.asarray(prior.sun, float).tolist(),
+            "sun_source": prior.sun_source}
+
+
+def _prior_from_dict(d: dict) -> Prior:
+    return Prior(intrinsics=Intrinsics.from_dict(d["camera"]), pose=Pose.from_dict(d["pose"]),
+                 sigma=Sigma(**{k: float(v) for k, v in (d.get("sigma") or {}).items()}),
+                 assumptions=[str(a) for a in d.get("assumptions") or []],
+                 sun=None if d.get("sun") is None else np.asarray(d["sun"], float),
+                 sun_source=str(d.get("sun_source", "")))
+
+
+def _trial_to_dict(trial: Trial) -> dict:
+    """RESULT.json's trial, plus its start pose and unrounded time."""
+    d = trial.to_dict()
+    d["start_pose"] = trial.start_pose.to_dict()
+    d["seconds"] = float(trial.seconds)
+    return d
+
+
+_TRIAL_CONVERTED = {"params", "q", "pose", "start_pose", "residual_flow_px", "seconds",
+                    "correspondences", "uncertainty"}
+
+
+def _trial_from_dict(d: dict, source, start: Pose,
+                     correspondences: Correspondences | None = None) -> Trial:
+    """A trial back from its dict (a trial of RESULT.json, or of trials.json
+    with its start pose; without one, ``start``)."""
+    names = {f.name for f in fields(Trial)}
+    kwargs = {k: v for k, v in d.items() if k in names and k not in _TRIAL_CONVERTED}
+    pose = _pose_or_none(d.get("pose"))
+    kwargs.update(
+        params=RegistrationParams.from_dict(d.get("params") or {}, source),
+        q=_num(d.get("Q")), pose=pose,
+        start_pose=_pose_or_none(d.get("start_pose")) or start,
+        residual_flow_px=_num(d.get("residual_flow_px"), math.inf),
+        seconds=float(d.get("seconds") or 0.0), correspondences=correspondences)
+    kwargs.setdefault("hints", [])
+    if "uncertainty" in names:
+        kwargs["uncertainty"] = Uncertainty.from_dict(d.get("uncertainty"))
+    return Trial(**kwargs)
+
+
+def _correspondence_arrays(trials: list[TrialRecord]) -> dict[str, np.ndarray]:
+    out = {}
+    for k, rec in enumerate(trials):
+        corr = rec.trial.correspondences
+        if corr is None:
+            continue
+        for name in _CORRESPONDENCE_ARRAYS:
+            value = getattr(corr, name)
+            if value is not None:
+                out[f"{k}.{name}"] = np.asarray(value)
+    return out
+
+
+def _correspondences_of(arrays: dict[str, np.ndarray], k: int) -> Correspondences | None:
+    if f"{k}.photo_points" not in arrays:
+        return None
+    return Correspondences(**{name: arrays.get(f"{k}.{name}") for name in _CORRESPONDENCE_ARRAYS})
+
+
+def _manual_to_dict(sol: manual.ManualSolution) -> dict:
+    return {"ok": bool(sol.ok), "pose": None if sol.pose is None else sol.pose.to_dict(),
+            "camera": sol.intrinsics.to_dict(),
+            "errors_px": np.asarray(sol.errors_px, float).tolist(),
+            "inliers": np.asarray(sol.inliers, bool).tolist(),
+            "threshold_px": float(sol.threshold_px), "focal_solved": bool(sol.focal_solved),
+            "method": sol.method, "reason": sol.reason}
+
+
+def _manual_from_dict(d: dict) -> manual.ManualSolution:
+    return manual.ManualSolution(
+        ok=bool(d["ok"]), pose=_pose_or_none(d.get("pose")),
+        intrinsics=Intrinsics.from_dict(d["camera"]),
+        errors_px=np.array([_num(v) for v in d.get("errors_px") or []], float),
+        inliers=np.array(d.get("inliers") or [], bool),
+        threshold_px=float(d.get("threshold_px", 0.0)),
+        focal_solved=bool(d.get("focal_solved", False)),
+        method=str(d.get("method", "")), reason=str(d.get("reason", "")))
+
+
+def _sun_estimate_to_dict(est: SunEstimate) -> dict:
+    return {f.name: (np.asarray(getattr(est, f.name), float).tolist() if f.name == "direction"
+                     else float(getattr(est, f.name))) for f in fields(SunEstimate)}
+
+
+def _sun_estimate_from_dict(d: dict) -> SunEstimate:
+    return SunEstimate(**{f.name: (np.asarray(d[f.name], float) if f.name == "direction"
+                                   else _num(d.get(f.name))) for f in fields(SunEstimate)})
+
+
+def _measurement_to_dict(m: Measurement) -> dict:
+    return {f.name: (np.asarray(getattr(m, f.name), float).tolist()
+                     if isinstance(getattr(m, f.name), np.ndarray) else getattr(m, f.name))
+            for f in fields(Measurement)}
+
+
+def _measurement_from_dict(d: dict) -> Measurement:
+    names = {f.name for f in fields(Measurement)}
+    kwargs = {k: v for k, v in d.items() if k in names}
+    kwargs["centroid"] = np.asarray(d.get("centroid") or [math.nan] * 3, float)
+    return Measurement(**kwargs)
+
+
+def _registration_from_dict(result: dict, extra: dict, ps: PhotoState,
+                            source) -> Registration:
+    """The photo's last registration from its RESULT.json; its trials are the
+    same objects as the photo's trial records when ``extra`` says which."""
+    links = extra.get("trials")
+    if (isinstance(links, list) and len(links) == len(result.get("trials") or [])
+            and all(isinstance(i, int) and 0 <= i < len(ps.trials) for i in links)):
+        trials = [ps.trials[i].trial for i in links]
+    else:
+        trials = [_trial_from_dict(t, source, ps.prior.pose) for t in result.get("trials") or []]
+    prior_d = result.get("prior") or {}
+    prior = replace(ps.prior, intrinsics=Intrinsics.from_dict(result["camera"]),
+                    pose=_pose_or_none(prior_d.get("pose")) or ps.prior.pose,
+                    sigma=Sigma(**{k: float(v) for k, v in (prior_d.get("sigma") or {}).items()}),
+                    assumptions=[str(a) for a in prior_d.get("assumptions") or []])
+    quality = result.get("quality") or {}
+    kwargs = {
+        "status": str(result["status"]), "photo": str(result.get("photo", ps.name)),
+        "intrinsics": Intrinsics.from_dict(result["camera"]),
+        "pose": Pose.from_dict(result["pose"]), "prior": prior,
+        "metrics": dict(result.get("metrics") or {}), "q": _num(quality.get("Q")),
+        "grade": str(quality.get("grade", "failed")),
+        "hints": list(quality.get("hints") or []), "trials": trials,
+        "timings_s": dict(extra.get("timings_s") or result.get("timings_s") or {}),
+        "best_trial": result.get("best_trial"),
+        "assumptions": [str(a) for a in extra.get("assumptions") or []]}
+    if "uncertainty" in {f.name for f in fields(Registration)}:
+        kwargs["uncertainty"] = Uncertainty.from_dict(result.get("uncertainty"))
+    return Registration(**kwargs)
+
+
+def _photo_doc(ps: PhotoState, folder: Path, has_matches: bool) -> dict:
+    """A photo's ``photo.json``: everything of it but its trials, result and drawings."""
+    reg = ps.registration
+    registration = None
+    if reg is not None:
+        ids = {id(rec.trial): k for k, rec in enumerate(ps.trials)}
+        registration = {"result": wsfiles.PHOTO_RESULT,
+                        "trials": [ids.get(id(t)) for t in reg.trials],
+                        "assumptions": list(reg.assumptions),
+                        "timings_s": dict(reg.timings_s)}
+    ref = ps.reference
+    return {
+        "photo": wsfiles.file_ref(ps.photo.path, folder),
+        "record": wsfiles.file_ref(ps.record_path, folder),
+        "camera": ps.intrinsics.to_dict(),
+        "prior": _prior_to_dict(ps.prior),
+        "history": _history_to_dict(ps.history),
+        "runs": ps.runs,
+        "selected_trial": ps.selected_trial,
+        "pairs": {"photo_px": np.asarray(ps.photo_points_px, float).tolist(),
+                  "reference_px": np.asarray(ps.reference_points_px, float).tolist(),
+                  "reference_source": ps.reference_source,
+                  "reference_pose": None if ref is None else ref.cam_from_world.to_dict(),
+                  "reference_camera": None if ref is None else ref.intrinsics.to_dict()},
+        "sun": None if ps.sun_override is None else {
+            "direction": np.asarray(ps.sun_override, float).tolist(),
+            "source": ps.sun_override_source},
+        "sun_estimate": None if ps.sun_estimate is None else _sun_estimate_to_dict(ps.sun_estimate),
+        "manual_solution": (None if ps.manual_solution is None
+                            else _manual_to_dict(ps.manual_solution)),
+        "registration": registration,
+        "files": {"trials": wsfiles.PHOTO_TRIALS, "lines": wsfiles.PHOTO_LINES,
+                  "correspondences": wsfiles.PHOTO_MATCHES if has_matches else None},
+    }
+
+
+def _fingerprint(ps: PhotoState) -> tuple:
+    """What changes when a photo's trials, registration or camera change."""
+    return (ps.runs, len(ps.trials), ps.selected_trial, id(ps.registration),
+            id(ps.manual_solution), id(ps.intrinsics))
+
+
+class _FolderStore:
+    """Keeps a workspace saved in its folder: each event writes what it changed.
+
+    Every file is written atomically and only when its content changed, so a
+    nudge rewrites one small ``photo.json`` and nothing of the other photos;
+    the manifest is written after the files it names.
+    """
+
+    def __init__(self, ws: Workspace | None, folder: Path, keys: dict | None = None,
+                 unavailable: list[dict] | None = None) -> None:
+        self.folder = Path(os.path.abspath(folder))
+        self._written: dict[Path, str] = {}
+        self._manifest_text = ""
+        self.bind(ws, keys, unavailable)
+        #: Photos written whole by this store (a reopened photo is, at its first change).
+        self._saved_once: set[str] = set()
+        self._connected: list[tuple[Any, Callable]] = []
+        self._release: weakref.finalize | None = None
+
+    def bind(self, ws: Workspace | None, keys: dict | None = None,
+             unavailable: list[dict] | None = None) -> None:
+        """The workspace saved, its photos' folder names, the entries kept for
+        photos that could not be read."""
+        self.ws = ws
+        self.keys: dict[PhotoState, str] = dict(keys or {})
+        #: Manifest entries of photos that could not be read when opened: kept.
+        self.unavailable: list[dict] = list(unavailable or [])
+        self.fingerprints: dict[PhotoState, tuple] = {ps: _fingerprint(ps) for ps in self.keys}
+
+    # --------------------------------------------------------------- lock
+    def lock(self) -> None:
+        """Take the folder's lock: one session saves into a folder at a time
+        (a second one would overwrite the first's photos with its own)."""
+        key = str(self.folder)
+        if _BOUND.get(key) not in (None, self):
+            gc.collect()  # a workspace nobody holds any more may still be bound
+            if _BOUND.get(key) not in (None, self):
+                raise input_error(self.folder, "is already open in this session (another "
+                                               "Workspace saves into it): detach it first")
+        self.folder.mkdir(parents=True, exist_ok=True)
+        token = wsfiles.acquire_lock(self.folder, own_stale=True)
+        _BOUND[key] = self
+        # Released by detach, or when the workspace is collected or Python exits.
+        self._release = weakref.finalize(self, wsfiles.release_lock, self.folder, token)
+
+    def unlock(self) -> None:
+        if self._release is not None:
+            self._release()
+            self._release = None
+        if _BOUND.get(str(self.folder)) is self:
+            del _BOUND[str(self.folder)]
+
+    # ------------------------------------------------------------- events
+    def connect(self) -> None:
+        ws = self.ws
+        for signal, slot in (
+                (ws.scene_changed, self._on_scene), (ws.photos_changed, self._on_photos),
+                (ws.photo_changed, self._on_manifest), (ws.params_changed, self._on_manifest),
+                (ws.projection_changed, self._on_projection),
+                (ws.pose_changed, self._on_current), (ws.pairs_changed, self._on_current),
+                (ws.reference_changed, self._on_current), (ws.trial_selected, self._on_current),
+                (ws.sun_changed, self._on_photo), (ws.interpretations_changed, self._on_photo),
+                (ws.trials_changed, self._on_trials)):
+            signal.connect(slot)
+            self._connected.append((signal, slot))
+
+    def disconnect(self) -> None:
+        for signal, slot in self._connected:
+            signal.disconnect(slot)
+        self._connected.clear()
+
+    def _guarded(self, action: Callable[[], None]) -> None:
+        # An autosave that fails (disk full, folder gone) must not break the
+        # edit that triggered it: it is said in one line, the next change retries.
+        try:
+            action()
+        except (OSError, InputError, TypeError, ValueError) as exc:
+            self.ws.autosave_failed.emit(one_line(exc))
+
+    def _on_scene(self, *_) -> None:
+        # A new scene clears the photos: their folders stay on disk, unlisted.
+        self.unavailable, self.keys, self.fingerprints = [], {}, {}
+        self._guarded(self.save_manifest)
+
+    def _on_photos(self, *_) -> None:
+        def save():
+            for ps in self.ws.photos:
+                if ps not in self.keys:
+                    self.save_photo(ps)
+            self.save_manifest()
+        self._guarded(save)
+
+    def _on_manifest(self, *_) -> None:
+        self._guarded(self.save_manifest)
+
+    def _on_projection(self, *_) -> None:
+        def save():
+            self.save_projection()
+            self.save_manifest()
+        self._guarded(save)
+
+    def _on_current(self, *_) -> None:
+        # A pose, a pick, a selection: the photo's photo.json only.
+        if self.ws.current is not None:
+            self._guarded(lambda: self.save_photo(self.ws.current, ("state",)))
+
+    def _on_photo(self, ps=None, *_) -> None:
+        # A sun (photo.json) or a drawing (LINES.geojson).
+        if isinstance(ps, PhotoState):
+            self._guarded(lambda: self.save_photo(ps, ("lines", "state")))
+
+    def _on_trials(self, *_) -> None:
+        # trials_changed does not say which photo: the ones whose trials changed.
+        def save():
+            for ps in self.ws.photos:
+                if ps is self.ws.current or self.fingerprints.get(ps) != _fingerprint(ps):
+                    self.save_photo(ps)
+        self._guarded(save)
+
+    # ------------------------------------------------------------ writing
+    def _key(self, ps: PhotoState) -> str:
+        key = self.keys.get(ps)
+        if key is None:
+            taken = set(self.keys.values()) | {e.get("key", "") for e in self.unavailable}
+            photos_dir = self.folder / wsfiles.PHOTOS_DIR
+            if photos_dir.is_dir():  # never reuse another photo's folder, even an orphan
+                taken |= {p.name for p in photos_dir.iterdir()}
+            key = wsfiles.photo_key(ps.photo.path or ps.name, taken)
+            self.keys[ps] = key
+        return key
+
+    def _changed(self, path: Path, text: str) -> bool:
+        return self._written.get(path) != text
+
+    def _write(self, path: Path, text: str) -> None:
+        wsfiles.write_text(path, text)
+        self._written[path] = text
+
+    def save_photo(self, ps: PhotoState,
+                   parts: tuple[str, ...] = ("trials", "result", "lines", "state")) -> None:
+        """Write one photo's files that changed: correspondences, trials,
+        RESULT.json and drawings first, its ``photo.json`` last.
+
+        ``parts`` names the files an event can have changed (the others are
+        not even serialised: a nudge must stay quick); all of them when the
+        photo's trials, registration or camera changed since the last write.
+        """
+        key = self._key(ps)
+        folder = self.folder / wsfiles.PHOTOS_DIR / key
+        if self.fingerprints.get(ps) != _fingerprint(ps) or key not in self._saved_once:
+            parts = ("trials", "result", "lines", "state")
+        has_matches = any(rec.trial.correspondences is not None for rec in ps.trials)
+        if "trials" in parts:
+            path = folder / wsfiles.PHOTO_TRIALS
+            text = wsfiles.json_text(
+                {"trials": [{"run": r.run, "kind": r.kind, "trial": _trial_to_dict(r.trial)}
+                            for r in ps.trials]}, compact=True)
+            if self._changed(path, text):
+                if has_matches:
+                    wsfiles.write_arrays(folder / wsfiles.PHOTO_MATCHES,
+                                         _correspondence_arrays(ps.trials))
+                self._write(path, text)
+        if "result" in parts and ps.registration is not None:
+            path = folder / wsfiles.PHOTO_RESULT
+            text = wsfiles.json_text(ps.registration.to_dict())
+            if self._changed(path, text):
+                self._write(path, text)
+        if "lines" in parts:
+            path = folder / wsfiles.PHOTO_LINES
+            text = wsfiles.json_text(
+                interpret_files.interpretations_to_geojson(ps.interpretations), compact=True)
+            if self._changed(path, text):
+                interpret_files.write_interpretations(path, ps.interpretations)
+                self._written[path] = text
+        if "state" in parts:
+            path = folder / wsfiles.PHOTO_STATE
+            text = wsfiles.json_text(_photo_doc(ps, self.folder, has_matches), compact=True)
+            if self._changed(path, text):
+                self._write(path, text)
+        self.fingerprints[ps] = _fingerprint(ps)
+        self._saved_once.add(key)
+
+    def save_projection(self) -> None:
+        ws = self.ws
+        georef = ws.scene.georef if ws.scene is not None else None
+        interpret_files.write_features_geojson(self.folder / wsfiles.FEATURES_3D,
+                                               ws.features_3d, georef)
+        interpret_files.write_measurements_csv(self.folder / wsfiles.MEASUREMENTS,
+                                               ws.measurements)
+        wsfiles.write_json(self.folder / wsfiles.MEASUREMENTS_JSON,
+                           {"measurements": [_measurement_to_dict(m) for m in ws.measurements]})
+
+    def manifest(self) -> dict:
+        ws = self.ws
+        entries = [{"key": self._key(ps), "photo": wsfiles.file_ref(ps.photo.path, self.folder)}
+                   for ps in ws.photos]
+        projected = bool(ws.features_3d or ws.measurements)
+        return {
+            "format": wsfiles.FORMAT,
+            "version": wsfiles.VERSION,
+            "software": f"napari-imgreg {_version()}",
+            "scene": {name: wsfiles.file_ref(path, self.folder) if path else None
+                      for name, path in ws.scene_files.items()},
+            "params": ws.params.to_dict(),
+            "photos": entries + self.unavailable,
+            "current": None if ws.current is None else self._key(ws.current),
+            "projection": None if not projected else {
+                "features": wsfiles.FEATURES_3D, "measurements": wsfiles.MEASUREMENTS,
+                "measurements_exact": wsfiles.MEASUREMENTS_JSON,
+                "n_features": len(ws.features_3d), "n_measurements": len(ws.measurements)},
+        }
+
+    def save_manifest(self) -> None:
+        """Write ``workspace.json`` (when its content changed), atomically."""
+        doc = self.manifest()
+        text = wsfiles.json_text(doc)
+        if text == self._manifest_text:
+            return
+        wsfiles.write_json(wsfiles.manifest_path(self.folder), {**doc, "saved": wsfiles.utc_now()})
+        self._manifest_text = text
+
+    def save_all(self) -> None:
+        """Every photo, the projection, then the manifest."""
+        for ps in self.ws.photos:
+            self.save_photo(ps)
+        if self.ws.features_3d or self.ws.measurements:
+            self.save_projection()
+        self.save_manifest()
+
+
+#: The folders saved into by a live store of this process.
+_BOUND: weakref.WeakValueDictionary[str, _FolderStore] = weakref.WeakValueDictionary()
+
+
+def _version() -> str:
+    from napari_imgreg import __version__
+
+    return __version__
+
+
+# ---------------------------------------------------------------- opening
+def _read_photo(folder: Path, entry: dict, inline: dict | None,
+                scene: Scene) -> PhotoState:
+    """One photo of a workspace folder (``inline``: a migrated version-0 photo)."""
+    key = str(entry.get("key", ""))
+    here = folder / wsfiles.PHOTOS_DIR / key
+    if inline is not None:
+        state, trial_dicts, matches = inline["state"], inline["trials"], {}
+        source = wsfiles.manifest_path(folder)
+    else:
+        if not key:
+            raise input_error(wsfiles.manifest_path(folder), "a photo entry without a 'key'")
+        source = here / wsfiles.PHOTO_STATE
+        state = wsfiles.read_json_file(source)
+        files = state.get("files") or {}
+        trials_path = here / wsfiles.PHOTO_TRIALS
+        trial_dicts = (wsfiles.read_json_file(trials_path).get("trials") or []
+                       if trials_path.exists() else [])
+        matches = (wsfiles.read_arrays(here / wsfiles.PHOTO_MATCHES)
+                   if files.get("correspondences") else {})
+    photo_path = wsfiles.resolve_ref(state.get("photo") or entry.get("photo"), folder)
+    photo = load_photo(photo_path)
+    prior = _prior_from_dict(state["prior"]) if state.get("prior") else prior_for_photo(photo, scene)
+    record = wsfiles.resolve_ref(state.get("record"), folder) or photo.sidecar
+    intrinsics = Intrinsics.from_dict(state["camera"]) if state.get("camera") else prior.intrinsics
+    history = _history_from_dict(state.get("history") or {}, prior.pose)
+    trials = []
+    for k, rec in enumerate(trial_dicts):
+        trial = _trial_from_dict(rec["trial"], source, prior.pose, _correspondences_of(matches, k))
+        trials.append(TrialRecord(trial, int(rec.get("run", 0)), str(rec.get("kind", "Run"))))
+    ps = PhotoState(photo=photo, prior=prior, record_path=record, intrinsics=intrinsics,
+                    history=history, trials=trials, runs=int(state.get("runs", 0)))
+    selected = state.get("selected_trial")
+    if isinstance(selected, int) and trials:
+        ps.selected_trial = min(max(selected, 0), len(trials) - 1)
+    pairs = state.get("pairs") or {}
+    ps.photo_points_px = np.asarray(pairs.get("photo_px") or [], float).reshape(-1, 2)
+    ps.reference_points_px = np.asarray(pairs.get("reference_px") or [], float).reshape(-1, 2)
+    ps.reference_source = str(pairs.get("reference_source", ""))
+    if pairs.get("reference_pose"):
+        # Renders are not kept: the reference is rendered again from its camera.
+        camera = pairs.get("reference_camera")
+        ps.reference = render(scene, Intrinsics.from_dict(camera) if camera else intrinsics,
+                              Pose.from_dict(pairs["reference_pose"]))
+    sun = state.get("sun")
+    if sun:
+        ps.sun_override = np.asarray(sun["direction"], float)
+        ps.sun_override_source = str(sun.get("source", ""))
+    if state.get("sun_estimate"):
+        ps.sun_estimate = _sun_estimate_from_dict(state["sun_estimate"])
+    if state.get("manual_solution"):
+        ps.manual_solution = _manual_from_dict(state["manual_solution"])
+    registration = state.get("registration")
+    if registration and inline is None:
+        result = wsfiles.read_json_file(here / registration.get("result", wsfiles.PHOTO_RESULT))
+        ps.registration = _registration_from_dict(result, registration, ps,
+                                                  here / wsfiles.PHOTO_RESULT)
+    if inline is not None:
+        ps.interpretations = [Interpretation(i["geometry"], i["pixels"], i.get("properties") or {})
+                              for i in inline["interpretations"]]
+    elif (here / wsfiles.PHOTO_LINES).exists():
+        ps.interpretations = interpret_files.read_interpretations(here / wsfiles.PHOTO_LINES)
+        for item in ps.interpretations:
+            # The GeoJSON writer fills in each label's colour: not a choice the user made.
+            if item.properties.get("color") == label_color(item.label, None):
+                del item.properties["color"]
+    return ps
+
+
+def _open_workspace(cls, folder: Path, scene: Scene | None,
+                    terrain: adjust.TerrainMap | None, autosave: bool) -> Workspace:
+    folder = Path(os.path.abspath(folder))
+    data, version = wsfiles.read_manifest(folder)
+    store = None
+    if autosave:  # refused at once when another session saves into the folder
+        store = _FolderStore(None, folder)
+        store.lock()
+    try:
+        return _read_workspace(cls, folder, data, version, scene, terrain, store)
+    except BaseException:
+        if store is not None:
+            store.unlock()
+        raise
+
+
+def _read_workspace(cls, folder: Path, data: dict, version: int, scene: Scene | None,
+                    terrain: adjust.TerrainMap | None, store: _FolderStore | None) -> Workspace:
+    manifest_path = wsfiles.manifest_path(folder)
+    migrated = None
+    if version == 0:
+        manifest, migrated = wsfiles.migrate_v0(data, folder)
+        current = manifest.get("current")
+        if isinstance(current, int) and 0 <= current < len(manifest["photos"]):
+            manifest["current"] = manifest["photos"][current]["key"]
+    else:
+        manifest = data
+    entries = manifest.get("photos")
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise input_error(manifest_path, "'photos' must be a list of objects")
+    params = RegistrationParams.from_dict(manifest.get("params") or {}, manifest_path)
+    scene_refs = manifest.get("scene") or {}
+    files = {name: wsfiles.resolve_ref(ref, folder) for name, ref in scene_refs.items()}
+    if scene is None and files.get("mesh"):
+        scene, terrain = read_scene(files["mesh"], files.get("dem"), files.get("georef"))
+    elif scene is None and entries:
+        raise input_error(manifest_path, "the workspace has photos but names no model (scene.mesh)")
+    ws = cls(params)
+    if scene is not None:  # (a workspace saved before any model was opened has none)
+        ws.load_scene(scene, terrain, files)
+
+    keys, unavailable, problems = {}, [], []
+    for k, entry in enumerate(entries):
+        try:
+            ps = _read_photo(folder, entry, None if migrated is None else migrated[k], scene)
+        except (InputError, OSError, KeyError, TypeError, ValueError) as exc:
+            name = entry.get("key") or f"photo {k + 1}"
+            problems.append(f"{name}: {one_line(exc)}")
+            unavailable.append(entry)
+            continue
+        keys[ps] = str(entry.get("key", ""))
+    ws.photos = list(keys)
+    ws.open_problems = problems
+    projection = manifest.get("projection")
+    if projection:
+        try:
+            ws.features_3d, _ = interpret_files.read_features_geojson(
+                folder / projection.get("features", wsfiles.FEATURES_3D))
+            exact = wsfiles.read_json_file(
+                folder / projection.get("measurements_exact", wsfiles.MEASUREMENTS_JSON))
+            ws.measurements = [_measurement_from_dict(m) for m in exact.get("measurements") or []]
+        except (InputError, OSError, KeyError, TypeError, ValueError) as exc:
+            ws.features_3d, ws.measurements = [], []
+            problems.append(f"projected interpretations: {one_line(exc)}")
+    ws.photos_changed.emit()
+    current = manifest.get("current")
+    index = next((i for i, ps in enumerate(ws.photos) if keys[ps] == current), 0)
+    if ws.photos:
+        ws.select_photo(index)
+
+    if store is None:
+        return ws
+    store.bind(ws, keys, unavailable if migrated is None else [])
+    if migrated is not None:
+        # The old single file is kept beside the new layout, then replaced.
+        backup = folder / wsfiles.V0_BACKUP
+        if not backup.exists():
+            wsfiles.write_text(backup, manifest_path.read_text(encoding="utf-8"))
+        store.save_all()
+    ws._store = store
+    store.connect()
+    return ws

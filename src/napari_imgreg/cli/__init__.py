@@ -20,14 +20,25 @@ import sys
 
 from napari_imgreg import __version__
 from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.cli import batch, demo, measure, orient, project, register, render, sample
+from napari_imgreg.cli import (
+    batch,
+    demo,
+    measure,
+    orient,
+    project,
+    register,
+    render,
+    sample,
+    workspace,
+)
 from napari_imgreg.cli._common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, print_error
 from napari_imgreg.errors import InputError
+from napari_imgreg.validate import FieldValueError
 
 __all__ = ["main"]
 
 #: The command modules, in the order ``napari-imgreg --help`` lists them.
-COMMANDS = (render, register, demo, project, measure, orient, batch, sample)
+COMMANDS = (render, register, demo, project, measure, orient, batch, sample, workspace)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,14 +58,47 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    # A reader that closed our stdout (``| head``) must not turn a command
+    # that did its work into a traceback: its lines are dropped instead.
+    sys.stdout = _QuietWhenClosed(sys.stdout)
     try:
         return int(args.func(args) or 0)
-    except InputError as exc:
+    except (InputError, FieldValueError) as exc:
+        # FieldValueError: a value checked where no file is known (an API
+        # object built from an option); still bad input, still one line.
         print_error(args.command, exc)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        if isinstance(sys.stdout, _QuietWhenClosed):
+            sys.stdout = sys.stdout.stream
+
+
+class _QuietWhenClosed:
+    """A text stream whose writes are dropped once the reader has gone."""
+
+    def __init__(self, stream):
+        self.stream, self.closed_by_reader = stream, False
+
+    def write(self, text: str) -> int:
+        if not self.closed_by_reader:
+            try:
+                return self.stream.write(text)
+            except (BrokenPipeError, ValueError):  # ValueError: stream closed
+                self.closed_by_reader = True
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.closed_by_reader:
+            try:
+                self.stream.flush()
+            except (BrokenPipeError, ValueError):
+                self.closed_by_reader = True
+
+    def __getattr__(self, name: str):
+        return getattr(self.stream, name)
 
 
 #: Names of napari-imgreg 0.1's ``cli`` module -> (module, name) of their new home.
@@ -69,8 +113,6 @@ _MOVED = {
     "EXIT_FAILED": "napari_imgreg.cli._common:EXIT_FAILED",
 }
 __getattr__ = forward_moved_names(__name__, _MOVED)
-
-
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,7 +9,6 @@ input, reported as one line on stderr naming the file and the problem;
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 from typing import TYPE_CHECKING, Any, Callable
@@ -17,6 +16,7 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 
 from napari_imgreg._atomic import atomic_path, atomic_write
+from napari_imgreg._json import dumps as strict_dumps
 from napari_imgreg.scene import Scene
 
 if TYPE_CHECKING:  # the commands import their backend when run: a fast --help
@@ -30,6 +30,8 @@ __all__ = [
     "one_line",
     "print_error",
     "write_json",
+    "say",
+    "silence_stdout",
     "write_npy",
     "read_params",
     "load_scene",
@@ -52,11 +54,44 @@ def print_error(command: str, message: object) -> None:
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:
-    """Write ``data`` as indented JSON, atomically: an interrupted write leaves
-    the old file (or none), never half a file."""
-    # json.dump escapes non-ASCII, so the bytes do not depend on the encoding.
+    """Write ``data`` as indented, strict JSON, atomically and durably: an
+    interrupted write leaves the old file (or none), never half a file.
+
+    Non-finite numbers are written as ``null`` with the reason under the
+    top-level ``null_reasons`` (see :func:`napari_imgreg._json.strict_json`):
+    never ``NaN``/``Infinity``, which other tools cannot parse.
+    """
+    text = strict_dumps(data, indent=2) + "\n"  # serialised first: a bad value writes nothing
+    # json escapes non-ASCII, so the bytes do not depend on the encoding.
     with atomic_write(path, encoding="utf-8") as fh:
-        json.dump(data, fh, indent=2)
+        fh.write(text)
+
+
+def say(*parts: object, **kwargs: Any) -> None:
+    """``print`` for a command's human summary that survives a closed stdout.
+
+    The outputs are files; stdout only tells a person about them. When stdout
+    is a pipe whose reader has gone (``| head``) or a closed descriptor, the
+    rest of the summary is dropped (stdout is pointed at the null device, so
+    the interpreter's exit flush does not fail either) and the command goes on
+    and exits with its own code.
+    """
+    kwargs.setdefault("flush", True)
+    try:
+        print(*parts, **kwargs)
+    except (BrokenPipeError, ValueError, OSError):
+        silence_stdout()
+
+
+def silence_stdout() -> None:
+    """Point stdout at the null device (after a broken pipe or closed stdout)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        # No usable descriptor at all: replace the object instead.
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the process
 
 
 def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:

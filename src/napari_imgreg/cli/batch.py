@@ -21,7 +21,10 @@ into the summary's ``error`` column. A bad scene (missing folder, no mesh,
 a corrupt mesh, DEM or parameter file) stops it before anything is written.
 
 Exit code: 2 when the scene is bad or any photo had bad input, else 1 when
-any registration failed its quality bar, else 0.
+any registration failed its quality bar, else 0. SIGTERM (a scheduler or
+``kill``) is handled like Ctrl-C: the summary is written with
+``interrupted: true`` and the command exits with 143 (130 after Ctrl-C).
+A closed stdout (``| head``) only silences the progress lines.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import csv
 import json
 import math
 import re
+import signal
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -48,6 +52,7 @@ from napari_imgreg.cli._common import (
     print_error,
     progress_printer,
     read_params,
+    say,
     write_json,
 )
 from napari_imgreg.errors import InputError, input_error
@@ -55,6 +60,7 @@ from napari_imgreg.io.meshes import MESH_SUFFIXES
 from napari_imgreg.io.photos import PHOTO_SUFFIXES, load_photo
 from napari_imgreg.io.records import read_json
 from napari_imgreg.prior import prior_for_photo
+from napari_imgreg.validate import check_writable
 
 # The module, not its ``register``: looked up at call time, so tests can
 # substitute ``napari_imgreg.registration.pipeline.register``.
@@ -293,7 +299,49 @@ def _result_names(photos: list[Path]) -> dict[Path, str]:
             for p in photos}
 
 
+#: Exit code after SIGTERM, as a shell reports it (128 + 15).
+EXIT_TERMINATED = 143
+#: Statuses a result file of ours may hold.
+_RESULT_STATUSES = ("registered", "failed")
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the batch is, so it unwinds as Ctrl-C does."""
+
+
+def _raise_terminated(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
+    raise _Terminated()
+
+
 # ---------------------------------------------------------------- summary
+def _existing_row(photo: str, path: Path) -> dict[str, Any]:
+    """The summary row of an earlier run's result file, checked.
+
+    Raises
+    ------
+    InputError
+        The file is not JSON, not a result of ours, or its body is malformed
+        (a pose, quality or metrics block of the wrong shape): the photo is
+        then registered again.
+    """
+    existing = read_json(path)
+    if not isinstance(existing, dict) or existing.get("status") not in _RESULT_STATUSES:
+        raise input_error(path, "not a registration result (no status 'registered' or 'failed')")
+    for block in ("pose", "quality", "metrics", "timings_s"):
+        if existing.get(block) is not None and not isinstance(existing[block], dict):
+            raise input_error(path, f"'{block}' is not an object")
+    position = (existing.get("pose") or {}).get("position")
+    if position is not None and not (isinstance(position, list) and len(position) == 3):
+        raise input_error(path, "'pose.position' is not a list of three numbers")
+    if existing.get("trials") is not None and not isinstance(existing["trials"], list):
+        raise input_error(path, "'trials' is not a list")
+    try:
+        return _row_of_result(photo, existing, None)
+    except (TypeError, ValueError, AttributeError, IndexError) as exc:  # any other wrong shape
+        raise input_error(path, f"malformed result ({type(exc).__name__}: {one_line(exc)})") \
+            from None
+
+
 def _num(value: Any, digits: int) -> float | None:
     try:
         v = float(value)
@@ -367,13 +415,14 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise input_error(out, "exists and is not a folder")
+    check_writable(out, folder=True)  # before the scene loads: read-only, /proc, inside a file
     # Everything about the scene is checked before anything is written.
     files = find_scene_files(args.scene_dir, args.mesh, args.dem, args.georef)
     params = read_params(args.params)
     scene = load_scene(files.mesh, georef=files.georef, dem=files.dem)
     scene.build_engine()
     n = len(files.photos)
-    print(
+    say(
         f"scene {files.folder}: {files.mesh.name} ({scene.n_faces:,} triangles)"
         + (f", DEM {files.dem.name}" if files.dem else ", no DEM")
         + (", georeferenced" if scene.georef is not None else "")
@@ -381,9 +430,9 @@ def run(args: argparse.Namespace) -> int:
         flush=True,
     )
     for note in scene.warnings:
-        print(f"  assumed: {note}")
+        say(f"  assumed: {note}")
     if files.ignored:
-        print("  not photos: " + ", ".join(f"{k} ({v})" for k, v in files.ignored.items()))
+        say("  not photos: " + ", ".join(f"{k} ({v})" for k, v in files.ignored.items()))
 
     out.mkdir(parents=True, exist_ok=True)
     names = _result_names(files.photos)
@@ -403,23 +452,38 @@ def run(args: argparse.Namespace) -> int:
     show = progress_printer(args.verbose, "      ")
 
     try:
+        previous_sigterm = signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread (an embedding application): its own handler stays
+        previous_sigterm = None
+    try:
+        return _run_photos(args, files, scene, params, pipeline, out, names, header, rows,
+                           width, show, t_start)
+    except _Terminated:
+        return EXIT_TERMINATED
+    finally:
+        if previous_sigterm is not None:
+            signal.signal(signal.SIGTERM, previous_sigterm)
+
+
+def _run_photos(args, files, scene, params, pipeline, out, names, header, rows, width, show,
+                t_start) -> int:
+    """The photo loop of :func:`run`; the summary is current after every photo."""
+    n = len(files.photos)
+    try:
         for i, photo_path in enumerate(files.photos, 1):
             tag = f"[{i:>{width}}/{n}] {photo_path.name}"
             result_path = out / names[photo_path]
             t0 = time.perf_counter()
             if args.skip_existing and result_path.is_file():
                 try:
-                    existing = read_json(result_path)
-                    if not isinstance(existing, dict) or "status" not in existing:
-                        raise input_error(result_path, "not a registration result")
+                    row = _existing_row(photo_path.name, result_path)
                 except InputError as exc:
-                    print(f"{tag}: existing result unreadable ({one_line(exc)}): redoing it")
+                    say(f"{tag}: existing result unreadable ({one_line(exc)}): redoing it")
                 else:
-                    row = _row_of_result(photo_path.name, existing, None)
                     row.update(skipped=True, result=result_path.name)
                     rows.append(row)
                     _write_summary(out, header, rows)
-                    print(f"{tag}: skipped, result exists ({row['status']}, grade {row['grade']})",
+                    say(f"{tag}: skipped, result exists ({row['status']}, grade {row['grade']})",
                           flush=True)
                     continue
             try:
@@ -446,7 +510,7 @@ def run(args: argparse.Namespace) -> int:
                 row = _error_row(photo_path.name, status, message, time.perf_counter() - t0)
                 rows.append(row)
                 _write_summary(out, header, rows)
-                print(f"{tag}: {label} — {message}", flush=True)
+                say(f"{tag}: {label} — {message}", flush=True)
                 continue
             result = reg.to_dict()
             write_json(result_path, result)
@@ -458,7 +522,7 @@ def run(args: argparse.Namespace) -> int:
             trend, plunge, roll = reg.pose.attitude
             x, y, z = reg.pose.center
             err = reg.metrics.get("reprojection_error_px")
-            print(
+            say(
                 f"{tag}: {reg.status.upper()} — grade {reg.grade} (Q = {reg.q:+.2f}), "
                 f"{len(reg.trials)} trial(s), {row['seconds']:.1f} s; "
                 f"({x:.1f}, {y:.1f}, {z:.1f}) m, trend {trend:.1f}° plunge {plunge:.1f}° "
@@ -468,11 +532,12 @@ def run(args: argparse.Namespace) -> int:
             )
             if not reg.registered:
                 for hint in reg.hints[:2]:
-                    print(f"      hint: {hint}")
-    except KeyboardInterrupt:
+                    say(f"      hint: {hint}")
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (_Terminated)
         header["interrupted"] = True
+        header["signal"] = "SIGTERM" if isinstance(exc, _Terminated) else "SIGINT"
         _write_summary(out, header, rows)
-        print(f"interrupted after {len(rows)} of {n} photos; finished results and the summary "
+        say(f"interrupted after {len(rows)} of {n} photos; finished results and the summary "
               f"are in {out}/ (run again with --skip-existing to carry on)", flush=True)
         raise
 
@@ -486,7 +551,7 @@ def run(args: argparse.Namespace) -> int:
         parts.append(f"{counts['bad_input']} bad input")
     if counts["error"]:
         parts.append(f"{counts['error']} crashed")
-    print(
+    say(
         f"batch: {n} photo{'s' if n != 1 else ''} — {', '.join(parts)}"
         + (f" ({skipped} kept from earlier runs)" if skipped else "")
         + f" in {time.perf_counter() - t_start:.1f} s -> {out / 'summary.csv'}"

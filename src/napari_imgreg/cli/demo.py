@@ -19,6 +19,7 @@ from napari_imgreg.cli._common import EXIT_FAILED, EXIT_OK, load_scene, write_js
 from napari_imgreg.io.photos import load_photo, save_image
 from napari_imgreg.prior import prior_for_photo
 from napari_imgreg.render import render
+from napari_imgreg.validate import check_writable
 
 __all__ = ["add_parser", "run", "open_gui"]
 
@@ -44,6 +45,8 @@ def run(args: argparse.Namespace) -> int:
     from napari_imgreg.sample import load_truth, sample_scene
     from napari_imgreg.registration import pipeline
 
+    if not args.gui:
+        check_writable(args.out, folder=True)  # before the minutes of work
     t0 = time.perf_counter()
     folder = sample_scene("small")
     print(f"sample outcrop scene: {folder} ({time.perf_counter() - t0:.1f} s)")

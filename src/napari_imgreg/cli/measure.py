@@ -1,7 +1,8 @@
 """``napari-imgreg measure``: orientations of projected traces and facets (contract §6, §8).
 
-Fits each trace's 3D line (plunge/trend) and, where it crosses enough relief,
-its plane (dip/dip direction); fits each facet's plane to the surface inside
+Fits each trace's 3D line (plunge/trend) and, where the drawing determines
+it (not a line drawn straight, which lies in the viewing plane), its plane
+(dip/dip direction), each angle with a Monte Carlo σ; fits each facet's plane to the surface inside
 it; writes MEASUREMENTS.csv and optionally a stereonet. Bad input raises
 :class:`~napari_imgreg.errors.InputError`, which the main command turns into
 one line on stderr and exit code 2.
@@ -23,6 +24,11 @@ _REJECTIONS = (
     ("relief", "trace nearly straight (too little relief)"),
     ("outcrop surface", "plane is the outcrop surface (surface effect)"),
     ("points", "too few points"),
+    ("through the camera", "trace lies in its viewing plane (drawn straight: the plane is "
+     "not determined)"),
+    ("viewing rays", "plane contains the viewing rays"),
+    ("pin the plane down", "dip σ above --max-dip-sigma (plane too close to the viewing plane)"),
+    ("camera position unknown", "no camera position in the file (re-run `project`)"),
 )
 
 
@@ -31,11 +37,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p = subparsers.add_parser(
         "measure",
         help="plunge/trend and dip/dip direction of projected traces and facets (CSV)",
-        description="Fit each trace's best 3D line (plunge/trend) and, where it crosses "
-        "enough relief, its best plane (dip/dip direction); fit each facet's plane to the "
-        "surface inside it. Planes are vetted as CloudCompare's Compass does (planarity, "
-        "surface effect) plus a relief test; rejected ones leave the cells empty and say "
-        "why in 'note'. Writes MEASUREMENTS.csv (contract §6) and optionally a stereonet.",
+        description="Fit each trace's best 3D line (plunge/trend) and, where the drawing "
+        "determines it, its best plane (dip/dip direction); fit each facet's plane to the "
+        "surface inside it. A trace's plane is given only when its points leave the viewing "
+        "plane through the camera centre (a line drawn straight on the photo never defines "
+        "one) and its Monte Carlo dip σ is small, besides CloudCompare Compass's vetting "
+        "(planarity, surface effect) and a relief test; rejected ones leave the cells empty "
+        "and say why in 'note'. Every angle gets a σ column (pose uncertainty, drawing "
+        "noise, mesh resolution). Traces of one contact (same drawn id) on several photos "
+        "also get one combined row. Writes MEASUREMENTS.csv (contract §6) and optionally a "
+        "stereonet with confidence cones and Kamb contours.",
     )
     p.add_argument("lines3d", metavar="LINES3D.geojson", help="output of `project`")
     p.add_argument("--out", required=True, metavar="MEASUREMENTS.csv")
@@ -48,6 +59,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "(default 10°)")
     p.add_argument("--min-relief", type=float, default=0.05,
                    help="sqrt(λ2/λ1) a trace needs to define a plane (default 0.05)")
+    p.add_argument("--min-view-spread", type=float, default=0.7, metavar="SIGMAS",
+                   help="a trace's points must leave the plane through its camera centre by "
+                   "this many times their expected error to define a plane (default 0.7)")
+    p.add_argument("--max-dip-sigma", type=float, default=4.0, metavar="DEG",
+                   help="withhold a trace's plane whose Monte Carlo dip σ exceeds this "
+                   "(default 4°)")
+    p.add_argument("--min-ray-angle", type=float, default=2.0, metavar="DEG",
+                   help="a trace's plane must make this angle with the viewing rays "
+                   "(default 2°)")
+    p.add_argument("--samples", type=int, default=200,
+                   help="Monte Carlo samples per feature for the σ columns (default 200, "
+                   "20–5000)")
+    p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
     p.set_defaults(func=run)
     return p
 
@@ -70,14 +94,28 @@ def run(args: argparse.Namespace) -> int:
         raise input_error(out, "output must be a .csv file")
     if args.stereonet and Path(args.stereonet).suffix.lower() not in (".png", ".svg", ".pdf"):
         raise input_error(args.stereonet, "stereonet must be .png, .svg or .pdf")
+    import math
+
+    from napari_imgreg.interpret.uncertainty import UncertaintyParams
+
     if not 0.0 <= args.min_planarity <= 1.0:
         raise input_error(None, "--min-planarity must be in [0, 1]")
+    for name, value, lo, hi in (("--surface-effect", args.surface_effect, 0.0, 90.0),
+                                ("--min-relief", args.min_relief, 0.0, 1.0),
+                                ("--min-view-spread", args.min_view_spread, 0.0, 100.0),
+                                ("--max-dip-sigma", args.max_dip_sigma, 0.0, 90.0),
+                                ("--min-ray-angle", args.min_ray_angle, 0.0, 90.0),
+                                ("--samples", args.samples, 20, 5000)):
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise input_error(None, f"{name} must be in [{lo:g}, {hi:g}] (got {value:g})")
     features, frame = read_features_geojson(args.lines3d)
     thresholds = FitThresholds(
         min_planarity=args.min_planarity, surface_effect_deg=args.surface_effect,
-        min_relief=args.min_relief,
+        min_relief=args.min_relief, min_view_spread=args.min_view_spread,
+        min_ray_angle_deg=args.min_ray_angle, max_dip_sigma_deg=args.max_dip_sigma,
     )
-    measurements = measure_features(features, thresholds)
+    unc = UncertaintyParams(samples=args.samples, seed=args.seed)
+    measurements = measure_features(features, thresholds, unc)
     write_measurements_csv(out, measurements)
     n_planes = sum(m.has_plane for m in measurements)
     n_traces = sum(m.kind == "trace" for m in measurements)

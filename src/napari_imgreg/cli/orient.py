@@ -13,6 +13,7 @@ import argparse
 from pathlib import Path
 
 from napari_imgreg.errors import input_error
+from napari_imgreg.validate import check_option, check_writable
 
 __all__ = ["add_parser", "cmd_orient"]
 
@@ -47,8 +48,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument(
         "--declination", type=float, default=0.0, metavar="DEG",
-        help="magnetic declination, degrees east, added to MEASURED trends (default 0: the "
-        "phone logged true north)",
+        help="magnetic declination, degrees east in [-180, 180], added to MEASURED trends "
+        "(default 0: the phone logged true north)",
     )
     p.add_argument("--plots", metavar="DIR", help="write the Δξ/Δρ plots (PNG) into DIR")
     p.set_defaults(func=cmd_orient)
@@ -69,6 +70,8 @@ def cmd_orient(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".json":
         raise input_error(out, "output must be a .json file")
+    # A NaN declination would turn every trend into NaN (and the fit into nonsense).
+    check_option(args.declination, "--declination", -180.0, 180.0)
     if bool(args.apply) != bool(args.mesh_out):
         raise input_error(
             args.apply or args.mesh_out, "--apply MESH and --mesh-out OUT go together"
@@ -80,6 +83,11 @@ def cmd_orient(args: argparse.Namespace) -> int:
             raise input_error(
                 args.mesh_out, f"output must be one of {', '.join(MESH_OUT_SUFFIXES)}"
             )
+    check_writable(out)
+    if args.mesh_out:
+        check_writable(args.mesh_out)
+    if args.plots:
+        check_writable(args.plots, folder=True)
 
     estimated = read_orientation_table(args.estimated)
     measured = read_orientation_table(args.measured)

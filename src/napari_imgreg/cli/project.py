@@ -10,11 +10,12 @@ command turns into one line on stderr and exit code 2.
 from __future__ import annotations
 
 import argparse
+import math
 from collections import Counter
 from pathlib import Path
 
 from napari_imgreg.cli._common import EXIT_OK, load_scene
-from napari_imgreg.errors import input_error
+from napari_imgreg.errors import InputError, input_error
 from napari_imgreg.geo import Georef
 from napari_imgreg.io.records import read_json
 from napari_imgreg.prior import load_camera_and_pose
@@ -35,7 +36,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "coordinates, properties.label) through the registered camera of RESULT.json onto "
         "MESH. Lines follow the relief (about one ray per pixel) and are split where they "
         "leave the surface (sky, holes, occluding ridges), never bridged. Writes 3D "
-        "GeoJSON (or .csv / .obj / .ply by the --out suffix) with properties.source naming "
+        "GeoJSON (or .gpkg / .shp / .csv / .obj / .ply by the --out suffix) with properties.source naming "
         "the photo. Several RESULT.json/LINES.geojson pairs merge into one file.",
     )
     p.add_argument("result", metavar="RESULT.json",
@@ -48,13 +49,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="another photo's result and lines, merged into the same output "
                    "(repeatable)")
     p.add_argument("--out", required=True, metavar="LINES3D.geojson",
-                   help="3D output: .geojson, .csv (vertices), .obj or .ply (polylines)")
+                   help="3D output: .geojson, .gpkg (GeoPackage layers traces, facets, "
+                   "measurements, cameras; in the georef CRS when known), .shp (3D shapefiles, "
+                   "the same layers), .csv (vertices), .obj or .ply (polylines)")
     p.add_argument("--georeferenced", action="store_true",
                    help="write CRS coordinates (local + georef origin) instead of local ones")
     p.add_argument("--georef", help="georef.json (default: the one beside MESH, if any)")
     p.add_argument("--dem", help="DEM GeoTIFF or .asc (altitude for a sensor-record pose)")
     p.add_argument("--step", type=float, default=1.0, metavar="PX",
-                   help="sample spacing along the lines, pixels (default 1)")
+                   help="sample spacing along the lines, pixels (default 1, at least 0.05: "
+                   "a line has at most its length in the photo / step samples)")
+    p.add_argument("--pixel-noise", type=float, default=1.5, metavar="PX",
+                   help="the drawing's expected error at each vertex, pixels (default 1.5); "
+                   "with the pose's uncertainty and the mesh resolution it gives each "
+                   "feature's sigma_m and the σ columns of `measure`")
     p.add_argument("--grazing", type=float, default=5.0, metavar="DEG",
                    help="split where the surface would be seen more obliquely than this "
                    "(default 5°)")
@@ -90,10 +98,20 @@ def run(args: argparse.Namespace) -> int:
     )
 
     out = Path(args.out)
-    if out.suffix.lower() not in EXPORT_SUFFIXES + (".gpkg",):
+    if out.suffix.lower() not in EXPORT_SUFFIXES:
         raise input_error(out, f"output must be one of {', '.join(EXPORT_SUFFIXES)}")
-    if args.step <= 0:
-        raise input_error(None, "--step must be positive")
+    from napari_imgreg.interpret.project import MIN_STEP_PX, check_drawing
+    from napari_imgreg.interpret.uncertainty import PoseUncertainty, UncertaintyParams
+
+    if not (math.isfinite(args.step) and MIN_STEP_PX <= args.step <= 100.0):
+        raise input_error(None, f"--step must be between {MIN_STEP_PX} and 100 pixels "
+                          f"(got {args.step:g})")
+    if not (math.isfinite(args.grazing) and 0.0 <= args.grazing < 90.0):
+        raise input_error(None, f"--grazing must be in [0, 90) degrees (got {args.grazing:g})")
+    if not (math.isfinite(args.pixel_noise) and 0.0 <= args.pixel_noise <= 20.0):
+        raise input_error(None, f"--pixel-noise must be in [0, 20] pixels "
+                          f"(got {args.pixel_noise:g})")
+    unc_params = UncertaintyParams(drawing_px=args.pixel_noise)
     pairs = [(args.result, args.lines)] + [tuple(p) for p in args.also]
     for result, lines in pairs:
         for f in (result, lines):
@@ -113,12 +131,23 @@ def run(args: argparse.Namespace) -> int:
             result, scene.georef, scene.dem, scene.terrain_height)
         data = read_json(result)
         photo = str(data.get("photo") or Path(result).stem) if isinstance(data, dict) else ""
+        for k, item in enumerate(items):  # before any ray: bounded work
+            try:
+                check_drawing(item.pixels, intr.width, intr.height, f"feature {k + 1}")
+            except InputError as exc:
+                raise input_error(lines, f"{exc} (photo {intr.width}×{intr.height} px)") from None
+        pose_unc = PoseUncertainty.from_result(data, intr.fx)
         status = data.get("status") if isinstance(data, dict) else None
         if kind == "prior":
             print(f"  warning: {result} is a sensor record: projecting with the PRIOR pose")
         elif status and status != "registered":
             print(f"  warning: {result} status is {status!r}: lines may be misplaced")
-        features = project_interpretations(scene, intr, pose, items, source=photo, params=params)
+        features = project_interpretations(scene, intr, pose, items, source=photo, params=params,
+                                           pose_uncertainty=pose_unc, uncertainty=unc_params)
+        if pose_unc.source != "result":
+            print(f"  {result}: no pose uncertainty in the result; assumed "
+                  f"{pose_unc.reprojection_px:.1f} px, {pose_unc.position_m:.2f} m, "
+                  f"{pose_unc.rotation_deg:.2f}° ({pose_unc.source})")
         sets.append(features)
         n_parts = sum(len(f.parts) for f in features)
         split = sum(1 for f in features if len(f.parts) > 1)

@@ -20,8 +20,10 @@ from napari_imgreg.cli._common import (
     read_params,
     write_json,
 )
+from napari_imgreg.errors import input_error
 from napari_imgreg.io.photos import load_photo
 from napari_imgreg.prior import prior_for_photo
+from napari_imgreg.validate import check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -52,7 +54,14 @@ def run(args: argparse.Namespace) -> int:
     from napari_imgreg.registration import pipeline
 
     photo_path = Path(args.photo)
+    if not photo_path.name:
+        raise input_error(args.photo or "PHOTO", "no photo file named")
     out = Path(args.out) if args.out else photo_path.with_suffix(".result.json")
+    # Checked before the registration, not found out after it.
+    check_writable(out)
+    if args.prior and not Path(args.prior).exists():
+        # Not silently replaced by the photo's EXIF.
+        raise input_error(args.prior, "no such file")
     params = read_params(args.params)
     scene = load_scene(args.mesh, args.georef, args.dem)
     photo = load_photo(photo_path)

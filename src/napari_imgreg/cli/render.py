@@ -16,6 +16,10 @@ from napari_imgreg.errors import input_error
 from napari_imgreg.io.photos import save_image
 from napari_imgreg.prior import load_camera_and_pose
 from napari_imgreg.render import render
+from napari_imgreg.validate import MAX_RENDER_PIXELS, check_option, check_writable
+
+#: Largest ``--scale``: finer than 8× the camera shows nothing new.
+MAX_SCALE = 8.0
 
 __all__ = ["add_parser", "run"]
 
@@ -35,7 +39,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--xyz", metavar="XYZ.npy", help="also write per-pixel model coordinates (H, W, 3)")
     p.add_argument("--dem", help="DEM GeoTIFF or .asc (altitude for priors without one)")
     p.add_argument("--georef", help="georef.json (default: the one beside MESH, if any)")
-    p.add_argument("--scale", type=float, default=1.0, help="resolution factor (default 1)")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help=f"resolution factor, in (0, {MAX_SCALE:g}] (default 1); the render may "
+                        f"have at most {MAX_RENDER_PIXELS / 1e6:g} MP")
     p.add_argument(
         "--mode", default="auto", choices=["auto", "color", "shaded", "color_shaded", "normal"],
         help="colouring (default: texture or colours, shading for plain meshes)",
@@ -51,6 +57,13 @@ def run(args: argparse.Namespace) -> int:
         raise input_error(out, "output must be .png, .jpg or .tif")
     if args.depth and Path(args.depth).suffix.lower() != ".npy":
         raise input_error(args.depth, "depth output must be a .npy file")
+    if args.xyz and Path(args.xyz).suffix.lower() != ".npy":
+        raise input_error(args.xyz, "xyz output must be a .npy file")
+    check_option(args.scale, "--scale", 0.0, MAX_SCALE, low_open=True)
+    # Before loading the model: a path that cannot be written fails now.
+    for path in (out, args.depth, args.xyz):
+        if path:
+            check_writable(path)
     pose_file = Path(args.pose_file)
     if not pose_file.exists():
         raise input_error(pose_file, "no such file")

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from napari_imgreg.cli._common import EXIT_OK
+from napari_imgreg.validate import check_option, check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -25,7 +26,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--out", required=True, help="folder to write")
     p.add_argument("--size", default="small", choices=["small", "large"])
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="0 to 2**32 - 1 (default 0)")
     p.set_defaults(func=run)
     return p
 
@@ -34,6 +35,8 @@ def run(args: argparse.Namespace) -> int:
     """Run ``sample``: generate the outcrop into ``--out``."""
     from napari_imgreg.sample import generate_outcrop
 
+    check_writable(args.out, folder=True)
+    check_option(args.seed, "--seed", 0, 2**32 - 1)  # NumPy's seed range
     t0 = time.perf_counter()
     out = generate_outcrop(Path(args.out), size=args.size, seed=args.seed)
     print(f"sample outcrop ({args.size}, seed {args.seed}) written to {out} "

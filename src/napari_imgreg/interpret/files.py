@@ -18,9 +18,13 @@
 * CloudCompare: OBJ ``v``/``l`` polylines (one object per feature, named
   ``id label``) and ASCII PLY with ``vertex`` (coloured) and ``edge`` elements.
 
-GeoPackage is not written: no GDAL binding (pyogrio/fiona) is a dependency.
-``ogr2ogr -f GPKG LINES3D.gpkg LINES3D.geojson`` converts the GeoJSON with
-its Z values.
+* A local-frame file names its frame too, as a local engineering CRS (WKT2
+  ``ENGCRS``) in the ``crs`` member, so GDAL/QGIS never take its metres for
+  WGS84 degrees.
+* GIS: a GeoPackage (``.gpkg``) or a set of 3D shapefiles (``.shp``) through
+  pyogrio (GDAL), with layers ``traces``, ``facets``, ``measurements`` and
+  ``cameras``; in the georeference's CRS whenever one is known, else in the
+  local engineering CRS.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from napari_imgreg._atomic import atomic_write
+from napari_imgreg._json import dump as strict_json_dump
 from napari_imgreg.errors import InputError, input_error
 from napari_imgreg.interpret.project import Feature3D, Interpretation
 from napari_imgreg.interpret.structural import Measurement
@@ -56,6 +61,10 @@ __all__ = [
     "write_polylines_ply",
     "export_features",
     "write_measurements_csv",
+    "write_features_gis",
+    "read_gis_layers",
+    "local_crs_wkt",
+    "GIS_LAYERS",
     "PATCH_POINTS_IN_FILE",
 ]
 
@@ -63,8 +72,13 @@ __all__ = [
 MEASUREMENT_COLUMNS = (
     "id", "label", "kind", "x", "y", "z", "n_points", "dip_deg", "dip_direction_deg",
     "plunge_deg", "trend_deg", "rms_m", "planarity", "collinearity", "source", "note",
+    "dip_sigma_deg", "dip_direction_sigma_deg", "plunge_sigma_deg", "trend_sigma_deg", "photo",
+    "view_spread", "ray_angle_deg",
 )
-EXPORT_SUFFIXES = (".geojson", ".json", ".csv", ".obj", ".ply")
+EXPORT_SUFFIXES = (".geojson", ".json", ".csv", ".obj", ".ply", ".gpkg", ".shp")
+#: The layers of a GeoPackage (a shapefile set: ``OUT.shp`` holds the traces,
+#: ``OUT_<layer>.shp`` the others).
+GIS_LAYERS = ("traces", "facets", "measurements", "cameras")
 #: Facet patch points written per feature (an even subsample).
 PATCH_POINTS_IN_FILE = 5000
 _DECIMALS = 4  # 0.1 mm
@@ -137,14 +151,19 @@ def read_interpretations(path: str | os.PathLike) -> list[Interpretation]:
             continue
         gtype = geom.get("type") if isinstance(geom, dict) else None
         raw = geom.get("coordinates") if isinstance(geom, dict) else None
+        nested = gtype in ("MultiLineString", "Polygon", "MultiPolygon")
+        if nested and not isinstance(raw, list):
+            raise input_error(path, f"{where}: {gtype} 'coordinates' must be an array")
         if gtype == "LineString":
             members = [("LineString", raw)]
         elif gtype == "MultiLineString":
-            members = [("LineString", r) for r in (raw or [])]
+            members = [("LineString", r) for r in raw]
         elif gtype == "Polygon":
             members = [("Polygon", (raw or [None])[0])]
         elif gtype == "MultiPolygon":
-            members = [("Polygon", (r or [None])[0]) for r in (raw or [])]
+            if not all(isinstance(r, list) for r in raw):
+                raise input_error(path, f"{where}: MultiPolygon members must be arrays of rings")
+            members = [("Polygon", (r or [None])[0]) for r in raw]
         else:
             raise input_error(
                 path, f"{where}: geometry {gtype!r} is not supported (LineString or Polygon)")
@@ -176,7 +195,7 @@ def interpretations_to_geojson(items: Sequence[Interpretation]) -> dict[str, Any
 def write_interpretations(path: str | os.PathLike, items: Sequence[Interpretation]) -> None:
     """Write interpretations as pixel GeoJSON (atomically)."""
     with atomic_write(path, encoding="utf-8") as fh:
-        json.dump(interpretations_to_geojson(items), fh, indent=1)
+        strict_json_dump(interpretations_to_geojson(items), fh, indent=1)
 
 
 # ---------------------------------------------------------------- 3D GeoJSON
@@ -186,6 +205,27 @@ def _ogc_crs(crs: str) -> dict | None:
         code = crs.split(":", 1)[1]
         return {"type": "name", "properties": {"name": f"urn:ogc:def:crs:EPSG::{code}"}}
     return None
+
+
+def local_crs_wkt(georef: Georef | None = None) -> str:
+    """The model's local frame as a WKT2 local engineering CRS (``ENGCRS``).
+
+    Metres, x east, y north, z up. GDAL reads it from a GeoJSON ``crs``
+    member, a GeoPackage or a shapefile's ``.prj`` as a ``LOCAL_CS``, so a GIS
+    shows the coordinates as unreferenced metres, never as WGS84 degrees.
+    With a georeference the datum's name records where the origin lies.
+    """
+    if georef is None:
+        datum = "napari-imgreg model origin (not georeferenced)"
+    else:
+        e, n, h = (float(v) for v in georef.origin)
+        datum = f"napari-imgreg model origin at E {e:.3f} N {n:.3f} H {h:.3f} of {georef.crs}"
+    axes = ",".join(
+        f'AXIS["{name}",{direction},ORDER[{k + 1}],LENGTHUNIT["metre",1]]'
+        for k, (name, direction) in enumerate(
+            (("x (east)", "east"), ("y (north)", "north"), ("z (up)", "up"))))
+    return (f'ENGCRS["napari-imgreg local model frame",EDATUM["{datum}"],'
+            f"CS[Cartesian,3],{axes}]")
 
 
 def _xyz(points: np.ndarray, shift: np.ndarray) -> list:
@@ -232,6 +272,10 @@ def features_to_geojson(
         props["length_m"] = round(f.length_m, 4)
         if f.surface_normal is not None:
             props["surface_normal"] = np.round(f.surface_normal, 6).tolist()
+        cam = props.get("camera_position")
+        if isinstance(cam, (list, tuple, np.ndarray)) and len(cam) == 3:
+            # In the frame of the coordinates (contract §5).
+            props["camera_position"] = _xyz(np.asarray(cam, np.float64).reshape(1, 3), shift)[0]
         parts = [p for p in f.parts if len(p) >= 2]
         if f.kind == "facet":
             props["ring_complete"] = bool(f.ring_complete)
@@ -260,10 +304,13 @@ def features_to_geojson(
     meta: dict[str, Any] = {"frame": "crs" if georeferenced else "local"}
     if georef is not None:
         meta.update(crs=georef.crs, origin=[float(v) for v in georef.origin])
-        if georeferenced:
-            ogc = _ogc_crs(georef.crs)
-            if ogc:
-                doc["crs"] = ogc
+    if georeferenced:
+        ogc = _ogc_crs(georef.crs)
+        if ogc:
+            doc["crs"] = ogc
+    else:
+        # GDAL reads a crs-less GeoJSON as WGS84: name the local frame instead.
+        doc["crs"] = {"type": "name", "properties": {"name": local_crs_wkt(georef)}}
     doc["napari_imgreg"] = meta
     doc["features"] = out_features
     return doc
@@ -279,7 +326,7 @@ def write_features_geojson(
     :func:`features_to_geojson`."""
     doc = features_to_geojson(features, georef, georeferenced)
     with atomic_write(path, encoding="utf-8") as fh:
-        json.dump(doc, fh)
+        strict_json_dump(doc, fh)
 
 
 def read_features_geojson(path: str | os.PathLike) -> tuple[list[Feature3D], dict[str, Any]]:
@@ -448,21 +495,268 @@ def write_polylines_ply(
         fh.write("\n".join(header + verts + edges) + "\n")
 
 
+# ---------------------------------------------------------------- GIS layers
+#: Shapefile field names are at most 10 characters: ours, shortened.
+_SHP_NAMES = {
+    "dip_direction_deg": "dip_dir", "dip_direction_sigma_deg": "ddir_sig", "dip_sigma_deg": "dip_sig",
+    "plunge_sigma_deg": "plg_sig", "trend_sigma_deg": "trd_sig", "plunge_deg": "plunge",
+    "trend_deg": "trend", "dip_deg": "dip", "collinearity": "collinear", "planarity": "planarity",
+    "n_points": "n_points", "ring_complete": "ring_ok", "surface_normal": "surf_norm",
+    "camera_position": "cam_pos", "patch_n_faces": "patch_nf", "n_features": "n_feats",
+}
+
+
+def _wkb_z(kind: str, parts: Sequence[np.ndarray]) -> bytes:
+    """ISO WKB of a 3D ``Point``, ``LineString``, ``MultiLineString`` or ``Polygon``."""
+    import struct
+
+    def ring(p: np.ndarray) -> bytes:
+        p = np.ascontiguousarray(p, dtype="<f8").reshape(-1, 3)
+        return struct.pack("<I", len(p)) + p.tobytes()
+
+    if kind == "Point":
+        return struct.pack("<BI", 1, 1001) + np.asarray(parts, "<f8").reshape(3).tobytes()
+    if kind == "LineString":
+        return struct.pack("<BI", 1, 1002) + ring(parts[0])
+    if kind == "Polygon":
+        return struct.pack("<BII", 1, 1003, len(parts)) + b"".join(ring(p) for p in parts)
+    if kind == "MultiLineString":
+        return struct.pack("<BII", 1, 1005, len(parts)) + b"".join(
+            struct.pack("<BI", 1, 1002) + ring(p) for p in parts)
+    raise ValueError(kind)
+
+
+def _columns(rows: list[dict[str, Any]]) -> tuple[list[str], list[np.ndarray]]:
+    """Attribute columns from row dicts: bool/int/float kept, text as text,
+    lists and objects as JSON text; a missing value is null."""
+    names: list[str] = []
+    for r in rows:
+        names += [k for k in r if k not in names]
+    arrays = []
+    for name in names:
+        vals = [_jsonable(r.get(name)) for r in rows]
+        present = [v for v in vals if v is not None]
+        if present and all(isinstance(v, bool) for v in present) and len(present) == len(vals):
+            arrays.append(np.array(vals, dtype=bool))
+        elif present and all(isinstance(v, int) and not isinstance(v, bool) for v in present) \
+                and len(present) == len(vals):
+            arrays.append(np.array(vals, dtype=np.int64))
+        elif present and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                             for v in present):
+            # Non-finite numbers are nulls (GDAL writes NaN as null).
+            arrays.append(np.array([np.nan if v is None or not math.isfinite(v) else float(v)
+                                    for v in vals]))
+        else:
+            from napari_imgreg._json import dumps as strict_dumps
+
+            arrays.append(np.array(
+                [None if v is None else v if isinstance(v, str) else strict_dumps(v)
+                 for v in vals], dtype=object))
+    return names, arrays
+
+
+def _feature_row(f: Feature3D) -> dict[str, Any]:
+    props = {k: v for k, v in f.properties.items() if k != "patch_points"}
+    row = {"id": f.id, "label": f.label, "kind": f.kind, "source": f.source}
+    row.update({k: v for k, v in props.items() if k not in row})
+    row.setdefault("color", f.color)
+    row["n_parts"] = len(f.parts)
+    row["length_m"] = round(float(f.length_m), 4)
+    if f.surface_normal is not None:
+        row["surface_normal"] = np.round(f.surface_normal, 6).tolist()
+    if f.kind == "facet":
+        row["ring_complete"] = bool(f.ring_complete)
+    return row
+
+
+def _gis_layers(
+    features: Sequence[Feature3D],
+    shift: np.ndarray,
+    measurements: Sequence[Measurement] | None,
+    cameras: dict[str, np.ndarray] | None,
+) -> dict[str, tuple[str, list, list[dict]]]:
+    """``{layer: (geometry type, WKB geometries, attribute rows)}``."""
+    from dataclasses import fields
+
+    from napari_imgreg.interpret.project import measure_features
+
+    traces, facets = ([], []), ([], [])
+    for f in features:
+        parts = [np.asarray(p, np.float64) + shift for p in f.parts if len(p) >= 2]
+        row = _feature_row(f)
+        if f.kind == "facet":
+            if f.ring_complete and len(parts) == 1:
+                ring = parts[0]
+                if not np.allclose(ring[0], ring[-1]):
+                    ring = np.vstack([ring, ring[:1]])
+                facets[0].append(_wkb_z("Polygon", [ring]))
+            else:  # the outline left the surface: a polygon would be invented
+                facets[0].append(None)
+                row["outline_parts"] = [np.round(p, _DECIMALS).tolist() for p in parts]
+            facets[1].append(row)
+        else:
+            traces[0].append(_wkb_z("MultiLineString", parts) if parts else None)
+            traces[1].append(row)
+    if measurements is None:
+        measurements = measure_features(features)
+    meas = ([], [])
+    skip = {"centroid"}
+    for m in measurements:
+        c = np.asarray(m.centroid, np.float64)
+        meas[0].append(_wkb_z("Point", c + shift) if np.isfinite(c).all() else None)
+        meas[1].append({fl.name: getattr(m, fl.name) for fl in fields(m) if fl.name not in skip})
+    cams: dict[str, list] = {}
+    for f in features:
+        pos = f.properties.get("camera_position")
+        if pos is not None and f.source not in cams:
+            cams[f.source] = [np.asarray(pos, np.float64), 0]
+        if f.source in cams:
+            cams[f.source][1] += 1
+    for name, pos in (cameras or {}).items():
+        cams.setdefault(name, [np.asarray(pos, np.float64), 0])[0] = np.asarray(pos, np.float64)
+    cam = ([_wkb_z("Point", p + shift) for p, _ in cams.values()],
+           [{"photo": name, "n_features": n} for name, (_, n) in cams.items()])
+    return {"traces": ("MultiLineString Z", *traces), "facets": ("Polygon Z", *facets),
+            "measurements": ("Point Z", *meas), "cameras": ("Point Z", *cam)}
+
+
+def write_features_gis(
+    path: str | os.PathLike,
+    features: Sequence[Feature3D],
+    georef: Georef | None = None,
+    measurements: Sequence[Measurement] | None = None,
+    cameras: dict[str, np.ndarray] | None = None,
+) -> None:
+    """Write a GeoPackage (``.gpkg``) or 3D shapefiles (``.shp``) through pyogrio.
+
+    Layers (:data:`GIS_LAYERS`): ``traces`` (``MultiLineString Z``),
+    ``facets`` (``Polygon Z``; a facet whose outline left the surface has no
+    geometry and its pieces in ``outline_parts``), ``measurements``
+    (``Point Z`` at each centroid with every :class:`Measurement` field) and
+    ``cameras`` (``Point Z``, one per photo: ``properties.camera_position``
+    or ``cameras``). A shapefile set is ``OUT.shp`` (traces) and
+    ``OUT_facets.shp``, ``OUT_measurements.shp``, ``OUT_cameras.shp``, field
+    names shortened to 10 characters. Lists (normals, camera positions) are
+    JSON text. Facet patch points stay in the GeoJSON.
+
+    Parameters
+    ----------
+    features : list of Feature3D
+        Local-frame coordinates, metres.
+    georef : Georef, optional
+        With it the layers are in its CRS (local + origin); without, in the
+        local engineering CRS of :func:`local_crs_wkt`.
+    measurements : list of Measurement, optional
+        Default: :func:`~napari_imgreg.interpret.project.measure_features`.
+    cameras : dict, optional
+        ``{photo: (3,) camera centre}``, local frame.
+
+    Notes
+    -----
+    Written beside the target and renamed into place: an existing file is
+    replaced only once the new one is complete.
+    """
+    import tempfile
+
+    try:
+        import pyogrio.raw
+    except ImportError:  # pragma: no cover - a declared dependency
+        raise input_error(path, "GeoPackage/shapefile export needs pyogrio "
+                          "(pip install pyogrio)") from None
+    path = Path(path)
+    suffix = path.suffix.lower()
+    shift = georef.origin if georef is not None else np.zeros(3)
+    crs = georef.crs if georef is not None else local_crs_wkt(None)
+    frame = {"napari_imgreg_frame": "crs" if georef is not None else "local",
+             "napari_imgreg_crs": georef.crs if georef is not None else "local",
+             "napari_imgreg_origin": json.dumps([float(v) for v in shift])}
+    layers = _gis_layers(features, shift, measurements, cameras)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=f".{path.name}.", dir=path.parent) as tmp:
+        tmp_dir = Path(tmp)
+        written: list[tuple[Path, Path]] = []
+        for k, (layer, (gtype, geoms, rows)) in enumerate(layers.items()):
+            names, arrays = _columns(rows)
+            if suffix == ".shp":
+                names = _shapefile_names(names)
+                stem = path.stem if k == 0 else f"{path.stem}_{layer}"
+                out = tmp_dir / f"{stem}.shp"
+                kwargs: dict[str, Any] = {"layer": stem, "driver": "ESRI Shapefile",
+                                          "encoding": "UTF-8"}
+            else:
+                out = tmp_dir / path.name
+                kwargs = {"layer": layer, "driver": "GPKG", "append": k > 0,
+                          "layer_metadata": frame}
+            if not names:  # GDAL wants a column
+                names, arrays = ["id"], [np.array([], dtype=object)]
+            pyogrio.raw.write(
+                str(out), np.array(geoms, dtype=object), arrays, names,
+                geometry_type=gtype, crs=crs, **kwargs)
+            if suffix == ".shp":
+                written += [(p, path.parent / p.name) for p in tmp_dir.glob(f"{stem}.*")]
+        if suffix != ".shp":
+            written = [(tmp_dir / path.name, path)]
+        for src, dst in written:
+            os.replace(src, dst)
+
+
+def _shapefile_names(names: list[str]) -> list[str]:
+    out: list[str] = []
+    for n in names:
+        short = _SHP_NAMES.get(n, n)[:10]
+        k = 1
+        while short in out:
+            short = f"{short[:8]}_{k}"
+            k += 1
+        out.append(short)
+    return out
+
+
+def read_gis_layers(path: str | os.PathLike) -> dict[str, tuple[list, dict[str, np.ndarray], str]]:
+    """Read back what :func:`write_features_gis` wrote (for checks and scripts).
+
+    Returns
+    -------
+    dict
+        ``{layer: (WKB geometries, {field: values}, CRS as GDAL reports it)}``
+        for every layer of a GeoPackage, or of a shapefile set (named by
+        :data:`GIS_LAYERS`).
+    """
+    import pyogrio
+    import pyogrio.raw
+
+    path = Path(path)
+    if path.suffix.lower() == ".shp":
+        sources = {layer: path if k == 0 else path.with_name(f"{path.stem}_{layer}.shp")
+                   for k, layer in enumerate(GIS_LAYERS)}
+        pairs = [(layer, p, None) for layer, p in sources.items() if p.exists()]
+    else:
+        pairs = [(str(name), path, str(name)) for name, _ in pyogrio.list_layers(path)]
+    out = {}
+    for layer, p, lname in pairs:
+        meta, _, geoms, data = pyogrio.raw.read(p, layer=lname)
+        out[layer] = (list(geoms), dict(zip(meta["fields"], data)), meta["crs"])
+    return out
+
+
 def export_features(
     path: str | os.PathLike,
     features: Sequence[Feature3D],
     georef: Georef | None = None,
     georeferenced: bool = False,
+    measurements: Sequence[Measurement] | None = None,
 ) -> None:
     """Write projected interpretations in the format the suffix names.
 
     ``.geojson``/``.json`` (3D GeoJSON), ``.csv`` (vertices), ``.obj`` /
-    ``.ply`` (polylines for CloudCompare).
+    ``.ply`` (polylines for CloudCompare), ``.gpkg`` / ``.shp`` (GIS layers,
+    see :func:`write_features_gis`: in the CRS whenever ``georef`` is given;
+    ``measurements`` fill their measurements layer, default: measured here).
 
     Raises
     ------
     InputError
-        Unknown suffix (a ``.gpkg`` is explained: convert the GeoJSON).
+        Unknown suffix.
     """
     suffix = Path(path).suffix.lower()
     if suffix in (".geojson", ".json"):
@@ -473,10 +767,8 @@ def export_features(
         write_polylines_obj(path, features, georef, georeferenced)
     elif suffix == ".ply":
         write_polylines_ply(path, features, georef, georeferenced)
-    elif suffix == ".gpkg":
-        raise input_error(
-            path, "GeoPackage is not written (no GDAL binding installed); write .geojson and "
-            "convert with: ogr2ogr -f GPKG OUT.gpkg IN.geojson")
+    elif suffix in (".gpkg", ".shp"):
+        write_features_gis(path, features, georef, measurements=measurements)
     else:
         raise input_error(path, f"unknown format; use one of {', '.join(EXPORT_SUFFIXES)}")
 
@@ -503,4 +795,7 @@ def write_measurements_csv(path: str | os.PathLike, measurements: Sequence[Measu
                 _cell(m.plunge_deg, 3), _cell(m.trend_deg, 3),
                 _cell(m.rms_m, 4), _cell(m.planarity, 4), _cell(m.collinearity, 4),
                 m.source, m.note,
+                _cell(m.dip_sigma_deg, 3), _cell(m.dip_direction_sigma_deg, 3),
+                _cell(m.plunge_sigma_deg, 3), _cell(m.trend_sigma_deg, 3), m.photo,
+                _cell(m.view_spread, 2), _cell(m.ray_angle_deg, 2),
             ])

@@ -12,7 +12,14 @@ faces inside it, found by one ray per pixel inside the polygon; the facet's
 plane is fitted to the patch's surface points.
 
 Lines from several registered photos merge into one set, each feature keeping
-``properties.source`` (the photo it was drawn on).
+``properties.source`` (the photo it was drawn on), ``properties.camera_position``
+(the photo's camera centre) and ``properties.sigma_m`` (the expected 3D error
+of its points from the pose, the drawing and the mesh; see
+:mod:`napari_imgreg.interpret.uncertainty`).
+
+The work is bounded by the photo: a drawn line is clipped to the image (a
+vertex far outside it is refused), and no line is sampled more finely than
+``MIN_STEP_PX`` (so a line has at most its clipped length / step samples).
 
 Frames: pixels are (x = column, y = row), pixel centres at integers (contract
 §1); 3D points are in the local model frame, metres.
@@ -29,7 +36,21 @@ import numpy as np
 
 from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.scene import Scene
-from napari_imgreg.interpret.structural import DEFAULT_THRESHOLDS, FitThresholds, Measurement, measure_facet, measure_trace
+from napari_imgreg.errors import InputError
+from napari_imgreg.interpret.structural import (
+    DEFAULT_THRESHOLDS,
+    FitThresholds,
+    Measurement,
+    measure_facet,
+    measure_traces,
+)
+from napari_imgreg.interpret.uncertainty import (
+    DEFAULT_UNCERTAINTY,
+    ErrorModel,
+    PoseUncertainty,
+    UncertaintyParams,
+    point_sigma,
+)
 
 __all__ = [
     "LABEL_COLORS",
@@ -44,7 +65,17 @@ __all__ = [
     "merge_interpretations",
     "measure_features",
     "label_color",
+    "check_drawing",
+    "MIN_STEP_PX",
+    "MAX_OUTSIDE",
 ]
+
+#: Finest sample spacing along a drawn line, pixels: a line across the whole
+#: photo then has at most diagonal / 0.05 samples (≈ 40 000 for a 1632 px photo).
+MIN_STEP_PX = 0.05
+#: A drawn vertex may lie at most this many photo diagonals outside the image
+#: (a line that starts just off the photo is clipped; 1e9 px is refused).
+MAX_OUTSIDE = 1.0
 
 #: Colours of the standard label classes (Kehl et al., Fig. 8); others get one
 #: from :data:`_EXTRA_COLORS` by name.
@@ -93,13 +124,19 @@ class ProjectionParams:
         Surface points kept per facet patch (an even subsample) for its plane.
     """
 
-    step_px: float = 1.0
+    step_px: float = 1.0  # range MIN_STEP_PX–100
     grazing_deg: float = 5.0
     jump_ratio: float = 3.0
     jump_contrast: float = 8.0
     jump_window: int = 5
     min_part_points: int = 2
     patch_max_points: int = 20_000
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.step_px) and MIN_STEP_PX <= self.step_px <= 100.0):
+            raise InputError(f"step must be in [{MIN_STEP_PX}, 100] pixels, not {self.step_px!r}")
+        if not (math.isfinite(self.grazing_deg) and 0.0 <= self.grazing_deg < 90.0):
+            raise InputError(f"grazing angle must be in [0, 90) degrees, not {self.grazing_deg!r}")
 
 
 @dataclass
@@ -206,21 +243,119 @@ class Feature3D:
         """Summed length of the parts, metres."""
         return float(sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in self.parts))
 
-    def measure(self, thresholds: FitThresholds = DEFAULT_THRESHOLDS) -> Measurement:
+    @property
+    def error_model(self) -> ErrorModel | None:
+        """Camera centre and expected point error, from the properties (None
+        for files written without ``camera_position``)."""
+        return ErrorModel.from_properties(self.properties)
+
+    @property
+    def contact(self) -> str:
+        """The contact this trace belongs to: ``properties.contact`` (kept from
+        the drawn feature's ``id``), empty when not given."""
+        return str(self.properties.get("contact") or "")
+
+    def measure(
+        self,
+        thresholds: FitThresholds = DEFAULT_THRESHOLDS,
+        uncertainty: UncertaintyParams = DEFAULT_UNCERTAINTY,
+    ) -> Measurement:
         """The feature's contract §6 measurement (see :mod:`napari_imgreg.interpret.structural`)."""
         color = self.properties.get("color")
+        model = self.error_model
         if self.kind == "facet":
             pts = self.patch_points if self.patch_points is not None and len(self.patch_points) else self.points
-            m = measure_facet(pts, self.id, self.label, self.source, thresholds)
+            m = measure_facet(pts, self.id, self.label, self.source, thresholds, model, uncertainty)
         else:
-            m = measure_trace(
-                self.parts, self.id, self.label, self.source, self.surface_normal, thresholds
+            m = measure_traces(
+                [self.parts], self.id, self.label, [self.source], self.surface_normal,
+                thresholds, [model] if model is not None else None, uncertainty,
             )
         m.color = color
         return m
 
 
 # ---------------------------------------------------------------- sampling
+def check_drawing(pixels: np.ndarray, width: int, height: int, where: str = "") -> np.ndarray:
+    """Refuse vertices that are not finite or lie far outside the photo.
+
+    Parameters
+    ----------
+    pixels : (N, 2) array
+        Vertices (x, y), pixels.
+    width, height : int
+        The photo's size.
+    where : str
+        Names the feature in the message.
+
+    Returns
+    -------
+    (N, 2) array
+        The vertices, as float64.
+
+    Raises
+    ------
+    InputError
+        A NaN/inf coordinate, or one more than :data:`MAX_OUTSIDE` photo
+        diagonals outside the image: sampling it would be unbounded work.
+    """
+    p = np.asarray(pixels, np.float64).reshape(-1, 2)
+    prefix = f"{where}: " if where else ""
+    if not np.isfinite(p).all():
+        raise InputError(f"{prefix}a vertex coordinate is not a finite number")
+    diag = math.hypot(width, height)
+    margin = MAX_OUTSIDE * diag
+    out = (p[:, 0] < -margin) | (p[:, 0] > width + margin) | (p[:, 1] < -margin) | (p[:, 1] > height + margin)
+    if out.any():
+        k = int(np.flatnonzero(out)[0])
+        raise InputError(
+            f"{prefix}vertex {k + 1} at ({p[k, 0]:.6g}, {p[k, 1]:.6g}) px is far outside the "
+            f"{width}×{height} photo (more than {MAX_OUTSIDE:g} diagonal beyond its edge)")
+    return p
+
+
+def _clip_segments(p: np.ndarray, width: int, height: int) -> list[np.ndarray]:
+    """The polyline's pieces inside the image rectangle [-0.5, w-0.5]×[-0.5, h-0.5]
+    (Liang–Barsky per segment; consecutive inside pieces are joined)."""
+    lo = np.array([-0.5, -0.5])
+    hi = np.array([width - 0.5, height - 0.5])
+    pieces: list[list[np.ndarray]] = []
+    current: list[np.ndarray] = []
+    for a, b in zip(p[:-1], p[1:]):
+        d = b - a
+        t0, t1 = 0.0, 1.0
+        ok = True
+        for k in range(2):
+            for q, r in ((-d[k], a[k] - lo[k]), (d[k], hi[k] - a[k])):
+                if q == 0:
+                    if r < 0:
+                        ok = False
+                else:
+                    t = r / q
+                    if q < 0:
+                        t0 = max(t0, t)
+                    else:
+                        t1 = min(t1, t)
+        if not ok or t0 > t1:
+            if current:
+                pieces.append(current)
+                current = []
+            continue
+        ca, cb = a + t0 * d, a + t1 * d
+        if current and np.allclose(current[-1], ca):
+            current.append(cb)
+        else:
+            if current:
+                pieces.append(current)
+            current = [ca, cb]
+        if t1 < 1.0:
+            pieces.append(current)
+            current = []
+    if current:
+        pieces.append(current)
+    return [np.array(c) for c in pieces]
+
+
 def densify(pixels: np.ndarray, step_px: float = 1.0, closed: bool = False) -> np.ndarray:
     """Samples along a polyline about ``step_px`` apart, every vertex kept.
 
@@ -341,12 +476,30 @@ def project_polyline(
     -------
     ProjectedLine
     """
-    samples = densify(pixels, params.step_px, closed)
+    p = check_drawing(pixels, intrinsics.width, intrinsics.height)
+    if closed and len(p) > 2:
+        p = np.vstack([p, p[:1]])
+    inside = ((p[:, 0] >= -0.5) & (p[:, 0] <= intrinsics.width - 0.5)
+              & (p[:, 1] >= -0.5) & (p[:, 1] <= intrinsics.height - 0.5))
+    if len(p) >= 2 and not inside.all():
+        # Off-image stretches have no rays: clip, and keep the pieces apart
+        # (NaN samples between them become misses, which split the line).
+        pieces = _clip_segments(p, intrinsics.width, intrinsics.height)
+        gap = np.full((1, 2), np.nan)
+        chunks = []
+        for piece in pieces:
+            chunks += [densify(piece, params.step_px), gap]
+        samples = np.vstack(chunks[:-1]) if chunks else np.zeros((0, 2))
+    else:
+        samples = densify(p, params.step_px, False)
     if len(samples) == 0:
         empty = np.zeros((0, 3))
         return ProjectedLine(samples, empty, np.zeros(0), np.zeros(0, int), np.zeros(0, int), empty)
-    origin, directions = pose.rays(intrinsics, samples)
+    finite = np.isfinite(samples).all(axis=1)
+    origin, directions = pose.rays(intrinsics, np.where(finite[:, None], samples, 0.0))
     hits = scene.cast_rays(origin, directions)
+    hits.distance[~finite] = np.inf
+    hits.face_id[~finite] = -1
     points = scene.surface_points(hits)
     hit = hits.hit
     distance = hits.distance.astype(np.float64)
@@ -422,6 +575,8 @@ def project_interpretations(
     source: str = "",
     params: ProjectionParams = ProjectionParams(),
     id_prefix: str | None = None,
+    pose_uncertainty: PoseUncertainty | None = None,
+    uncertainty: UncertaintyParams = DEFAULT_UNCERTAINTY,
 ) -> list[Feature3D]:
     """Project the features drawn on one registered photo onto the surface.
 
@@ -437,17 +592,41 @@ def project_interpretations(
     params : ProjectionParams
     id_prefix : str, optional
         Feature ids are ``"<prefix>:<n>"`` (default: the source's stem), or
-        the 2D feature's ``properties.id`` when it has one.
+        the 2D feature's ``properties.id`` when it has one (also kept as
+        ``properties.contact``, which joins the traces of one contact drawn
+        on several photos).
+    pose_uncertainty : PoseUncertainty, optional
+        The pose's expected error (RESULT.json ``uncertainty``); default
+        :meth:`PoseUncertainty.from_result` of an empty result (1 px).
+    uncertainty : UncertaintyParams
+        The drawing's pixel noise and the mesh-error fraction.
 
     Returns
     -------
     list of Feature3D
         One per interpretation, in order (a feature wholly off the surface
-        has no parts).
+        has no parts). Each carries ``properties.camera_position``
+        (the camera centre, metres), ``properties.sigma_m`` (median expected
+        3D error of its points, metres, 1σ, pose position included) and
+        ``properties.uncertainty`` (the error model ``measure`` propagates).
+
+    Raises
+    ------
+    InputError
+        A drawn vertex is not finite or lies far outside the photo.
     """
     if scene._engine is None:
         scene.build_engine()
     prefix = id_prefix if id_prefix is not None else (source.rsplit(".", 1)[0] or "f")
+    for k, item in enumerate(interpretations):  # refuse bad vertices before any ray
+        check_drawing(item.pixels, intrinsics.width, intrinsics.height, f"feature {k + 1}")
+    center = pose.center
+    if pose_uncertainty is None:
+        pose_uncertainty = PoseUncertainty.from_result({"pose": {}, "status": "registered",
+                                                       "metrics": {"reprojection_error_px": 1.0}},
+                                                      intrinsics.fx)
+    focal = float((intrinsics.fx + intrinsics.fy) / 2.0)
+    image_px = math.hypot(uncertainty.drawing_px, pose_uncertainty.reprojection_px)
     out = []
     for k, item in enumerate(interpretations):
         closed = item.geometry == "Polygon"
@@ -457,7 +636,34 @@ def project_interpretations(
         props.setdefault("color", item.color)
         if source:
             props["source"] = source
-        fid = str(props.pop("id", None) or f"{prefix}:{k + 1}")
+        user_id = props.pop("id", None)
+        if user_id is not None and not props.get("contact"):
+            props["contact"] = str(user_id)
+        fid = str(user_id or f"{prefix}:{k + 1}")
+        props["camera_position"] = [round(float(v), 4) for v in center]
+        on_pts = line.part >= 0
+        if on_pts.any():
+            hits = line.points[on_pts]
+            rng = np.linalg.norm(hits - center, axis=1)
+            rays = (hits - center) / np.maximum(rng[:, None], 1e-12)
+            cos_inc = np.abs(np.einsum("ij,ij->i", rays, line.normals[on_pts]))
+            tri = scene.vertices[scene.faces[line.face_id[on_pts]]]
+            edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
+            edge_m = float(np.median(edges))
+            mesh_m = uncertainty.mesh_error_fraction * edge_m
+            rel = point_sigma(rng, cos_inc, focal, image_px, mesh_m, uncertainty.max_obliquity_gain)
+            relative = float(np.median(rel))
+            model = ErrorModel(
+                camera_position=center, relative_m=relative, mesh_m=mesh_m, mesh_edge_m=edge_m,
+                n_vertices=len(item.pixels), rotation_deg=pose_uncertainty.rotation_deg,
+                position_m=pose_uncertainty.position_m,
+                view_m=float(math.hypot(np.median(rng) * image_px / focal, mesh_m)),
+                extra={"drawing_px": uncertainty.drawing_px,
+                       "reprojection_px": round(pose_uncertainty.reprojection_px, 4),
+                       "pose_uncertainty": pose_uncertainty.source},
+            )
+            props["sigma_m"] = round(math.hypot(relative, pose_uncertainty.position_m), 5)
+            props["uncertainty"] = model.to_properties()
         parts = line.parts
         on = line.part >= 0
         normal = None
@@ -510,8 +716,48 @@ def merge_interpretations(*sets: Iterable[Feature3D]) -> list[Feature3D]:
 
 
 def measure_features(
-    features: Sequence[Feature3D], thresholds: FitThresholds = DEFAULT_THRESHOLDS
+    features: Sequence[Feature3D],
+    thresholds: FitThresholds = DEFAULT_THRESHOLDS,
+    uncertainty: UncertaintyParams = DEFAULT_UNCERTAINTY,
+    combine: bool = True,
 ) -> list[Measurement]:
-    """Contract §6 measurements of projected features (those with points)."""
-    return [f.measure(thresholds) for f in features if f.n_points or (
+    """Contract §6 measurements of projected features (those with points).
+
+    Parameters
+    ----------
+    features : list of Feature3D
+    thresholds : FitThresholds
+    uncertainty : UncertaintyParams
+        Monte Carlo settings for the σ columns.
+    combine : bool
+        Traces of one contact (same ``properties.contact`` and label) drawn on
+        two or more photos also get one combined row, id ``contact:<name>``:
+        the plane their points define together (reported where they leave
+        every camera's viewing plane), even when each alone is too straight.
+
+    Returns
+    -------
+    list of Measurement
+        One per feature with points, in order, then the combined rows.
+    """
+    measured = [f for f in features if f.n_points or (
         f.patch_points is not None and len(f.patch_points))]
+    out = [f.measure(thresholds, uncertainty) for f in measured]
+    if not combine:
+        return out
+    groups: dict[tuple[str, str], list[Feature3D]] = {}
+    for f in measured:
+        if f.kind == "trace" and f.contact and f.n_points:
+            groups.setdefault((f.label, f.contact), []).append(f)
+    for (label, contact), members in groups.items():
+        if len({f.source for f in members}) < 2:
+            continue
+        models = [f.error_model for f in members]
+        m = measure_traces(
+            [f.parts for f in members], f"contact:{contact}", label,
+            [f.source for f in members], None, thresholds,
+            models if all(md is not None for md in models) else None, uncertainty,
+        )
+        m.color = members[0].properties.get("color")
+        out.append(m)
+    return out

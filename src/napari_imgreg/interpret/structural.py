@@ -20,6 +20,15 @@ face the trace was drawn on, not the structure. We add ``collinearity = 1 -
 *relief*, ``sqrt(λ2 / λ1)``: a nearly straight trace defines no plane, whatever
 its planarity says.
 
+A trace's plane is reported only where the drawing determines it (issue 14):
+every point of a line drawn on a photo lies on a ray through the camera
+centre, so a line drawn straight on the photo lies in a plane through the
+camera whatever the rock does. The fit must leave the best plane through the
+camera by ``min_view_spread`` times the points' expected error, and make at
+least ``min_ray_angle_deg`` with the viewing rays
+(:mod:`napari_imgreg.interpret.uncertainty`). Every angle gets a Monte Carlo
+σ from the pose, drawing and mesh errors.
+
 References
 ----------
 Thiele, S. T., Grose, L., Samsu, A., Micklethwaite, S., Vollgger, S. A. and
@@ -58,8 +67,11 @@ __all__ = [
     "pole_of_plane",
     "fisher_mean",
     "measure_trace",
+    "measure_traces",
+    "uniform_along",
     "measure_facet",
     "equal_area",
+    "kamb_density",
     "draw_stereonet",
     "save_stereonet",
 ]
@@ -82,12 +94,34 @@ class FitThresholds:
         by about ±1 m RMS across relief).
     min_points : int
         Points a plane needs.
+    min_view_spread : float
+        A trace's points must leave the best plane through its camera centre
+        (the viewing plane) by this many times their expected error off that
+        plane, RMS (default 0.7; range 0–100). A line drawn straight on the
+        photo scores 0: its "plane" is the viewing plane.
+    max_dip_sigma_deg : float
+        And the Monte Carlo σ of the dip (the expected errors propagated
+        through the geometry, which grows as the plane nears the viewing
+        plane) must not exceed this (default 4°; range 0–90).
+    min_ray_angle_deg : float
+        The fitted plane must make at least this angle with the viewing rays
+        (default 2°; range 0–90): a plane containing the rays has a straight
+        image and cannot be seen.
+    require_camera : bool
+        Withhold a trace's plane when the camera centre is unknown (files
+        written before ``camera_position`` existed), since whether the
+        drawing defines it cannot be checked. False restores the old
+        planarity/relief-only vetting (for comparison only).
     """
 
     min_planarity: float = 0.75
     surface_effect_deg: float = 10.0
     min_relief: float = 0.05
     min_points: int = 5
+    min_view_spread: float = 0.7
+    max_dip_sigma_deg: float = 4.0
+    min_ray_angle_deg: float = 2.0
+    require_camera: bool = True
 
 
 DEFAULT_THRESHOLDS = FitThresholds()
@@ -433,6 +467,17 @@ class Measurement:
         Photo(s) the feature was drawn on.
     note : str
         Why a plane was not reported.
+    dip_sigma_deg, dip_direction_sigma_deg, plunge_sigma_deg, trend_sigma_deg : float or None
+        Monte Carlo standard deviation of each angle (None where the angle
+        is undefined or no error model is known).
+    photo : str
+        The photo(s) the feature was drawn on, ``;``-separated.
+    view_spread : float or None
+        Traces: RMS distance of the points to the best plane through the
+        camera centre, in units of their expected error (the plane is
+        determined from ``min_view_spread``, default 3).
+    ray_angle_deg : float or None
+        Traces: angle between the fitted plane and the viewing rays.
     """
 
     id: str
@@ -450,10 +495,141 @@ class Measurement:
     source: str = ""
     note: str = ""
     color: str | None = None
+    dip_sigma_deg: float | None = None
+    dip_direction_sigma_deg: float | None = None
+    plunge_sigma_deg: float | None = None
+    trend_sigma_deg: float | None = None
+    photo: str = ""
+    view_spread: float | None = None
+    ray_angle_deg: float | None = None
 
     @property
     def has_plane(self) -> bool:
         return self.dip_deg is not None
+
+
+def _sample_axes(samples: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Batched principal axes of equally sized point sets.
+
+    Returns eigenvalues (K, 3) descending and axes (K, 3, 3) as rows.
+    """
+    q = np.stack([np.asarray(x, np.float64) for x in samples])
+    q = q - q.mean(axis=1, keepdims=True)
+    cov = np.einsum("kni,knj->kij", q, q) / max(q.shape[1], 1)
+    w, v = np.linalg.eigh(cov)  # ascending
+    return w[:, ::-1], np.transpose(v[:, :, ::-1], (0, 2, 1))
+
+
+def _line_samples(direction: np.ndarray, samples: Sequence[np.ndarray]) -> np.ndarray:
+    """(K, 2) plunge/trend of sampled lines, each turned to agree with ``direction``
+    so a near-horizontal line does not jump by 180° in trend."""
+    if not len(samples) or len(samples[0]) < 2:
+        return np.full((len(samples), 2), np.nan)
+    eig, axes = _sample_axes(samples)
+    d = axes[:, 0]
+    d = d * np.where(d @ direction < 0, -1.0, 1.0)[:, None]
+    out = np.stack([np.degrees(np.arcsin(np.clip(-d[:, 2], -1, 1))),
+                    np.degrees(np.arctan2(d[:, 0], d[:, 1])) % 360.0], axis=1)
+    out[eig[:, 0] <= 1e-18] = np.nan
+    return out
+
+
+def _plane_samples(samples: Sequence[np.ndarray]) -> np.ndarray:
+    """(K, 2) dip/dip direction of the planes fitted to sampled point sets."""
+    if not len(samples) or len(samples[0]) < 3:
+        return np.full((len(samples), 2), np.nan)
+    eig, axes = _sample_axes(samples)
+    n = axes[:, 2]
+    n = n * np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
+    out = np.stack([np.degrees(np.arctan2(np.hypot(n[:, 0], n[:, 1]), n[:, 2])),
+                    np.degrees(np.arctan2(n[:, 0], n[:, 1])) % 360.0], axis=1)
+    out[eig[:, 1] <= 1e-18 * np.maximum(eig[:, 0], 1e-300)] = np.nan
+    return out
+
+
+def _trace_sigmas(m: Measurement, line: LineFit, samples: list[np.ndarray]) -> None:
+    from napari_imgreg.interpret.uncertainty import angle_sigmas
+
+    d0 = vector_from_plunge_trend(line.plunge_deg, line.trend_deg)
+    nominal = (line.plunge_deg, line.trend_deg)
+    sp, st = angle_sigmas(nominal, _line_samples(d0, samples))
+    if math.isfinite(sp):
+        m.plunge_sigma_deg = sp
+        # A vertical line's trend is undefined: no σ either.
+        m.trend_sigma_deg = st if line.plunge_deg < 89.9 else None
+
+
+def _plane_sigmas(m: Measurement, samples: list[np.ndarray]) -> None:
+    from napari_imgreg.interpret.uncertainty import angle_sigmas
+
+    sd, sa = angle_sigmas((m.dip_deg, m.dip_direction_deg), _plane_samples(samples))
+    if math.isfinite(sd):
+        m.dip_sigma_deg = sd
+        m.dip_direction_sigma_deg = sa if m.dip_deg > 0.01 else None
+
+
+def _view_check(
+    m: Measurement,
+    plane: PlaneFit,
+    points_per_view: Sequence[np.ndarray],
+    models: Sequence,
+    thresholds: FitThresholds,
+) -> str:
+    """Why the drawing does not determine ``plane`` ('' when it does); fills
+    ``m.view_spread`` and ``m.ray_angle_deg``."""
+    from napari_imgreg.interpret.uncertainty import view_geometry
+
+    cams = [md.camera_position for md in models]
+    spread, angle = view_geometry(points_per_view, cams, plane.normal)
+    # Against the largest of the views' expected errors: the worst-drawn view
+    # bounds what the set can show.
+    sigma = max(max(md.view_sigma_m for md in models), 1e-9)
+    m.view_spread, m.ray_angle_deg = spread / sigma, angle
+    reasons = []
+    if m.view_spread < thresholds.min_view_spread:
+        reasons.append(
+            f"the points lie in a plane through the camera (spread {m.view_spread:.1f} σ "
+            f"< {thresholds.min_view_spread:g} σ): the viewing plane, not the rock's")
+    if angle < thresholds.min_ray_angle_deg:
+        reasons.append(f"plane within {angle:.1f}° of the viewing rays "
+                       f"(< {thresholds.min_ray_angle_deg:g}°)")
+    return "; ".join(reasons)
+
+
+def uniform_along(parts: Sequence[np.ndarray]) -> np.ndarray:
+    """A trace's parts resampled evenly along their 3D length (as many points).
+
+    A projected line is sampled about once per *pixel*, so a stretch seen
+    obliquely has fewer points per metre than one seen face-on; fitting the
+    samples as they are would weight the trace by how it was viewed. Evenly
+    along the 3D length, a bent trace's line and plane are the rock's.
+
+    Parameters
+    ----------
+    parts : list of (Ni, 3) arrays, metres
+
+    Returns
+    -------
+    (sum Ni, 3) array
+
+    Examples
+    --------
+    >>> uniform_along([np.array([[0, 0, 0], [1, 0, 0], [10, 0, 0.0]])])[:, 0].tolist()
+    [0.0, 5.0, 10.0]
+    """
+    out = []
+    for part in parts:
+        q = _as_points(part)
+        if len(q) < 3:
+            out.append(q)
+            continue
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(q, axis=0), axis=1))])
+        if arc[-1] <= 0:
+            out.append(q)
+            continue
+        t = np.linspace(0.0, arc[-1], len(q))
+        out.append(np.stack([np.interp(t, arc, q[:, j]) for j in range(3)], axis=1))
+    return np.concatenate(out) if out else np.zeros((0, 3))
 
 
 def measure_trace(
@@ -463,8 +639,10 @@ def measure_trace(
     source: str = "",
     surface_normal: np.ndarray | None = None,
     thresholds: FitThresholds = DEFAULT_THRESHOLDS,
+    error_model=None,
+    uncertainty=None,
 ) -> Measurement:
-    """Measure a 3D trace: line → plunge/trend; well-posed plane → dip/dip direction.
+    """Measure a 3D trace: line → plunge/trend; a plane the drawing defines → dip/dip direction.
 
     Parameters
     ----------
@@ -472,27 +650,102 @@ def measure_trace(
         The trace's pieces on the surface (metres).
     surface_normal : (3,) array, optional
         Mean outcrop-surface normal along the trace (rejects "surface planes").
+    thresholds : FitThresholds
+    error_model : ErrorModel, optional
+        The camera centre and expected point error
+        (:class:`napari_imgreg.interpret.uncertainty.ErrorModel`). Without
+        it no σ is given and, with ``thresholds.require_camera``, no plane.
+    uncertainty : UncertaintyParams, optional
+        Monte Carlo settings (default
+        :data:`~napari_imgreg.interpret.uncertainty.DEFAULT_UNCERTAINTY`).
     """
-    pts = _as_points(parts)
+    return measure_traces([parts], id, label, [source], surface_normal, thresholds,
+                          [error_model] if error_model is not None else None, uncertainty)
+
+
+def measure_traces(
+    parts_per_view: Sequence[Sequence[np.ndarray]],
+    id: str = "",
+    label: str = "",
+    sources: Sequence[str] = (),
+    surface_normal: np.ndarray | None = None,
+    thresholds: FitThresholds = DEFAULT_THRESHOLDS,
+    error_models: Sequence | None = None,
+    uncertainty=None,
+) -> Measurement:
+    """Measure one contact from its traces on one or several photos.
+
+    With one view this is :func:`measure_trace`. With several (the same
+    contact drawn on different photos), the plane is fitted to all points and
+    reported where together they leave the best plane through *every*
+    camera; plunge/trend (one line through separate stretches means little)
+    are then left empty.
+
+    Parameters
+    ----------
+    parts_per_view : list (views) of lists of (Ni, 3) arrays
+    sources : list of str
+        The photo of each view.
+    error_models : list of ErrorModel, optional
+        One per view.
+    """
+    from napari_imgreg.interpret.uncertainty import DEFAULT_UNCERTAINTY, monte_carlo
+
+    params = uncertainty or DEFAULT_UNCERTAINTY
+    views = [uniform_along(p if not isinstance(p, np.ndarray) else [p]) for p in parts_per_view]
+    pts = np.concatenate(views) if views else np.zeros((0, 3))
+    names = [s for s in sources if s]
+    source = ";".join(dict.fromkeys(names))
     centroid = pts.mean(axis=0) if len(pts) else np.full(3, np.nan)
-    m = Measurement(id, label, "trace", centroid, len(pts), source=source)
+    m = Measurement(id, label, "trace", centroid, len(pts), source=source, photo=source)
+    multi = len(views) > 1
     line = fit_line(pts)
     if line is None:
         m.note = "fewer than two points on the surface"
         return m
-    m.plunge_deg, m.trend_deg = line.plunge_deg, line.trend_deg
+    if not multi:
+        m.plunge_deg, m.trend_deg = line.plunge_deg, line.trend_deg
     m.rms_m = line.rms_m
     m.collinearity = None if math.isnan(line.collinearity) else line.collinearity
-    plane = fit_plane(pts, thresholds, surface_normal=surface_normal, check_relief=True)
+    models = list(error_models) if error_models is not None and all(
+        e is not None for e in error_models) else None
+    samples = None
+    if models is not None:
+        mc = monte_carlo([[v] for v in views], models, params)
+        samples = [np.concatenate(s) for s in mc]
+        if not multi:
+            _trace_sigmas(m, line, samples)
+    plane = fit_plane(pts, thresholds, surface_normal=surface_normal,
+                      check_relief=not multi)
     if plane is None:
         m.note = "no plane: points on one line"
         return m
     m.planarity = plane.planarity
-    if plane.ok:
+    reasons = [plane.reason] if plane.reason else []
+    if models is not None:
+        why = _view_check(m, plane, views, models, thresholds)
+        if why:
+            reasons.insert(0, why)
+    elif thresholds.require_camera:
+        reasons.insert(0, "camera position unknown, so whether the drawing defines a plane "
+                       "cannot be checked (re-run `project`)")
+    if not reasons and samples is not None:
+        m.dip_deg, m.dip_direction_deg = plane.dip_deg, plane.dip_direction_deg
+        _plane_sigmas(m, samples)
+        if m.dip_sigma_deg is None or m.dip_sigma_deg > thresholds.max_dip_sigma_deg:
+            sigma = m.dip_sigma_deg
+            reasons.append(
+                f"the drawing does not pin the plane down (dip σ {sigma:.1f}° > "
+                f"{thresholds.max_dip_sigma_deg:g}°)" if sigma is not None else "no dip σ")
+            m.dip_deg = m.dip_direction_deg = None
+            m.dip_sigma_deg = m.dip_direction_sigma_deg = None
+    if reasons:
+        m.note = "no plane: " + "; ".join(reasons)
+    else:
         m.dip_deg, m.dip_direction_deg = plane.dip_deg, plane.dip_direction_deg
         m.rms_m = plane.rms_m
-    else:
-        m.note = "no plane: " + plane.reason
+    if multi:
+        m.note = (m.note + "; " if m.note else "") + f"combined from {len(views)} photos"
     return m
 
 
@@ -502,6 +755,8 @@ def measure_facet(
     label: str = "",
     source: str = "",
     thresholds: FitThresholds = DEFAULT_THRESHOLDS,
+    error_model=None,
+    uncertainty=None,
 ) -> Measurement:
     """Measure a facet: the plane fitted to the surface points inside it.
 
@@ -509,10 +764,16 @@ def measure_facet(
     ----------
     points : (N, 3) array
         Surface points inside the facet (metres).
+    error_model : ErrorModel, optional
+        With it, σ of dip and dip direction by a Monte Carlo over the pose
+        and a bootstrap of the points (the fit's own scatter) plus the mesh
+        error.
     """
+    from napari_imgreg.interpret.uncertainty import DEFAULT_UNCERTAINTY, monte_carlo
+
     pts = _as_points(points)
     centroid = pts.mean(axis=0) if len(pts) else np.full(3, np.nan)
-    m = Measurement(id, label, "facet", centroid, len(pts), source=source)
+    m = Measurement(id, label, "facet", centroid, len(pts), source=source, photo=source)
     plane = fit_plane(pts, thresholds, check_relief=False)
     if plane is None:
         m.note = "too few surface points for a plane"
@@ -521,6 +782,13 @@ def measure_facet(
     if plane.ok:
         m.dip_deg, m.dip_direction_deg = plane.dip_deg, plane.dip_direction_deg
         m.rms_m = plane.rms_m
+        if error_model is not None:
+            params = uncertainty or DEFAULT_UNCERTAINTY
+            # Facet patches hold thousands of points: a smaller subsample is
+            # plenty for the bootstrap's spread.
+            sub = pts[np.linspace(0, len(pts) - 1, min(len(pts), 2000)).astype(int)]
+            mc = monte_carlo([[sub]], [error_model], params, bootstrap=True)
+            _plane_sigmas(m, [s[0] for s in mc])
     else:
         m.note = "no plane: " + plane.reason
     return m
@@ -666,6 +934,61 @@ def _small_circle(axis: np.ndarray, half_angle_deg: float, n: int = 181):
     return pieces
 
 
+def kamb_density(
+    vectors: np.ndarray, grid_n: int = 101, sigma: float = 3.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exponential Kamb density of axes on the lower-hemisphere equal-area net.
+
+    Vollmer (1995)'s smoothed Kamb count: each axis ``p_i`` adds
+    ``exp(k (|v·p_i| - 1))`` at net direction ``v`` with ``k = 2 (1 + n / σ²)``
+    (Kamb's counting cone for ``σ`` standard deviations), normalised to
+    multiples of a uniform density (``n (1 - e^{-k}) / k`` on average).
+
+    Parameters
+    ----------
+    vectors : (n, 3) array
+        Unit axes (poles), either sign.
+    grid_n : int
+        Grid points per side of the net's square.
+    sigma : float
+        Kamb's significance level (3: the usual counting cone).
+
+    Returns
+    -------
+    x, y : (grid_n, grid_n) arrays
+        Net coordinates (outside the primitive circle: NaN density).
+    density : (grid_n, grid_n) array
+        Multiples of uniform density.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> v = rng.normal(size=(2000, 3)); v /= np.linalg.norm(v, axis=1)[:, None]
+    >>> _, _, d = kamb_density(v, 41)
+    >>> 0.8 < float(np.nanmedian(d)) < 1.2
+    True
+    """
+    v = np.asarray(vectors, np.float64).reshape(-1, 3)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True)
+    n = len(v)
+    g = np.linspace(-1.0, 1.0, grid_n)
+    x, y = np.meshgrid(g, g)
+    r = np.hypot(x, y)
+    inside = r <= 1.0
+    # Inverse of equal_area: r = sqrt(2) sin(θ/2) with θ the angle from the
+    # downward vertical.
+    theta = 2.0 * np.arcsin(np.clip(r / math.sqrt(2.0), 0, 1))
+    az = np.arctan2(x, y)
+    dirs = np.stack([np.sin(theta) * np.sin(az), np.sin(theta) * np.cos(az), -np.cos(theta)], -1)
+    k = 2.0 * (1.0 + n / sigma**2)
+    cos = np.abs(dirs[inside] @ v.T)
+    dens = np.exp(k * (cos - 1.0)).sum(axis=1)
+    expected = n * (1.0 - math.exp(-k)) / k
+    out = np.full(x.shape, np.nan)
+    out[inside] = dens / max(expected, 1e-300)
+    return x, y, out
+
+
 def _label_colors(labels: Iterable[str], colors: dict[str, str] | None) -> dict[str, str]:
     import matplotlib
 
@@ -686,11 +1009,17 @@ def draw_stereonet(
     colors: dict[str, str] | None = None,
     great_circles: bool = True,
     title: str | None = None,
+    contours: bool = True,
+    cones: bool = True,
 ) -> dict[str, FisherMean]:
     """Draw a lower-hemisphere equal-area stereonet of measurements.
 
-    Poles (dots) and great circles of planes, lineations of traces
-    (triangles), and per label the Fisher mean pole (star) with its α95 cone.
+    Poles (dots) and great circles of planes, each pole with its confidence
+    cone (a small circle of 2σ, from ``dip_sigma_deg``: the 95 % cone of the
+    pose, drawing and mesh errors), lineations of traces (triangles), per
+    label the Fisher mean pole (star) with its α95 cone, and Kamb density
+    contours of all poles (:func:`kamb_density`, multiples of uniform
+    density, at 2, 4, 6, … when there are at least 5 poles).
 
     Parameters
     ----------
@@ -717,6 +1046,19 @@ def draw_stereonet(
         ax.plot([0.97 * s, 1.03 * s], [0.97 * c, 1.03 * c], color="black", lw=1)
         ax.text(1.12 * s, 1.12 * c, text, ha="center", va="center", fontsize=9)
     label_colors = _label_colors([m.label for m in measurements], colors)
+    all_planes = [m for m in measurements if m.has_plane]
+    if contours and len(all_planes) >= 5:
+        poles = np.array([vector_from_plunge_trend(*pole_of_plane(m.dip_deg, m.dip_direction_deg))
+                          for m in all_planes])
+        gx, gy, dens = kamb_density(poles)
+        top = float(np.nanmax(dens))
+        levels = np.arange(2.0, max(top, 2.0) + 2.0, 2.0)
+        if top > 2.0:
+            ax.contourf(gx, gy, np.nan_to_num(dens, nan=0.0), levels=levels, cmap="Greys",
+                        alpha=0.35, zorder=0)
+            cs = ax.contour(gx, gy, np.nan_to_num(dens, nan=0.0), levels=levels, colors="grey",
+                            linewidths=0.5, zorder=0)
+            ax.clabel(cs, fontsize=6, fmt="%g")
     means: dict[str, FisherMean] = {}
     handles = []
     for label, color in label_colors.items():
@@ -733,6 +1075,12 @@ def draw_stereonet(
             x, y = equal_area(poles[:, 0], poles[:, 1])
             ax.plot(x, y, "o", color=color, ms=4, mec="black", mew=0.4)
             vec = np.array([vector_from_plunge_trend(p, t) for p, t in poles])
+            if cones:
+                for m, v in zip(planes, vec):
+                    if m.dip_sigma_deg is not None and m.dip_sigma_deg > 0:
+                        # Dip σ is the pole's plunge σ; the cone is its 95 % (2σ).
+                        for px, py in _small_circle(v, min(2.0 * m.dip_sigma_deg, 45.0), 61):
+                            ax.plot(px, py, color=color, lw=0.5, alpha=0.7)
             fm = fisher_mean(vec)
             means[label] = fm
             dip, ddir = dip_dip_direction(fm.vector)

@@ -19,16 +19,40 @@ import numpy as np
 
 from napari_imgreg.errors import input_error
 
-__all__ = ["MeshData", "load_mesh", "MESH_SUFFIXES", "mesh_cache_dir"]
+__all__ = [
+    "MeshData", "load_mesh", "MESH_SUFFIXES", "mesh_cache_dir", "mesh_cache_limit_bytes",
+    "check_mesh_arrays", "evict_mesh_cache", "MESH_CACHE_LIMIT_BYTES",
+]
 
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 
 # Bump when what the loader produces changes: old cache entries are ignored.
-_CACHE_VERSION = 1
+# 2: content keys, entries checked on read, eviction by size.
+_CACHE_VERSION = 2
 # Meshes smaller than this are parsed every time (parsing is cheap for them).
 _CACHE_MIN_BYTES = 20_000_000
+#: Default total size of the mesh cache (2 GiB, about ten 5-million-triangle
+#: textured meshes); ``NAPARI_IMGREG_MESH_CACHE_MB`` overrides it (0: no cache).
+#: Past it, the least recently used entries are deleted.
+MESH_CACHE_LIMIT_BYTES = 2 * 1024**3
+
+
+def mesh_cache_limit_bytes() -> int:
+    """The mesh cache's size limit: ``$NAPARI_IMGREG_MESH_CACHE_MB`` (mebibytes)
+    or :data:`MESH_CACHE_LIMIT_BYTES`; an unreadable value is the default."""
+    value = os.environ.get("NAPARI_IMGREG_MESH_CACHE_MB")
+    if value:
+        try:
+            mb = float(value)
+        except ValueError:
+            log.warning("NAPARI_IMGREG_MESH_CACHE_MB=%r is not a number: using %d MiB",
+                        value, MESH_CACHE_LIMIT_BYTES // 2**20)
+        else:
+            if mb == mb and mb >= 0:  # not NaN
+                return int(min(mb, 2.0**40) * 2**20)
+    return MESH_CACHE_LIMIT_BYTES
 
 
 def mesh_cache_dir() -> Path:
@@ -78,8 +102,12 @@ def load_mesh(path: str | os.PathLike, cache: bool = True) -> MeshData:
         Keep a binary copy of large parsed meshes (see :func:`mesh_cache_dir`)
         so the next load of the unchanged files skips parsing: trimesh's OBJ
         parser needs seconds for a million triangles. The cache entry is keyed
-        by the paths, sizes and modification times of the mesh and of the
-        files beside it that share its name stem or are named in its MTL.
+        by the content (a BLAKE2 hash) of the mesh and of its MTL and texture
+        files, so touching a file costs nothing and any change is a miss. An
+        entry is checked when read (array shapes, face indices in range,
+        finite coordinates, its stored key) and rebuilt when it fails; the
+        cache keeps to :func:`mesh_cache_limit_bytes` by deleting the least
+        recently used entries.
 
     Returns
     -------
@@ -102,7 +130,8 @@ def load_mesh(path: str | os.PathLike, cache: bool = True) -> MeshData:
         raise input_error(
             path, f"not a mesh format (expected one of {', '.join(MESH_SUFFIXES)})"
         )
-    key = _cache_key(path) if cache and path.stat().st_size >= _CACHE_MIN_BYTES else None
+    use_cache = cache and path.stat().st_size >= _CACHE_MIN_BYTES and mesh_cache_limit_bytes() > 0
+    key = _cache_key(path) if use_cache else None
     if key is not None:
         cached = _read_cache(key)
         if cached is not None:
@@ -111,6 +140,43 @@ def load_mesh(path: str | os.PathLike, cache: bool = True) -> MeshData:
     if key is not None:
         _write_cache(key, data)
     return data
+
+
+def check_mesh_arrays(vertices, faces, uv=None, texture=None, vertex_colors=None) -> str | None:
+    """What is wrong with a mesh's arrays, or None when they are consistent.
+
+    Checks the shapes and types of :class:`MeshData`, that every face
+    indexes an existing vertex and that coordinates are finite.
+
+    Returns
+    -------
+    str or None
+        The first problem found, in words.
+    """
+    v, f = np.asarray(vertices), np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or v.dtype.kind != "f":
+        return f"vertices have shape {v.shape} and type {v.dtype} (expected (V, 3) float)"
+    if f.ndim != 2 or f.shape[1] != 3 or f.dtype.kind not in "iu":
+        return f"faces have shape {f.shape} and type {f.dtype} (expected (F, 3) integers)"
+    if len(f) == 0:
+        return "no faces"
+    if f.min() < 0 or f.max() >= len(v):
+        return f"face indices span {f.min()}..{f.max()} but there are {len(v)} vertices"
+    if not np.isfinite(v).all():
+        return "vertices with NaN or infinite coordinates"
+    if uv is not None:
+        uv = np.asarray(uv)
+        if uv.shape != (len(v), 2) or uv.dtype.kind != "f" or not np.isfinite(uv).all():
+            return f"texture coordinates of shape {uv.shape} (expected ({len(v)}, 2), finite)"
+    if texture is not None:
+        t = np.asarray(texture)
+        if t.ndim != 3 or t.shape[2] != 3 or t.dtype != np.uint8 or 0 in t.shape:
+            return f"texture of shape {t.shape} and type {t.dtype} (expected (H, W, 3) uint8)"
+    if vertex_colors is not None:
+        c = np.asarray(vertex_colors)
+        if c.shape != (len(v), 3) or c.dtype != np.uint8:
+            return f"vertex colours of shape {c.shape} (expected ({len(v)}, 3) uint8)"
+    return None
 
 
 def _parse(path: Path) -> MeshData:
@@ -255,40 +321,118 @@ def _companions(path: Path) -> list[Path]:
 
 
 def _cache_key(path: Path) -> str:
+    """BLAKE2 hash of the loader version and the content of the mesh and its
+    companions (with their names relative to the mesh)."""
     import hashlib
 
-    h = hashlib.sha1(f"v{_CACHE_VERSION}".encode())
+    h = hashlib.blake2b(f"v{_CACHE_VERSION}".encode(), digest_size=20)
     for p in _companions(path):
-        st = p.stat()
-        h.update(f"{p.resolve()}|{st.st_size}|{st.st_mtime_ns}".encode())
+        try:
+            name = p.relative_to(path.parent).as_posix()
+        except ValueError:
+            name = p.name
+        h.update(f"|{name}|{p.stat().st_size}|".encode())
+        with open(p, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
     return h.hexdigest()
 
 
+def _drop(file: Path, why: str) -> None:
+    log.warning("mesh cache entry %s %s: rebuilding it", file.name, why)
+    try:
+        file.unlink()
+    except OSError:
+        pass
+
+
 def _read_cache(key: str) -> MeshData | None:
+    """The cached parse for ``key``, or None (missing, damaged or wrong: deleted)."""
     file = mesh_cache_dir() / f"{key}.npz"
     if not file.exists():
         return None
     try:
         with np.load(file, allow_pickle=False) as z:
             get = lambda name: z[name] if name in z.files else None  # noqa: E731
+            stored_key = str(z["key"]) if "key" in z.files else None
             notes = [str(n) for n in z["warnings"]] if "warnings" in z.files else []
-            return MeshData(z["vertices"], z["faces"], get("uv"), get("texture"),
+            data = MeshData(z["vertices"], z["faces"], get("uv"), get("texture"),
                             get("vertex_colors"), notes)
-    except Exception:  # a damaged entry is only a cache miss
-        log.warning("ignoring unreadable mesh cache entry %s", file)
+    except Exception:  # noqa: BLE001 - a damaged entry is only a cache miss
+        _drop(file, "is unreadable")
         return None
+    if stored_key != key:
+        _drop(file, "does not hold the key it is named by")
+        return None
+    problem = check_mesh_arrays(data.vertices, data.faces, data.uv, data.texture,
+                                data.vertex_colors)
+    if problem is not None:
+        _drop(file, f"is inconsistent ({problem})")
+        return None
+    data.vertices = data.vertices.astype(np.float64, copy=False)
+    data.faces = data.faces.astype(np.int32, copy=False)
+    try:  # the access time of a hit: eviction removes the least recently used
+        os.utime(file)
+    except OSError:
+        pass
+    return data
 
 
 def _write_cache(key: str, data: MeshData) -> None:
     from napari_imgreg._atomic import atomic_path
 
-    arrays = {"vertices": data.vertices, "faces": data.faces,
+    arrays = {"vertices": data.vertices, "faces": data.faces, "key": np.array(key),
               "warnings": np.array(data.warnings, dtype=str)}
     for name in ("uv", "texture", "vertex_colors"):
         if getattr(data, name) is not None:
             arrays[name] = getattr(data, name)
+    limit = mesh_cache_limit_bytes()
+    if sum(a.nbytes for a in arrays.values()) > limit:
+        log.info("parsed mesh larger than the mesh cache limit (%d MiB): not cached", limit >> 20)
+        return
     try:
         with atomic_path(mesh_cache_dir() / f"{key}.npz") as tmp:
             np.savez(tmp, **arrays)
     except OSError as exc:  # a read-only home must not stop the load
         log.warning("could not cache the parsed mesh: %s", exc)
+        return
+    evict_mesh_cache(limit, keep=key)
+
+
+def evict_mesh_cache(limit: int | None = None, keep: str | None = None) -> list[Path]:
+    """Delete the least recently used cache entries until the cache's total
+    size is at most ``limit`` bytes (default :func:`mesh_cache_limit_bytes`).
+
+    Parameters
+    ----------
+    limit : int, optional
+    keep : str, optional
+        Key of an entry never deleted (the one just written).
+
+    Returns
+    -------
+    list of Path
+        The entries deleted.
+    """
+    limit = mesh_cache_limit_bytes() if limit is None else limit
+    entries = []
+    for file in mesh_cache_dir().glob("*.npz"):
+        try:
+            st = file.stat()
+        except OSError:  # removed by another process meanwhile
+            continue
+        entries.append((st.st_mtime_ns, st.st_size, file))
+    total = sum(size for _, size, _ in entries)
+    removed = []
+    for _, size, file in sorted(entries, key=lambda e: e[0]):
+        if total <= limit:
+            break
+        if keep is not None and file.stem == keep:
+            continue
+        try:
+            file.unlink()
+        except OSError:
+            continue
+        total -= size
+        removed.append(file)
+    return removed

@@ -7,14 +7,17 @@ The pixels are read here; the tags are read and interpreted by
 from __future__ import annotations
 
 import os
+import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from napari_imgreg.errors import input_error
+from napari_imgreg.errors import InputError, input_error
 from napari_imgreg.io.exif import exif_of_image
+from napari_imgreg.validate import MAX_IMAGE_SIDE_PX, MAX_PHOTO_PIXELS
 
 __all__ = ["Photo", "load_photo", "PHOTO_SUFFIXES", "save_image"]
 
@@ -53,10 +56,18 @@ class Photo:
 def load_photo(path: str | os.PathLike) -> Photo:
     """Read a photo and its EXIF (tags by name, see :func:`napari_imgreg.io.exif.exif_of_image`).
 
+    Any mode is converted to 8-bit RGB: 16-bit photos by their full range
+    (not clipped), grey ones repeated in the three channels. The EXIF
+    orientation is applied to the pixels (``exif["Orientation"]`` keeps the
+    tag, for :func:`~napari_imgreg.prior.prior_for_photo` to turn the
+    camera with them).
+
     Raises
     ------
     InputError
-        Missing file, unsupported format or unreadable image.
+        Missing file, unsupported format, unreadable image, or an image larger
+        than :data:`~napari_imgreg.validate.MAX_PHOTO_PIXELS` (checked from the
+        header, before the pixels are decoded: a decompression bomb).
     """
     from PIL import Image, ImageOps, UnidentifiedImageError
 
@@ -66,13 +77,58 @@ def load_photo(path: str | os.PathLike) -> Photo:
     if path.suffix.lower() not in PHOTO_SUFFIXES:
         raise input_error(path, f"not a photo format (expected {', '.join(PHOTO_SUFFIXES)})")
     try:
-        with Image.open(path) as im:
-            exif = exif_of_image(im)
-            im = ImageOps.exif_transpose(im)
-            image = np.asarray(im.convert("RGB"))
+        with warnings.catch_warnings():
+            # Our own limit (below) replaces Pillow's decompression-bomb warning.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                # Image.open reads the header only: refuse a bomb before decoding.
+                width, height = im.size
+                if width * height > MAX_PHOTO_PIXELS or max(width, height) > MAX_IMAGE_SIDE_PX:
+                    raise input_error(
+                        path, f"image is {width}×{height} px ({width * height / 1e6:,.0f} MP); "
+                              f"the limit is {MAX_PHOTO_PIXELS / 1e6:g} MP and "
+                              f"{MAX_IMAGE_SIDE_PX} px a side")
+                exif = exif_of_image(im)
+                im = ImageOps.exif_transpose(im)
+                image = _to_rgb8(im)
+    except Image.DecompressionBombError as exc:
+        # Pillow refuses above 179 MP while reading the header: same answer as ours.
+        claimed = re.search(r"\((\d+) pixels\)", str(exc))
+        size = f"{int(claimed.group(1)) / 1e6:,.0f} MP" if claimed else "too many pixels"
+        raise input_error(path, f"image header claims {size}; the limit is "
+                                f"{MAX_PHOTO_PIXELS / 1e6:g} MP") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
         raise input_error(path, f"cannot read image ({exc})") from None
     return Photo(np.ascontiguousarray(image), exif, path)
+
+
+def _to_rgb8(im) -> np.ndarray:
+    """An RGB uint8 array of a decoded PIL image of any mode.
+
+    Pillow's ``convert("RGB")`` clips 16- and 32-bit grey to 255 (a 16-bit
+    PNG turns white): those are scaled to 8 bits here, 16-bit by their full
+    range (÷ 257), float images by [0, 1] when they lie within it.
+    """
+    mode = im.mode
+    if mode in ("RGB", "L", "P", "PA", "RGBA", "RGBX", "LA", "CMYK", "YCbCr", "1", "La", "RGBa",
+                "LAB", "HSV"):
+        return np.asarray(im.convert("RGB"))
+    arr = np.asarray(im)
+    if arr.ndim == 3:  # multi-channel wide modes: keep the first three channels
+        arr = arr[..., :3]
+    if mode.startswith("I;16") or arr.dtype in (np.uint16, np.int16) or (
+            mode == "I" and arr.size and arr.max() > 255):
+        grey = np.clip(arr.astype(np.float64) / 257.0, 0, 255)
+    elif mode == "F" or arr.dtype.kind == "f":
+        a = np.nan_to_num(arr.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+        top = float(a.max()) if a.size else 1.0
+        grey = np.clip(a * (255.0 if top <= 1.0 else 1.0), 0, 255)
+    else:
+        grey = np.clip(arr.astype(np.float64), 0, 255)
+    grey = np.round(grey).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=-1) if grey.ndim == 2 else grey
 
 
 def save_image(path: str | os.PathLike, rgb: np.ndarray, quality: int = 92) -> None:

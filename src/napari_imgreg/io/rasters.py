@@ -65,6 +65,14 @@ _USER_DEFINED = 32767
 _DEM_EXTENSIONS = (".tif", ".tiff", ".asc")
 
 
+#: Largest raster read, cells × bands (250 M: a 15,800² DEM, 1 GB as float32).
+MAX_RASTER_CELLS = 250_000_000
+
+
+class _TooLarge(Exception):
+    """A raster header claims more cells than :data:`MAX_RASTER_CELLS`."""
+
+
 class GeoError(InputError):
     """Bad georeference / DEM input or a query the DEM cannot answer.
 
@@ -198,11 +206,18 @@ def read_geotiff(path: str | os.PathLike[str]) -> GeoRaster:
     try:
         with tifffile.TiffFile(p) as tf:
             page = tf.pages[0]
+            # Checked before decoding: a corrupt header can claim any size.
+            cells = int(page.imagelength) * int(page.imagewidth) * int(page.samplesperpixel)
+            if cells > MAX_RASTER_CELLS:
+                raise _TooLarge(f"{page.imagewidth}×{page.imagelength} cells is more than "
+                                f"{MAX_RASTER_CELLS:,} (a corrupt header, or a DEM to tile)")
             tags = {t.code: t.value for t in page.tags}
             data = np.asarray(page.asarray())
             spp = int(page.samplesperpixel)
             contig = int(page.planarconfig) == 1
             nrows, ncols = int(page.imagelength), int(page.imagewidth)
+    except _TooLarge as exc:
+        raise GeoError(f"{p}: {exc}") from None
     except Exception as exc:  # tifffile raises many types for junk input
         raise GeoError(f"{p}: cannot read as TIFF ({type(exc).__name__}: {exc})") from None
 

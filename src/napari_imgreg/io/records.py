@@ -19,11 +19,13 @@ from typing import Any, Mapping
 
 from napari_imgreg._deprecated import forward_moved_names
 from napari_imgreg.errors import input_error
+from napari_imgreg.validate import MAX_IMAGE_SIDE_PX, FieldValueError, check_number
 
 __all__ = [
     "Sigma",
     "SensorRecord",
     "read_json",
+    "RECORD_RANGES",
     "parse_sensor_record",
     "load_sensor_record",
 ]
@@ -134,11 +136,66 @@ def read_json(path: str | os.PathLike) -> Any:
         raise input_error(path, f"cannot read ({exc})") from None
 
 
+#: The declared range of every number of a sensor record, by block and field:
+#: ``(low, high, whole)``. Anything outside is a unit mix-up or a typo and is
+#: refused with the file and the field named (docs/limits.md).
+RECORD_RANGES: dict[str, dict[str, tuple[float, float, bool]]] = {
+    "camera": {
+        "width": (1, MAX_IMAGE_SIDE_PX, True),
+        "height": (1, MAX_IMAGE_SIDE_PX, True),
+        # Pixel focal lengths: their ratio to the image side is checked
+        # when the camera is built (a view between 0.006° and 170°).
+        "fx": (0.0, 1e9, False),
+        "fy": (0.0, 1e9, False),
+        "cx": (-1e9, 1e9, False),
+        "cy": (-1e9, 1e9, False),
+        "focal_length_mm": (0.0, 10_000.0, False),
+        "sensor_width_mm": (0.0, 1_000.0, False),
+        "sensor_height_mm": (0.0, 1_000.0, False),
+        "focal_length_35mm": (0.0, 10_000.0, False),
+    },
+    "position": {
+        "lat": (-90.0, 90.0, False),
+        "lon": (-180.0, 360.0, False),
+        "alt": (-12_000.0, 100_000.0, False),
+        "x": (-1e8, 1e8, False),
+        "y": (-1e8, 1e8, False),
+        "z": (-1e8, 1e8, False),
+    },
+    "orientation": {
+        "trend_deg": (-360.0, 360.0, False),
+        "plunge_deg": (-90.0, 90.0, False),
+        "roll_deg": (-360.0, 360.0, False),
+    },
+    "sigma": {
+        "position_m": (0.0, 100_000.0, False),
+        "altitude_m": (0.0, 100_000.0, False),
+        "angles_deg": (0.0, 180.0, False),
+    },
+    "sun": {
+        "azimuth_deg": (-360.0, 360.0, False),
+        "elevation_deg": (-90.0, 90.0, False),
+    },
+}
+
+#: Fields whose value must be above (not at) the low end of the range.
+_POSITIVE = {("camera", k) for k in ("fx", "fy", "focal_length_mm", "sensor_width_mm",
+                                     "sensor_height_mm", "focal_length_35mm")}
+
+
 def _number(block: Mapping, key: str, where: str, src: Path | None) -> float:
-    value = block.get(key)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise input_error(src, f"field '{where}.{key}' must be a number, got {value!r}")
-    return float(value)
+    """The block's number ``key``, finite and within :data:`RECORD_RANGES`."""
+    low, high, whole = RECORD_RANGES.get(where, {}).get(key, (-math.inf, math.inf, False))
+    try:
+        return check_number(block.get(key), key, low, high, integer=whole,
+                            low_open=(where, key) in _POSITIVE)
+    except FieldValueError as exc:
+        value = block.get(key)
+        if (where, key) in _POSITIVE and isinstance(value, (int, float)) \
+                and not isinstance(value, bool) and value <= 0:
+            raise input_error(src, f"field '{where}.{key}' must be positive, got {value!r}") \
+                from None
+        raise input_error(src, exc.within(where)) from None
 
 
 def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> SensorRecord:
@@ -147,8 +204,11 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
     Raises
     ------
     InputError
-        A block is not an object or a field has the wrong type; the message
-        names the file and the field.
+        A block is not an object, a field has the wrong type or lies outside
+        its range (:data:`RECORD_RANGES`: a zero or negative focal length, a
+        width of 10¹², a latitude of 95°, an integer of 2⁶³), or the camera
+        gives a width without a height; the message names the file and the
+        field.
     """
     src = Path(source) if source is not None else None
     if not isinstance(data, dict):
@@ -165,15 +225,27 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
         for key in ("width", "height"):
             if key in camera:
                 _number(camera, key, "camera", src)
+        if ("width" in camera) != ("height" in camera):
+            given, missing = ("width", "height") if "width" in camera else ("height", "width")
+            raise input_error(src, f"field 'camera.{missing}' is missing (the block gives "
+                                   f"'{given}'; give both or neither)")
         for key in ("fx", "fy", "cx", "cy", "focal_length_mm", "sensor_width_mm",
                     "sensor_height_mm", "focal_length_35mm"):
             if camera.get(key) is not None:
                 _number(camera, key, "camera", src)
-        if "dist" in camera and not (
-            isinstance(camera["dist"], list)
-            and all(isinstance(k, (int, float)) for k in camera["dist"])
-        ):
-            raise input_error(src, "field 'camera.dist' must be a list of numbers")
+        dist = camera.get("dist")
+        if dist is not None:
+            if not isinstance(dist, list):
+                raise input_error(src, "field 'camera.dist' must be a list of numbers")
+            if len(dist) > 5:
+                raise input_error(src, f"field 'camera.dist' has {len(dist)} coefficients; "
+                                       "only OpenCV's (k1, k2, p1, p2, k3) are supported")
+            for k in dist:
+                try:
+                    check_number(k, "dist", -1000.0, 1000.0)
+                except FieldValueError as exc:
+                    raise input_error(src, f"field 'camera.dist' must be finite numbers "
+                                           f"within ±1000, got {dist!r}") from None
 
     position = blocks["position"]
     if position is not None:
@@ -193,9 +265,6 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
         for key in ("trend_deg", "plunge_deg", "roll_deg"):
             if orientation.get(key) is not None:
                 _number(orientation, key, "orientation", src)
-        plunge = orientation.get("plunge_deg")
-        if plunge is not None and abs(plunge) > 90:
-            raise input_error(src, f"field 'orientation.plunge_deg' must be in [-90, 90], got {plunge}")
 
     sigma = Sigma()
     if blocks["sigma"] is not None:
@@ -221,8 +290,7 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
         if not isinstance(sun, dict):
             raise input_error(src, "field 'sun' must be an object")
         _number(sun, "azimuth_deg", "sun", src)
-        if abs(_number(sun, "elevation_deg", "sun", src)) > 90:
-            raise input_error(src, "field 'sun.elevation_deg' must be in [-90, 90]")
+        _number(sun, "elevation_deg", "sun", src)
     return SensorRecord(camera, position, orientation, sigma, src, when, sun)
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from napari_imgreg._atomic import atomic_write
+from napari_imgreg._json import dump as strict_json_dump
 from napari_imgreg.camera import attitude_from_rotation
 from napari_imgreg.errors import input_error
 from napari_imgreg.io.orientation_tables import (
@@ -426,5 +427,5 @@ def orient_files(
 def save_orientation(result: OrientationResult, path: str | os.PathLike) -> None:
     """Write ORIENTATION.json atomically."""
     with atomic_write(path, encoding="utf-8") as fh:
-        json.dump(result.to_dict(), fh, indent=2, ensure_ascii=False)
+        strict_json_dump(result.to_dict(), fh, indent=2, ensure_ascii=False)
         fh.write("\n")

@@ -14,9 +14,12 @@ are the *feature inliers* of the quality metrics.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
+from typing import ClassVar
 
 import cv2
 import numpy as np
+
+from napari_imgreg.validate import check_ranges
 
 __all__ = [
     "FeatureParams",
@@ -61,15 +64,16 @@ class FeatureParams:
         From :data:`DETECTORS` and :data:`DESCRIPTORS`. AKAZE descriptors
         need AKAZE keypoints.
     max_features : int
-        Keypoints kept per image after even selection (500–50 000).
+        Keypoints kept per image after even selection (10–1 000 000; the GUI
+        offers 500–50 000).
     threshold_scale : float
         Multiplies the detector's default threshold; < 1 finds more, weaker
         points (0.05–4).
     grid : tuple of int
         (columns, rows) of the cells for spatially even selection: each cell
-        keeps its strongest ``max_features / cells`` points.
+        keeps its strongest ``max_features / cells`` points; each 1–64.
     ratio : float
-        Lowe's ratio test (0.5–0.95): a match is kept when its distance is
+        Lowe's ratio test (0.3–1; 1 keeps the nearest neighbour): a match is kept when its distance is
         below ``ratio`` times the second best.
     symmetric : bool
         Keep only mutual best matches.
@@ -98,7 +102,7 @@ class FeatureParams:
         relief shading under another sun defeats the luminance features.
     guided_radius_px : float
         Radius of guided matching (:func:`match_guided`), pixels at the
-        matching resolution; 0 turns it off. Used when the render is from an
+        matching resolution, 0–500; 0 turns it off. Used when the render is from an
         estimated pose, so a feature's match lies within a few pixels of it.
     """
 
@@ -116,7 +120,21 @@ class FeatureParams:
     invariant_channel: bool = False
     guided_radius_px: float = 0.0
 
+    #: Inclusive valid range of each numeric field (every element of ``grid``).
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "max_features": (10, 1_000_000),
+        "threshold_scale": (0.05, 4.0),
+        "grid": (1, 64),
+        "ratio": (0.3, 1.0),
+        "geometric_threshold_px": (0.5, 20.0),
+        "guided_radius_px": (0.0, 500.0),
+    }
+
     def __post_init__(self) -> None:
+        for name in ("detector", "descriptor"):
+            if not isinstance(getattr(self, name), str):
+                raise ValueError(f"{name} must be a name such as 'SIFT', "
+                                 f"got {getattr(self, name)!r}")
         self.detector = self.detector.upper()
         self.descriptor = self.descriptor.upper()
         self.grid = tuple(int(g) for g in self.grid)  # type: ignore[assignment]
@@ -128,6 +146,7 @@ class FeatureParams:
             raise ValueError("AKAZE descriptors need AKAZE keypoints")
         if self.geometric_model not in ("fundamental", "homography", "none"):
             raise ValueError("geometric_model must be 'fundamental', 'homography' or 'none'")
+        check_ranges(self)
 
     @property
     def name(self) -> str:

@@ -11,11 +11,13 @@ brightness/contrast and CLAHE. The photo and the render each get their own
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
+from typing import ClassVar
 
 import cv2
 import numpy as np
 
 from napari_imgreg.camera import match_scale, scaled_size
+from napari_imgreg.validate import check_ranges
 
 __all__ = [
     "FilterParams",
@@ -46,9 +48,10 @@ class FilterParams:
         Apply the Wallis filter.
     wallis_window : int
         Side of the square window for the local mean and deviation, pixels
-        (odd; 15–151).
+        (odd; 3–501, the GUI offers 15–151).
     wallis_target_mean, wallis_target_std : float
-        Grey level (0–255) and deviation the filter pulls each window toward.
+        Grey level (0–255) and deviation (1–255) the filter pulls each window
+        toward.
     wallis_brightness : float
         Brightness forcing constant b in [0, 1]: 1 replaces the local mean by
         the target, 0 keeps it.
@@ -81,6 +84,24 @@ class FilterParams:
     clahe: bool = False
     clahe_clip: float = 2.0
     clahe_tiles: int = 8
+
+    #: Inclusive valid range of each numeric field (checked when built, e.g.
+    #: from a ``--params`` file; the GUI's sliders stay within it).
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "gamma": (0.2, 5.0),
+        "wallis_window": (3, 501),
+        "wallis_target_mean": (0.0, 255.0),
+        "wallis_target_std": (1.0, 255.0),
+        "wallis_brightness": (0.0, 1.0),
+        "wallis_contrast": (0.0, 1.0),
+        "brightness": (-100.0, 100.0),
+        "contrast": (0.2, 3.0),
+        "clahe_clip": (1.0, 10.0),
+        "clahe_tiles": (2, 32),
+    }
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
     @property
     def is_identity(self) -> bool:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field, fields, replace
+from typing import ClassVar
 
 from napari_imgreg.errors import input_error
 from napari_imgreg.io.records import read_json
@@ -17,6 +18,7 @@ from napari_imgreg.registration.pose import PoseParams
 from napari_imgreg.registration.stages.area import AreaParams
 from napari_imgreg.registration.stages.dense import DenseParams
 from napari_imgreg.registration.stages.edges import EdgeParams
+from napari_imgreg.validate import FieldValueError, check_ranges
 
 __all__ = ["RegistrationParams", "load_params"]
 
@@ -58,23 +60,25 @@ class RegistrationParams:
     features : FeatureParams
     pose : PoseParams
     match_width : int
-        Photo and render are matched at this width (pixels; the photo's own
-        when smaller). Poses are always solved at full resolution.
+        Photo and render are matched at this width (pixels, 64–16384; the
+        photo's own when smaller). Poses are always solved at full resolution.
     max_iterations : int
-        Render → match → pose rounds per trial: each round re-renders from
-        the last estimate, which matches the photo far better than the prior.
+        Render → match → pose rounds per trial (1–50): each round re-renders
+        from the last estimate, which matches the photo far better than the
+        prior.
     converged_deg, converged_m : float
-        A trial stops iterating when the pose moves less than this.
+        A trial stops iterating when the pose moves less than this (0–10°,
+        0–100 m).
     auto_adapt : bool
         After a trial, apply the adaptation of the first rule that fires and
         run another trial.
     max_trials : int
-        Trials at most (including the first).
+        Trials at most (including the first), 1–50.
     search_prior : bool
         When no trial registers, try perturbed priors within the sensor
         record's ``sigma`` at reduced resolution.
     n_search : int
-        Perturbed priors to try.
+        Perturbed priors to try, 0–1000.
     verify : bool
         Call a pose registered only when verified (converged, and the photo
         and the final render agree). Off, a pose with 7 or more 3D inliers is
@@ -135,6 +139,22 @@ class RegistrationParams:
     edges: EdgeParams = field(default_factory=EdgeParams)
     dense: DenseParams = field(default_factory=_registration_dense)
 
+    #: Inclusive valid range of each numeric field, used alike by ``--params``
+    #: files, the GUI and code (:func:`~napari_imgreg.validate.param_range`);
+    #: each nested stage dataclass declares its own. Zero trials, rounds or
+    #: widths would register nothing (or divide by zero).
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "match_width": (64, 16384),
+        "max_iterations": (1, 50),
+        "converged_deg": (0.0, 10.0),
+        "converged_m": (0.0, 100.0),
+        "max_trials": (1, 50),
+        "n_search": (0, 1000),
+    }
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
+
     @classmethod
     def baseline(cls) -> RegistrationParams:
         """The plain pipeline the benchmark compares against: SIFT, ratio test,
@@ -182,7 +202,9 @@ class RegistrationParams:
         Raises
         ------
         InputError
-            Unknown or ill-typed fields, naming ``source`` and the field.
+            Unknown or ill-typed fields, or values outside their declared
+            range (``RANGES`` of each dataclass: ``max_trials`` 0 is refused),
+            naming ``source`` and the field.
         """
         nested = {
             "photo_filters": FilterParams,
@@ -206,13 +228,15 @@ class RegistrationParams:
                 base = getattr(cls(), key).to_dict()
                 try:
                     kwargs[key] = nested[key].from_dict({**base, **value})
+                except FieldValueError as exc:
+                    raise input_error(source, exc.within(key)) from None
                 except (KeyError, TypeError, ValueError) as exc:
                     raise input_error(source, f"field '{key}': {exc}") from None
             else:
                 kwargs[key] = value
         try:
             params = cls(**kwargs)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError) as exc:  # FieldValueError: "field 'max_trials' ..."
             raise input_error(source, str(exc)) from None
         _check_types(params, source)
         return params

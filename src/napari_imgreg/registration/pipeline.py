@@ -29,6 +29,7 @@ from typing import Any, Callable, Generator
 
 import numpy as np
 
+from napari_imgreg._json import strict_output
 from napari_imgreg.camera import Intrinsics, Pose, match_scale
 from napari_imgreg.registration.features import Features, detect_and_describe
 from napari_imgreg.registration.filters import apply_filters, illumination_invariant, reduce_for_matching
@@ -50,6 +51,7 @@ from napari_imgreg.registration.round import (  # noqa: F401  (re-exported: the 
 from napari_imgreg.registration.stages.area import search_schedule
 from napari_imgreg.registration.stages.dense import refine_pose_mi
 from napari_imgreg.registration.stages.edges import align_edges
+from napari_imgreg.registration.uncertainty import Uncertainty
 from napari_imgreg.render import RenderResult, render
 from napari_imgreg.scene import Scene
 
@@ -112,6 +114,8 @@ class Registration:
     timings_s: dict
     best_trial: int | None = None
     assumptions: list[str] = field(default_factory=list)
+    #: The best trial's expected error (RESULT.json ``uncertainty``), None when not estimated.
+    uncertainty: Uncertainty | None = None
 
     @property
     def registered(self) -> bool:
@@ -121,6 +125,7 @@ class Registration:
     def grade_info(self):
         return next(g for g in GRADES if g.name == self.grade)
 
+    @strict_output  # RESULT.json is strict JSON: non-finite numbers -> null + null_reasons
     def to_dict(self) -> dict:
         return {
             "status": self.status,
@@ -142,6 +147,7 @@ class Registration:
             ],
             "best_trial": self.best_trial,
             "timings_s": {k: round(v, 3) for k, v in self.timings_s.items()},
+            **({} if self.uncertainty is None else {"uncertainty": self.uncertainty.to_dict()}),
         }
 
 
@@ -332,7 +338,8 @@ def _run_trial(
     return trial_from_round(
         best, index=index, params=params, pose=last_ok_pose, start_pose=start, rounds=n_done,
         converged=converged, origin=origin, seconds=time.perf_counter() - t_start,
-        image_width=ctx.intrinsics.width, render_mode=mode, matcher=matcher)
+        image_width=ctx.intrinsics.width, render_mode=mode, matcher=matcher,
+        intrinsics=ctx.intrinsics)
 
 
 def _trial_rank(t: Trial) -> tuple:
@@ -656,6 +663,7 @@ def register_photo(
         timings_s=timings,
         best_trial=best.index,
         assumptions=assumptions,
+        uncertainty=best.uncertainty,
     )
 
 

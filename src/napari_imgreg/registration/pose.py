@@ -7,11 +7,13 @@ whose ``reason`` says why; it does not raise.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
+from typing import ClassVar
 
 import cv2
 import numpy as np
 
 from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.validate import check_ranges
 
 __all__ = [
     "PoseParams",
@@ -33,11 +35,12 @@ class PoseParams:
     Attributes
     ----------
     reprojection_error_px : float
-        RANSAC inlier threshold at the photo's full resolution (1–50 px).
+        RANSAC inlier threshold at the photo's full resolution (0.1–200 px;
+        the GUI offers 1–50).
     iterations : int
-        RANSAC iterations (100–100 000).
+        RANSAC iterations (10–1 000 000).
     confidence : float
-        RANSAC confidence (0.9–0.9999).
+        RANSAC confidence (0.5–0.999999).
     refine : bool
         Levenberg–Marquardt refinement on the inliers.
     """
@@ -46,6 +49,16 @@ class PoseParams:
     iterations: int = 5000
     confidence: float = 0.999
     refine: bool = True
+
+    #: Inclusive valid range of each numeric field.
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "reprojection_error_px": (0.1, 200.0),
+        "iterations": (10, 1_000_000),
+        "confidence": (0.5, 0.999999),
+    }
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -14,7 +14,11 @@ pose (:func:`napari_imgreg.registration.manual.score_pose`).
   counts the round's metrics. :func:`score_round` is the two in a row.
 * :func:`trial_from_round` turns a trial's last round into a :class:`Trial`:
   the verification (photo and render points coincide), Q, the grade — capped
-  for an unverified pose (:func:`grade_pose`) — and the hints.
+  for an unverified pose (:func:`grade_pose`) — and the hints; with the
+  photo's camera also the pose's ``uncertainty``, an error estimate by
+  cross-validation over halves of the image
+  (:mod:`napari_imgreg.registration.uncertainty`), which a verified pose must
+  keep below :data:`~napari_imgreg.registration.uncertainty.UNCERTAIN_PX`.
 
 Conventions are the package's: pixels (x = column, y = row) with the first
 pixel's centre at (0, 0); matching happens at reduced resolution, points are
@@ -49,6 +53,12 @@ from napari_imgreg.registration.quality import (
     quality_q,
 )
 from napari_imgreg.registration.stages.area import match_blocks, prepare_render
+from napari_imgreg.registration.uncertainty import (
+    Uncertainty,
+    UncertaintyParams,
+    estimate_uncertainty,
+    frame_points,
+)
 from napari_imgreg.render import RenderResult
 
 __all__ = [
@@ -135,6 +145,9 @@ class Trial:
     #: "keypoints" (detected and described features) or "area" (render
     #: blocks found in the photo by correlation, :mod:`napari_imgreg.registration.stages.area`).
     matcher: str = "keypoints"
+    #: The pose's expected error by cross-validation (RESULT.json ``uncertainty``);
+    #: None when not estimated (no pose, or a pose scored without the camera).
+    uncertainty: Uncertainty | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -153,6 +166,7 @@ class Trial:
             "residual_flow_px": self.residual_flow_px,
             "adaptation": self.adaptation,
             "pose": None if self.pose is None else self.pose.to_dict(),
+            "uncertainty": None if self.uncertainty is None else self.uncertainty.to_dict(),
             "seconds": round(self.seconds, 3),
         }
 
@@ -561,6 +575,8 @@ def trial_from_round(
     image_width: int,
     render_mode: str = "plain",
     matcher: str = "keypoints",
+    intrinsics: Intrinsics | None = None,
+    uncertainty_params: UncertaintyParams | None = None,
 ) -> Trial:
     """A trial from its last round: verification, residual flow, Q, grade and hints.
 
@@ -596,6 +612,14 @@ def trial_from_round(
         The photo's width, pixels: pixel limits refer to 1632 px and scale with it.
     render_mode, matcher : str
         As in :func:`score_round`.
+    intrinsics : Intrinsics, optional
+        The photo's camera, full resolution. Given: the pose's ``uncertainty``
+        is estimated (:func:`~napari_imgreg.registration.uncertainty.estimate_uncertainty`
+        on the round's lifted matches, compared over the render's whole
+        frame), and a pose whose estimate reaches
+        :data:`~napari_imgreg.registration.uncertainty.UNCERTAIN_PX` is not
+        verified (so never "registered", never graded above "fair").
+    uncertainty_params : UncertaintyParams, optional
 
     Returns
     -------
@@ -611,6 +635,15 @@ def trial_from_round(
         and last.metrics["inliers_3d"] >= MIN_VERIFIED_INLIERS
         and flow <= VERIFY_FLOW_PX * (image_width / REFERENCE_WIDTH_PX)
     )
+    uncertainty = None
+    if intrinsics is not None and pose is not None:
+        use = corr.lifted & corr.feature_inlier
+        uncertainty = estimate_uncertainty(
+            intrinsics, pose, corr.xyz[use], corr.photo_points[use],
+            frame_points(last.rendered.xyz), uncertainty_params, params.pose)
+    uncertain = uncertainty is not None and not uncertainty.is_small(image_width)
+    flow_verified = verified
+    verified = verified and not uncertain
     metrics = {**last.metrics,
                "residual_flow_px": round(flow, 3) if math.isfinite(flow) else None}
     q = quality_q(metrics, image_width)
@@ -624,12 +657,20 @@ def trial_from_round(
                      "off, or the photo shows little of the model's relief.")
     if pose is not None and not converged:
         hints.append("The pose was still moving after the last round: not verified.")
-    elif pose is not None and not verified:
+    elif pose is not None and not flow_verified:
         # A pose scored as it is (no rounds) was rendered once, from itself.
         render = "final render" if rounds else "render from this pose"
         hints.append(
             f"Photo and {render} disagree (residual flow {flow:.1f} px, "
             f"{metrics['inliers_3d']} 3D inliers): pose not verified."
+        )
+    if uncertain:
+        hints.append(
+            f"Independent check: poses solved from separate halves of the photo disagree "
+            f"(expected error ≈ {uncertainty.reprojection_px:.1f} px, camera "
+            f"≈ {uncertainty.position_m:.2f} m, {uncertainty.rotation_deg:.2f}°): the matches are "
+            "probably biased (e.g. shading under another sun) — check the overlay at control "
+            "points, or add control points by hand."
         )
     return Trial(
         index=index,
@@ -649,4 +690,5 @@ def trial_from_round(
         correspondences=corr,
         render_mode=render_mode,
         matcher=matcher,
+        uncertainty=uncertainty,
     )

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from napari_imgreg._atomic import atomic_path, atomic_write, umask
+from napari_imgreg._json import dump as strict_json_dump
 from napari_imgreg.scene import ray_threads
 from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.sample.noise import rng_for
@@ -80,6 +81,9 @@ __all__ = [
     "generate_outcrop",
     "sample_scene",
     "cache_dir",
+    "verify_sample_scene",
+    "write_cache_manifest",
+    "CACHE_MANIFEST",
     "load_truth",
     "write_survey",
     "plane_normal",
@@ -186,7 +190,7 @@ def _make_dem(scene, spec: OutcropSpec, georef):
 
 def _write_json(path: Path, data: Any, indent: int | None = 1) -> None:
     with atomic_write(path, encoding="utf-8") as fh:
-        json.dump(data, fh, indent=indent, separators=None if indent else (",", ":"))
+        strict_json_dump(data, fh, indent=indent, separators=None if indent else (",", ":"))
         fh.write("\n")
 
 
@@ -448,25 +452,140 @@ def sample_scene(size: str = "small", seed: int = 0) -> Path:
         raise ValueError(f"size must be one of {SIZES}, not {size!r}")
     root = cache_dir()
     target = root / f"outcrop-{size}-seed{int(seed)}-v{GENERATOR_VERSION}"
-    if (target / "scene.json").is_file():
-        return target
+    if target.exists():
+        problem = verify_sample_scene(target)
+        if problem is None:
+            return target
+        log.warning("cached sample scene %s: %s; generating it again", target, problem)
     root.mkdir(parents=True, exist_ok=True)
-    if target.exists():  # not made by us (the rename is atomic): start afresh
-        shutil.rmtree(target, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=root))
     try:
         generate_outcrop(tmp, size=size, seed=seed)
+        write_cache_manifest(tmp)
         _share(tmp)
+        if target.exists():
+            # Moved aside, not deleted in place: a reader of the old folder
+            # never sees it half-removed, and the new one appears at once.
+            stale = Path(tempfile.mkdtemp(prefix=f".{target.name}.stale.", dir=root))
+            with contextlib.suppress(OSError):
+                os.rename(target, stale / "scene")
+            shutil.rmtree(stale, ignore_errors=True)
         try:
             os.rename(tmp, target)
         except OSError:
-            if not (target / "scene.json").is_file():
+            if verify_sample_scene(target) is not None:
                 raise
             # Another process finished first; its scene is identical.
     finally:
         with contextlib.suppress(OSError):
             shutil.rmtree(tmp)
     return target
+
+
+#: Hidden file of a cached sample scene: the size and BLAKE2 hash of every
+#: file (its content key). Hidden so that ``batch`` never takes it for input.
+CACHE_MANIFEST = ".cache-manifest.json"
+
+
+def _file_hash(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_cache_manifest(folder: str | os.PathLike) -> dict[str, Any]:
+    """Write ``folder/.cache-manifest.json``: size and BLAKE2 hash of each file.
+
+    Returns
+    -------
+    dict
+        ``{"files": {name: {"size": bytes, "blake2b": hex}}}``.
+    """
+    folder = Path(folder)
+    files = {
+        p.name: {"size": p.stat().st_size, "blake2b": _file_hash(p)}
+        for p in sorted(folder.iterdir()) if p.is_file() and not p.name.startswith(".")
+    }
+    manifest = {"generator_version": GENERATOR_VERSION, "files": files}
+    _write_json(folder / CACHE_MANIFEST, manifest)
+    return manifest
+
+
+def verify_sample_scene(folder: str | os.PathLike) -> str | None:
+    """What is wrong with a cached sample scene folder, or None when it is whole.
+
+    Every file that ``scene.json`` names (mesh, material, texture, DEM,
+    photos and their records and truths) must exist, and every file of the
+    cache manifest must have its recorded size and hash. A folder cached by
+    an older version (no manifest) is checked by its structure instead (the
+    OBJ holds the vertex and triangle counts ``scene.json`` states) and, if
+    whole, given a manifest.
+
+    Returns
+    -------
+    str or None
+        The first problem found, in words.
+    """
+    folder = Path(folder)
+    try:
+        manifest = json.loads((folder / "scene.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        return f"scene.json unreadable ({type(exc).__name__})"
+    if not isinstance(manifest, dict):
+        return "scene.json is not an object"
+    named = [v for v in (manifest.get("files") or {}).values() if isinstance(v, str)]
+    for photo in manifest.get("photos") or []:
+        if isinstance(photo, dict):
+            named += [v for v in photo.values() if isinstance(v, str)]
+    for name in named:
+        if not (folder / name).is_file():
+            return f"{name} is missing"
+    try:
+        record = json.loads((folder / CACHE_MANIFEST).read_text(encoding="utf-8"))
+        files = record["files"]
+        assert isinstance(files, dict)
+    except FileNotFoundError:
+        problem = _check_structure(folder, manifest)
+        if problem is None:
+            with contextlib.suppress(OSError):
+                write_cache_manifest(folder)
+        return problem
+    except (OSError, ValueError, KeyError, TypeError, AssertionError):
+        return f"{CACHE_MANIFEST} unreadable"
+    for name, want in files.items():
+        path = folder / name
+        try:
+            size = path.stat().st_size
+        except OSError:
+            return f"{name} is missing"
+        if not isinstance(want, dict) or size != want.get("size"):
+            return f"{name} has {size} bytes, {want.get('size') if isinstance(want, dict) else '?'} " \
+                   "when it was cached (truncated or changed)"
+        if _file_hash(path) != want.get("blake2b"):
+            return f"{name} changed since it was cached"
+    return None
+
+
+def _check_structure(folder: Path, manifest: dict[str, Any]) -> str | None:
+    """A cache entry without a manifest: every file non-empty, and the OBJ
+    complete (its ``v``/``f`` line counts are those of ``scene.json``)."""
+    for p in folder.iterdir():
+        if p.is_file() and not p.name.startswith(".") and p.stat().st_size == 0:
+            return f"{p.name} is empty"
+    mesh = (manifest.get("files") or {}).get("mesh")
+    if isinstance(mesh, str) and mesh.lower().endswith(".obj"):
+        data = (folder / mesh).read_bytes()
+        n_v, n_f = data.count(b"\nv "), data.count(b"\nf ")
+        if (n_v, n_f) != (manifest.get("n_vertices"), manifest.get("n_triangles")) \
+                or not data.endswith(b"\n"):
+            return (f"{mesh} holds {n_v} vertices and {n_f} triangles, not the "
+                    f"{manifest.get('n_vertices')} and {manifest.get('n_triangles')} of scene.json "
+                    "(truncated)")
+    return None
 
 
 def _share(folder: Path) -> None:

@@ -692,7 +692,7 @@ def make_exif(
     model: str,
     focal_length_mm: float,
     focal_35mm: int,
-    when: str | datetime,
+    when: str | datetime | None,
     lat: float,
     lon: float,
     alt: float,
@@ -703,10 +703,12 @@ def make_exif(
 
     Parameters
     ----------
-    when : str or datetime
+    when : str or datetime or None
         ``"YYYY:MM:DD HH:MM:SS"``, or a time-zone aware datetime: then the
         Exif 2.31 ``OffsetTimeOriginal`` and the GPS time stamp (UTC) are
         written too, as phones do, so the capture instant is unambiguous.
+        None: no capture time at all (``DateTime``, ``DateTimeOriginal``
+        left out), for a photo whose sun no instant at the site gives.
     lat, lon : float
         WGS84 degrees.
     alt : float
@@ -723,12 +725,14 @@ def make_exif(
     exif = Image.Exif()
     exif[Base.Make] = make
     exif[Base.Model] = model
-    exif[Base.DateTime] = when
+    if when is not None:
+        exif[Base.DateTime] = when
     exif[Base.Orientation] = 1
     sub = exif.get_ifd(IFD.Exif)
     sub[Base.FocalLength] = IFDRational(int(round(focal_length_mm * 100)), 100)
     sub[Base.FocalLengthIn35mmFilm] = int(focal_35mm)
-    sub[Base.DateTimeOriginal] = when
+    if when is not None:
+        sub[Base.DateTimeOriginal] = when
     if aware:
         offset = instant.utcoffset()
         minutes = int(offset.total_seconds() // 60)

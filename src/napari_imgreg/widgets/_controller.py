@@ -96,6 +96,8 @@ _MOVED = {"TrialRecord": "napari_imgreg.workspace", "SUN_ESTIMATE_WIDTH": "napar
 __getattr__ = forward_moved_names(__name__, _MOVED)
 
 
+#: Camera markers and view frusta in the 3D view, as fractions of the model's diagonal.
+CAMERA_MARKER, CAMERA_FRUSTUM = 0.012, 0.035
 #: Width (pixels) of the reduced render shown while the pose is being edited.
 PREVIEW_WIDTH = 400
 #: Idle time after the last pose edit before the full-resolution render, ms.
@@ -364,7 +366,8 @@ class _Layers:
         kwargs["visible"] = self.viewer.dims.ndisplay == 3
         self._put("surface", self._add("add_surface", data, **kwargs))
 
-    def show_cameras(self, centers: np.ndarray, segments: np.ndarray, current: int) -> None:
+    def show_cameras(self, centers: np.ndarray, segments: np.ndarray, current: int,
+                     marker_m: float = 5.0) -> None:
         visible = self.viewer.dims.ndisplay == 3
         pts = napari_from_world(centers) if len(centers) else np.zeros((0, 3))
         colors = np.array([_rgba("#ff1744") if k == current else _rgba("#ffd600")
@@ -372,11 +375,12 @@ class _Layers:
         layer = self.get("cameras")
         if layer is None:
             layer = self._put("cameras", self._add(
-                "add_points", pts, name="cameras", ndim=3, size=5.0,
+                "add_points", pts, name="cameras", ndim=3, size=marker_m,
                 face_color=colors if len(pts) else "red",
                 visible=visible))
         else:
             layer.data = pts
+            layer.size = marker_m
             if len(pts):
                 layer.face_color = colors
         seg = (napari_from_world(segments.reshape(-1, 3)).reshape(-1, 2, 3)
@@ -1313,10 +1317,12 @@ class WorkbenchController(QObject):
             return
         centers = np.array([ps.pose.center for ps in self.photos])
         size = float(np.linalg.norm(np.diff(self.scene.bounds, axis=0)))
-        segs = np.concatenate([frustum_segments(ps.intrinsics, ps.pose, 0.1 * size)
+        # Small beside the outcrop: the cameras say where the photos were
+        # taken, the model stays what the 3D view shows.
+        segs = np.concatenate([frustum_segments(ps.intrinsics, ps.pose, CAMERA_FRUSTUM * size)
                                for ps in self.photos])
         current = self.photos.index(self.current) if self.current in self.photos else -1
-        self.layers.show_cameras(centers, segs, current)
+        self.layers.show_cameras(centers, segs, current, marker_m=CAMERA_MARKER * size)
         self._cameras_dirty = False
 
     # -------------------------------------------------------------- display

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import html
 
+import numpy as np
 from qtpy.QtCore import Qt
 from qtpy.QtGui import QColor
 from qtpy.QtWidgets import (
@@ -30,9 +31,10 @@ from napari_imgreg.registration.quality import (
     grade_of,
     metric_trend,
 )
+from napari_imgreg.registration.uncertainty import UNCERTAIN_PX
 from napari_imgreg.widgets._controller import WorkbenchController
 
-__all__ = ["QualityPanel", "CLASS_COLORS", "TREND_ARROWS", "HISTORY_COLUMNS", "SUNLIT_MARK",
+__all__ = ["QualityPanel", "uncertainty_text", "CLASS_COLORS", "TREND_ARROWS", "HISTORY_COLUMNS", "SUNLIT_MARK",
            "origin_text"]
 
 #: Backgrounds of a metric's class: superior (+1), normal (0), inferior (−1).
@@ -80,6 +82,24 @@ def origin_text(rec) -> tuple[str, str]:
         return cell, tip + "; render as textured"
     tip += "; render relit for the photo's sun, cast shadows included"
     return (cell if origin == "sun-lit render" else f"{cell} {SUNLIT_MARK}"), tip
+
+
+def uncertainty_text(unc, width: int) -> str:
+    """The quality panel's line for a trial's error estimate (rich text).
+
+    Green when the estimate is below :data:`UNCERTAIN_PX` (scaled to the
+    photo's ``width``), red when it is not, grey when it was not estimated.
+    """
+    if unc is None:
+        return ("<span style='color:#aaa'>Expected error: not estimated "
+                "(no pose, or a pose scored as it is)</span>")
+    if not np.isfinite(unc.reprojection_px):
+        return ("<span style='color:#ff8a80'>Expected error: unknown — too few matches on "
+                "separate halves of the photo to check the pose independently</span>")
+    colour = "#b9f6ca" if unc.is_small(width) else "#ff8a80"
+    return (f"<span style='color:{colour}'>Expected error ≈ {unc.reprojection_px:.1f} px · "
+            f"camera ≈ {unc.position_m:.2f} m · {unc.rotation_deg:.2f}° "
+            "(independent check, halves of the photo)</span>")
 
 
 def _grade_range(k: int) -> str:
@@ -148,6 +168,15 @@ class QualityPanel(QWidget):
                                   + self.table.horizontalHeader().sizeHint().height()
                                   + 2 * self.table.frameWidth() + 2)
 
+        # The pose's error estimate by cross-validation over halves of the photo
+        # (RESULT.json "uncertainty"): what the geologist may expect, not a fit residual.
+        self.uncertainty_label = QLabel("")
+        self.uncertainty_label.setWordWrap(True)
+        self.uncertainty_label.setToolTip(
+            "Expected error of this pose, from poses solved on separate halves of the photo "
+            "(not the fit residual): median pixels at model points over the whole frame, "
+            f"camera centre in metres, rotation in degrees. {UNCERTAIN_PX:g} px or more (at "
+            f"{REFERENCE_WIDTH_PX} px width): not verified, graded at most fair.")
         self.hint_label = QLabel("")
         self.hint_label.setWordWrap(True)
         self.hint_label.setTextInteractionFlags(Qt.TextSelectableByMouse)
@@ -183,6 +212,7 @@ class QualityPanel(QWidget):
         for lay in (ll, rl):
             lay.setContentsMargins(0, 0, 0, 0)
         ll.addWidget(self.banner)
+        ll.addWidget(self.uncertainty_label)
         ll.addLayout(legend)
         cap_note = QLabel("Only a verified pose can be good or excellent: an unverified one is "
                           "graded at most fair (keypoints) or poor (blocks, edges, MI).")
@@ -299,6 +329,7 @@ class QualityPanel(QWidget):
                     self.table.setItem(r, c, QTableWidgetItem(""))
             self.hint_label.hide()
             self.adapt_label.hide()
+            self.uncertainty_label.hide()
             self.apply_button.setEnabled(False)
             for chip in self.legend_labels:
                 chip.setText(chip.text().replace("<b>", "").replace("</b>", ""))
@@ -322,6 +353,8 @@ class QualityPanel(QWidget):
         for chip, g in zip(self.legend_labels, GRADES):
             chip.setStyleSheet(f"background:{g.color}; color:#111; padding:2px; border-radius:3px;"
                                + (" border:3px solid white;" if g is grade else ""))
+        self.uncertainty_label.setText(uncertainty_text(getattr(t, "uncertainty", None), width))
+        self.uncertainty_label.show()
         for r, m in enumerate(METRICS):
             value = t.metrics.get(m.key)
             cls = classify(m, value, width)

@@ -11,7 +11,13 @@ layer with ``metadata["imgreg_scene"]`` (the reader and the sample data set it).
 
 Per photo, an interpretation Shapes layer (paths, lines, polygons) is drawn
 over it, one label class at a time (sandstone yellow, mudstone grey, fault
-red, or your own). *Project* casts every interpretation layer onto the model in
+red, or your own). Lines are drawn with napari's polyline tool (a click per
+vertex, double-click or Enter to finish); with *Snap to contact* the clicks
+are only the start, the waypoints and the end, and the finished line is
+replaced by the least-cost path along the contact
+(:mod:`napari_imgreg.interpret.snap`), an ordinary editable path. Each shape
+carries a label, a note and the units above and below it (edited for the
+selected shapes), written to the GeoJSON properties. *Project* casts every interpretation layer onto the model in
 a napari thread worker and shows one 3D layer per photo (togglable), coloured
 by label, with the measurements table and the stereonet.
 
@@ -29,7 +35,7 @@ import numpy as np
 from matplotlib.backends.backend_qtagg import FigureCanvasQTAgg
 from matplotlib.colors import to_hex
 from matplotlib.figure import Figure
-from qtpy.QtCore import Signal
+from qtpy.QtCore import QTimer, Signal
 from qtpy.QtGui import QColor
 from qtpy.QtWidgets import (
     QCheckBox,
@@ -57,7 +63,8 @@ from napari_imgreg.interpret.files import (
     write_measurements_csv,
 )
 from napari_imgreg.interpret.project import LABEL_COLORS, Feature3D, Interpretation, label_color
-from napari_imgreg.interpret.structural import Measurement, draw_stereonet
+from napari_imgreg.interpret.snap import COSTS, SnapParams, snap_trace
+from napari_imgreg.interpret.structural import Measurement, dip_dip_direction, draw_stereonet
 from napari_imgreg.io.records import read_json
 from napari_imgreg.widgets._jobs import JobRunner
 from napari_imgreg.widgets._layers import (
@@ -71,17 +78,66 @@ from napari_imgreg.workspace import PhotoState, Workspace, project_interpretatio
 if TYPE_CHECKING:
     import napari
 
-__all__ = ["InterpretWidget", "camera_of_layer", "interpretations_from_shapes"]
+__all__ = ["InterpretWidget", "camera_of_layer", "interpretations_from_shapes",
+           "plane_from_three_points"]
 
 #: Metadata keys on the layers this widget makes.
 INTERP_KEY = INTERPRETATION_OF  # Shapes layer: name of its photo layer
 PROJECTED_KEY = "imgreg_projected_from"  # 3D layer: name of its photo layer
 _GEOJSON_FILTER = "GeoJSON (*.geojson *.json);;All files (*)"
-_EXPORT_FILTER = "3D GeoJSON (*.geojson);;CSV vertices (*.csv);;OBJ polylines (*.obj);;PLY polylines (*.ply)"
+_EXPORT_FILTER = ("3D GeoJSON (*.geojson);;GeoPackage (*.gpkg);;3D shapefile (*.shp);;"
+                  "CSV vertices (*.csv);;OBJ polylines (*.obj);;PLY polylines (*.ply)")
+#: Per-shape text carried into the GeoJSON properties (feature column: property).
+_TEXT_FEATURES = {"comment": "comment", "unit_above": "above", "unit_below": "below"}
+#: napari's click-per-vertex line tool (napari >= 0.6; "add_path" is freehand there).
+_LINE_MODE = "add_polyline"
+_DRAW_HINT = ("click each vertex, double-click (or Enter) to finish the line; "
+              "the polygon tool for facets")
+_SNAP_HINT = ("click the start, any waypoints and the end of the contact, double-click (or "
+              "Enter) on the end: the line snaps to the contact")
 _LINE_TYPES = ("path", "line")
 _POLYGON_TYPES = ("polygon", "rectangle", "ellipse")
 _TABLE_COLUMNS = ("id", "label", "kind", "dip", "dip dir.", "plunge", "trend", "rms (m)",
                   "planarity", "source", "note")
+
+
+#: A 3-point plane is refused when the camera centre lies within this angle of
+#: it, seen from the points (the points then define the viewing plane, not the rock's).
+THREE_POINT_MIN_VIEW_ANGLE_DEG = 5.0
+
+
+def plane_from_three_points(points: np.ndarray, camera_center: np.ndarray | None = None
+                            ) -> tuple[float, float] | str:
+    """Dip and dip direction of the plane through three 3D points.
+
+    Parameters
+    ----------
+    points : (3, 3) array
+        The points, metres (x east, y north, z up).
+    camera_center : (3,) array, optional
+        The photo's camera centre: a plane that (nearly) contains it is the
+        viewing plane of the clicks and is refused.
+
+    Returns
+    -------
+    (dip_deg, dip_direction_deg), or a string saying why there is no plane
+    (collinear points, or the camera within
+    :data:`THREE_POINT_MIN_VIEW_ANGLE_DEG` of the plane).
+    """
+    p = np.asarray(points, np.float64).reshape(3, 3)
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    span = max(np.linalg.norm(p[1] - p[0]), np.linalg.norm(p[2] - p[0]),
+               np.linalg.norm(p[2] - p[1]))
+    if span == 0 or np.linalg.norm(n) < 1e-3 * span ** 2:
+        return "the three points are (nearly) on one line"
+    n /= np.linalg.norm(n)
+    if camera_center is not None:
+        to_cam = np.asarray(camera_center, np.float64) - p.mean(axis=0)
+        angle = np.degrees(np.arcsin(min(1.0, abs(float(n @ to_cam)) / np.linalg.norm(to_cam))))
+        if angle < THREE_POINT_MIN_VIEW_ANGLE_DEG:
+            return (f"the camera lies {angle:.1f}° from the plane of the three points "
+                    f"(< {THREE_POINT_MIN_VIEW_ANGLE_DEG:.0f}°): the viewing plane, not the rock's")
+    return dip_dip_direction(n)
 
 
 def camera_of_layer(layer) -> tuple[Intrinsics, Pose, str] | None:
@@ -115,14 +171,25 @@ def interpretations_from_shapes(layer) -> list[Interpretation]:
     Paths and lines become LineStrings, polygons (rectangles, ellipses)
     Polygons; ``features["label"]`` gives the label, the edge colour the colour.
     """
+    features = getattr(layer, "features", {})
     labels = None
-    if "label" in getattr(layer, "features", {}):
-        labels = [str(v) for v in layer.features["label"]]
+    if "label" in features:
+        labels = [str(v) for v in features["label"]]
+    texts = {prop: list(features[col]) for col, prop in _TEXT_FEATURES.items()
+             if col in features}
     out = []
     for k, (data, kind) in enumerate(zip(layer.data, layer.shape_type)):
         px = pixels_from_napari(np.asarray(data)[:, -2:])
         label = labels[k] if labels is not None and k < len(labels) else "unlabelled"
         props = {"label": label, "color": to_hex(layer.edge_color[k])}
+        for prop, values in texts.items():
+            value = values[k] if k < len(values) else None
+            if isinstance(value, str) and value.strip():
+                props[prop] = value.strip()
+        if ("measure" in features and k < len(features) and features["measure"].iloc[k] ==
+                "three_point" and len(px) == 3):
+            props["measure"] = "three_point"
+            props["three_point_px"] = np.round(px, 3).tolist()
         if kind in _LINE_TYPES and len(px) >= 2:
             out.append(Interpretation("LineString", px, props))
         elif kind in _POLYGON_TYPES and len(px) >= 3:
@@ -153,6 +220,7 @@ class InterpretWidget(QWidget):
         self.measurements: list[Measurement] = []
         self.jobs = JobRunner(self)
         self._labels: dict[str, str] = dict(LABEL_COLORS)
+        self._count_before: dict[int, int] = {}  # shapes before the one being drawn
 
         # ---- inputs
         self.photo_combo = QComboBox()
@@ -168,6 +236,28 @@ class InterpretWidget(QWidget):
         self.new_label_edit = QLineEdit()
         self.new_label_edit.setPlaceholderText("new label, e.g. coal")
         add_label = QPushButton("Add")
+        self.snap_check = QCheckBox("Snap to contact")
+        self.snap_check.setToolTip(
+            "Click start, waypoints and end: the line follows the contact on the photo "
+            "(least-cost path); edit it afterwards like any path")
+        self.three_point_check = QCheckBox("3-point plane")
+        self.three_point_check.setToolTip(
+            "Click three points of one plane (a bedding surface) and double-click the third: "
+            "its dip and dip direction, through the surface points under the clicks")
+        self.cost_combo = QComboBox()
+        self.cost_combo.addItems(list(COSTS))
+        self.cost_combo.setToolTip(
+            "What the snapped line follows: gradient (an edge along the clicks, with their "
+            "polarity), colour_edge (any colour boundary), darkness (dark lines: fractures, "
+            "partings), brightness (veins), colour (a band of the clicked colour)")
+        self.comment_edit = QLineEdit()
+        self.comment_edit.setPlaceholderText("note")
+        self.above_edit = QLineEdit()
+        self.above_edit.setPlaceholderText("unit above")
+        self.below_edit = QLineEdit()
+        self.below_edit.setPlaceholderText("unit below")
+        apply_text = QPushButton("Set on selected")
+        apply_text.setToolTip("Label, note and units of the selected shapes (select tool)")
         load_button = QPushButton("Load GeoJSON…")
         save_button = QPushButton("Save GeoJSON…")
         self.project_button = QPushButton("Project onto the model")
@@ -185,6 +275,18 @@ class InterpretWidget(QWidget):
         label_row.addWidget(self.new_label_edit, 1)
         label_row.addWidget(add_label)
         form.addRow("Label", label_row)
+        snap_row = QHBoxLayout()
+        snap_row.addWidget(self.snap_check)
+        snap_row.addWidget(QLabel("cost"))
+        snap_row.addWidget(self.cost_combo, 1)
+        snap_row.addWidget(self.three_point_check)
+        form.addRow("Lines", snap_row)
+        text_row = QHBoxLayout()
+        text_row.addWidget(self.comment_edit, 2)
+        text_row.addWidget(self.above_edit, 1)
+        text_row.addWidget(self.below_edit, 1)
+        text_row.addWidget(apply_text)
+        form.addRow("Feature", text_row)
         io_row = QHBoxLayout()
         io_row.addWidget(load_button)
         io_row.addWidget(save_button)
@@ -204,7 +306,9 @@ class InterpretWidget(QWidget):
         self.tabs.addTab(self.canvas, "Stereonet")
 
         self.georef_check = QCheckBox("georeferenced")
-        self.georef_check.setToolTip("Export CRS coordinates (local + georef origin)")
+        self.georef_check.setToolTip(
+            "Export CRS coordinates (local + georef origin) to GeoJSON, CSV, OBJ and PLY; "
+            "GeoPackage and shapefiles are always in the CRS when the model has one")
         export_button = QPushButton("Export 3D…")
         csv_button = QPushButton("Save measurements…")
         net_button = QPushButton("Save stereonet…")
@@ -234,6 +338,8 @@ class InterpretWidget(QWidget):
         attach.clicked.connect(self._attach_dialog)
         self.new_button.clicked.connect(lambda: self.new_interpretation_layer())
         add_label.clicked.connect(self._add_label_clicked)
+        apply_text.clicked.connect(lambda: self.set_selected_text())
+        self.snap_check.toggled.connect(self._snap_toggled)
         self.label_combo.currentTextChanged.connect(self._label_changed)
         load_button.clicked.connect(self._load_dialog)
         save_button.clicked.connect(self._save_dialog)
@@ -311,18 +417,19 @@ class InterpretWidget(QWidget):
             translate=photo_layer.translate[-2:],
             edge_width=3,
             face_color="transparent",
-            features={"label": np.array([], dtype=object)},
-            feature_defaults={"label": label},
+            features={"label": np.array([], dtype=object),
+                      **{col: np.array([], dtype=object) for col in _TEXT_FEATURES}},
+            feature_defaults={"label": label, **{col: "" for col in _TEXT_FEATURES}},
             metadata={INTERP_KEY: photo_layer.name},
         )
         layer.current_edge_color = self._labels[label]
         layer.current_face_color = "transparent"
         layer.events.data.connect(lambda event, layer=layer: self._shapes_edited(event, layer))
         self._draw_mode(layer)
-        layer.mode = "add_path"
+        layer.mode = _LINE_MODE
         self.status_label.setText(
-            f"Drawing {label!r} on {photo_layer.name}: click the vertices, double-click to end "
-            "a line; pick the polygon tool for facets.")
+            f"Drawing {label!r} on {photo_layer.name}: "
+            + (_SNAP_HINT if self.snap_check.isChecked() else _DRAW_HINT) + ".")
         return layer
 
     def _photo_state(self, photo_layer) -> PhotoState | None:
@@ -336,9 +443,153 @@ class InterpretWidget(QWidget):
         # napari is imported here, when a layer already exists.
         from napari.layers.base._base_constants import ActionType
 
-        if getattr(event, "action", None) in (ActionType.ADDED, ActionType.REMOVED,
-                                               ActionType.CHANGED):
+        action = getattr(event, "action", None)
+        # Only a shape the user has just finished drawing (napari is still
+        # "creating" it) is snapped or made a 3-point plane; not added/loaded ones.
+        if action == ActionType.ADDING:
+            self._count_before[id(layer)] = len(layer.data)
+        drawn = action == ActionType.ADDED and getattr(layer, "_is_creating", True)
+        # napari drops a line of fewer than two vertices but still reports ADDED.
+        drawn = drawn and len(layer.data) > self._count_before.get(id(layer), -1)
+        if (drawn and self.three_point_check.isChecked()
+                and len(layer.data) and layer.shape_type[-1] == "path"):
+            index = len(layer.data) - 1
+            QTimer.singleShot(0, lambda: self.mark_three_point(layer, index))
+        elif (drawn and self.snap_check.isChecked()
+                and layer.mode == _LINE_MODE and len(layer.data)
+                and layer.shape_type[-1] == "path"):
+            # The shape is still being finished: replace it once napari is done.
+            index = len(layer.data) - 1
+            QTimer.singleShot(0, lambda: self.snap_shape(layer, index))
+        if action in (ActionType.ADDED, ActionType.REMOVED, ActionType.CHANGED):
             self._keep_in_workspace(layer)
+
+    def snap_params(self) -> SnapParams:
+        """The snapping settings the widget uses (the chosen cost, defaults otherwise)."""
+        return SnapParams(cost=self.cost_combo.currentText() or "gradient")
+
+    def snap_shape(self, layer, index: int) -> bool:
+        """Replace path ``index`` of an interpretation layer by its snapped trace.
+
+        Its vertices are taken as the clicks (start, waypoints, end); the path
+        becomes the least-cost trace through them on the layer's photo.
+        Returns whether it was replaced.
+        """
+        if index >= len(layer.data) or layer.shape_type[index] not in _LINE_TYPES:
+            return False
+        photo_name = layer.metadata.get(INTERP_KEY)
+        if photo_name not in self.viewer.layers:
+            return False
+        image = np.asarray(self.viewer.layers[photo_name].data)
+        clicks = pixels_from_napari(np.asarray(layer.data[index])[:, -2:])
+        try:
+            px = snap_trace(image, clicks, self.snap_params())
+        except ValueError as exc:
+            self._fail(f"Not snapped: {exc}.")
+            return False
+        data = list(layer.data)
+        data[index] = napari_from_pixels(px)
+        features = layer.features.copy()
+        layer.data = data
+        layer.features = features
+        self._reset_defaults(layer)
+        self._keep_in_workspace(layer)
+        self.status_label.setText(
+            f"Snapped: {len(clicks)} clicks -> {len(px)} vertices along the contact "
+            f"({self.snap_params().cost}). Edit it with the vertex tools, or undo with "
+            "the delete tool and draw again.")
+        self.status_label.setStyleSheet("")
+        return True
+
+    def _reset_defaults(self, layer) -> None:
+        """New shapes get the current label and empty notes (napari would
+        otherwise take the last shape's values as the defaults)."""
+        layer.feature_defaults = {**{col: "" for col in layer.features.columns},
+                                  "label": self.current_label}
+
+    def mark_three_point(self, layer, index: int) -> bool:
+        """Make path ``index`` (three clicked vertices) a 3-point plane: its
+        measurement is the plane through the surface points under the clicks."""
+        if index >= len(layer.data) or len(layer.data[index]) != 3:
+            self._fail("A 3-point plane needs exactly three clicks (double-click the third).")
+            return False
+        features = layer.features.copy()
+        if "measure" not in features:
+            features["measure"] = ""
+        features.loc[index, "measure"] = "three_point"
+        layer.features = features
+        self._reset_defaults(layer)
+        self._keep_in_workspace(layer)
+        self.status_label.setText("3-point plane drawn: Project to measure it.")
+        self.status_label.setStyleSheet("")
+        return True
+
+    def _three_point_measurements(self, features: list[Feature3D],
+                                  measurements: list[Measurement]) -> None:
+        """Replace the measurement of each 3-point feature by the plane
+        through the surface points under its three clicks (in place)."""
+        scene = self.scene
+        cameras = {c[2]: c for c in (camera_of_layer(lay) for lay in self._photo_layers()) if c}
+        by_id = {m.id: m for m in measurements}
+        for f in features:
+            if f.properties.get("measure") != "three_point" or f.id not in by_id:
+                continue
+            m, camera = by_id[f.id], cameras.get(f.source)
+            if camera is None or scene is None:
+                continue
+            intr, pose, _ = camera
+            origin, dirs = pose.rays(intr, np.asarray(f.properties["three_point_px"], float))
+            hits = scene.cast_rays(origin, dirs)
+            m.plunge_deg = m.trend_deg = m.rms_m = m.planarity = m.collinearity = None
+            m.dip_deg = m.dip_direction_deg = None
+            for name in ("dip_sigma_deg", "dip_direction_sigma_deg", "plunge_sigma_deg",
+                         "trend_sigma_deg"):
+                if hasattr(m, name):
+                    setattr(m, name, None)  # not propagated for 3-point planes
+            if not np.all(hits.hit):
+                m.note = "no plane: a clicked point is off the surface"
+                continue
+            pts = origin + dirs * np.asarray(hits.distance)[:, None]
+            m.centroid, m.n_points = pts.mean(axis=0), 3
+            plane = plane_from_three_points(pts, pose.center)
+            if isinstance(plane, str):
+                m.note = "no plane: " + plane
+            else:
+                m.dip_deg, m.dip_direction_deg = plane
+                m.note = "3-point plane (no uncertainty propagated)"
+
+    def _snap_toggled(self, on: bool) -> None:
+        layer = self.interpretation_layer()
+        if layer is not None:
+            layer.mode = _LINE_MODE
+        self.status_label.setText(_SNAP_HINT + "." if on else "Drawing: " + _DRAW_HINT + ".")
+
+    def set_selected_text(self, layer=None, comment: str | None = None,
+                          above: str | None = None, below: str | None = None) -> int:
+        """Set the note and the units above/below (and the chosen label) on the
+        selected shapes; empty fields leave a value as it is. Returns the count."""
+        layer = layer or self.interpretation_layer()
+        if layer is None or not layer.selected_data:
+            self._fail("Select shapes first (select tool), then set their label and notes.")
+            return 0
+        values = {"comment": self.comment_edit.text() if comment is None else comment,
+                  "unit_above": self.above_edit.text() if above is None else above,
+                  "unit_below": self.below_edit.text() if below is None else below}
+        features = layer.features.copy()
+        for col in _TEXT_FEATURES:
+            if col not in features:
+                features[col] = ""
+        for k in layer.selected_data:
+            for col, value in values.items():
+                if value.strip():
+                    features.loc[k, col] = value.strip()
+        layer.features = features
+        self._reset_defaults(layer)
+        self._keep_in_workspace(layer)
+        n = len(layer.selected_data)
+        self.status_label.setText(f"Set note/units on {n} shape(s).")
+        self.status_label.setStyleSheet("")
+        return n
 
     def _keep_in_workspace(self, layer) -> None:
         """What is drawn on a workspace photo is that photo's interpretations."""
@@ -379,7 +630,8 @@ class InterpretWidget(QWidget):
         layer = self.interpretation_layer()
         if layer is None or not label:
             return
-        layer.feature_defaults = {"label": label}
+        # napari wants a default for every feature column (notes/units stay empty).
+        layer.feature_defaults = {**{col: "" for col in layer.features.columns}, "label": label}
         layer.current_edge_color = self._labels.get(label, label_color(label))
         # Recolour the selected shapes as well: changing the label relabels them.
         if layer.selected_data:
@@ -408,11 +660,14 @@ class InterpretWidget(QWidget):
             return None
         self._draw_mode(layer)
         data, types, colors, labels = [], [], [], []
+        texts: dict[str, list] = {col: [] for col in _TEXT_FEATURES}
         for item in items:
             data.append(napari_from_pixels(item.pixels))
             types.append("path" if item.geometry == "LineString" else "polygon")
             colors.append(item.color)
             labels.append(item.label)
+            for col, prop in _TEXT_FEATURES.items():
+                texts[col].append(str(item.properties.get(prop) or ""))
             if item.label not in self._labels:
                 self.add_label(item.label, item.color)
         if data:
@@ -421,6 +676,10 @@ class InterpretWidget(QWidget):
                       edge_width=3)
             features = layer.features.copy()
             features.loc[n0:, "label"] = labels
+            for col, values in texts.items():
+                if col not in features:
+                    features[col] = ""
+                features.loc[n0:, col] = values
             layer.features = features
         self.status_label.setText(f"Loaded {len(items)} interpretation(s) from {Path(path).name}.")
         return layer
@@ -481,6 +740,7 @@ class InterpretWidget(QWidget):
         if result is None:  # cancelled
             return
         self.features, self.measurements = result
+        self._three_point_measurements(self.features, self.measurements)
         if self.workspace is not None:
             self.workspace.record_projection(self.features, self.measurements)
         self._show_layers(self.features)
@@ -589,11 +849,14 @@ class InterpretWidget(QWidget):
 
     # ---------------------------------------------------------- exports
     def export(self, path: str | Path, georeferenced: bool | None = None) -> None:
-        """Write the projected set (.geojson, .csv, .obj, .ply)."""
+        """Write the projected set (.geojson, .gpkg, .shp, .csv, .obj, .ply).
+
+        GeoPackage and shapefiles are in the georeference's CRS whenever the
+        model has one (the checkbox is for the others)."""
         scene = self.scene
         georef = getattr(scene, "georef", None)
         geo = self.georef_check.isChecked() if georeferenced is None else georeferenced
-        export_features(path, self.features, georef, geo)
+        export_features(path, self.features, georef, geo, measurements=self.measurements)
         self.status_label.setText(f"Exported {len(self.features)} feature(s) to {Path(path).name}.")
 
     def save_measurements(self, path: str | Path) -> None:

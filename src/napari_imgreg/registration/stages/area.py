@@ -31,9 +31,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields
+from typing import ClassVar
 
 import cv2
 import numpy as np
+
+from napari_imgreg.validate import check_ranges
 
 __all__ = ["AreaParams", "BlockMatches", "band_pass", "match_blocks", "search_schedule",
            "prepare_render", "prepare_photo"]
@@ -42,6 +45,8 @@ __all__ = ["AreaParams", "BlockMatches", "band_pass", "match_blocks", "search_sc
 @dataclass
 class AreaParams:
     """Settings of area-based matching (pixels at ``width`` unless said otherwise).
+
+    Each numeric field has its inclusive valid range in :attr:`RANGES`.
 
     Attributes
     ----------
@@ -84,7 +89,22 @@ class AreaParams:
     min_texture: float = 1.0
     min_coverage: float = 0.6
 
+    #: Inclusive valid range of each numeric field.
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "width": (64, 16384),
+        "template_px": (5, 255),
+        "stride_px": (1, 512),
+        "search_px": (1, 512),
+        "far_search_px": (1, 512),
+        "band_sigma_px": (0.5, 100.0),
+        "min_score": (-1.0, 1.0),
+        "max_second_ratio": (0.0, 1.0),
+        "min_texture": (0.0, 255.0),
+        "min_coverage": (0.0, 1.0),
+    }
+
     def __post_init__(self) -> None:
+        check_ranges(self)
         if self.template_px < 5 or self.template_px % 2 == 0:
             raise ValueError(f"template_px must be odd and ≥ 5, not {self.template_px}")
         if self.stride_px < 1 or self.search_px < 1 or self.far_search_px < 1:

@@ -29,6 +29,7 @@ import numpy as np
 from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.render import RenderResult, render
 from napari_imgreg.scene import Scene
+from napari_imgreg.validate import check_ranges
 
 __all__ = [
     "check_ranges",
@@ -46,20 +47,8 @@ __all__ = [
 
 
 # ----------------------------------------------------------- stage settings
-def check_ranges(settings) -> None:
-    """ValueError unless every field named in ``settings.RANGES`` lies in its range.
-
-    ``RANGES`` maps a field to its inclusive ``(low, high)``; a tuple field
-    has every element checked, a None value (where the field allows it) is
-    not checked. Booleans and non-numbers are rejected.
-    """
-    for name, (low, high) in settings.RANGES.items():
-        value = getattr(settings, name)
-        if value is None:
-            continue
-        for v in value if isinstance(value, tuple) else (value,):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not low <= v <= high:
-                raise ValueError(f"{name} must be within [{low:g}, {high:g}], not {value!r}")
+# check_ranges is the package's one range check of parameter dataclasses
+# (napari_imgreg.validate), kept importable from here.
 
 
 def with_keywords(params, keywords: dict, where: str):

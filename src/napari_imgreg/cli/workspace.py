@@ -1,0 +1,248 @@
+"""``napari-imgreg workspace``: a campaign's workspace folder from the command line.
+
+The same workspace folder the workbench opens (docs/formats.md, "Workspace
+folder"): every step saves into it as it goes, so each is resumable — a
+``register`` interrupted after 40 of 300 photos keeps the 40 and, run again,
+starts at the 41st.
+
+::
+
+    napari-imgreg workspace create campaign.imgreg SCENE_DIR   # the scene and its photos
+    napari-imgreg workspace add campaign.imgreg IMG_0301.jpg ...
+    napari-imgreg workspace register campaign.imgreg [--photo NAME]... [--retry-failed] [--redo]
+    napari-imgreg workspace lines campaign.imgreg IMG_0001.jpg LINES.geojson
+    napari-imgreg workspace project campaign.imgreg          # project and measure
+    napari-imgreg workspace export campaign.imgreg --out LINES3D.geojson [--measurements M.csv]
+    napari-imgreg workspace info campaign.imgreg
+
+Exit codes as for every command: 0 done (``register``: every photo asked for
+is registered), 1 some photo did not register, 2 bad input (one line).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from napari_imgreg.cli._common import (
+    EXIT_BAD_INPUT,
+    EXIT_FAILED,
+    EXIT_OK,
+    progress_printer,
+    read_params,
+    say,
+)
+from napari_imgreg.cli.batch import find_scene_files
+from napari_imgreg.errors import input_error
+from napari_imgreg.io import workspace_files as wsfiles
+
+if TYPE_CHECKING:  # the commands import their backend when run: a fast --help
+    from napari_imgreg.workspace import Workspace
+
+__all__ = ["add_parser", "run"]
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``workspace`` command and its sub-commands; the handler is :func:`run`."""
+    p = subparsers.add_parser(
+        "workspace",
+        help="a campaign's workspace folder: create, add photos, register, project, export",
+        description="Work on a workspace folder (campaign.imgreg) as the workbench does: every "
+        "step is saved as it goes and can be resumed.",
+    )
+    sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+
+    c = sub.add_parser("create", help="a new workspace from a scene folder (mesh, DEM, photos)")
+    c.add_argument("folder", metavar="WORKSPACE", help="the new folder, e.g. campaign.imgreg")
+    c.add_argument("scene", metavar="SCENE_DIR",
+                   help="a folder with one mesh, optionally georef.json and a DEM, and the photos")
+    c.add_argument("--mesh", help="the mesh, when the folder has several")
+    c.add_argument("--dem", help="the DEM, when the folder has several")
+    c.add_argument("--georef", help="georef.json (default: the one in SCENE_DIR)")
+    c.add_argument("--params", metavar="PARAMS.json", help="registration parameters (any subset)")
+    c.add_argument("--no-photos", action="store_true", help="the scene only; add photos later")
+
+    a = sub.add_parser("add", help="add photos (each with its sensor record beside it)")
+    a.add_argument("folder", metavar="WORKSPACE")
+    a.add_argument("photos", metavar="PHOTO", nargs="+")
+
+    r = sub.add_parser("register", help="register the photos not registered yet (resumable)")
+    r.add_argument("folder", metavar="WORKSPACE")
+    r.add_argument("--photo", action="append", metavar="NAME",
+                   help="only this photo (file name); repeat for several")
+    r.add_argument("--retry-failed", action="store_true",
+                   help="register again the photos whose last registration failed")
+    r.add_argument("--redo", action="store_true", help="register every photo again")
+    r.add_argument("--once", action="store_true",
+                   help="one trial from the current pose (the workbench's Run) instead of Auto")
+    r.add_argument("-v", "--verbose", action="store_true", help="print progress")
+
+    li = sub.add_parser("lines", help="set what is drawn on a photo from a pixel GeoJSON")
+    li.add_argument("folder", metavar="WORKSPACE")
+    li.add_argument("photo", metavar="PHOTO_NAME", help="the photo's file name in the workspace")
+    li.add_argument("lines", metavar="LINES.geojson", help="pixel GeoJSON (docs/formats.md §7)")
+
+    sub.add_parser("project", help="project every photo's drawings onto the model and measure "
+                   "them").add_argument("folder", metavar="WORKSPACE")
+
+    e = sub.add_parser("export", help="write the projected interpretations and measurements")
+    e.add_argument("folder", metavar="WORKSPACE")
+    e.add_argument("--out", required=True, metavar="LINES3D",
+                   help="the features; the format by its suffix, as for `napari-imgreg project`")
+    e.add_argument("--measurements", metavar="MEASUREMENTS.csv", help="also the measurements")
+    e.add_argument("--georeferenced", action="store_true",
+                   help="coordinates in the georeference's CRS (model + origin)")
+
+    sub.add_parser("info", help="the photos and how far each has come").add_argument(
+        "folder", metavar="WORKSPACE")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``workspace ACTION``."""
+    return _ACTIONS[args.action](args)
+
+
+def _open(folder: str) -> Workspace:
+    from napari_imgreg.workspace import Workspace
+    ws = Workspace.open(folder)
+    for line in ws.open_problems:
+        say(f"  not opened: {line}")
+    ws.autosave_failed.connect(lambda message: say(f"  not saved: {message}"))
+    return ws
+
+
+def _create(args: argparse.Namespace) -> int:
+    from napari_imgreg.workspace import Workspace
+    folder = Path(args.folder)
+    if wsfiles.is_workspace(folder):
+        raise input_error(folder, "already holds a workspace (add photos with 'workspace add')")
+    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
+        raise input_error(folder, "exists and is not an empty folder: choose a new one")
+    files = find_scene_files(args.scene, args.mesh, args.dem, args.georef)
+    ws = Workspace(read_params(args.params))
+    ws.open_scene(files.mesh, files.dem, files.georef)
+    ws.save(folder)
+    # Added after saving: each photo is in the workspace as soon as it is read.
+    errors = [] if args.no_photos else ws.add_photos(files.photos)
+    for line in errors:
+        say(f"  not added: {line}")
+    say(f"{folder}: workspace with {files.mesh.name} and {len(ws.photos)} photo(s)"
+        + (f"; {len(errors)} could not be read" if errors else ""))
+    return EXIT_BAD_INPUT if errors else EXIT_OK
+
+
+def _add(args: argparse.Namespace) -> int:
+    ws = _open(args.folder)
+    before = len(ws.photos)
+    errors = ws.add_photos([Path(p) for p in args.photos])
+    for line in errors:
+        say(f"  not added: {line}")
+    say(f"{args.folder}: {len(ws.photos) - before} photo(s) added, {len(ws.photos)} in all")
+    return EXIT_BAD_INPUT if errors else EXIT_OK
+
+
+def _register(args: argparse.Namespace) -> int:
+    from napari_imgreg.workspace import one_line
+    ws = _open(args.folder)
+    names = {ps.name for ps in ws.photos}
+    for name in args.photo or []:
+        if name not in names:
+            raise input_error(args.folder, f"no photo named {name!r} in the workspace")
+    asked = [k for k, ps in enumerate(ws.photos) if not args.photo or ps.name in args.photo]
+    todo = []
+    for k in asked:
+        reg = ws.photos[k].registration
+        if args.redo or reg is None or (args.retry_failed and not reg.registered):
+            todo.append(k)
+    done = len(asked) - len(todo)
+    say(f"{args.folder}: {len(todo)} photo(s) to register"
+        + (f" ({done} already done)" if done else ""))
+    failed = 0
+    for n, k in enumerate(todo, 1):
+        ws.select_photo(k)
+        ps = ws.current
+        start = time.perf_counter()
+        try:
+            reg = ws.register(auto=not args.once,
+                              on_progress=progress_printer(args.verbose, "    "))
+        except KeyboardInterrupt:
+            raise  # the photos done are saved; a rerun goes on from this one
+        except Exception as exc:  # noqa: BLE001 - one photo's crash does not stop the campaign
+            say(f"  [{n}/{len(todo)}] {ps.name}: not registered: {one_line(exc)}")
+            failed += 1
+            continue
+        failed += not reg.registered
+        say(f"  [{n}/{len(todo)}] {ps.name}: {reg.status} — grade {reg.grade} (Q = {reg.q:+.2f}), "
+            f"{len(reg.trials)} trial(s), {time.perf_counter() - start:.1f} s")
+    missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered
+                  for k in asked)
+    return EXIT_FAILED if (failed or missing) else EXIT_OK
+
+
+def _lines(args: argparse.Namespace) -> int:
+    from napari_imgreg.interpret import files as interpret_files
+    ws = _open(args.folder)
+    ps = next((p for p in ws.photos if p.name == args.photo), None)
+    if ps is None:
+        raise input_error(args.folder, f"no photo named {args.photo!r} in the workspace")
+    items = interpret_files.read_interpretations(args.lines)
+    ws.set_interpretations(items, ps=ps)
+    say(f"{ps.name}: {len(items)} feature(s) drawn (from {args.lines})")
+    return EXIT_OK
+
+
+def _project(args: argparse.Namespace) -> int:
+    from napari_imgreg.workspace import WorkbenchError
+    ws = _open(args.folder)
+    try:
+        features = ws.project_interpretations()
+    except WorkbenchError as exc:
+        raise input_error(args.folder, str(exc)) from None
+    on_surface = sum(1 for f in features if f.parts)
+    planes = sum(1 for m in ws.measurements if m.dip_deg is not None)
+    say(f"{args.folder}: {len(features)} feature(s) projected ({on_surface} on the surface), "
+        f"{len(ws.measurements)} measured, {planes} with a plane")
+    return EXIT_OK
+
+
+def _export(args: argparse.Namespace) -> int:
+    from napari_imgreg.interpret import files as interpret_files
+    from napari_imgreg.workspace import Workspace
+    ws = Workspace.open(args.folder, autosave=False)
+    if not ws.features_3d:
+        raise input_error(args.folder, "nothing projected yet: run 'workspace project' first")
+    georef = ws.scene.georef if ws.scene is not None else None
+    interpret_files.export_features(args.out, ws.features_3d, georef, args.georeferenced)
+    if args.measurements:
+        interpret_files.write_measurements_csv(args.measurements, ws.measurements)
+    say(f"{args.out}: {len(ws.features_3d)} feature(s)"
+        + (f"; {args.measurements}: {len(ws.measurements)} measurement(s)"
+           if args.measurements else ""))
+    return EXIT_OK
+
+
+def _info(args: argparse.Namespace) -> int:
+    from napari_imgreg.workspace import Workspace
+    manifest, _ = wsfiles.read_manifest(args.folder)
+    ws = Workspace.open(args.folder, autosave=False)  # a version 0 is not migrated by a look
+    mesh = ws.scene_files.get("mesh") or "(none)"
+    say(f"{args.folder}: version {manifest.get('version', 0)}, model {mesh}, "
+        f"{len(ws.photos)} photo(s)")
+    for ps in ws.photos:
+        reg = ps.registration
+        state = "not registered" if reg is None else (
+            f"{reg.status}, grade {reg.grade}, Q = {reg.q:+.2f}")
+        say(f"  {ps.name}: {state}; {len(ps.trials)} trial(s), {len(ps.interpretations)} drawn")
+    for line in ws.open_problems:
+        say(f"  not opened: {line}")
+    if ws.features_3d:
+        say(f"  projected: {len(ws.features_3d)} feature(s), {len(ws.measurements)} measured")
+    return EXIT_OK
+
+
+_ACTIONS = {"create": _create, "add": _add, "register": _register, "lines": _lines,
+            "project": _project, "export": _export, "info": _info}

@@ -1,0 +1,411 @@
+"""The files of a workspace folder (``campaign.imgreg/``), as plain JSON and arrays.
+
+A workspace folder holds one versioned manifest, ``workspace.json``, and one
+sub-folder per photo (``photos/<key>/``) with that photo's own files, so that
+saving one photo never rewrites another's (docs/formats.md, "Workspace
+folder"). This module only reads and writes those files as dicts, lists and
+arrays; turning them into a :class:`~napari_imgreg.workspace.Workspace` (and
+writing the interpretation GeoJSON through :mod:`napari_imgreg.interpret.files`)
+is :mod:`napari_imgreg.workspace`'s job, one layer up.
+
+Every write goes through :mod:`napari_imgreg._atomic`: a file is either its
+old complete self or its new complete self. The manifest is written last, so
+a crash between a photo's files and the manifest leaves the manifest naming
+only photos whose files are complete.
+
+Versions: ``1`` is today's layout. A manifest without ``format``/``version``
+(or ``version`` 0) is the single-file state of the development versions'
+``Workspace.to_dict()`` and is migrated by :func:`migrate_v0`; any other
+version is refused with one line naming the file and the version.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import socket
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from napari_imgreg._atomic import atomic_path, atomic_write
+from napari_imgreg._json import dumps as strict_dumps
+from napari_imgreg.errors import InputError, input_error
+from napari_imgreg.io.records import read_json
+
+__all__ = [
+    "FORMAT",
+    "VERSION",
+    "MANIFEST",
+    "PHOTOS_DIR",
+    "PHOTO_STATE",
+    "PHOTO_TRIALS",
+    "PHOTO_RESULT",
+    "PHOTO_LINES",
+    "PHOTO_MATCHES",
+    "FEATURES_3D",
+    "MEASUREMENTS",
+    "MEASUREMENTS_JSON",
+    "V0_BACKUP",
+    "LOCK",
+    "acquire_lock",
+    "release_lock",
+    "is_workspace",
+    "manifest_path",
+    "read_manifest",
+    "check_manifest",
+    "migrate_v0",
+    "write_json",
+    "json_text",
+    "write_text",
+    "read_json_file",
+    "write_arrays",
+    "read_arrays",
+    "file_ref",
+    "resolve_ref",
+    "photo_key",
+    "utc_now",
+]
+
+#: The manifest's ``format`` value.
+FORMAT = "napari-imgreg workspace"
+#: The manifest version this napari-imgreg writes (and the newest it reads).
+VERSION = 1
+#: File names inside the workspace folder.
+MANIFEST = "workspace.json"
+PHOTOS_DIR = "photos"
+PHOTO_STATE = "photo.json"
+PHOTO_TRIALS = "trials.json"
+PHOTO_RESULT = "RESULT.json"
+PHOTO_LINES = "LINES.geojson"
+PHOTO_MATCHES = "correspondences.npz"
+FEATURES_3D = "LINES3D.geojson"
+MEASUREMENTS = "MEASUREMENTS.csv"
+#: The measurements at full precision, for reopening (MEASUREMENTS.csv is for people).
+MEASUREMENTS_JSON = "measurements.json"
+#: The version-0 manifest is kept under this name when it is migrated.
+V0_BACKUP = "workspace.v0.json"
+#: Held by the session saving into the folder: a second writer would undo the first's saves.
+LOCK = "workspace.lock"
+
+
+def utc_now() -> str:
+    """The time now, ISO 8601 in UTC to the second (``2026-12-01T20:53:51Z``)."""
+    return _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def manifest_path(folder: str | os.PathLike) -> Path:
+    return Path(folder) / MANIFEST
+
+
+def is_workspace(folder: str | os.PathLike) -> bool:
+    """Whether ``folder`` holds a workspace manifest."""
+    return manifest_path(folder).is_file()
+
+
+# ------------------------------------------------------------------ writing
+def json_text(data: Any, compact: bool = False) -> str:
+    """``data`` as the text a workspace file holds: strict JSON (non-finite
+    numbers are ``null``, see :mod:`napari_imgreg._json`), indented, or
+    ``compact`` (one line: the files rewritten at every edit, which Python's
+    C encoder writes several times faster)."""
+    kwargs = {"separators": (",", ":")} if compact else {"indent": 1}
+    try:  # plain data with finite numbers (nearly always): the C encoder as it is
+        return json.dumps(data, allow_nan=False, **kwargs) + "\n"
+    except (ValueError, TypeError):  # a non-finite number or a NumPy value: convert
+        return strict_dumps(data, **kwargs) + "\n"
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (UTF-8)."""
+    with atomic_write(path, encoding="utf-8") as fh:
+        fh.write(text)
+
+
+def write_json(path: str | os.PathLike, data: Any) -> str:
+    """Write ``data`` as strict JSON, atomically; returns the text written
+    (serialised first: a value that has no JSON form writes nothing)."""
+    text = json_text(data)
+    write_text(path, text)
+    return text
+
+
+def write_arrays(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
+    """Write named arrays as an uncompressed ``.npz``, atomically."""
+    with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+# ------------------------------------------------------------------ reading
+def read_json_file(path: str | os.PathLike) -> Any:
+    """A workspace JSON file; one :class:`InputError` line when missing or corrupt."""
+    return read_json(path)
+
+
+def read_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """The arrays of a ``.npz`` (empty when the file is missing).
+
+    Raises
+    ------
+    InputError
+        The file exists but is not a readable ``.npz``.
+    """
+    path = Path(path)
+    if not path.exists():
+        return {}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise input_error(path, f"not a readable .npz ({exc})") from None
+
+
+def check_manifest(data: Any, path: str | os.PathLike) -> int:
+    """The version of a manifest dict; refuses what this version cannot read.
+
+    Returns
+    -------
+    int
+        0 (a single-file ``Workspace.to_dict()`` state, to migrate) or :data:`VERSION`.
+
+    Raises
+    ------
+    InputError
+        Not a workspace manifest, or a version other than 0 and 1 (one line
+        naming the file and the version).
+    """
+    if not isinstance(data, dict):
+        raise input_error(path, "not a napari-imgreg workspace manifest (not a JSON object)")
+    fmt = data.get("format")
+    if fmt is None and "version" not in data:
+        if "photos" in data and "scene" in data:
+            return 0  # Workspace.to_dict() in one file: no format, no version
+        raise input_error(path, "not a napari-imgreg workspace manifest (no 'format' field)")
+    if fmt is not None and fmt != FORMAT:
+        raise input_error(path, f"not a napari-imgreg workspace manifest (format {fmt!r}, "
+                                f"expected {FORMAT!r})")
+    version = data.get("version")
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise input_error(path, f"workspace version {version!r} is not known "
+                                f"(this napari-imgreg reads versions 0 to {VERSION})")
+    if version > VERSION:
+        raise input_error(path, f"workspace version {version} is newer than this napari-imgreg "
+                                f"reads (up to {VERSION}): update napari-imgreg to open it")
+    if version not in (0, VERSION):
+        raise input_error(path, f"workspace version {version} is not known "
+                                f"(this napari-imgreg reads versions 0 to {VERSION})")
+    return version
+
+
+def read_manifest(folder: str | os.PathLike) -> tuple[dict, int]:
+    """Read and check a workspace's manifest.
+
+    Returns
+    -------
+    manifest : dict
+        As stored (version 0 is returned as it is; see :func:`migrate_v0`).
+    version : int
+        The version it was stored in.
+
+    Raises
+    ------
+    InputError
+        No manifest, invalid JSON, or a version this napari-imgreg does not read.
+    """
+    path = manifest_path(folder)
+    if not Path(folder).is_dir():
+        raise input_error(folder, "no such workspace folder")
+    if not path.exists():
+        raise input_error(path, "no such file: not a napari-imgreg workspace folder")
+    data = read_json(path)
+    return data, check_manifest(data, path)
+
+
+# ---------------------------------------------------------------- migration
+def migrate_v0(data: dict, folder: str | os.PathLike) -> tuple[dict, list[dict]]:
+    """A version-0 state (``Workspace.to_dict()`` in one file) as version 1.
+
+    Version 0 kept everything inline: ``scene`` (absolute paths), ``params``,
+    ``current`` and ``photos``, each with ``photo``, ``record``, ``camera``,
+    ``pose``, ``pose_label``, ``runs``, ``trials`` (``{run, kind, trial}``),
+    ``selected_trial``, ``pairs``, ``sun`` and ``interpretations`` (inline
+    ``{geometry, pixels, properties}``). It had no prior, no undo/redo stacks
+    and no RESULT.json; those start empty (the prior is rebuilt from the
+    sensor record on opening).
+
+    Parameters
+    ----------
+    data : dict
+        The version-0 document.
+    folder : path-like
+        The workspace folder (to make the paths relative).
+
+    Returns
+    -------
+    manifest : dict
+        A version-1 manifest.
+    photos : list of dict
+        Per photo, in manifest order: ``{"state": photo.json dict, "trials":
+        trials list, "interpretations": inline list}`` for the caller to
+        write in version-1 form.
+    """
+    folder = Path(folder)
+    scene = data.get("scene") or {}
+    photos_in = data.get("photos") or []
+    if not isinstance(photos_in, list):
+        raise input_error(manifest_path(folder), "version-0 'photos' must be a list")
+    entries, photos, keys = [], [], set()
+    for k, p in enumerate(photos_in):
+        if not isinstance(p, dict) or "photo" not in p:
+            raise input_error(manifest_path(folder), f"version-0 photo {k + 1}: no 'photo' path")
+        key = photo_key(p["photo"], keys)
+        entries.append({"key": key, "photo": file_ref(p["photo"], folder)})
+        history = {"current": p.get("pose"), "label": p.get("pose_label", "prior"),
+                   "undo": [], "redo": []}
+        state = {
+            "photo": file_ref(p["photo"], folder),
+            "record": file_ref(p.get("record"), folder) if p.get("record") else None,
+            "camera": p.get("camera"),
+            "prior": None,
+            "history": history,
+            "runs": int(p.get("runs", 0)),
+            "selected_trial": p.get("selected_trial"),
+            "result_trials": None,
+            "pairs": p.get("pairs") or {},
+            "sun": p.get("sun"),
+            "sun_estimate": None,
+            "manual_solution": None,
+        }
+        photos.append({"state": state, "trials": list(p.get("trials") or []),
+                       "interpretations": list(p.get("interpretations") or [])})
+    manifest = {
+        "format": FORMAT, "version": VERSION, "saved": utc_now(),
+        "migrated_from": 0,
+        "scene": {name: file_ref(scene.get(name), folder) if scene.get(name) else None
+                  for name in ("mesh", "dem", "georef")},
+        "params": data.get("params") or {},
+        "photos": entries,
+        "current": data.get("current"),
+        "projection": None,
+    }
+    return manifest, photos
+
+
+# -------------------------------------------------------------------- paths
+def file_ref(path: str | os.PathLike | None, folder: str | os.PathLike) -> dict | None:
+    """A file as a workspace stores it: relative to the workspace folder when
+    possible (so a campaign moved with its data still opens), and absolute
+    (so a workspace moved alone still finds it).
+
+    Returns
+    -------
+    dict or None
+        ``{"path": relative (POSIX) or absolute, "absolute": absolute}``.
+    """
+    if path is None or str(path) == "":
+        return None
+    absolute = Path(os.path.abspath(path))
+    try:
+        rel = Path(os.path.relpath(absolute, os.path.abspath(folder))).as_posix()
+    except ValueError:  # another drive (Windows): no relative path
+        rel = absolute.as_posix()
+    return {"path": rel, "absolute": absolute.as_posix()}
+
+
+def resolve_ref(ref: Any, folder: str | os.PathLike) -> Path | None:
+    """The file a stored reference points to: the relative path if that
+    exists, else the absolute one (else the relative one, for the error)."""
+    if ref is None or ref == "":
+        return None
+    if isinstance(ref, str):  # a bare path
+        ref = {"path": ref}
+    if not isinstance(ref, dict) or not ref.get("path"):
+        raise InputError(f"{manifest_path(folder)}: a file reference must be "
+                         f"{{'path': ...}}, got {ref!r}")
+    rel = Path(ref["path"])
+    candidate = rel if rel.is_absolute() else Path(folder) / rel
+    if candidate.exists() or not ref.get("absolute"):
+        return Path(os.path.normpath(candidate))
+    absolute = Path(ref["absolute"])
+    return absolute if absolute.exists() else Path(os.path.normpath(candidate))
+
+
+def photo_key(photo: str | os.PathLike, taken: set[str]) -> str:
+    """A folder name for a photo: its stem, made unique among ``taken`` (added to it)."""
+    stem = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(photo).stem) or "photo"
+    key, n = stem, 2
+    while key.lower() in {t.lower() for t in taken}:
+        key, n = f"{stem}_{n}", n + 1
+    taken.add(key)
+    return key
+
+
+# -------------------------------------------------------------------- lock
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    except OSError:
+        return False
+    return True
+
+
+def acquire_lock(folder: str | os.PathLike, own_stale: bool = True) -> str:
+    """Take the folder's ``workspace.lock`` for this process; returns its token.
+
+    A lock left by a process that is gone (killed, crashed) on this machine is
+    taken over; so is one of this process (``own_stale``: the caller knows no
+    live session of its own holds the folder).
+
+    Raises
+    ------
+    InputError
+        Another live napari-imgreg session saves into the folder, or one on
+        another machine (which cannot be checked): the line says which and how
+        to go on.
+    """
+    path = Path(folder) / LOCK
+    host, pid = socket.gethostname(), os.getpid()
+    token = uuid.uuid4().hex
+    text = json_text({"pid": pid, "host": host, "since": utc_now(), "token": token})
+    for _ in range(3):
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            try:
+                held = json.loads(path.read_text(encoding="utf-8"))
+                other_pid, other_host = int(held["pid"]), str(held["host"])
+            except (OSError, ValueError, KeyError, TypeError):
+                held, other_pid, other_host = {}, -1, host  # unreadable: a torn write, stale
+            if other_host != host:
+                raise input_error(folder, f"is open in napari-imgreg on {other_host} (pid "
+                                          f"{other_pid}, since {held.get('since', '?')}); close it "
+                                          f"there, or delete {LOCK} if that session is gone")
+            if other_pid == pid and not own_stale:
+                raise input_error(folder, "is already open in this session")
+            if other_pid != pid and other_pid > 0 and _process_alive(other_pid):
+                raise input_error(folder, f"is open in another napari-imgreg (pid {other_pid}, "
+                                          f"since {held.get('since', '?')}): close it first, or "
+                                          "open it read-only")
+            path.unlink(missing_ok=True)  # stale: its process is gone
+            continue
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        return token
+    raise input_error(path, "could not take the workspace lock (another session keeps taking it)")
+
+
+def release_lock(folder: str | os.PathLike, token: str) -> None:
+    """Give the lock back, if it is still this token's."""
+    path = Path(folder) / LOCK
+    try:
+        if json.loads(path.read_text(encoding="utf-8")).get("token") == token:
+            path.unlink()
+    except (OSError, ValueError, AttributeError):
+        pass

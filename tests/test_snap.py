@@ -1,0 +1,125 @@
+"""Least-cost snapping of traces (interpret.snap) against images with known contacts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from napari_imgreg.interpret.snap import SnapParams, cost_image, snap_path, snap_trace
+
+H, W = 120, 240
+
+
+def _contact_row(col: np.ndarray) -> np.ndarray:
+    """The true contact: a bend across relief, row as a function of column."""
+    return 60.0 + 8.0 * np.sin(2 * np.pi * col / 160.0)
+
+
+def _area_image(rows_of, dark_above: bool = True, supersample: int = 8) -> np.ndarray:
+    """A uint8 RGB image: grey 60 above the contact, 180 below, anti-aliased."""
+    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
+    rr = np.arange(H)[:, None, None] + sub[None, None, :]
+    cc = np.arange(W)[None, :, None] + 0 * sub
+    below = rr > rows_of(cc)
+    frac = below.mean(axis=2)
+    lo, hi = (60.0, 180.0) if dark_above else (180.0, 60.0)
+    img = lo + (hi - lo) * frac
+    return np.repeat(np.round(img)[..., None], 3, axis=2).astype(np.uint8)
+
+
+def _median_offset(px: np.ndarray, rows_of) -> float:
+    dense = np.concatenate([np.linspace(a, b, 20, endpoint=False) for a, b in zip(px[:-1], px[1:])])
+    return float(np.median(np.abs(dense[:, 1] - rows_of(dense[:, 0]))))
+
+
+def test_follows_a_curved_contact_from_two_clicks_subpixel():
+    img = _area_image(_contact_row)
+    clicks = np.array([[10.0, _contact_row(np.array(10.0))], [230.0, _contact_row(np.array(230.0))]])
+    px = snap_trace(img, clicks)
+    assert np.allclose(px[0], clicks[0], atol=3.5) and np.allclose(px[-1], clicks[-1], atol=3.5)
+    assert _median_offset(px, _contact_row) < 0.25  # pixels: sub-pixel on a clean edge
+    # The straight line between the clicks is up to 8 px off: snapping did the work.
+    straight = np.stack([np.linspace(10, 230, 50), np.linspace(clicks[0, 1], clicks[1, 1], 50)], 1)
+    assert _median_offset(straight, _contact_row) > 3.0
+
+
+def test_keeps_its_polarity_across_a_thin_band_and_ignores_a_stronger_edge_nearby():
+    """A dark bed 6 px thick: clicking its base follows the base, not the top,
+    nor a much stronger edge (a skyline) 15 px above."""
+    def base(col):
+        return 70.0 + 0 * col
+
+    img = np.full((H, W, 3), 170.0)
+    img[64:70] = 90.0   # the thin dark bed (top edge at 63.5, base at 69.5)
+    img[:49] = 255.0    # bright sky above a stronger edge at 48.5
+    img[:, 118:121] = 100.0  # a cross-cutting joint
+    img = img.astype(np.uint8)
+    clicks = np.array([[20.0, 69.5], [220.0, 69.5]])
+    px = snap_trace(img, clicks)
+    assert np.median(np.abs(px[:, 1] - 69.5)) < 0.5
+    assert px[:, 1].min() > 66  # never on the top edge or the skyline
+
+
+def test_waypoints_are_visited_in_order():
+    img = _area_image(_contact_row)
+    cols = np.array([10.0, 120.0, 230.0])
+    clicks = np.stack([cols, _contact_row(cols)], axis=1)
+    px = snap_trace(img, clicks)
+    d = np.linalg.norm(px - clicks[1], axis=1)
+    assert d.min() < 2.0
+    assert np.all(np.diff(px[:, 0]) > -1.0)  # one pass from left to right
+
+
+def test_darkness_cost_follows_a_dark_fracture():
+    img = np.full((H, W), 200, np.uint8)
+    cols = np.arange(W)
+    rows = np.round(40 + 0.25 * cols).astype(int)
+    img[rows, cols] = 30  # a one-pixel dark fracture
+    px = snap_trace(img, np.array([[5.0, 41.0], [235.0, 99.0]]),
+                    SnapParams(cost="darkness", smoothing_px=0.0, simplify_px=0.0))
+    on_line = np.abs(px[:, 1] - (40 + 0.25 * px[:, 0])) <= 1.0
+    assert on_line.mean() > 0.95
+
+
+def test_colour_and_colour_edge_costs():
+    img = np.zeros((H, W, 3), np.uint8)
+    img[..., 0] = 150
+    img[50:53, :, 1] = 200  # a green vein, 3 px, in red rock
+    img[50:53, :, 0] = 20
+    px = snap_trace(img, np.array([[10.0, 51.0], [230.0, 51.0]]),
+                    SnapParams(cost="colour", simplify_px=0.0))
+    assert np.all(np.abs(px[:, 1] - 51.0) <= 1.0)
+    cost = cost_image(img, SnapParams(cost="colour_edge"))
+    assert cost[49:50].mean() < cost[20].mean()  # the vein's boundary is cheap
+    assert cost.min() >= 0.02 - 1e-12 and cost.max() <= 1.0 + 1e-12
+
+
+def test_snap_path_on_a_known_cost_takes_the_cheap_corridor():
+    cost = np.ones((50, 50))
+    cost[10, :] = 0.01  # a cheap row
+    px = snap_path(cost, np.array([[0.0, 10.0], [49.0, 10.0]]),
+                   SnapParams(snap_radius_px=0, simplify_px=0.0))
+    assert np.all(px[:, 1] == 10.0)
+    assert len(px) == 50 and px[0, 0] == 0 and px[-1, 0] == 49
+
+
+def test_bad_input():
+    img = np.zeros((20, 20), np.uint8)
+    with pytest.raises(ValueError, match="two clicks"):
+        snap_trace(img, np.array([[1.0, 1.0]]))
+    with pytest.raises(ValueError, match="outside"):
+        snap_path(np.ones((20, 20)), np.array([[1.0, 1.0], [25.0, 3.0]]))
+    with pytest.raises(ValueError, match="cost"):
+        SnapParams(cost="curvature")
+    with pytest.raises(ValueError, match="margin_px"):
+        SnapParams(margin_px=2)
+
+
+def test_repeated_and_dense_clicks_do_not_break_the_trace():
+    """An already-snapped line given as clicks (vertices a pixel apart, repeats)."""
+    img = _area_image(_contact_row)
+    cols = np.array([10.0, 10.0, 10.4, 11.0, 60.0, 60.0, 230.0])
+    clicks = np.stack([cols, _contact_row(cols)], axis=1)
+    px = snap_trace(img, clicks)
+    assert len(px) >= 2 and np.isfinite(px).all()
+    assert _median_offset(px, _contact_row) < 0.5
