@@ -332,3 +332,21 @@ def test_register_missing_prior_is_not_replaced_by_exif(wall, tmp_path, capsys):
     code, err = _run(capsys, ["register", wall, photo, "--prior", tmp_path / "nope.json",
                               "--out", tmp_path / "R.json"])
     assert code == 2 and "nope.json: no such file" in _one_line(err)
+
+
+@pytest.mark.parametrize("case", ["inside a file", "under /proc"])
+@pytest.mark.parametrize("command", ["project", "measure"])
+def test_unwritable_output_of_project_and_measure_is_found_first(tmp_path, capsys, case,
+                                                                 command):
+    """Checked before anything is read: the inputs here do not even exist."""
+    out = str(_bad_outputs(tmp_path)[case][0])
+    if command == "project":
+        out = out.replace(".png", ".geojson")
+        argv = ["project", tmp_path / "R.json", tmp_path / "m.obj", tmp_path / "l.geojson",
+                "--out", out]
+    else:
+        out = out.replace(".png", ".csv")
+        argv = ["measure", tmp_path / "l3d.geojson", "--out", out]
+    code, err = _run(capsys, argv)
+    line = _one_line(err)
+    assert code == 2 and out in line and "cannot write here" in line, line

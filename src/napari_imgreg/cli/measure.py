@@ -15,6 +15,7 @@ from pathlib import Path
 
 from napari_imgreg.cli._common import EXIT_OK
 from napari_imgreg.errors import input_error
+from napari_imgreg.validate import check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -94,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
         raise input_error(out, "output must be a .csv file")
     if args.stereonet and Path(args.stereonet).suffix.lower() not in (".png", ".svg", ".pdf"):
         raise input_error(args.stereonet, "stereonet must be .png, .svg or .pdf")
+    check_writable(out)
+    if args.stereonet:
+        check_writable(args.stereonet)
     import math
 
     from napari_imgreg.interpret.uncertainty import UncertaintyParams

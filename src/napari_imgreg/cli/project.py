@@ -20,6 +20,7 @@ from napari_imgreg.geo import Georef
 from napari_imgreg.io.records import read_json
 from napari_imgreg.prior import load_camera_and_pose
 from napari_imgreg.scene import Scene
+from napari_imgreg.validate import check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -100,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in EXPORT_SUFFIXES:
         raise input_error(out, f"output must be one of {', '.join(EXPORT_SUFFIXES)}")
+    check_writable(out)  # before the mesh loads and the rays are cast
     from napari_imgreg.interpret.project import MIN_STEP_PX, check_drawing
     from napari_imgreg.interpret.uncertainty import PoseUncertainty, UncertaintyParams
 
