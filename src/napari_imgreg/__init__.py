@@ -20,14 +20,14 @@ import importlib
 
 __version__ = "0.1.0"
 
-from napari_imgreg import _deprecated
+from . import _deprecated
 
 _deprecated.install()  # old flat module paths keep working, with a warning
 
-from napari_imgreg.camera import Intrinsics, Pose, attitude_from_rotation, rotation_from_attitude
-from napari_imgreg.errors import InputError
-from napari_imgreg.render import RenderResult, render
-from napari_imgreg.scene import Scene
+from .camera import Intrinsics, Pose, attitude_from_rotation, rotation_from_attitude
+from .errors import InputError
+from .render import RenderResult, render
+from .scene import Scene
 
 # Loaded on first use, so that ``import napari_imgreg`` (done by napari when
 # it reads the plugin manifest) does not pull in OpenCV and the pipeline.

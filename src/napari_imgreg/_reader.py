@@ -5,8 +5,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from napari_imgreg.widgets._layers import surface_layer_data
-from napari_imgreg.io.meshes import MESH_SUFFIXES
+from .widgets._layers import surface_layer_data
+from .io.meshes import MESH_SUFFIXES
 
 __all__ = ["get_reader"]
 
@@ -26,7 +26,7 @@ def get_reader(path: str | os.PathLike | list):
 
 def read_mesh_layers(path: str | os.PathLike | list) -> list:
     """Layer data for one mesh file (a georef.json beside it is attached)."""
-    from napari_imgreg.scene import Scene
+    from .scene import Scene
 
     if isinstance(path, list):
         path = path[0]

@@ -6,14 +6,14 @@ The scene is generated once (a few seconds) and cached; see
 
 from __future__ import annotations
 
-from napari_imgreg.widgets._layers import surface_layer_data
+from .widgets._layers import surface_layer_data
 
 __all__ = ["sample_outcrop_model", "sample_outcrop_photo"]
 
 
 def _sample_scene():
-    from napari_imgreg.sample import sample_scene
-    from napari_imgreg.scene import Scene
+    from .sample import sample_scene
+    from .scene import Scene
 
     folder = sample_scene("small")
     return folder, Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
@@ -30,9 +30,9 @@ def sample_outcrop_photo() -> list:
 
     The render sits on top at half opacity, so the prior's misfit shows.
     """
-    from napari_imgreg.io.photos import load_photo
-    from napari_imgreg.prior import prior_for_photo
-    from napari_imgreg.render import render
+    from .io.photos import load_photo
+    from .prior import prior_for_photo
+    from .render import render
 
     folder, scene = _sample_scene()
     photo_path = sorted(folder.glob("IMG_*.jpg"))[0]

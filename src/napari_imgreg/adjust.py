@@ -21,9 +21,9 @@ from typing import Callable
 
 import numpy as np
 
-from napari_imgreg.camera import Pose
-from napari_imgreg.errors import InputError
-from napari_imgreg.scene import Scene
+from .camera import Pose
+from .errors import InputError
+from .scene import Scene
 
 __all__ = [
     "nudge_pose",

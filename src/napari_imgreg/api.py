@@ -21,23 +21,23 @@ from __future__ import annotations
 import os
 from typing import Callable, Sequence
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.interpret.files import read_interpretations
-from napari_imgreg.interpret.project import (
+from .camera import Intrinsics, Pose
+from .interpret.files import read_interpretations
+from .interpret.project import (
     Feature3D,
     Interpretation,
     ProjectionParams,
     measure_features,
     project_interpretations,
 )
-from napari_imgreg.interpret.structural import DEFAULT_THRESHOLDS, FitThresholds, Measurement
-from napari_imgreg.io.photos import Photo, load_photo
-from napari_imgreg.orient import OrientationResult, orient
-from napari_imgreg.prior import Prior, prior_for_photo
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Progress, Registration
-from napari_imgreg.registration.pipeline import register as _register
-from napari_imgreg.scene import Scene
+from .interpret.structural import DEFAULT_THRESHOLDS, FitThresholds, Measurement
+from .io.photos import Photo, load_photo
+from .orient import OrientationResult, orient
+from .prior import Prior, prior_for_photo
+from .registration.params import RegistrationParams
+from .registration.pipeline import Progress, Registration
+from .registration.pipeline import register as _register
+from .scene import Scene
 
 __all__ = ["register", "project", "measure", "orient"]
 

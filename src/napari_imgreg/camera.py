@@ -19,7 +19,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from napari_imgreg.validate import MAX_IMAGE_SIDE_PX, FieldValueError, check_number
+from .validate import MAX_IMAGE_SIDE_PX, FieldValueError, check_number
 
 __all__ = [
     "Intrinsics",

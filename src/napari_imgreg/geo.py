@@ -30,10 +30,10 @@ from typing import Any, Mapping
 import numpy as np
 import numpy.typing as npt
 
-from napari_imgreg._atomic import atomic_path
-from napari_imgreg._json import dumps as strict_json_dumps
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.io.rasters import GeoError, read_dem_raster, write_dem_asc, write_dem_geotiff
+from ._atomic import atomic_path
+from ._json import dumps as strict_json_dumps
+from ._deprecated import forward_moved_names
+from .io.rasters import GeoError, read_dem_raster, write_dem_asc, write_dem_geotiff
 
 __all__ = [
     "GeoError",

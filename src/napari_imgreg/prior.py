@@ -22,21 +22,21 @@ from typing import Mapping
 
 import numpy as np
 
-from napari_imgreg._atomic import atomic_write
-from napari_imgreg._json import dump as strict_json_dump
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.geo import DEFAULT_HEIGHT_ABOVE_GROUND_M, DEM, Georef
-from napari_imgreg.io.exif import record_from_exif
-from napari_imgreg.io.records import (
+from ._atomic import atomic_write
+from ._json import dump as strict_json_dump
+from .camera import Intrinsics, Pose
+from .errors import InputError, input_error
+from .geo import DEFAULT_HEIGHT_ABOVE_GROUND_M, DEM, Georef
+from .io.exif import record_from_exif
+from .io.records import (
     SensorRecord,
     Sigma,
     load_sensor_record,
     parse_sensor_record,
     read_json,
 )
-from napari_imgreg.solar import sun_for_photo, sun_from_record
-from napari_imgreg.validate import FieldValueError
+from .solar import sun_for_photo, sun_from_record
+from .validate import FieldValueError
 
 __all__ = [
     "DEFAULT_HEIGHT_ABOVE_GROUND_M",

@@ -17,10 +17,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose, scaled_size
-from napari_imgreg.errors import InputError
-from napari_imgreg.scene import Scene, ray_threads
-from napari_imgreg.validate import FieldValueError, check_number, check_render_size
+from .camera import Intrinsics, Pose, scaled_size
+from .errors import InputError
+from .scene import Scene, ray_threads
+from .validate import FieldValueError, check_number, check_render_size
 
 __all__ = ["RenderResult", "render", "RENDER_MODES"]
 

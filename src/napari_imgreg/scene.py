@@ -19,13 +19,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.io.rasters import read_geotiff
-from napari_imgreg.io.records import parse_sensor_record, read_json
-from napari_imgreg.solar import sun_from_record
+from .errors import InputError, input_error
+from .io.rasters import read_geotiff
+from .io.records import parse_sensor_record, read_json
+from .solar import sun_from_record
 
 if TYPE_CHECKING:
-    from napari_imgreg.geo import DEM, Georef
+    from .geo import DEM, Georef
 
 __all__ = ["Scene", "RayHits", "ray_threads"]
 
@@ -157,8 +157,8 @@ class Scene:
         InputError
             A file is missing or unreadable.
         """
-        from napari_imgreg.geo import DEM, Georef
-        from napari_imgreg.io.meshes import load_mesh
+        from .geo import DEM, Georef
+        from .io.meshes import load_mesh
 
         t0 = time.perf_counter()
         data = load_mesh(mesh_path, cache=cache)
@@ -213,7 +213,7 @@ class Scene:
         stride : int
             Take every ``stride``-th DEM cell (coarser mesh for huge DSMs).
         """
-        from napari_imgreg.geo import DEM, Georef
+        from .geo import DEM, Georef
 
         if not isinstance(dem, DEM):
             dem = DEM.load(dem)

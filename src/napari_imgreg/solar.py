@@ -31,12 +31,12 @@ from typing import TYPE_CHECKING, Any, Mapping
 import numpy as np
 import numpy.typing as npt
 
-from napari_imgreg.errors import InputError
-from napari_imgreg.geo import Georef, _transformer
-from napari_imgreg.io.exif import gps_degrees, read_capture_time
+from .errors import InputError
+from .geo import Georef, _transformer
+from .io.exif import gps_degrees, read_capture_time
 
 if TYPE_CHECKING:
-    from napari_imgreg.io.records import SensorRecord
+    from .io.records import SensorRecord
 
 __all__ = [
     "SunPosition",

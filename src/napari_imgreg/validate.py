@@ -24,7 +24,7 @@ from typing import Any
 
 from numpy import bool_ as np_bool
 
-from napari_imgreg.errors import InputError, input_error
+from .errors import InputError, input_error
 
 __all__ = [
     "MAX_IMAGE_SIDE_PX",

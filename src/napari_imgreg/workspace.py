@@ -58,34 +58,34 @@ import cv2
 import numpy as np
 from psygnal import Signal
 
-from napari_imgreg import adjust
-from napari_imgreg.camera import Intrinsics, Pose, match_scale
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.geo import DEM, Georef
-from napari_imgreg.interpret import files as interpret_files
-from napari_imgreg.interpret.project import (
+from . import adjust
+from .camera import Intrinsics, Pose, match_scale
+from .errors import InputError, input_error
+from .geo import DEM, Georef
+from .interpret import files as interpret_files
+from .interpret.project import (
     Feature3D,
     Interpretation,
     label_color,
     merge_interpretations,
     project_interpretations,
 )
-from napari_imgreg.interpret.structural import Measurement
-from napari_imgreg.io import workspace_files as wsfiles
-from napari_imgreg.io.photos import Photo, load_photo
-from napari_imgreg.io.records import Sigma
-from napari_imgreg.prior import Prior, prior_for_photo, save_pose_to_record
-from napari_imgreg.registration import manual, pipeline
-from napari_imgreg.registration.features import FeatureParams
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Registration, Trial
-from napari_imgreg.registration.quality import RuleHit, evaluate_rules
-from napari_imgreg.registration.round import Correspondences
-from napari_imgreg.registration.stages.relight import SunEstimate, estimate_sun_from_photo
-from napari_imgreg.registration.uncertainty import Uncertainty
-from napari_imgreg.render import RenderResult, render
-from napari_imgreg.scene import Scene
-from napari_imgreg.solar import meridian_convergence_deg, sun_vector_enu
+from .interpret.structural import Measurement
+from .io import workspace_files as wsfiles
+from .io.photos import Photo, load_photo
+from .io.records import Sigma
+from .prior import Prior, prior_for_photo, save_pose_to_record
+from .registration import manual, pipeline
+from .registration.features import FeatureParams
+from .registration.params import RegistrationParams
+from .registration.pipeline import Registration, Trial
+from .registration.quality import RuleHit, evaluate_rules
+from .registration.round import Correspondences
+from .registration.stages.relight import SunEstimate, estimate_sun_from_photo
+from .registration.uncertainty import Uncertainty
+from .render import RenderResult, render
+from .scene import Scene
+from .solar import meridian_convergence_deg, sun_vector_enu
 
 __all__ = [
     "Workspace",
@@ -1694,7 +1694,7 @@ _BOUND: weakref.WeakValueDictionary[str, _FolderStore] = weakref.WeakValueDictio
 
 
 def _version() -> str:
-    from napari_imgreg import __version__
+    from . import __version__
 
     return __version__
 

@@ -18,9 +18,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from napari_imgreg import __version__
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.cli import (
+from .. import __version__
+from .._deprecated import forward_moved_names
+from . import (
     batch,
     demo,
     measure,
@@ -31,9 +31,9 @@ from napari_imgreg.cli import (
     sample,
     workspace,
 )
-from napari_imgreg.cli._common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, print_error
-from napari_imgreg.errors import InputError
-from napari_imgreg.validate import FieldValueError
+from ._common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, print_error
+from ..errors import InputError
+from ..validate import FieldValueError
 
 __all__ = ["main"]
 

@@ -15,12 +15,12 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
-from napari_imgreg._atomic import atomic_path, atomic_write
-from napari_imgreg._json import dumps as strict_dumps
-from napari_imgreg.scene import Scene
+from .._atomic import atomic_path, atomic_write
+from .._json import dumps as strict_dumps
+from ..scene import Scene
 
 if TYPE_CHECKING:  # the commands import their backend when run: a fast --help
-    from napari_imgreg.registration.params import RegistrationParams
+    from ..registration.params import RegistrationParams
 
 __all__ = [
     "EXIT_OK",
@@ -103,7 +103,7 @@ def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
 def read_params(path: str | os.PathLike | None) -> RegistrationParams:
     """The registration parameters of a ``--params`` JSON file (any subset of
     the fields), or the defaults when no file was given."""
-    from napari_imgreg.registration.params import RegistrationParams, load_params
+    from ..registration.params import RegistrationParams, load_params
 
     return load_params(path) if path else RegistrationParams()
 

@@ -41,9 +41,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from napari_imgreg._atomic import atomic_write
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.cli._common import (
+from .._atomic import atomic_write
+from .._deprecated import forward_moved_names
+from ._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_OK,
@@ -55,12 +55,12 @@ from napari_imgreg.cli._common import (
     say,
     write_json,
 )
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.io.meshes import MESH_SUFFIXES
-from napari_imgreg.io.photos import PHOTO_SUFFIXES, load_photo
-from napari_imgreg.io.records import read_json
-from napari_imgreg.prior import prior_for_photo
-from napari_imgreg.validate import check_writable
+from ..errors import InputError, input_error
+from ..io.meshes import MESH_SUFFIXES
+from ..io.photos import PHOTO_SUFFIXES, load_photo
+from ..io.records import read_json
+from ..prior import prior_for_photo
+from ..validate import check_writable
 
 # The module, not its ``register``: looked up at call time, so tests can
 # substitute ``napari_imgreg.registration.pipeline.register``.
@@ -409,7 +409,7 @@ def exit_code_of(rows: list[dict[str, Any]]) -> int:
 # ------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``batch``: check the scene, register every photo, keep the summary current."""
-    from napari_imgreg.registration import pipeline
+    from ..registration import pipeline
 
     t_start = time.perf_counter()
     out = Path(args.out)

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from napari_imgreg.cli._common import EXIT_FAILED, EXIT_OK, load_scene, write_json
-from napari_imgreg.io.photos import load_photo, save_image
-from napari_imgreg.prior import prior_for_photo
-from napari_imgreg.render import render
-from napari_imgreg.validate import check_writable
+from ._common import EXIT_FAILED, EXIT_OK, load_scene, write_json
+from ..io.photos import load_photo, save_image
+from ..prior import prior_for_photo
+from ..render import render
+from ..validate import check_writable
 
 __all__ = ["add_parser", "run", "open_gui"]
 
@@ -42,8 +42,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Run ``demo``: register the sample photos (or open the GUI with ``--gui``)."""
-    from napari_imgreg.sample import load_truth, sample_scene
-    from napari_imgreg.registration import pipeline
+    from ..sample import load_truth, sample_scene
+    from ..registration import pipeline
 
     if not args.gui:
         check_writable(args.out, folder=True)  # before the minutes of work
@@ -127,7 +127,7 @@ def open_gui(folder: Path) -> int:  # pragma: no cover - interactive
     when the viewer is closed."""
     # The only import of the command line that needs Qt (an allowed exception
     # to the layer rules, see pyproject.toml): imported only for ``--gui``.
-    from napari_imgreg.widgets.demo import open_demo
+    from ..widgets.demo import open_demo
 
     open_demo(folder)
     return EXIT_OK

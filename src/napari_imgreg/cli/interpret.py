@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import argparse
 
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.cli import measure, project
+from .._deprecated import forward_moved_names
+from . import measure, project
 
 __all__ = ["add_parsers"]
 

@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from napari_imgreg.cli._common import EXIT_OK
-from napari_imgreg.errors import input_error
-from napari_imgreg.validate import check_writable
+from ._common import EXIT_OK
+from ..errors import input_error
+from ..validate import check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -79,7 +79,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Run ``measure``: fit lines and planes, write MEASUREMENTS.csv (and a stereonet)."""
-    from napari_imgreg.interpret.structural import (
+    from ..interpret.structural import (
         FitThresholds,
         dip_dip_direction,
         fisher_mean,
@@ -87,8 +87,8 @@ def run(args: argparse.Namespace) -> int:
         save_stereonet,
         vector_from_plunge_trend,
     )
-    from napari_imgreg.interpret.project import measure_features
-    from napari_imgreg.interpret.files import read_features_geojson, write_measurements_csv
+    from ..interpret.project import measure_features
+    from ..interpret.files import read_features_geojson, write_measurements_csv
 
     out = Path(args.out)
     if out.suffix.lower() != ".csv":
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.stereonet)
     import math
 
-    from napari_imgreg.interpret.uncertainty import UncertaintyParams
+    from ..interpret.uncertainty import UncertaintyParams
 
     if not 0.0 <= args.min_planarity <= 1.0:
         raise input_error(None, "--min-planarity must be in [0, 1]")

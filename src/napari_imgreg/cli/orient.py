@@ -12,8 +12,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from napari_imgreg.errors import input_error
-from napari_imgreg.validate import check_option, check_writable
+from ..errors import input_error
+from ..validate import check_option, check_writable
 
 __all__ = ["add_parser", "cmd_orient"]
 
@@ -58,8 +58,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def cmd_orient(args: argparse.Namespace) -> int:
     """Run ``orient``: read, estimate, write ORIENTATION.json, print a summary."""
-    from napari_imgreg.io.orientation_tables import read_orientation_table
-    from napari_imgreg.orient import (
+    from ..io.orientation_tables import read_orientation_table
+    from ..orient import (
         MESH_OUT_SUFFIXES,
         apply_to_mesh_file,
         orient,

@@ -14,13 +14,13 @@ import math
 from collections import Counter
 from pathlib import Path
 
-from napari_imgreg.cli._common import EXIT_OK, load_scene
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.geo import Georef
-from napari_imgreg.io.records import read_json
-from napari_imgreg.prior import load_camera_and_pose
-from napari_imgreg.scene import Scene
-from napari_imgreg.validate import check_writable
+from ._common import EXIT_OK, load_scene
+from ..errors import InputError, input_error
+from ..geo import Georef
+from ..io.records import read_json
+from ..prior import load_camera_and_pose
+from ..scene import Scene
+from ..validate import check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -87,12 +87,12 @@ def _load_surface(mesh: str, georef: str | None, dem: str | None) -> Scene:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``project``: cast the drawn lines onto the mesh, write LINES3D."""
-    from napari_imgreg.interpret.files import (
+    from ..interpret.files import (
         EXPORT_SUFFIXES,
         export_features,
         read_interpretations,
     )
-    from napari_imgreg.interpret.project import (
+    from ..interpret.project import (
         ProjectionParams,
         merge_interpretations,
         project_interpretations,
@@ -102,8 +102,8 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() not in EXPORT_SUFFIXES:
         raise input_error(out, f"output must be one of {', '.join(EXPORT_SUFFIXES)}")
     check_writable(out)  # before the mesh loads and the rays are cast
-    from napari_imgreg.interpret.project import MIN_STEP_PX, check_drawing
-    from napari_imgreg.interpret.uncertainty import PoseUncertainty, UncertaintyParams
+    from ..interpret.project import MIN_STEP_PX, check_drawing
+    from ..interpret.uncertainty import PoseUncertainty, UncertaintyParams
 
     if not (math.isfinite(args.step) and MIN_STEP_PX <= args.step <= 100.0):
         raise input_error(None, f"--step must be between {MIN_STEP_PX} and 100 pixels "

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from napari_imgreg.cli._common import (
+from ._common import (
     EXIT_FAILED,
     EXIT_OK,
     load_scene,
@@ -20,10 +20,10 @@ from napari_imgreg.cli._common import (
     read_params,
     write_json,
 )
-from napari_imgreg.errors import input_error
-from napari_imgreg.io.photos import load_photo
-from napari_imgreg.prior import prior_for_photo
-from napari_imgreg.validate import check_writable
+from ..errors import input_error
+from ..io.photos import load_photo
+from ..prior import prior_for_photo
+from ..validate import check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -51,7 +51,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Run ``register``: register the photo, write RESULT.json, print a summary."""
-    from napari_imgreg.registration import pipeline
+    from ..registration import pipeline
 
     photo_path = Path(args.photo)
     if not photo_path.name:

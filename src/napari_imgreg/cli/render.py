@@ -11,12 +11,12 @@ import argparse
 import time
 from pathlib import Path
 
-from napari_imgreg.cli._common import EXIT_OK, load_scene, write_npy
-from napari_imgreg.errors import input_error
-from napari_imgreg.io.photos import save_image
-from napari_imgreg.prior import load_camera_and_pose
-from napari_imgreg.render import render
-from napari_imgreg.validate import MAX_RENDER_PIXELS, check_option, check_writable
+from ._common import EXIT_OK, load_scene, write_npy
+from ..errors import input_error
+from ..io.photos import save_image
+from ..prior import load_camera_and_pose
+from ..render import render
+from ..validate import MAX_RENDER_PIXELS, check_option, check_writable
 
 #: Largest ``--scale``: finer than 8× the camera shows nothing new.
 MAX_SCALE = 8.0

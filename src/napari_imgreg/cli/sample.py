@@ -10,8 +10,8 @@ import argparse
 import time
 from pathlib import Path
 
-from napari_imgreg.cli._common import EXIT_OK
-from napari_imgreg.validate import check_option, check_writable
+from ._common import EXIT_OK
+from ..validate import check_option, check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -33,7 +33,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Run ``sample``: generate the outcrop into ``--out``."""
-    from napari_imgreg.sample import generate_outcrop
+    from ..sample import generate_outcrop
 
     check_writable(args.out, folder=True)
     check_option(args.seed, "--seed", 0, 2**32 - 1)  # NumPy's seed range

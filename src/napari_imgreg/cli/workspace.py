@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from napari_imgreg.cli._common import (
+from ._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_OK,
@@ -34,12 +34,12 @@ from napari_imgreg.cli._common import (
     read_params,
     say,
 )
-from napari_imgreg.cli.batch import find_scene_files
-from napari_imgreg.errors import input_error
-from napari_imgreg.io import workspace_files as wsfiles
+from .batch import find_scene_files
+from ..errors import input_error
+from ..io import workspace_files as wsfiles
 
 if TYPE_CHECKING:  # the commands import their backend when run: a fast --help
-    from napari_imgreg.workspace import Workspace
+    from ..workspace import Workspace
 
 __all__ = ["add_parser", "run"]
 
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _open(folder: str) -> Workspace:
-    from napari_imgreg.workspace import Workspace
+    from ..workspace import Workspace
     ws = Workspace.open(folder)
     for line in ws.open_problems:
         say(f"  not opened: {line}")
@@ -116,7 +116,7 @@ def _open(folder: str) -> Workspace:
 
 
 def _create(args: argparse.Namespace) -> int:
-    from napari_imgreg.workspace import Workspace
+    from ..workspace import Workspace
     folder = Path(args.folder)
     if wsfiles.is_workspace(folder):
         raise input_error(folder, "already holds a workspace (add photos with 'workspace add')")
@@ -146,7 +146,7 @@ def _add(args: argparse.Namespace) -> int:
 
 
 def _register(args: argparse.Namespace) -> int:
-    from napari_imgreg.workspace import one_line
+    from ..workspace import one_line
     ws = _open(args.folder)
     names = {ps.name for ps in ws.photos}
     for name in args.photo or []:
@@ -184,7 +184,7 @@ def _register(args: argparse.Namespace) -> int:
 
 
 def _lines(args: argparse.Namespace) -> int:
-    from napari_imgreg.interpret import files as interpret_files
+    from ..interpret import files as interpret_files
     ws = _open(args.folder)
     ps = next((p for p in ws.photos if p.name == args.photo), None)
     if ps is None:
@@ -196,7 +196,7 @@ def _lines(args: argparse.Namespace) -> int:
 
 
 def _project(args: argparse.Namespace) -> int:
-    from napari_imgreg.workspace import WorkbenchError
+    from ..workspace import WorkbenchError
     ws = _open(args.folder)
     try:
         features = ws.project_interpretations()
@@ -210,8 +210,8 @@ def _project(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from napari_imgreg.interpret import files as interpret_files
-    from napari_imgreg.workspace import Workspace
+    from ..interpret import files as interpret_files
+    from ..workspace import Workspace
     ws = Workspace.open(args.folder, autosave=False)
     if not ws.features_3d:
         raise input_error(args.folder, "nothing projected yet: run 'workspace project' first")
@@ -226,7 +226,7 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from napari_imgreg.workspace import Workspace
+    from ..workspace import Workspace
     manifest, _ = wsfiles.read_manifest(args.folder)
     ws = Workspace.open(args.folder, autosave=False)  # a version 0 is not migrated by a look
     mesh = ws.scene_files.get("mesh") or "(none)"

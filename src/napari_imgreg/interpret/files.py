@@ -38,14 +38,14 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from napari_imgreg._atomic import atomic_write
-from napari_imgreg._json import dump as strict_json_dump
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.interpret.project import Feature3D, Interpretation
-from napari_imgreg.interpret.structural import Measurement
+from .._atomic import atomic_write
+from .._json import dump as strict_json_dump
+from ..errors import InputError, input_error
+from .project import Feature3D, Interpretation
+from .structural import Measurement
 
 if TYPE_CHECKING:
-    from napari_imgreg.geo import Georef
+    from ..geo import Georef
 
 __all__ = [
     "MEASUREMENT_COLUMNS",
@@ -86,7 +86,7 @@ _DECIMALS = 4  # 0.1 mm
 
 # ------------------------------------------------------------- pixel GeoJSON
 def _load_json(path: Path) -> Any:
-    from napari_imgreg.io.records import read_json
+    from ..io.records import read_json
 
     return read_json(path)
 
@@ -547,7 +547,7 @@ def _columns(rows: list[dict[str, Any]]) -> tuple[list[str], list[np.ndarray]]:
             arrays.append(np.array([np.nan if v is None or not math.isfinite(v) else float(v)
                                     for v in vals]))
         else:
-            from napari_imgreg._json import dumps as strict_dumps
+            from .._json import dumps as strict_dumps
 
             arrays.append(np.array(
                 [None if v is None else v if isinstance(v, str) else strict_dumps(v)
@@ -578,7 +578,7 @@ def _gis_layers(
     """``{layer: (geometry type, WKB geometries, attribute rows)}``."""
     from dataclasses import fields
 
-    from napari_imgreg.interpret.project import measure_features
+    from .project import measure_features
 
     traces, facets = ([], []), ([], [])
     for f in features:

@@ -34,17 +34,17 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.scene import Scene
-from napari_imgreg.errors import InputError
-from napari_imgreg.interpret.structural import (
+from ..camera import Intrinsics, Pose
+from ..scene import Scene
+from ..errors import InputError
+from .structural import (
     DEFAULT_THRESHOLDS,
     FitThresholds,
     Measurement,
     measure_facet,
     measure_traces,
 )
-from napari_imgreg.interpret.uncertainty import (
+from .uncertainty import (
     DEFAULT_UNCERTAINTY,
     ErrorModel,
     PoseUncertainty,

@@ -548,7 +548,7 @@ def _plane_samples(samples: Sequence[np.ndarray]) -> np.ndarray:
 
 
 def _trace_sigmas(m: Measurement, line: LineFit, samples: list[np.ndarray]) -> None:
-    from napari_imgreg.interpret.uncertainty import angle_sigmas
+    from .uncertainty import angle_sigmas
 
     d0 = vector_from_plunge_trend(line.plunge_deg, line.trend_deg)
     nominal = (line.plunge_deg, line.trend_deg)
@@ -560,7 +560,7 @@ def _trace_sigmas(m: Measurement, line: LineFit, samples: list[np.ndarray]) -> N
 
 
 def _plane_sigmas(m: Measurement, samples: list[np.ndarray]) -> None:
-    from napari_imgreg.interpret.uncertainty import angle_sigmas
+    from .uncertainty import angle_sigmas
 
     sd, sa = angle_sigmas((m.dip_deg, m.dip_direction_deg), _plane_samples(samples))
     if math.isfinite(sd):
@@ -577,7 +577,7 @@ def _view_check(
 ) -> str:
     """Why the drawing does not determine ``plane`` ('' when it does); fills
     ``m.view_spread`` and ``m.ray_angle_deg``."""
-    from napari_imgreg.interpret.uncertainty import view_geometry
+    from .uncertainty import view_geometry
 
     cams = [md.camera_position for md in models]
     spread, angle = view_geometry(points_per_view, cams, plane.normal)
@@ -689,7 +689,7 @@ def measure_traces(
     error_models : list of ErrorModel, optional
         One per view.
     """
-    from napari_imgreg.interpret.uncertainty import DEFAULT_UNCERTAINTY, monte_carlo
+    from .uncertainty import DEFAULT_UNCERTAINTY, monte_carlo
 
     params = uncertainty or DEFAULT_UNCERTAINTY
     views = [uniform_along(p if not isinstance(p, np.ndarray) else [p]) for p in parts_per_view]
@@ -769,7 +769,7 @@ def measure_facet(
         and a bootstrap of the points (the fit's own scatter) plus the mesh
         error.
     """
-    from napari_imgreg.interpret.uncertainty import DEFAULT_UNCERTAINTY, monte_carlo
+    from .uncertainty import DEFAULT_UNCERTAINTY, monte_carlo
 
     pts = _as_points(points)
     centroid = pts.mean(axis=0) if len(pts) else np.full(3, np.nan)
@@ -1121,7 +1121,7 @@ def save_stereonet(
     """
     from matplotlib.figure import Figure
 
-    from napari_imgreg._atomic import atomic_path
+    from .._atomic import atomic_path
 
     n_labels = len({m.label for m in measurements})
     fig = Figure(figsize=(6, 6.3 + 0.3 * n_labels))

@@ -34,9 +34,9 @@ from datetime import datetime, timedelta, timezone, tzinfo
 from pathlib import Path
 from typing import Any, Mapping
 
-from napari_imgreg.camera import Intrinsics
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.io.records import SensorRecord
+from ..camera import Intrinsics
+from ..errors import InputError, input_error
+from .records import SensorRecord
 
 __all__ = [
     "CaptureTime",

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from napari_imgreg.errors import input_error
+from ..errors import input_error
 
 __all__ = [
     "MeshData", "load_mesh", "MESH_SUFFIXES", "mesh_cache_dir", "mesh_cache_limit_bytes",
@@ -379,7 +379,7 @@ def _read_cache(key: str) -> MeshData | None:
 
 
 def _write_cache(key: str, data: MeshData) -> None:
-    from napari_imgreg._atomic import atomic_path
+    from .._atomic import atomic_path
 
     arrays = {"vertices": data.vertices, "faces": data.faces, "key": np.array(key),
               "warnings": np.array(data.warnings, dtype=str)}

@@ -31,10 +31,10 @@ from typing import Iterable, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.camera import attitude_from_rotation, rotation_from_attitude
-from napari_imgreg.errors import input_error
-from napari_imgreg.io import exif
+from .._deprecated import forward_moved_names
+from ..camera import attitude_from_rotation, rotation_from_attitude
+from ..errors import input_error
+from . import exif
 
 __all__ = [
     "OrientationTable",
@@ -351,7 +351,7 @@ def write_orientation_csv(path: str | os.PathLike, table: OrientationTable) -> N
     Positions are written as ``x,y,z`` when the table has them; unknown
     values are empty cells.
     """
-    from napari_imgreg._atomic import atomic_write
+    from .._atomic import atomic_write
 
     attitudes = table.attitudes
     columns = list(CSV_COLUMNS) + (list(_POSITION_COLUMNS) if table.positions is not None else [])

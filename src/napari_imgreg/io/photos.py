@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.io.exif import exif_of_image
-from napari_imgreg.validate import MAX_IMAGE_SIDE_PX, MAX_PHOTO_PIXELS
+from ..errors import InputError, input_error
+from .exif import exif_of_image
+from ..validate import MAX_IMAGE_SIDE_PX, MAX_PHOTO_PIXELS
 
 __all__ = ["Photo", "load_photo", "PHOTO_SUFFIXES", "save_image"]
 
@@ -135,7 +135,7 @@ def save_image(path: str | os.PathLike, rgb: np.ndarray, quality: int = 92) -> N
     """Write an RGB (or grey) uint8 image atomically; format from the extension."""
     import cv2
 
-    from napari_imgreg._atomic import atomic_path
+    from .._atomic import atomic_path
 
     arr = np.asarray(rgb)
     if arr.ndim == 3:

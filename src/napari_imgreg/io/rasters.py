@@ -31,8 +31,8 @@ from typing import Callable
 
 import numpy as np
 
-from napari_imgreg._atomic import atomic_path
-from napari_imgreg.errors import InputError
+from .._atomic import atomic_path
+from ..errors import InputError
 
 __all__ = [
     "GeoError",

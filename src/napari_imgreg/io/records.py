@@ -17,9 +17,9 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Mapping
 
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.errors import input_error
-from napari_imgreg.validate import MAX_IMAGE_SIDE_PX, FieldValueError, check_number
+from .._deprecated import forward_moved_names
+from ..errors import input_error
+from ..validate import MAX_IMAGE_SIDE_PX, FieldValueError, check_number
 
 __all__ = [
     "Sigma",
@@ -243,7 +243,7 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
             for k in dist:
                 try:
                     check_number(k, "dist", -1000.0, 1000.0)
-                except FieldValueError as exc:
+                except FieldValueError:
                     raise input_error(src, f"field 'camera.dist' must be finite numbers "
                                            f"within ±1000, got {dist!r}") from None
 

@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from napari_imgreg._atomic import atomic_path, atomic_write
-from napari_imgreg._json import dumps as strict_dumps
-from napari_imgreg.errors import InputError, input_error
-from napari_imgreg.io.records import read_json
+from .._atomic import atomic_path, atomic_write
+from .._json import dumps as strict_dumps
+from ..errors import InputError, input_error
+from .records import read_json
 
 __all__ = [
     "FORMAT",

@@ -56,14 +56,14 @@ from __future__ import annotations
 import sys
 import types
 
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.orient.apply import (
+from .._deprecated import forward_moved_names
+from .apply import (
     MESH_OUT_SUFFIXES,
     apply_to_mesh_file,
     rotate_cameras,
     rotate_points,
 )
-from napari_imgreg.orient.diagnostics import (
+from .diagnostics import (
     DISTORTED_RESIDUAL_DEG,
     MEAN_RESIDUAL_MAX_DEG,
     PATH_SLOPE_MAX,
@@ -76,7 +76,7 @@ from napari_imgreg.orient.diagnostics import (
     survey_path_position,
     unwrap_trend,
 )
-from napari_imgreg.orient.estimate import (
+from .estimate import (
     METHODS,
     PAPER_STEP_DEG,
     RotationEstimate,
@@ -90,8 +90,8 @@ from napari_imgreg.orient.estimate import (
     rotation_axis_from_j,
     rotation_error_deg,
 )
-from napari_imgreg.orient.plots import draw_residual_plots, save_residual_plots
-from napari_imgreg.orient.result import OrientationResult, orient, orient_files, save_orientation
+from .plots import draw_residual_plots, save_residual_plots
+from .result import OrientationResult, orient, orient_files, save_orientation
 
 __all__ = [
     "METHODS",

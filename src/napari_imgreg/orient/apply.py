@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from napari_imgreg._atomic import atomic_path, atomic_write
-from napari_imgreg.errors import input_error
-from napari_imgreg.io.meshes import load_mesh
+from .._atomic import atomic_path, atomic_write
+from ..errors import input_error
+from ..io.meshes import load_mesh
 
 __all__ = ["rotate_points", "rotate_cameras", "apply_to_mesh_file", "MESH_OUT_SUFFIXES"]
 

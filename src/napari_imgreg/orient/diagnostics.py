@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from napari_imgreg.orient.estimate import _UP, _angle_between, _axes, _finite
+from .estimate import _UP, _angle_between, _axes, _finite
 
 __all__ = [
     "MEAN_RESIDUAL_MAX_DEG",

@@ -12,13 +12,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from napari_imgreg._atomic import atomic_path
-from napari_imgreg.orient.diagnostics import PATH_SLOPE_MAX, TREND_SLOPE_MAX
+from .._atomic import atomic_path
+from .diagnostics import PATH_SLOPE_MAX, TREND_SLOPE_MAX
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from napari_imgreg.orient.result import OrientationResult
+    from .result import OrientationResult
 
 __all__ = ["draw_residual_plots", "save_residual_plots"]
 

@@ -13,7 +13,6 @@ without camera centres it is the model origin.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from typing import Any, Mapping
@@ -21,18 +20,18 @@ from typing import Any, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from napari_imgreg._atomic import atomic_write
-from napari_imgreg._json import dump as strict_json_dump
-from napari_imgreg.camera import attitude_from_rotation
-from napari_imgreg.errors import input_error
-from napari_imgreg.io.orientation_tables import (
+from .._atomic import atomic_write
+from .._json import dump as strict_json_dump
+from ..camera import attitude_from_rotation
+from ..errors import input_error
+from ..io.orientation_tables import (
     OrientationTable,
     PairedOrientations,
     pair_tables,
     read_orientation_table,
 )
-from napari_imgreg.orient.apply import rotate_cameras
-from napari_imgreg.orient.diagnostics import (
+from .apply import rotate_cameras
+from .diagnostics import (
     LinearFit,
     QualityFlag,
     fit_line,
@@ -41,7 +40,7 @@ from napari_imgreg.orient.diagnostics import (
     survey_path_position,
     unwrap_trend,
 )
-from napari_imgreg.orient.estimate import (
+from .estimate import (
     METHODS,
     PAPER_STEP_DEG,
     RotationEstimate,

@@ -19,7 +19,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from napari_imgreg.validate import check_ranges
+from ..validate import check_ranges
 
 __all__ = [
     "FeatureParams",

@@ -16,8 +16,8 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import match_scale, scaled_size
-from napari_imgreg.validate import check_ranges
+from ..camera import match_scale, scaled_size
+from ..validate import check_ranges
 
 __all__ = [
     "FilterParams",

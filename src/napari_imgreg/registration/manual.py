@@ -30,13 +30,13 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Cancelled, _Context
-from napari_imgreg.registration.pose import PoseParams, estimate_pose, reprojection_errors
-from napari_imgreg.registration.round import Trial, score_round, trial_from_round
-from napari_imgreg.scene import Scene
+from .._deprecated import forward_moved_names
+from ..camera import Intrinsics, Pose
+from .params import RegistrationParams
+from .pipeline import Cancelled, _Context
+from .pose import PoseParams, estimate_pose, reprojection_errors
+from .round import Trial, score_round, trial_from_round
+from ..scene import Scene
 
 __all__ = [
     "MIN_PAIRS",

@@ -10,15 +10,15 @@ import os
 from dataclasses import dataclass, field, fields, replace
 from typing import ClassVar
 
-from napari_imgreg.errors import input_error
-from napari_imgreg.io.records import read_json
-from napari_imgreg.registration.features import FeatureParams
-from napari_imgreg.registration.filters import FilterParams
-from napari_imgreg.registration.pose import PoseParams
-from napari_imgreg.registration.stages.area import AreaParams
-from napari_imgreg.registration.stages.dense import DenseParams
-from napari_imgreg.registration.stages.edges import EdgeParams
-from napari_imgreg.validate import FieldValueError, check_ranges
+from ..errors import input_error
+from ..io.records import read_json
+from .features import FeatureParams
+from .filters import FilterParams
+from .pose import PoseParams
+from .stages.area import AreaParams
+from .stages.dense import DenseParams
+from .stages.edges import EdgeParams
+from ..validate import FieldValueError, check_ranges
 
 __all__ = ["RegistrationParams", "load_params"]
 

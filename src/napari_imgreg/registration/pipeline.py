@@ -29,14 +29,14 @@ from typing import Any, Callable, Generator
 
 import numpy as np
 
-from napari_imgreg._json import strict_output
-from napari_imgreg.camera import Intrinsics, Pose, match_scale
-from napari_imgreg.registration.features import Features, detect_and_describe
-from napari_imgreg.registration.filters import apply_filters, illumination_invariant, reduce_for_matching
-from napari_imgreg.prior import Prior
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.quality import GRADES, evaluate_rules
-from napari_imgreg.registration.round import (  # noqa: F401  (re-exported: the names' old home)
+from .._json import strict_output
+from ..camera import Intrinsics, Pose, match_scale
+from .features import Features, detect_and_describe
+from .filters import apply_filters, illumination_invariant, reduce_for_matching
+from ..prior import Prior
+from .params import RegistrationParams
+from .quality import GRADES, evaluate_rules
+from .round import (  # noqa: F401  (re-exported: the names' old home)
     MIN_VERIFIED_INLIERS,
     STAGE_Q_CEILING,
     VERIFY_FLOW_PX,
@@ -48,12 +48,12 @@ from napari_imgreg.registration.round import (  # noqa: F401  (re-exported: the 
     score_round,
     trial_from_round,
 )
-from napari_imgreg.registration.stages.area import search_schedule
-from napari_imgreg.registration.stages.dense import refine_pose_mi
-from napari_imgreg.registration.stages.edges import align_edges
-from napari_imgreg.registration.uncertainty import Uncertainty
-from napari_imgreg.render import RenderResult, render
-from napari_imgreg.scene import Scene
+from .stages.area import search_schedule
+from .stages.dense import refine_pose_mi
+from .stages.edges import align_edges
+from .uncertainty import Uncertainty
+from ..render import RenderResult, render
+from ..scene import Scene
 
 __all__ = [
     "Progress",
@@ -180,7 +180,7 @@ class _Context:
         intr = intrinsics or self.intrinsics
         t0 = time.perf_counter()
         if mode == "sunlit" and self.sun is not None:
-            from napari_imgreg.registration.stages.relight import render_sunlit
+            from .stages.relight import render_sunlit
 
             rendered = render_sunlit(self.scene, intr, pose, self.sun, scale=scale,
                                      survey_sun_dir=self.scene.survey_sun)
@@ -201,7 +201,7 @@ class _Context:
 
     def area_photo(self, photo_small: np.ndarray, sigma_px: float) -> np.ndarray:
         """The photo band-passed for area matching at ``photo_small``'s size (cached)."""
-        from napari_imgreg.registration.stages.area import prepare_photo
+        from .stages.area import prepare_photo
 
         key = ("area", photo_small.shape, round(sigma_px, 3))
         if key not in self._area_cache:

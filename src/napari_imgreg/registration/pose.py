@@ -12,8 +12,8 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.validate import check_ranges
+from ..camera import Intrinsics, Pose
+from ..validate import check_ranges
 
 __all__ = [
     "PoseParams",

@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
-from napari_imgreg.registration.params import RegistrationParams
+from .params import RegistrationParams
 
 __all__ = [
     "Metric",

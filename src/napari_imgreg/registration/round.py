@@ -35,31 +35,31 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose, match_scale, pixels_to_full
-from napari_imgreg.registration.features import (
+from ..camera import Intrinsics, Pose, match_scale, pixels_to_full
+from .features import (
     Features,
     detect_and_describe,
     match_features,
     match_guided,
 )
-from napari_imgreg.registration.filters import apply_filters, illumination_invariant
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement
-from napari_imgreg.registration.quality import (
+from .filters import apply_filters, illumination_invariant
+from .params import RegistrationParams
+from .pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement
+from .quality import (
     REFERENCE_WIDTH_PX,
     Grade,
     evaluate_rules,
     grade_of,
     quality_q,
 )
-from napari_imgreg.registration.stages.area import match_blocks, prepare_render
-from napari_imgreg.registration.uncertainty import (
+from .stages.area import match_blocks, prepare_render
+from .uncertainty import (
     Uncertainty,
     UncertaintyParams,
     estimate_uncertainty,
     frame_points,
 )
-from napari_imgreg.render import RenderResult
+from ..render import RenderResult
 
 __all__ = [
     "Correspondences",

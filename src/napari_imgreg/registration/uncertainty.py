@@ -25,9 +25,9 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.registration.params import PoseParams
-from napari_imgreg.registration.pose import estimate_pose
+from ..camera import Intrinsics, Pose
+from .params import PoseParams
+from .pose import estimate_pose
 
 __all__ = [
     "UNCERTAIN_PX",

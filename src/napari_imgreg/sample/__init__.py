@@ -41,13 +41,13 @@ from typing import Any
 
 import numpy as np
 
-from napari_imgreg._atomic import atomic_path, atomic_write, umask
-from napari_imgreg._json import dump as strict_json_dump
-from napari_imgreg.scene import ray_threads
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.sample.noise import rng_for
-from napari_imgreg.sample.suntime import time_for_sun
-from napari_imgreg.sample.outcrop import (
+from .._atomic import atomic_path, atomic_write, umask
+from .._json import dump as strict_json_dump
+from ..scene import ray_threads
+from ..camera import Intrinsics, Pose
+from .noise import rng_for
+from .suntime import time_for_sun
+from .outcrop import (
     SIZES,
     Outcrop,
     OutcropSpec,
@@ -58,7 +58,7 @@ from napari_imgreg.sample.outcrop import (
     quantize_vertices,
     write_model,
 )
-from napari_imgreg.sample.photo import (
+from .photo import (
     CONDITION_PRESETS,
     PhotoConditions,
     camera_intrinsics,
@@ -171,7 +171,7 @@ def _feature(pts: np.ndarray, props: dict[str, Any]) -> dict[str, Any]:
 
 def _make_dem(scene, spec: OutcropSpec, georef):
     """The top surface sampled by vertical rays on a coarse grid, in CRS heights."""
-    from napari_imgreg.geo import DEM
+    from ..geo import DEM
 
     lo, hi = scene.bounds
     cell = spec.dem_cell_m
@@ -226,7 +226,7 @@ def generate_outcrop(
     Path
         ``out_dir``.
     """
-    from napari_imgreg.geo import Georef
+    from ..geo import Georef
     from PIL import Image
 
     t_start = time.perf_counter()
@@ -418,7 +418,7 @@ def write_survey(folder: Path, georef, survey_sun_local: np.ndarray,
     the survey instant at which the sun stood there (as a photogrammetry
     survey's EXIF would give it).
     """
-    from napari_imgreg.solar import meridian_convergence_deg
+    from ..solar import meridian_convergence_deg
 
     sun_time = time_for_sun(survey_sun_local, georef, where)
     d = np.asarray(survey_sun_local, np.float64)
@@ -669,7 +669,7 @@ def load_truth(path: str | os.PathLike) -> PhotoTruth | SceneTruth:
         its sensor record ``IMG_0001.json`` or ``IMG_0001.truth.json``
         (→ :class:`PhotoTruth`).
     """
-    from napari_imgreg.errors import input_error
+    from ..errors import input_error
 
     p = Path(path)
     if p.is_dir():
@@ -687,7 +687,7 @@ def load_truth(path: str | os.PathLike) -> PhotoTruth | SceneTruth:
 
 
 def _read_json(path: Path) -> Any:
-    from napari_imgreg.errors import input_error
+    from ..errors import input_error
 
     try:
         return json.loads(path.read_text(encoding="utf-8"))

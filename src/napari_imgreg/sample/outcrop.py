@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from napari_imgreg._atomic import atomic_path, atomic_write
-from napari_imgreg.sample.noise import (
+from .._atomic import atomic_path, atomic_write
+from .noise import (
     Lattice,
     dem_relief,
     rng_for,
@@ -35,7 +35,7 @@ from napari_imgreg.sample.noise import (
     smooth_lattice,
     smoothstep,
 )
-from napari_imgreg.sample.photo import sun_vector
+from .photo import sun_vector
 
 __all__ = [
     "OutcropSpec",
@@ -541,7 +541,7 @@ class Outcrop:
 
     def scene(self, texture: str = "albedo"):
         """A :class:`~napari_imgreg.Scene` of the mesh with the albedo or model texture."""
-        from napari_imgreg.scene import Scene
+        from ..scene import Scene
 
         tex = self.albedo if texture == "albedo" else self.texture
         return Scene(self.vertices, self.faces, self.uv, tex, name=f"outcrop-{texture}")
@@ -783,7 +783,7 @@ def build_texture(outcrop: Outcrop, chunk: int = 256) -> None:
     """Compute ``outcrop.albedo`` and ``outcrop.texture`` (in place)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from napari_imgreg.scene import ray_threads
+    from ..scene import ray_threads
 
     spec = outcrop.spec
     rng = rng_for(outcrop.seed, _S_TEXTURE)

@@ -19,10 +19,10 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from napari_imgreg.camera import Intrinsics, Pose, rotation_from_attitude
-from napari_imgreg.render import render
-from napari_imgreg.scene import Scene
-from napari_imgreg.sample.noise import Lattice, rng_for, smooth_lattice, smoothstep
+from ..camera import Intrinsics, Pose, rotation_from_attitude
+from ..render import render
+from ..scene import Scene
+from .noise import Lattice, rng_for, smooth_lattice, smoothstep
 
 __all__ = [
     "CONDITION_PRESETS",
@@ -455,7 +455,7 @@ def _foreground_detail(albedo: np.ndarray, xyz_img: np.ndarray, mask: np.ndarray
     Close to the camera the photo resolves far more than the model's texture
     holds, as with real photos of a photogrammetric model's site.
     """
-    from napari_imgreg.sample.noise import sample_detail
+    from .noise import sample_detail
 
     xyz = xyz_img[mask]
     dist = np.sqrt(np.einsum("ij,ij->i", xyz - center.astype(np.float32), xyz - center.astype(np.float32)))

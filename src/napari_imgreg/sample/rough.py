@@ -39,18 +39,18 @@ from typing import Any
 import numpy as np
 from scipy import ndimage
 
-from napari_imgreg._atomic import atomic_path, atomic_write
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.render import render
-from napari_imgreg.sample.noise import rng_for, separable_sample, smoothstep
-from napari_imgreg.sample.outcrop import plane_normal
-from napari_imgreg.sample.photo import (
+from .._atomic import atomic_path, atomic_write
+from ..camera import Intrinsics, Pose
+from ..render import render
+from .noise import rng_for, separable_sample, smoothstep
+from .outcrop import plane_normal
+from .photo import (
     PhotoConditions,
     sun_vector,
     synthesize_photo,
     vertex_normals_of,
 )
-from napari_imgreg.scene import Scene
+from ..scene import Scene
 
 __all__ = [
     "ROUGH_VERSION",
@@ -357,8 +357,8 @@ def build_rough_scene(scene_dir: str | Path, out_dir: str | Path, spec: RoughSpe
     """
     from PIL import Image
 
-    from napari_imgreg.geo import Georef
-    from napari_imgreg.sample import write_survey
+    from ..geo import Georef
+    from . import write_survey
 
     spec = spec or RoughSpec()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
@@ -416,7 +416,7 @@ class RoughScene:
     def __init__(self, folder: str | Path) -> None:
         from PIL import Image
 
-        from napari_imgreg.geo import Georef
+        from ..geo import Georef
 
         folder = Path(folder)
         self.folder = folder
@@ -479,7 +479,7 @@ def capture_time(cond: PhotoConditions, georef, center: np.ndarray, spec: RoughS
         ``cond``'s: the conditions moved onto that sun, and the instant. Else
         ``cond`` unchanged and None (the photo then carries no capture time).
     """
-    from napari_imgreg.sample.suntime import time_for_sun
+    from .suntime import time_for_sun
 
     st = time_for_sun(cond.sun, georef, center, year)
     if st.miss_deg > spec.exif_max_miss_deg:

@@ -21,8 +21,8 @@ from datetime import datetime, timedelta, timezone
 import numpy as np
 import numpy.typing as npt
 
-from napari_imgreg.geo import Georef
-from napari_imgreg.solar import sun_direction_local, sun_positions
+from ..geo import Georef
+from ..solar import sun_direction_local, sun_positions
 
 __all__ = ["SunTime", "time_for_sun", "local_utc_offset"]
 

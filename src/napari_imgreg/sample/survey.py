@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from napari_imgreg.io.orientation_tables import OrientationTable
+from ..io.orientation_tables import OrientationTable
 
 __all__ = ["SimulatedSurvey", "simulate_survey"]
 

@@ -36,19 +36,19 @@ import numpy as np
 from matplotlib.colors import to_rgba
 from qtpy.QtCore import QObject, QTimer, Signal
 
-from napari_imgreg._deprecated import forward_moved_names
-from napari_imgreg.adjust import TerrainMap
-from napari_imgreg.camera import Intrinsics, Pose, match_scale
-from napari_imgreg.errors import InputError
-from napari_imgreg.prior import Prior
-from napari_imgreg.registration.filters import apply_filters, reduce_for_matching
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Trial
-from napari_imgreg.registration.stages.relight import render_sunlit
-from napari_imgreg.render import RenderResult, render
-from napari_imgreg.sample import sample_scene
-from napari_imgreg.widgets._jobs import JobRunner, in_python_thread
-from napari_imgreg.widgets._layers import (
+from .._deprecated import forward_moved_names
+from ..adjust import TerrainMap
+from ..camera import Intrinsics, Pose, match_scale
+from ..errors import InputError
+from ..prior import Prior
+from ..registration.filters import apply_filters, reduce_for_matching
+from ..registration.params import RegistrationParams
+from ..registration.pipeline import Trial
+from ..registration.stages.relight import render_sunlit
+from ..render import RenderResult, render
+from ..sample import sample_scene
+from ._jobs import JobRunner, in_python_thread
+from ._layers import (
     INTERPRETATION_OF,
     camera_from_view,
     frustum_segments,
@@ -59,7 +59,7 @@ from napari_imgreg.widgets._layers import (
     view_from_camera,
     world_from_napari,
 )
-from napari_imgreg.workspace import (
+from ..workspace import (
     Job,
     PhotoState,
     WorkbenchError,
@@ -72,7 +72,7 @@ from napari_imgreg.workspace import (
 if TYPE_CHECKING:
     import napari
 
-    from napari_imgreg.scene import Scene
+    from ..scene import Scene
 
 __all__ = [
     "WorkbenchController",

@@ -24,9 +24,9 @@ from typing import Any, Callable
 
 from qtpy.QtCore import QObject, QThreadPool, Signal
 
-from napari_imgreg.errors import InputError
-from napari_imgreg.registration.pipeline import Cancelled
-from napari_imgreg.workspace import WorkbenchError, one_line
+from ..errors import InputError
+from ..registration.pipeline import Cancelled
+from ..workspace import WorkbenchError, one_line
 
 __all__ = ["JobRunner", "CANCELLED", "guarded", "in_python_thread", "enough_worker_threads"]
 

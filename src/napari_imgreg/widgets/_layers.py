@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.scene import Scene
+from ..camera import Intrinsics, Pose
+from ..scene import Scene
 
 __all__ = [
     "napari_from_world",

@@ -49,12 +49,12 @@ from qtpy.QtWidgets import (
 )
 from superqt import QLabeledDoubleSlider, QLabeledSlider
 
-from napari_imgreg.camera import Pose
-from napari_imgreg.registration.features import DESCRIPTORS, DETECTORS, PRESETS, available
-from napari_imgreg.registration.filters import FilterParams
-from napari_imgreg.io.photos import PHOTO_SUFFIXES
-from napari_imgreg.registration.manual import MIN_PAIRS, MIN_PAIRS_FOCAL
-from napari_imgreg.widgets._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
+from ..camera import Pose
+from ..registration.features import DESCRIPTORS, DETECTORS, PRESETS, available
+from ..registration.filters import FilterParams
+from ..io.photos import PHOTO_SUFFIXES
+from ..registration.manual import MIN_PAIRS, MIN_PAIRS_FOCAL
+from ._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
 
 __all__ = ["ScenePanel", "PosePanel", "FiltersPanel", "RegisterPanel", "SunBox", "ManualPanel",
            "TerrainMapCanvas", "sun_source_text"]

@@ -23,7 +23,7 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from napari_imgreg.registration.quality import (
+from ..registration.quality import (
     GRADES,
     METRICS,
     REFERENCE_WIDTH_PX,
@@ -31,8 +31,8 @@ from napari_imgreg.registration.quality import (
     grade_of,
     metric_trend,
 )
-from napari_imgreg.registration.uncertainty import UNCERTAIN_PX
-from napari_imgreg.widgets._controller import WorkbenchController
+from ..registration.uncertainty import UNCERTAIN_PX
+from ._controller import WorkbenchController
 
 __all__ = ["QualityPanel", "uncertainty_text", "CLASS_COLORS", "TREND_ARROWS", "HISTORY_COLUMNS", "SUNLIT_MARK",
            "origin_text"]

@@ -9,7 +9,7 @@ def open_demo(folder: Path) -> None:  # pragma: no cover - interactive
     """Open napari with the sample scene and its photos loaded in the workbench."""
     import napari
 
-    from napari_imgreg.widgets.workbench import Workbench
+    from .workbench import Workbench
 
     viewer = napari.Viewer(title="napari-imgreg demo")
     workbench = Workbench.add_to_viewer(viewer)

@@ -53,27 +53,27 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from napari_imgreg._atomic import atomic_path
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.errors import InputError
-from napari_imgreg.interpret.files import (
+from .._atomic import atomic_path
+from ..camera import Intrinsics, Pose
+from ..errors import InputError
+from ..interpret.files import (
     export_features,
     read_interpretations,
     write_interpretations,
     write_measurements_csv,
 )
-from napari_imgreg.interpret.project import LABEL_COLORS, Feature3D, Interpretation, label_color
-from napari_imgreg.interpret.snap import COSTS, SnapParams, snap_trace
-from napari_imgreg.interpret.structural import Measurement, dip_dip_direction, draw_stereonet
-from napari_imgreg.io.records import read_json
-from napari_imgreg.widgets._jobs import JobRunner
-from napari_imgreg.widgets._layers import (
+from ..interpret.project import LABEL_COLORS, Feature3D, Interpretation, label_color
+from ..interpret.snap import COSTS, SnapParams, snap_trace
+from ..interpret.structural import Measurement, dip_dip_direction, draw_stereonet
+from ..io.records import read_json
+from ._jobs import JobRunner
+from ._layers import (
     INTERPRETATION_OF,
     napari_from_pixels,
     napari_from_world,
     pixels_from_napari,
 )
-from napari_imgreg.workspace import PhotoState, Workspace, project_interpretation_sets
+from ..workspace import PhotoState, Workspace, project_interpretation_sets
 
 if TYPE_CHECKING:
     import napari

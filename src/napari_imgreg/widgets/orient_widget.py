@@ -34,10 +34,10 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from napari_imgreg.scene import Scene
-from napari_imgreg.widgets._jobs import JobRunner
-from napari_imgreg.widgets._layers import napari_from_world, world_from_napari
-from napari_imgreg.orient import (
+from ..scene import Scene
+from ._jobs import JobRunner
+from ._layers import napari_from_world, world_from_napari
+from ..orient import (
     METHODS,
     OrientationResult,
     lower_hemisphere_axis,

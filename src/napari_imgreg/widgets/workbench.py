@@ -31,10 +31,10 @@ from typing import TYPE_CHECKING
 from qtpy.QtCore import Qt, QTimer
 from qtpy.QtWidgets import QLabel, QMainWindow, QScrollArea, QTabWidget, QVBoxLayout, QWidget
 
-from napari_imgreg.widgets._controller import WorkbenchController, controller_for
-from napari_imgreg.widgets._panels import FiltersPanel, ManualPanel, PosePanel, RegisterPanel, ScenePanel
-from napari_imgreg.widgets._quality import QualityPanel
-from napari_imgreg.widgets.interpret_widget import InterpretWidget
+from ._controller import WorkbenchController, controller_for
+from ._panels import FiltersPanel, ManualPanel, PosePanel, RegisterPanel, ScenePanel
+from ._quality import QualityPanel
+from .interpret_widget import InterpretWidget
 
 if TYPE_CHECKING:
     import napari

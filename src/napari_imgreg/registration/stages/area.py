@@ -36,7 +36,7 @@ from typing import ClassVar
 import cv2
 import numpy as np
 
-from napari_imgreg.validate import check_ranges
+from ...validate import check_ranges
 
 __all__ = ["AreaParams", "BlockMatches", "band_pass", "match_blocks", "search_schedule",
            "prepare_render", "prepare_photo"]

@@ -58,9 +58,9 @@ from typing import Callable, ClassVar, Sequence
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose, match_scale
-from napari_imgreg.registration.filters import masked_gaussian
-from napari_imgreg.registration.stages.pyramid import (
+from ...camera import Intrinsics, Pose, match_scale
+from ..filters import masked_gaussian
+from .pyramid import (
     PyramidLevel,
     RenderFn,
     as_render_fn,
@@ -70,8 +70,8 @@ from napari_imgreg.registration.stages.pyramid import (
     scene_renderer,
     with_keywords,
 )
-from napari_imgreg.render import RenderResult, _light_direction
-from napari_imgreg.scene import Scene
+from ...render import RenderResult, _light_direction
+from ...scene import Scene
 
 __all__ = [
     "DENSE_MODES",

@@ -65,8 +65,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.optimize import least_squares
 
-from napari_imgreg.camera import Intrinsics, Pose, match_scale, pixels_to_full
-from napari_imgreg.registration.stages.pyramid import (
+from ...camera import Intrinsics, Pose, match_scale, pixels_to_full
+from .pyramid import (
     PyramidLevel,
     RenderFn,
     as_render_fn,
@@ -77,8 +77,8 @@ from napari_imgreg.registration.stages.pyramid import (
     scene_renderer,
     with_keywords,
 )
-from napari_imgreg.render import RenderResult
-from napari_imgreg.scene import Scene
+from ...render import RenderResult
+from ...scene import Scene
 
 __all__ = [
     "SKYLINE",

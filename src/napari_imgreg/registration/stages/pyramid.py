@@ -26,10 +26,10 @@ from typing import Callable, Iterable, Protocol
 import cv2
 import numpy as np
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.render import RenderResult, render
-from napari_imgreg.scene import Scene
-from napari_imgreg.validate import check_ranges
+from ...camera import Intrinsics, Pose
+from ...render import RenderResult, render
+from ...scene import Scene
+from ...validate import check_ranges
 
 __all__ = [
     "check_ranges",

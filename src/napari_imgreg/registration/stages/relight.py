@@ -35,11 +35,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from napari_imgreg.camera import Intrinsics, Pose
-from napari_imgreg.registration.filters import masked_gaussian
-from napari_imgreg.render import RenderResult, render
-from napari_imgreg.scene import Scene, ray_threads
-from napari_imgreg.solar import sun_vector_enu
+from ...camera import Intrinsics, Pose
+from ..filters import masked_gaussian
+from ...render import RenderResult, render
+from ...scene import Scene, ray_threads
+from ...solar import sun_vector_enu
 
 __all__ = [
     "shadow_mask",
