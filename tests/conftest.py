@@ -1,6 +1,10 @@
-"""Shared fixtures: small synthetic scenes with exactly known geometry."""
+"""Shared fixtures: small synthetic scenes with exactly known geometry, and
+the command-line runner of the CLI tests."""
 
 from __future__ import annotations
+
+import time
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -55,3 +59,69 @@ def make_quad():
 def make_box():
     """Factory: ``make_box(lo, hi)`` -> closed axis-aligned box Scene."""
     return _box
+
+
+# ------------------------------------------------------------ command line
+@pytest.fixture
+def wall_mesh(tmp_path):
+    """A textured 40 m × 20 m wall in the plane y = 0, written as ``wall.obj``.
+
+    Its texture's red grows eastward (+x), green is 120: a level camera at
+    (20, −30, 10) looking north sees it 30 m away.
+    """
+    import trimesh
+    from PIL import Image
+
+    vertices = np.array([[0, 0, 0], [40, 0, 0], [40, 0, 20], [0, 0, 20]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    texture = np.zeros((64, 128, 3), np.uint8)
+    texture[..., 0] = np.linspace(0, 255, 128)[None, :]
+    texture[..., 1] = 120
+    mesh = trimesh.Trimesh(
+        vertices, faces, process=False,
+        visual=trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(texture)),
+    )
+    mesh_path = tmp_path / "wall.obj"
+    mesh.export(mesh_path)
+    return mesh_path
+
+
+@dataclass
+class CliRun:
+    """What one ``napari-imgreg`` command did: exit code, stdout, stderr, time."""
+
+    code: int
+    out: str
+    err: str
+    seconds: float
+
+    @property
+    def line(self) -> str:
+        """The one line of stderr (asserted: exactly one non-blank line, no traceback)."""
+        lines = [line for line in self.err.splitlines() if line.strip()]
+        assert len(lines) == 1 and "Traceback" not in self.err, self.err
+        return lines[0]
+
+
+@pytest.fixture
+def run_cli(capsys):
+    """Run the command line in-process: ``run_cli(argv, max_seconds=30) -> CliRun``.
+
+    Arguments may be paths or numbers (turned to str). A bad input must be
+    refused at the boundary, so a run longer than ``max_seconds`` fails the
+    test (None: no bound, for commands that do real work).
+    """
+    from napari_imgreg.cli import main
+
+    def run(argv, max_seconds: float | None = 30.0) -> CliRun:
+        capsys.readouterr()  # what came before is not this command's
+        t0 = time.perf_counter()
+        code = main([str(a) for a in argv])
+        elapsed = time.perf_counter() - t0
+        captured = capsys.readouterr()
+        if max_seconds is not None:
+            assert elapsed < max_seconds, f"took {elapsed:.0f} s"
+        return CliRun(code, captured.out, captured.err, elapsed)
+
+    return run

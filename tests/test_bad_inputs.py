@@ -5,37 +5,22 @@ long work; nothing hangs, nothing allocates without bound."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import struct
-import time
 import zlib
 
 import numpy as np
 import pytest
-import trimesh
 from PIL import Image
-
-from napari_imgreg.cli import main
 
 AS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
 
 
 @pytest.fixture
-def wall(tmp_path):
-    """A textured 40 m × 20 m wall in the plane y = 0 and a record facing it."""
-    vertices = np.array([[0, 0, 0], [40, 0, 0], [40, 0, 20], [0, 0, 20]], float)
-    faces = np.array([[0, 1, 2], [0, 2, 3]])
-    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
-    texture = np.zeros((64, 128, 3), np.uint8)
-    texture[..., 0] = np.linspace(0, 255, 128)[None, :]
-    texture[..., 1] = 120
-    mesh = trimesh.Trimesh(
-        vertices, faces, process=False,
-        visual=trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(texture)),
-    )
-    mesh_path = tmp_path / "wall.obj"
-    mesh.export(mesh_path)
-    return mesh_path
+def wall(wall_mesh):
+    """The shared textured wall (conftest ``wall_mesh``); records face it."""
+    return wall_mesh
 
 
 def _record(**camera) -> dict:
@@ -55,22 +40,6 @@ def _write_record(tmp_path, data, name="IMG_0001.json"):
     return path
 
 
-def _run(capsys, argv) -> tuple[int, str]:
-    t0 = time.perf_counter()
-    code = main([str(a) for a in argv])
-    elapsed = time.perf_counter() - t0
-    err = capsys.readouterr().err
-    assert elapsed < 30, f"took {elapsed:.0f} s"  # refused at the boundary, not after work
-    return code, err
-
-
-def _one_line(err: str) -> str:
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1, err
-    assert "Traceback" not in err
-    return lines[0]
-
-
 # ------------------------------------------------------------------ records
 @pytest.mark.parametrize("camera, needle", [
     ({"width": 0}, "field 'camera.width' must be within [1, 65535], got 0"),
@@ -85,7 +54,7 @@ def _one_line(err: str) -> str:
     ({"width": 2**63}, "field 'camera.width' must be within [1, 65535], got 9223372036854775808"),
 ])
 @pytest.mark.parametrize("command", ["render", "register"])
-def test_bad_camera_block_is_one_line_exit_2(wall, tmp_path, capsys, camera, needle, command):
+def test_bad_camera_block_is_one_line_exit_2(wall, tmp_path, run_cli, camera, needle, command):
     record = _write_record(tmp_path, _record(**camera))
     if command == "render":
         argv = ["render", wall, record, "--out", tmp_path / "r.png"]
@@ -93,17 +62,17 @@ def test_bad_camera_block_is_one_line_exit_2(wall, tmp_path, capsys, camera, nee
         photo = tmp_path / "IMG_0001.png"
         Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
         argv = ["register", wall, photo, "--prior", record, "--out", tmp_path / "R.json"]
-    code, err = _run(capsys, argv)
-    line = _one_line(err)
-    assert code == 2
+    run = run_cli(argv)
+    line = run.line
+    assert run.code == 2
     assert str(record) in line and needle in line, line
 
 
-def test_fx_zero_does_not_hang_the_ray_caster(wall, tmp_path, capsys):
+def test_fx_zero_does_not_hang_the_ray_caster(wall, tmp_path, run_cli):
     # Before issue 15: > 300 s in Embree with infinite ray directions.
     record = _write_record(tmp_path, _record(fx=0, fy=0))
-    code, err = _run(capsys, ["render", wall, record, "--out", tmp_path / "r.png"])
-    assert code == 2 and "field 'camera.fx'" in _one_line(err)
+    run = run_cli(["render", wall, record, "--out", tmp_path / "r.png"])
+    assert run.code == 2 and "field 'camera.fx'" in run.line
 
 
 @pytest.mark.parametrize("block, field, value, needle", [
@@ -113,32 +82,32 @@ def test_fx_zero_does_not_hang_the_ray_caster(wall, tmp_path, capsys):
     ("position", "z", float("inf"), "field 'position.z' must be a finite number"),
     ("sigma", "angles_deg", -1.0, "field 'sigma.angles_deg' must be within [0, 180]"),
 ])
-def test_record_numbers_out_of_range(wall, tmp_path, capsys, block, field, value, needle):
+def test_record_numbers_out_of_range(wall, tmp_path, run_cli, block, field, value, needle):
     data = _record()
     data.setdefault(block, {})[field] = value
     record = _write_record(tmp_path, data)
-    code, err = _run(capsys, ["render", wall, record, "--out", tmp_path / "r.png"])
-    line = _one_line(err)
-    assert code == 2 and str(record) in line and needle in line, line
+    run = run_cli(["render", wall, record, "--out", tmp_path / "r.png"])
+    line = run.line
+    assert run.code == 2 and str(record) in line and needle in line, line
 
 
 @pytest.mark.parametrize("position, needle", [
     ({"lat": 95.0, "lon": 7.0}, "field 'position.lat' must be within [-90, 90], got 95.0"),
     ({"lat": 46.0, "lon": float("nan")}, "field 'position.lon' must be a finite number"),
 ])
-def test_lat_lon_errors_name_the_record(wall, tmp_path, capsys, position, needle):
+def test_lat_lon_errors_name_the_record(wall, tmp_path, run_cli, position, needle):
     (tmp_path / "georef.json").write_text(json.dumps(
         {"crs": "EPSG:32632", "origin": [500000.0, 5100000.0, 0.0]}))
     data = _record()
     data["position"] = {**position, "alt": 100.0}
     record = _write_record(tmp_path, data)
-    code, err = _run(capsys, ["render", wall, record, "--out", tmp_path / "r.png",
+    run = run_cli(["render", wall, record, "--out", tmp_path / "r.png",
                               "--georef", tmp_path / "georef.json"])
-    line = _one_line(err)
-    assert code == 2 and str(record) in line and needle in line, line
+    line = run.line
+    assert run.code == 2 and str(record) in line and needle in line, line
 
 
-def test_result_json_with_nan_translation_or_fx_0(wall, tmp_path, capsys):
+def test_result_json_with_nan_translation_or_fx_0(wall, tmp_path, run_cli):
     R = np.eye(3)[[0, 2, 1]] * [1, -1, 1]
     for name, camera, t in [("nan_t", {"fx": 50.0}, [float("nan"), 0.0, 30.0]),
                             ("fx0", {"fx": 0.0}, [0.0, 0.0, 30.0])]:
@@ -146,9 +115,9 @@ def test_result_json_with_nan_translation_or_fx_0(wall, tmp_path, capsys):
         result = tmp_path / f"{name}.result.json"
         result.write_text(json.dumps({"camera": cam, "pose": {"R": R.tolist(), "t": t}},
                                      allow_nan=True))
-        code, err = _run(capsys, ["render", wall, result, "--out", tmp_path / "r.png"])
-        line = _one_line(err)
-        assert code == 2 and str(result) in line
+        run = run_cli(["render", wall, result, "--out", tmp_path / "r.png"])
+        line = run.line
+        assert run.code == 2 and str(result) in line
         assert ("field 'pose.t'" if name == "nan_t" else "field 'camera.fx'") in line, line
 
 
@@ -163,14 +132,14 @@ def _png_header_only(path, width, height):
                      + chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + chunk(b"IEND", b""))
 
 
-def test_decompression_bomb_is_refused_before_decoding(wall, tmp_path, capsys):
+def test_decompression_bomb_is_refused_before_decoding(wall, tmp_path, run_cli):
     photo = tmp_path / "IMG_0001.png"
     _png_header_only(photo, 60000, 60000)
     record = _write_record(tmp_path, _record())
-    code, err = _run(capsys, ["register", wall, photo, "--prior", record,
+    run = run_cli(["register", wall, photo, "--prior", record,
                               "--out", tmp_path / "R.json"])
-    line = _one_line(err)
-    assert code == 2 and str(photo) in line and "3,600 MP" in line and "limit is 160 MP" in line
+    line = run.line
+    assert run.code == 2 and str(photo) in line and "3,600 MP" in line and "limit is 160 MP" in line
 
 
 def test_photo_over_our_limit_but_under_pillows(tmp_path):
@@ -193,16 +162,16 @@ def test_photo_over_our_limit_but_under_pillows(tmp_path):
     ({"features": {"ratio": float("nan")}}, "field 'features.ratio' must be within"),
     ({"pose": {"iterations": 0}}, "field 'pose.iterations' must be within"),
 ])
-def test_params_out_of_range(wall, tmp_path, capsys, params, needle):
+def test_params_out_of_range(wall, tmp_path, run_cli, params, needle):
     record = _write_record(tmp_path, _record())
     photo = tmp_path / "IMG_0001.png"
     Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
     params_path = tmp_path / "params.json"
     params_path.write_text(json.dumps(params, allow_nan=True))
-    code, err = _run(capsys, ["register", wall, photo, "--prior", record,
+    run = run_cli(["register", wall, photo, "--prior", record,
                               "--params", params_path, "--out", tmp_path / "R.json"])
-    line = _one_line(err)
-    assert code == 2 and str(params_path) in line and needle in line, line
+    line = run.line
+    assert run.code == 2 and str(params_path) in line and needle in line, line
 
 
 # ------------------------------------------------------------------ options
@@ -211,11 +180,11 @@ def test_params_out_of_range(wall, tmp_path, capsys, params, needle):
     ("100", "--scale must be within (0, 8], got 100.0"),
     ("0", "--scale must be within (0, 8], got 0.0"),
 ])
-def test_render_scale(wall, tmp_path, capsys, scale, needle):
+def test_render_scale(wall, tmp_path, run_cli, scale, needle):
     record = _write_record(tmp_path, _record())
-    code, err = _run(capsys, ["render", wall, record, "--out", tmp_path / "r.png",
+    run = run_cli(["render", wall, record, "--out", tmp_path / "r.png",
                               "--scale", scale])
-    assert code == 2 and needle in _one_line(err)
+    assert run.code == 2 and needle in run.line
 
 
 def test_render_size_is_bounded_in_the_library(wall):
@@ -240,12 +209,12 @@ def test_render_size_is_bounded_in_the_library(wall):
     ("nan", "--declination must be a finite number, got nan"),
     ("400", "--declination must be within [-180, 180], got 400.0"),
 ])
-def test_orient_declination(tmp_path, capsys, value, needle):
+def test_orient_declination(tmp_path, run_cli, value, needle):
     table = tmp_path / "cams.csv"
     table.write_text("photo,trend_deg,plunge_deg,roll_deg\na,10,5,0\nb,100,3,1\nc,200,8,-1\n")
-    code, err = _run(capsys, ["orient", table, table, "--out", tmp_path / "o.json",
+    run = run_cli(["orient", table, table, "--out", tmp_path / "o.json",
                               "--declination", value])
-    assert code == 2 and needle in _one_line(err)
+    assert run.code == 2 and needle in run.line
 
 
 # ------------------------------------------------------------- output paths
@@ -271,7 +240,7 @@ def _bad_outputs(tmp_path):
 
 @pytest.mark.parametrize("case", ["inside a file", "a folder", "under /proc", "read-only"])
 @pytest.mark.parametrize("command", ["render", "register", "orient"])
-def test_unwritable_file_output(wall, tmp_path, capsys, case, command):
+def test_unwritable_file_output(wall, tmp_path, run_cli, case, command):
     cases = _bad_outputs(tmp_path)
     if case not in cases:
         pytest.skip("running as root: a read-only folder is writable")
@@ -293,53 +262,62 @@ def test_unwritable_file_output(wall, tmp_path, capsys, case, command):
         if case == "a folder":
             os.makedirs(out, exist_ok=True)
         argv = ["orient", table, table, "--out", out]
-    code, err = _run(capsys, argv)
-    line = _one_line(err)
-    assert code == 2 and str(out) in line and "cannot write here" in line, line
+    run = run_cli(argv)
+    line = run.line
+    assert run.code == 2 and str(out) in line and "cannot write here" in line, line
 
 
 @pytest.mark.parametrize("case", ["inside a file", "a file as folder", "under /proc",
                                   "read-only"])
-@pytest.mark.parametrize("command", ["sample", "demo"])
-def test_unwritable_folder_output(tmp_path, capsys, case, command):
+@pytest.mark.parametrize("command", ["sample", "demo", "batch"])
+def test_unwritable_folder_output(tmp_path, run_cli, case, command):
     cases = _bad_outputs(tmp_path)
     if case not in cases:
         pytest.skip("running as root: a read-only folder is writable")
     out = cases[case][1]
-    code, err = _run(capsys, [command, "--out", out])
-    line = _one_line(err)
-    assert code == 2 and str(out) in line and "cannot write here" in line, line
+    # batch: checked before its scene folder is even looked at (here: none).
+    scene = [tmp_path / "no_scene"] if command == "batch" else []
+    run = run_cli([command, *scene, "--out", out])
+    line = run.line
+    assert run.code == 2 and str(out) in line, line
+    assert "cannot write here" in line or "exists and is not a folder" in line, line
 
 
-def test_register_checks_its_output_before_registering(wall, tmp_path, capsys):
+def test_register_checks_its_output_before_registering(wall, tmp_path, run_cli):
     """The output is checked first: even the scene is not loaded (a missing
     mesh would be reported otherwise)."""
     photo = tmp_path / "IMG_0001.png"
     Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
-    code, err = _run(capsys, ["register", tmp_path / "missing.obj", photo,
+    run = run_cli(["register", tmp_path / "missing.obj", photo,
                               "--out", "/proc/x/RESULT.json"])
-    assert code == 2 and "cannot write here" in _one_line(err)
+    assert run.code == 2 and "cannot write here" in run.line
 
 
-def test_sample_seed_range(tmp_path, capsys):
-    code, err = _run(capsys, ["sample", "--out", tmp_path / "s", "--seed", "-1"])
-    assert code == 2 and "--seed must be within [0, 4294967295], got -1" in _one_line(err)
+def test_sample_seed_range(tmp_path, run_cli):
+    run = run_cli(["sample", "--out", tmp_path / "s", "--seed", "-1"])
+    assert run.code == 2 and "--seed must be within [0, 4294967295], got -1" in run.line
 
 
-def test_register_missing_prior_is_not_replaced_by_exif(wall, tmp_path, capsys):
+def test_register_missing_prior_is_not_replaced_by_exif(wall, tmp_path, run_cli):
     photo = tmp_path / "IMG_0001.png"
     Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
-    code, err = _run(capsys, ["register", wall, photo, "--prior", tmp_path / "nope.json",
+    run = run_cli(["register", wall, photo, "--prior", tmp_path / "nope.json",
                               "--out", tmp_path / "R.json"])
-    assert code == 2 and "nope.json: no such file" in _one_line(err)
+    assert run.code == 2 and "nope.json: no such file" in run.line
 
 
-@pytest.mark.parametrize("case", ["inside a file", "under /proc"])
+@pytest.mark.parametrize("case", ["inside a file", "a folder", "under /proc", "read-only"])
 @pytest.mark.parametrize("command", ["project", "measure"])
-def test_unwritable_output_of_project_and_measure_is_found_first(tmp_path, capsys, case,
+def test_unwritable_output_of_project_and_measure_is_found_first(tmp_path, run_cli, case,
                                                                  command):
     """Checked before anything is read: the inputs here do not even exist."""
-    out = str(_bad_outputs(tmp_path)[case][0])
+    cases = _bad_outputs(tmp_path)
+    if case not in cases:
+        pytest.skip("running as root: a read-only folder is writable")
+    out = str(cases[case][0])
+    if case == "a folder":
+        out = str(tmp_path / ("a_folder.geojson" if command == "project" else "a_folder.csv"))
+        os.makedirs(out)
     if command == "project":
         out = out.replace(".png", ".geojson")
         argv = ["project", tmp_path / "R.json", tmp_path / "m.obj", tmp_path / "l.geojson",
@@ -347,6 +325,410 @@ def test_unwritable_output_of_project_and_measure_is_found_first(tmp_path, capsy
     else:
         out = out.replace(".png", ".csv")
         argv = ["measure", tmp_path / "l3d.geojson", "--out", out]
-    code, err = _run(capsys, argv)
-    line = _one_line(err)
-    assert code == 2 and out in line and "cannot write here" in line, line
+    run = run_cli(argv)
+    line = run.line
+    assert run.code == 2 and out in line and "cannot write here" in line, line
+
+
+# ------------------------------------------------- EXIF orientation, attitude
+def _sensor_record(tmp_path, roll=2.0, **extra):
+    from napari_imgreg.io.records import parse_sensor_record
+
+    data = {"camera": {"width": 160, "height": 120, "fx": 110.0, "fy": 112.0, "cx": 80.3,
+                       "cy": 58.9, "dist": [0.01, 0.0, 0.002, -0.001, 0.0]},
+            "position": {"x": 1.0, "y": 2.0, "z": 3.0},
+            "orientation": {"trend_deg": 40.0, "plunge_deg": 5.0, "roll_deg": roll}, **extra}
+    if roll is None:
+        del data["orientation"]["roll_deg"]
+    return parse_sensor_record(data, tmp_path / "IMG_0001.json")
+
+
+def test_exif_orientation_3_turns_camera_and_attitude_by_half_a_turn(tmp_path):
+    """A photo taken upside down is stored as the sensor saw it and shown
+    turned 180°: its landscape record is the sensor's, so the camera
+    (principal point, tangential distortion) and the pose are turned."""
+    from napari_imgreg.prior import prior_from_record
+
+    record = _sensor_record(tmp_path)
+    sensor = prior_from_record(record, image_size=(160, 120))
+    prior = prior_from_record(record, image_size=(160, 120), exif_orientation=3)
+    assert prior.intrinsics == sensor.intrinsics.rotated(2)
+    assert prior.intrinsics.cx == pytest.approx(159 - 80.3)
+    assert prior.intrinsics.cy == pytest.approx(119 - 58.9)
+    assert prior.intrinsics.dist == pytest.approx((0.01, 0.0, -0.002, 0.001, 0.0))
+    assert np.allclose(prior.pose.R, sensor.pose.rotated(2).R)
+    assert np.allclose(prior.pose.center, sensor.pose.center)
+    trend, plunge, roll = prior.pose.attitude
+    assert (trend, plunge) == pytest.approx((40.0, 5.0)) and roll == pytest.approx(-178.0)
+    assert any("turned +180°" in note for note in prior.assumptions)
+
+
+def test_exif_orientation_3_resized_photo(tmp_path):
+    from napari_imgreg.prior import prior_from_record
+
+    record = _sensor_record(tmp_path)
+    prior = prior_from_record(record, image_size=(80, 60), exif_orientation=3)
+    half = prior_from_record(record, image_size=(160, 120)).intrinsics.rotated(2).scaled(0.5)
+    assert prior.intrinsics == half
+
+
+def test_image_frame_shown_is_not_turned(tmp_path):
+    """A record of the photo as shown (as napari-imgreg saves a pose) is used as it is."""
+    from napari_imgreg.prior import prior_from_record
+
+    record = _sensor_record(tmp_path, image_frame="shown")
+    plain = prior_from_record(record, image_size=(160, 120))
+    prior = prior_from_record(record, image_size=(160, 120), exif_orientation=3)
+    assert prior.intrinsics == plain.intrinsics
+    assert np.allclose(prior.pose.R, plain.pose.R)
+
+
+def test_image_frame_stored_turns_the_attitude_of_a_portrait_block(tmp_path):
+    """``image_frame: "stored"`` says the attitude is the sensor's even when the
+    camera block is already of the shown size."""
+    from napari_imgreg.io.records import parse_sensor_record
+    from napari_imgreg.prior import prior_from_record
+
+    data = {"camera": {"width": 120, "height": 160, "fx": 110.0},
+            "position": {"x": 1.0, "y": 2.0, "z": 3.0},
+            "orientation": {"trend_deg": 40.0, "plunge_deg": 5.0, "roll_deg": 88.0}}
+    plain = prior_from_record(parse_sensor_record(data), image_size=(120, 160),
+                              exif_orientation=6)
+    stored = prior_from_record(parse_sensor_record({**data, "image_frame": "stored"}),
+                               image_size=(120, 160), exif_orientation=6)
+    assert plain.pose.attitude[2] == pytest.approx(88.0)
+    assert np.allclose(stored.pose.R, plain.pose.rotated(1).R)
+    assert stored.pose.attitude[2] == pytest.approx(-2.0, abs=1e-6)  # roll − 90°
+
+
+@pytest.mark.parametrize("orientation", [3, 6])
+def test_a_roll_the_record_lacks_is_the_shown_photos(tmp_path, orientation):
+    """A record without roll (a compass app): the shown photo is taken as level,
+    not the sensor (which would tilt the shown photo by 90° or 180°)."""
+    from napari_imgreg.prior import prior_from_record
+
+    record = _sensor_record(tmp_path, roll=None)
+    size = (160, 120) if orientation == 3 else (120, 160)
+    prior = prior_from_record(record, image_size=size, exif_orientation=orientation)
+    trend, plunge, roll = prior.pose.attitude
+    assert (trend, plunge, roll) == pytest.approx((40.0, 5.0, 0.0), abs=1e-6)
+    assert "roll assumed 0° (level photo as shown)" in prior.assumptions
+
+
+def test_bad_image_frame_is_one_line(wall, tmp_path, run_cli):
+    data = {**_record(), "image_frame": "sideways"}
+    record = _write_record(tmp_path, data)
+    run = run_cli(["render", wall, record, "--out", tmp_path / "r.png"])
+    line = run.line
+    assert run.code == 2 and str(record) in line
+    assert "field 'image_frame' must be one of 'stored', 'shown', got 'sideways'" in line
+
+
+def _oriented_photo(path, stored: np.ndarray, orientation: int, base_exif=None):
+    im = Image.fromarray(stored)
+    exif = base_exif if base_exif is not None else Image.Exif()
+    exif[0x0112] = orientation
+    im.save(path, exif=exif, quality=95)
+    return path
+
+
+@pytest.mark.parametrize("orientation", [2, 4, 5, 7])
+def test_mirrored_exif_orientation_is_refused_with_the_fix(wall, tmp_path, run_cli, orientation):
+    """A mirror image has no camera pose: one line naming the photo, the tag and
+    how to fix it, whatever the record's camera block (here the photo's own size)."""
+    stored = np.full((120, 160, 3), 90, np.uint8)
+    photo = _oriented_photo(tmp_path / "IMG_0001.jpg", stored, orientation)
+    shown = (120, 160) if orientation in (5, 7) else (160, 120)
+    record = _write_record(tmp_path, _record(width=shown[0], height=shown[1]))
+    run = run_cli(["register", wall, photo, "--prior", record,
+                              "--out", tmp_path / "R.json"])
+    line = run.line
+    assert run.code == 2 and str(photo) in line, line
+    assert f"EXIF orientation {orientation} mirrors it" in line
+    assert "exiftool -n -Orientation=1" in line and not (tmp_path / "R.json").exists()
+
+
+def test_mirrored_photo_still_loads_for_viewing(tmp_path):
+    """Only registration refuses a mirrored photo: it is read and shown as its
+    EXIF says (mirrored), e.g. to draw on it."""
+    from napari_imgreg.io.photos import load_photo
+
+    stored = np.zeros((30, 40, 3), np.uint8)
+    stored[0, 0] = 255
+    photo = load_photo(_oriented_photo(tmp_path / "m.png", stored, 2))
+    assert photo.size == (40, 30) and photo.image[0, 39].min() == 255
+
+
+def test_exif_camera_of_a_portrait_photo_is_the_sensors_turned(tmp_path):
+    """EXIF focal-plane resolution and ExifImageWidth are the stored image's:
+    a portrait photo (orientation 6) gets the sensor's camera turned, not one
+    scaled by the aspect ratio."""
+    from PIL import ExifTags
+    from PIL.TiffImagePlugin import IFDRational
+
+    from napari_imgreg.camera import Intrinsics
+    from napari_imgreg.io.exif import record_from_exif
+    from napari_imgreg.io.photos import load_photo
+
+    exif = Image.Exif()
+    sub = exif.get_ifd(ExifTags.IFD.Exif)
+    sub[ExifTags.Base.FocalLength] = IFDRational(425, 100)  # 4.25 mm
+    sub[ExifTags.Base.FocalPlaneXResolution] = IFDRational(160 * 10, 56)  # 5.6 mm wide sensor
+    sub[ExifTags.Base.FocalPlaneResolutionUnit] = 4  # mm
+    sub[ExifTags.Base.ExifImageWidth] = 160
+    sub[ExifTags.Base.ExifImageHeight] = 120
+    path = _oriented_photo(tmp_path / "p.jpg", np.full((120, 160, 3), 90, np.uint8), 6, exif)
+    photo = load_photo(path)
+    assert photo.size == (120, 160)
+    camera = Intrinsics.from_dict(record_from_exif(photo)[0].camera)
+    f = 4.25 * 160 / 5.6
+    assert camera == Intrinsics(120, 160, f, f, 59.5, 79.5)
+
+
+def test_landscape_block_without_focal_and_exif_focal_turns_the_attitude(tmp_path):
+    """The common phone case: a record giving only the sensor's size and the
+    attitude, the focal length in the EXIF, the photo portrait (orientation 6)."""
+    from PIL import ExifTags
+
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.prior import prior_for_photo
+
+    exif = Image.Exif()
+    exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.FocalLengthIn35mmFilm] = 28
+    path = _oriented_photo(tmp_path / "IMG_0001.jpg", np.full((120, 160, 3), 90, np.uint8), 6,
+                           exif)
+    data = _record()
+    data["camera"] = {"width": 1600, "height": 1200}  # the sensor, before a resize
+    data["orientation"]["roll_deg"] = 90.0  # the phone held upright
+    _write_record(tmp_path, data)
+    prior = prior_for_photo(load_photo(path))
+    assert (prior.intrinsics.width, prior.intrinsics.height) == (120, 160)
+    assert prior.pose.attitude[2] == pytest.approx(0.0, abs=1e-6)  # level as shown
+    assert "focal length from EXIF" in prior.assumptions
+
+
+def test_saved_pose_of_a_turned_photo_is_read_back_unchanged(tmp_path):
+    """save_pose_to_record writes the pose of the photo as shown, with
+    ``image_frame: "shown"``: the next prior is that pose, not turned again."""
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.prior import prior_for_photo, save_pose_to_record
+
+    path = _oriented_photo(tmp_path / "IMG_0001.jpg", np.full((120, 160, 3), 90, np.uint8), 3)
+    record = _write_record(tmp_path, _record(cx=70.0))
+    first = prior_for_photo(load_photo(path))
+    saved = save_pose_to_record(record, first.pose)
+    assert saved["image_frame"] == "shown"
+    again = prior_for_photo(load_photo(path))
+    assert np.allclose(again.pose.R, first.pose.R) and np.allclose(again.pose.t, first.pose.t)
+
+
+@pytest.mark.slow
+def test_photo_turned_180_with_its_landscape_record_registers(tmp_path):
+    """End to end on the sample: a photo stored as the sample's (the sensor's
+    image) with EXIF orientation 3, as a phone held upside down stores it, and
+    its landscape sensor record registers at the true pose turned 180°."""
+    from napari_imgreg import Scene
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.prior import prior_for_photo
+    from napari_imgreg.registration.pipeline import register
+    from napari_imgreg.sample import load_truth, sample_scene
+
+    folder = sample_scene("small")
+    scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
+    with Image.open(folder / "IMG_0001.jpg") as im:
+        stored, exif = np.asarray(im.convert("RGB")), im.getexif()
+    photo_path = _oriented_photo(tmp_path / "IMG_0001.jpg", stored, 3, exif)
+    (tmp_path / "IMG_0001.json").write_text((folder / "IMG_0001.json").read_text())
+    photo = load_photo(photo_path)
+    assert np.array_equal(photo.image[0, 0], np.asarray(Image.open(photo_path))[-1, -1])
+    prior = prior_for_photo(photo, scene)
+    turned_truth = load_truth(folder / "IMG_0001.jpg").pose.rotated(2)
+    assert (prior.intrinsics.width, prior.intrinsics.height) == photo.size
+    reg = register(scene, photo.image, prior, photo_name=photo_path.name)
+    assert reg.status == "registered"
+    assert reg.pose.rotation_error_deg(turned_truth) < 0.2
+    assert np.linalg.norm(reg.pose.center - turned_truth.center) < 0.3
+
+
+# ------------------------------------------------ attitude from the metadata
+def _metadata_photo(tmp_path, *, xmp=None, direction=None, lat=None, alt=None):
+    """A 160 × 120 JPEG with DJI XMP gimbal angles and/or GPS tags."""
+    from PIL import ExifTags
+    from PIL.TiffImagePlugin import IFDRational
+
+    exif = Image.Exif()
+    gps = exif.get_ifd(ExifTags.IFD.GPSInfo)
+    if direction is not None:
+        gps[ExifTags.GPS.GPSImgDirectionRef] = "T"
+        gps[ExifTags.GPS.GPSImgDirection] = direction
+    if lat is not None:
+        gps[ExifTags.GPS.GPSLatitudeRef] = "N"
+        gps[ExifTags.GPS.GPSLatitude] = lat
+        gps[ExifTags.GPS.GPSLongitudeRef] = "E"
+        gps[ExifTags.GPS.GPSLongitude] = (IFDRational(7, 1), IFDRational(0, 1), IFDRational(0, 1))
+    if alt is not None:
+        gps[ExifTags.GPS.GPSAltitudeRef] = b"\x00"
+        gps[ExifTags.GPS.GPSAltitude] = alt
+    path = tmp_path / "DJI_0001.jpg"
+    kwargs = {"exif": exif} if (direction is not None or lat is not None) else {}
+    if xmp is not None:
+        kwargs["xmp"] = xmp
+    Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(path, **kwargs)
+    return path
+
+
+def _dji_xmp(yaw, pitch, roll) -> bytes:
+    return ('<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF '
+            'xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description '
+            'xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
+            f'drone-dji:GimbalRollDegree="{roll}" drone-dji:GimbalYawDegree="{yaw}" '
+            f'drone-dji:GimbalPitchDegree="{pitch}"/></rdf:RDF></x:xmpmeta>').encode()
+
+
+@pytest.mark.parametrize("angles, needle", [
+    ((10.0, -135.0, 0.0), ("field 'XMP drone-dji:GimbalPitchDegree' must be within [-90, 90], "
+                           "got -135.0")),
+    (("nan", -30.0, 0.0), "field 'XMP drone-dji:GimbalYawDegree' must be a finite number, got nan"),
+    ((10.0, -30.0, "1e400"), "field 'XMP drone-dji:GimbalRollDegree' must be a finite number"),
+    ((10.0, -30.0, "left"), "field 'XMP drone-dji:GimbalRollDegree' must be a number, got 'left'"),
+    ((725.0, -30.0, 0.0), "field 'XMP drone-dji:GimbalYawDegree' must be within [-360, 360]"),
+])
+def test_dji_gimbal_angles_are_range_checked(wall, tmp_path, run_cli, angles, needle):
+    """A record without attitude takes the drone's gimbal angles: a corrupt one
+    is one line naming the photo and the XMP field, not a silent nonsense pose."""
+    photo = _metadata_photo(tmp_path, xmp=_dji_xmp(*angles))
+    data = _record()
+    del data["orientation"]
+    record = _write_record(tmp_path, data, "DJI_0001.json")
+    run = run_cli(["register", wall, photo, "--prior", record,
+                              "--out", tmp_path / "R.json"])
+    line = run.line
+    assert run.code == 2 and str(photo) in line and needle in line, line
+
+
+def test_bad_gimbal_angles_are_ignored_when_the_record_gives_the_attitude(tmp_path):
+    """Only what the record lacks is read from the metadata."""
+    from napari_imgreg.io.photos import load_photo
+    from napari_imgreg.prior import prior_for_photo
+
+    photo = _metadata_photo(tmp_path, xmp=_dji_xmp(10.0, -135.0, 0.0))
+    _write_record(tmp_path, _record(), "DJI_0001.json")
+    prior = prior_for_photo(load_photo(photo))
+    assert prior.pose.attitude == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+
+
+@pytest.mark.parametrize("tags, needle", [
+    ({"direction": float("nan")}, "field 'EXIF GPSImgDirection' must be a finite number"),
+    ({"direction": 1e6}, "field 'EXIF GPSImgDirection' must be within [-720, 720]"),
+    ({"lat": (95.0, 0.0, 0.0)}, "field 'EXIF GPSLatitude' must be within [-90, 90], got 95.0"),
+    ({"lat": (float("nan"), 0.0, 0.0)}, "field 'EXIF GPSLatitude' must be three finite numbers"),
+])
+def test_exif_attitude_and_position_are_range_checked(tmp_path, tags, needle):
+    from PIL.TiffImagePlugin import IFDRational
+
+    from napari_imgreg.errors import InputError
+    from napari_imgreg.io.exif import record_from_exif
+    from napari_imgreg.io.photos import load_photo
+
+    def rational(x):
+        return IFDRational(0, 0) if math.isnan(x) else IFDRational(int(x * 100), 100)
+
+    kwargs = {k: (tuple(rational(v) for v in val) if isinstance(val, tuple) else rational(val))
+              for k, val in tags.items()}
+    if "lat" in kwargs:
+        kwargs["direction"] = IFDRational(1000, 100)
+    photo = load_photo(_metadata_photo(tmp_path, **kwargs))
+    with pytest.raises(InputError) as err:
+        record_from_exif(photo)
+    message = str(err.value)
+    assert message.startswith(str(photo.path)) and needle in message and "\n" not in message
+
+
+def test_unknown_gps_altitude_is_taken_from_the_dem(tmp_path):
+    """0/0, some phones' "no vertical fix": the altitude is left to the DEM, with a note."""
+    from PIL.TiffImagePlugin import IFDRational
+
+    from napari_imgreg.io.exif import record_from_exif
+    from napari_imgreg.io.photos import load_photo
+
+    photo = load_photo(_metadata_photo(
+        tmp_path, lat=(IFDRational(46, 1), IFDRational(0, 1), IFDRational(0, 1)),
+        alt=IFDRational(0, 0), direction=IFDRational(10, 1)))
+    record, notes = record_from_exif(photo)
+    assert record.position == {"lat": 46.0, "lon": 7.0}
+    assert "position from EXIF GPS (GPSAltitude unknown, 0/0: ignored)" in notes
+
+
+# ----------------------------------------------------- results read by project
+@pytest.mark.parametrize("camera, t, needle", [
+    ({"fx": 50.0}, [float("nan"), 0.0, 30.0], "field 'pose.t' must be 3 finite numbers"),
+    ({"fx": 0.0}, [0.0, 0.0, 30.0], "field 'camera.fx'"),
+])
+def test_project_refuses_a_result_with_nan_translation_or_fx_0(wall, tmp_path, run_cli,
+                                                               camera, t, needle):
+    """Before issue 15 ``project`` wrote an empty file with exit 0."""
+    R = np.eye(3)[[0, 2, 1]] * [1, -1, 1]
+    cam = {"width": 80, "height": 60, "fy": 50.0, "cx": 39.5, "cy": 29.5, **camera}
+    result = tmp_path / "IMG_0001.result.json"
+    result.write_text(json.dumps({"status": "registered", "photo": "IMG_0001.jpg",
+                                  "camera": cam, "pose": {"R": R.tolist(), "t": t}},
+                                 allow_nan=True))
+    lines = tmp_path / "lines.geojson"
+    lines.write_text(json.dumps({"type": "FeatureCollection", "features": [{
+        "type": "Feature", "properties": {"label": "bed"},
+        "geometry": {"type": "LineString", "coordinates": [[10, 20], [60, 30]]}}]}))
+    out = tmp_path / "lines3d.geojson"
+    run = run_cli(["project", result, wall, lines, "--out", out])
+    line = run.line
+    assert run.code == 2 and str(result) in line and needle in line, line
+    assert not out.exists()
+
+
+# ------------------------------------------- turned photos on the command line
+@pytest.mark.parametrize("orientation, shown", [(3, (160, 120)), (6, (120, 160)),
+                                                (8, (120, 160))])
+def test_register_a_turned_photo_with_its_landscape_record(wall, tmp_path, run_cli,
+                                                           orientation, shown):
+    """Before issue 15 a portrait photo with its landscape record was a
+    traceback: now the camera and attitude are turned with the pixels (the
+    flat-textured wall does not register: exit 1, a result written)."""
+    from napari_imgreg.camera import Intrinsics, Pose
+
+    photo = _oriented_photo(tmp_path / "IMG_0001.jpg", np.full((120, 160, 3), 90, np.uint8),
+                            orientation)
+    record = _write_record(tmp_path, _record())
+    params = tmp_path / "params.json"
+    params.write_text(json.dumps({"max_trials": 1}))
+    out = tmp_path / "R.json"
+    run = run_cli(["register", wall, photo, "--prior", record, "--params", params,
+                   "--out", out], max_seconds=120)
+    assert run.code in (0, 1) and "Traceback" not in run.err, run.err
+    result = json.loads(out.read_text())
+    camera = Intrinsics.from_dict(result["camera"])
+    assert (camera.width, camera.height) == shown
+    turns = {3: 2, 6: 1, 8: -1}[orientation]
+    sensor = Pose.from_attitude(0.0, 0.0, 0.0, [20.0, -30.0, 10.0]).rotated(turns)
+    assert Pose.from_dict(result["prior"]["pose"]).rotation_error_deg(sensor) < 1e-6
+    assert any("turned" in note for note in result["prior"]["assumptions"])
+
+
+@pytest.mark.parametrize("coords, needle", [
+    ([[0, 0], [1e308, 5.0]], "far outside"),
+    ([[0, 0], [1e9, 1e9]], "far outside"),
+])
+def test_project_refuses_unbounded_line_coordinates(wall, tmp_path, run_cli, coords, needle):
+    """Before issue 15: a traceback (1e308) or a process killed at 22 GB (1e9)."""
+    from napari_imgreg.camera import Intrinsics, Pose
+
+    intr = Intrinsics(160, 120, 100.0, 100.0, 79.5, 59.5)
+    pose = Pose.from_attitude(0.0, 0.0, 0.0, [20.0, -30.0, 10.0])
+    result = tmp_path / "IMG_0001.result.json"
+    result.write_text(json.dumps({"status": "registered", "photo": "IMG_0001.jpg",
+                                  "camera": intr.to_dict(), "pose": pose.to_dict()}))
+    lines = tmp_path / "lines.geojson"
+    lines.write_text(json.dumps({"type": "FeatureCollection", "features": [{
+        "type": "Feature", "properties": {"label": "bed"},
+        "geometry": {"type": "LineString", "coordinates": coords}}]}))
+    run = run_cli(["project", result, wall, lines, "--out", tmp_path / "l3d.geojson"])
+    line = run.line
+    assert run.code == 2 and str(lines) in line and needle in line, line

@@ -8,43 +8,29 @@ import sys
 
 import numpy as np
 import pytest
-import trimesh
 from PIL import Image
 
 from napari_imgreg import Intrinsics, Pose
-from napari_imgreg.cli import main
 
 
 @pytest.fixture
-def wall(tmp_path):
-    """A textured 40 m × 20 m wall in the plane y = 0, and a pose file facing it."""
-    vertices = np.array([[0, 0, 0], [40, 0, 0], [40, 0, 20], [0, 0, 20]], float)
-    faces = np.array([[0, 1, 2], [0, 2, 3]])
-    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
-    texture = np.zeros((64, 128, 3), np.uint8)
-    texture[..., 0] = np.linspace(0, 255, 128)[None, :]
-    texture[..., 1] = 120
-    mesh = trimesh.Trimesh(
-        vertices, faces, process=False,
-        visual=trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(texture)),
-    )
-    mesh_path = tmp_path / "wall.obj"
-    mesh.export(mesh_path)
+def wall(wall_mesh):
+    """The shared textured wall (conftest ``wall_mesh``) and a record facing it."""
     record = {
         "camera": {"width": 160, "height": 120, "fx": 100.0, "fy": 100.0, "cx": 79.5, "cy": 59.5},
         "position": {"x": 20.0, "y": -30.0, "z": 10.0},
         "orientation": {"trend_deg": 0.0, "plunge_deg": 0.0, "roll_deg": 0.0},
     }
-    prior_path = tmp_path / "IMG_0001.json"
+    prior_path = wall_mesh.parent / "IMG_0001.json"
     prior_path.write_text(json.dumps(record))
-    return mesh_path, prior_path
+    return wall_mesh, prior_path
 
 
-def test_render_writes_image_and_depth(wall, tmp_path, capsys):
+def test_render_writes_image_and_depth(wall, tmp_path, run_cli):
     mesh, prior = wall
     out, depth = tmp_path / "render.png", tmp_path / "depth.npy"
-    code = main(["render", str(mesh), str(prior), "--out", str(out), "--depth", str(depth)])
-    assert code == 0
+    run = run_cli(["render", mesh, prior, "--out", out, "--depth", depth])
+    assert run.code == 0
     image = np.asarray(Image.open(out))
     assert image.shape == (120, 160, 3)
     d = np.load(depth)
@@ -55,10 +41,10 @@ def test_render_writes_image_and_depth(wall, tmp_path, capsys):
     row = image[60]
     seen = np.isfinite(d[60])
     assert np.all(np.diff(row[seen, 0].astype(int)) >= -1)
-    assert "rendered wall" in capsys.readouterr().out
+    assert "rendered wall" in run.out
 
 
-def test_render_from_result_json(wall, tmp_path):
+def test_render_from_result_json(wall, tmp_path, run_cli):
     mesh, _ = wall
     intr = Intrinsics(80, 60, 50.0, 50.0, 39.5, 29.5)
     pose = Pose.from_attitude(0.0, 0.0, 0.0, [20.0, -30.0, 10.0])
@@ -66,7 +52,7 @@ def test_render_from_result_json(wall, tmp_path):
     result.write_text(json.dumps({"status": "registered", "camera": intr.to_dict(),
                                   "pose": pose.to_dict()}))
     out = tmp_path / "r.png"
-    assert main(["render", str(mesh), str(result), "--out", str(out)]) == 0
+    assert run_cli(["render", mesh, result, "--out", out]).code == 0
     assert np.asarray(Image.open(out)).shape == (60, 80, 3)
 
 
@@ -80,7 +66,7 @@ def test_render_from_result_json(wall, tmp_path):
         ("wrong_field", "field 'orientation.trend_deg' must be a number"),
     ],
 )
-def test_bad_input_is_one_line_and_exit_2(wall, tmp_path, capsys, case, needle):
+def test_bad_input_is_one_line_and_exit_2(wall, tmp_path, run_cli, case, needle):
     mesh, prior = wall
     if case == "missing_mesh":
         mesh = tmp_path / "nope.obj"
@@ -97,10 +83,8 @@ def test_bad_input_is_one_line_and_exit_2(wall, tmp_path, capsys, case, needle):
         prior.write_text(json.dumps(data))
     out = tmp_path / "render.png"
     out.write_bytes(b"previous render")  # must survive a failed run untouched
-    code = main(["render", str(mesh), str(prior), "--out", str(out)])
-    err = capsys.readouterr().err.strip()
-    assert code == 2
-    assert len(err.splitlines()) == 1 and needle in err
+    run = run_cli(["render", mesh, prior, "--out", out])
+    assert run.code == 2 and needle in run.line
     assert out.read_bytes() == b"previous render"
     assert not list(tmp_path.glob(".render.png.*"))  # no temporary left behind
 
@@ -114,12 +98,13 @@ def test_console_script_help_and_usage_errors():
     assert run.returncode == 2
 
 
-def test_demo_registers_the_sample_photos(tmp_path, capsys):
+def test_demo_registers_the_sample_photos(tmp_path, run_cli):
     from napari_imgreg.sample import load_truth, sample_scene
 
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out)]) == 0
-    stdout = capsys.readouterr().out
+    run = run_cli(["demo", "--out", out], max_seconds=None)
+    assert run.code == 0
+    stdout = run.out
     folder = sample_scene("small")
     demo = json.loads((out / "demo.json").read_text())
     photos = sorted(p.name for p in folder.glob("IMG_*.jpg"))

@@ -330,10 +330,18 @@ def test_bounds_catch_what_they_should():
 
     limit, hypothesis_bounds.TIME_LIMIT_S = hypothesis_bounds.TIME_LIMIT_S, 0.3
     try:
-        with pytest.raises(AssertionError, match="took"):
+        with pytest.raises(AssertionError, match="took .* of CPU"):
             call_bounded(spin)
     finally:
         hypothesis_bounds.TIME_LIMIT_S = limit
+    import time
+
+    wall, hypothesis_bounds.WALL_LIMIT_S = hypothesis_bounds.WALL_LIMIT_S, 0.3
+    try:  # blocked without computing: the wall-clock bound
+        with pytest.raises(AssertionError, match="took .* of wall time"):
+            call_bounded(time.sleep, 5.0)
+    finally:
+        hypothesis_bounds.WALL_LIMIT_S = wall
     with pytest.raises(ZeroDivisionError):
         call_bounded(lambda: 1 / 0)
     from napari_imgreg.errors import input_error

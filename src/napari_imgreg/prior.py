@@ -27,7 +27,12 @@ from ._json import dump as strict_json_dump
 from .camera import Intrinsics, Pose
 from .errors import InputError, input_error
 from .geo import DEFAULT_HEIGHT_ABOVE_GROUND_M, DEM, Georef
-from .io.exif import record_from_exif
+from .io.exif import (
+    EXIF_MIRRORED,
+    EXIF_QUARTER_TURNS,
+    exif_orientation,
+    record_from_exif,
+)
 from .io.records import (
     SensorRecord,
     Sigma,
@@ -105,6 +110,13 @@ def prior_from_record(
         orientation 6 or 8 the camera and its attitude are turned as the
         pixels were (a portrait phone photo with its landscape record);
         without, the record is refused with a line that says how to fix it.
+        With orientation 3 (a photo taken upside down, turned 180° for
+        display) the record is the sensor's unless its ``image_frame`` is
+        ``"shown"``: camera and attitude are turned by 180°. The record's
+        ``image_frame`` (``"stored"`` / ``"shown"``) overrides the guess for
+        the attitude. A roll the record does not give is taken as 0 for the
+        photo as shown (never turned). A mirrored orientation (2, 4, 5, 7)
+        is refused: a mirror image has no camera pose.
 
     Returns
     -------
@@ -114,11 +126,14 @@ def prior_from_record(
     ------
     InputError
         The record lacks what a pose needs (camera, position, orientation),
-        or a geodetic position comes without a georeference.
+        a geodetic position comes without a georeference, or the photo's EXIF
+        orientation mirrors it.
     """
     src = record.source
+    if exif_orientation in EXIF_MIRRORED:
+        raise _mirrored_error(src, exif_orientation)
     notes: list[str] = []
-    intrinsics, turns = _intrinsics_of(record, image_size, notes, exif_orientation)
+    intrinsics, camera_turns = _intrinsics_of(record, image_size, notes, exif_orientation)
 
     if record.position is None:
         raise input_error(src, "no 'position' block (needs x, y[, z] or lat, lon[, alt])")
@@ -163,17 +178,55 @@ def prior_from_record(
     if o.get("plunge_deg") is None:
         notes.append("plunge assumed 0° (level camera)")
     if o.get("roll_deg") is None:
-        notes.append("roll assumed 0°")
+        notes.append("roll assumed 0°" + (" (level photo as shown)" if exif_orientation in
+                                          (3, 6, 8) else ""))
     pose = Pose.from_attitude(trend, plunge, roll, np.array([x, y, z]))
+    turns = _attitude_turns(record, exif_orientation, camera_turns, notes)
     if turns:  # the record's attitude is the sensor's: turn it with the pixels
         pose = pose.rotated(turns)
     return Prior(intrinsics, pose, record.sigma, notes)
 
 
-#: EXIF orientation -> quarter turns (clockwise) that display the stored pixels.
-_EXIF_TURNS = {1: 0, 3: 2, 6: 1, 8: -1}
-#: EXIF orientations that mirror the photo (not a camera's image).
-_EXIF_MIRRORED = (2, 4, 5, 7)
+# Kept under their old names for callers of 0.2.
+_EXIF_TURNS = EXIF_QUARTER_TURNS
+_EXIF_MIRRORED = EXIF_MIRRORED
+
+
+def _mirrored_error(path, orientation: int) -> InputError:
+    """One line: a mirrored EXIF orientation, and how to get a photo that registers."""
+    return input_error(
+        path, f"the photo's EXIF orientation {orientation} mirrors it (a front camera or an "
+              "editor's flip) and a mirror image has no camera pose; save the photo as the "
+              "camera took it, unmirrored (e.g. `exiftool -n -Orientation=1 PHOTO` when its "
+              "stored pixels are unmirrored, else flip it back in an image editor), and "
+              "register again")
+
+
+def _attitude_turns(record: SensorRecord, exif_orientation: int | None, camera_turns: int,
+                    notes: list[str]) -> int:
+    """The quarter turns the record's attitude needs to be that of the photo as shown.
+
+    The attitude is the sensor's (turned with the pixels) when the record
+    says so (``image_frame: "stored"``) or, without ``image_frame``, when its
+    camera block was found to be the sensor's (``camera_turns``, from the
+    block's size or, for orientation 3, by default). A roll the record does
+    not give is the shown photo's (0: level), so nothing is turned then.
+    """
+    turns = EXIF_QUARTER_TURNS.get(exif_orientation or 1, 0)
+    if not turns or exif_orientation in EXIF_MIRRORED:
+        return 0
+    frame = record.image_frame or ("stored" if camera_turns else "shown")
+    if frame == "shown":
+        if camera_turns:
+            notes.append("attitude is of the photo as shown (record image_frame \"shown\"): "
+                         "not turned")
+        return 0
+    if (record.orientation or {}).get("roll_deg") is None:
+        return 0
+    notes.append(f"attitude is the sensor's: turned {90 * turns:+d}° with the pixels (EXIF "
+                 f"orientation {exif_orientation}; write \"image_frame\": \"shown\" in the "
+                 "record if it is of the photo as shown)")
+    return turns
 
 
 def _camera_from_block(cam: Mapping, source) -> Intrinsics:
@@ -192,37 +245,43 @@ def _intrinsics_of(
     notes: list[str],
     exif_orientation: int | None = None,
 ) -> tuple[Intrinsics, int]:
-    """The record's camera for the photo, and the quarter turns its pose needs.
+    """The record's camera for the photo, and the quarter turns it was given.
 
     A camera block of the photo's size turned by 90° is the sensor's (a phone
-    photo stored landscape and shown portrait through its EXIF orientation):
-    the camera, and its pose, are turned as the pixels were.
+    photo stored landscape and shown portrait through its EXIF orientation);
+    so is, with orientation 3 (shown turned 180°: same size), any block of
+    a record whose ``image_frame`` is not ``"shown"``. That camera is turned
+    as the pixels were.
     """
     src = record.source
     cam = dict(record.camera or {})
     turns = 0
     if image_size is not None:
         photo = (int(image_size[0]), int(image_size[1]))
-        if "width" in cam and "height" in cam:
-            block = (int(cam["width"]), int(cam["height"]))
-            if block != photo and _swapped_aspect(block, photo):
-                turns = _turns_for_portrait(block, photo, exif_orientation, src)
+        block = (int(cam["width"]), int(cam["height"])) if "width" in cam and "height" in cam \
+            else None
+        if block is not None and block != photo and _swapped_aspect(block, photo):
+            turns = _turns_for_portrait(block, photo, exif_orientation, src)
+        elif exif_orientation == 3 and record.image_frame != "shown":
+            turns = 2
         if turns:
+            sensor = block or photo  # turned by 180°, the photo's size is the sensor's
+            cam["width"], cam["height"] = sensor
             base = (_camera_from_block(cam, src) if _has_focal(cam) else
-                    Intrinsics.from_fov(int(cam["width"]), int(cam["height"]), 65.0))
+                    Intrinsics.from_fov(sensor[0], sensor[1], 65.0))
             if not _has_focal(cam):
                 notes.append("no focal length: assumed a 65° horizontal field of view of the "
                               "sensor (phone camera)")
             turned = base.rotated(turns)
             notes.append(
-                f"camera block is the sensor's {base.width}×{base.height}; the photo is shown "
-                f"{photo[0]}×{photo[1]} (EXIF orientation {exif_orientation}): camera and "
-                f"attitude turned {90 * turns:+d}° with the pixels")
+                f"camera is the sensor's {base.width}×{base.height}; the photo is shown "
+                f"{photo[0]}×{photo[1]} (EXIF orientation {exif_orientation}): camera turned "
+                f"{90 * turns:+d}° with the pixels")
             if (turned.width, turned.height) != photo:
                 notes.append(f"photo is {photo[0]}×{photo[1]}: intrinsics scaled")
                 turned = turned.scaled(photo[0] / turned.width)
             return turned, turns
-        if "width" in cam and (int(cam["width"]), int(cam["height"])) != photo:
+        if block is not None and block != photo:
             # The photo may have been resized after logging: scale the camera.
             notes.append(
                 f"camera block is {cam['width']}×{cam['height']}, photo is "
@@ -253,11 +312,10 @@ def _swapped_aspect(block: tuple[int, int], photo: tuple[int, int]) -> bool:
 def _turns_for_portrait(block, photo, exif_orientation, src) -> int:
     """Quarter turns from the EXIF orientation, or one InputError that says how to fix it."""
     if exif_orientation in (6, 8):
-        return _EXIF_TURNS[exif_orientation]
+        return EXIF_QUARTER_TURNS[exif_orientation]
     shape = "portrait" if photo[1] > photo[0] else "landscape"
-    if exif_orientation in _EXIF_MIRRORED:
-        raise input_error(src, f"the photo's EXIF orientation {exif_orientation} mirrors it; "
-                               "save the photo unmirrored and register again")
+    if exif_orientation in EXIF_MIRRORED:
+        raise _mirrored_error(src, exif_orientation)
     raise input_error(
         src, f"field 'camera' is {block[0]}×{block[1]} but the photo is {photo[0]}×{photo[1]} "
              f"({shape}) and its EXIF orientation does not turn it (tag "
@@ -319,7 +377,9 @@ def save_pose_to_record(
 
     The record's ``position`` becomes the local ``{"x", "y", "z"}`` of the
     camera centre and its ``orientation`` the pose's trend, plunge and roll
-    (contract §3); every other field (``sigma``, unknown extras) is kept. A
+    (contract §3) and ``image_frame`` becomes ``"shown"`` (the pose is that of
+    the photo as shown, its EXIF orientation applied, and is not turned when
+    read back); every other field (``sigma``, unknown extras) is kept. A
     missing file is created. With ``camera``, the ``camera`` block is
     replaced by its pixel form (a solved focal length).
 
@@ -353,6 +413,9 @@ def save_pose_to_record(
     x, y, z = (float(v) for v in pose.center)
     data["position"] = {"x": x, "y": y, "z": z}
     data["orientation"] = {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
+    # The pose is of the photo as shown (EXIF orientation applied): the next
+    # prior must not turn it again as it turns a phone's sensor record.
+    data["image_frame"] = "shown"
     if camera is not None:
         data["camera"] = camera.to_dict()
     with atomic_write(path, encoding="utf-8") as fh:
@@ -384,22 +447,35 @@ def prior_for_photo(
     Raises
     ------
     InputError
-        Neither a record nor metadata gives a position and a heading.
+        Neither a record nor metadata gives a position and a heading; a
+        metadata tag that fills a block the record lacks is out of its range
+        (:func:`~napari_imgreg.io.exif.record_from_exif`); the photo's EXIF
+        orientation mirrors it (2, 4, 5, 7: no camera pose exists for a
+        mirror image); or the record is refused by :func:`prior_from_record`.
     """
     record_path = Path(record_path) if record_path is not None else photo.sidecar
-    from_exif, exif_notes = record_from_exif(photo)
+    orientation = _exif_orientation(photo)
+    if orientation in EXIF_MIRRORED:
+        raise _mirrored_error(photo.path, orientation)
     notes: list[str] = []
     if record_path is not None and record_path.exists():
         record = load_sensor_record(record_path)
+        # Only what the record lacks is read from the metadata: a corrupt tag
+        # the record makes unnecessary does not refuse the photo.
+        wanted = [block for block in ("camera", "position", "orientation")
+                  if getattr(record, block) is None]
+        if record.camera is not None and not _has_focal(record.camera):
+            wanted.append("camera")
+        from_exif, exif_notes = record_from_exif(photo, blocks=wanted)
         for block in ("camera", "position", "orientation"):
             if getattr(record, block) is None and getattr(from_exif, block) is not None:
                 setattr(record, block, getattr(from_exif, block))
                 notes += [n for n in exif_notes if n.split()[0] in _NOTE_WORDS[block]]
         if record.camera is not None and not _has_focal(record.camera) and from_exif.camera:
-            record.camera = {**from_exif.camera, **{k: v for k, v in record.camera.items()
-                                                    if k not in ("width", "height")}}
+            record.camera = _with_exif_focal(record.camera, from_exif.camera, orientation)
             notes.append("focal length from EXIF")
     else:
+        from_exif, exif_notes = record_from_exif(photo)
         if from_exif.position is None or from_exif.orientation is None:
             raise input_error(
                 photo.path,
@@ -415,21 +491,37 @@ def prior_for_photo(
         terrain_height=getattr(scene, "terrain_height", None),
         image_size=photo.size,
         height_above_ground_m=height_above_ground_m,
-        exif_orientation=_exif_orientation(photo),
+        exif_orientation=orientation,
     )
     prior.assumptions = notes + prior.assumptions
     _attach_sun(prior, record, photo, getattr(scene, "georef", None))
     return prior
 
 
+def _with_exif_focal(block: dict, exif_camera: dict, orientation: int | None) -> dict:
+    """A record's camera block without a focal length, completed from the EXIF camera.
+
+    The EXIF camera is of the photo as shown; a block of the sensor's size
+    (a landscape block of a portrait photo) keeps its size and gets the
+    EXIF camera turned back to the sensor and scaled to the block, so that
+    :func:`prior_from_record` still sees the sensor's block (and turns the
+    attitude with it).
+    """
+    exif_intr = Intrinsics.from_dict(exif_camera)
+    if "width" in block and "height" in block:
+        size = (int(block["width"]), int(block["height"]))
+        shown = (exif_intr.width, exif_intr.height)
+        if size != shown and _swapped_aspect(size, shown):
+            exif_intr = exif_intr.rotated(-EXIF_QUARTER_TURNS.get(orientation or 1, 0) or 1)
+        if (exif_intr.width, exif_intr.height) != size and size[0] > 0:
+            exif_intr = exif_intr.scaled(size[0] / exif_intr.width)
+        return {**exif_intr.to_dict(), **block}  # the block's own fields win
+    return {**exif_camera, **{k: v for k, v in block.items() if k not in ("width", "height")}}
+
+
 def _exif_orientation(photo) -> int | None:
     """The photo's EXIF ``Orientation`` tag (1–8), None when absent or unreadable."""
-    value = (getattr(photo, "exif", None) or {}).get("Orientation")
-    try:
-        value = int(value)
-    except (TypeError, ValueError):
-        return None
-    return value if 1 <= value <= 8 else None
+    return exif_orientation(getattr(photo, "exif", None))
 
 
 def _attach_sun(prior: Prior, record: SensorRecord, photo, georef: Georef | None) -> None:

@@ -36,7 +36,8 @@ from typing import Any, Mapping
 
 from ..camera import Intrinsics
 from ..errors import InputError, input_error
-from .records import SensorRecord
+from ..validate import FieldValueError, check_number
+from .records import RECORD_RANGES, SensorRecord
 
 __all__ = [
     "CaptureTime",
@@ -47,7 +48,11 @@ __all__ = [
     "read_photo_xmp_and_gps",
     "raw_xmp",
     "dji_gimbal_angles",
+    "DJI_GIMBAL_RANGES",
     "attitude_from_dji_gimbal",
+    "EXIF_QUARTER_TURNS",
+    "EXIF_MIRRORED",
+    "exif_orientation",
     "record_from_exif",
 ]
 
@@ -401,23 +406,66 @@ def raw_xmp(path: Path, limit: int = 1 << 20) -> str | None:
 
 _DJI_TAGS = ("GimbalYawDegree", "GimbalPitchDegree", "GimbalRollDegree")
 
+#: The declared range of each DJI gimbal angle, degrees: those of the
+#: attitude it becomes (yaw → trend, pitch → −plunge, roll → roll; see
+#: :data:`napari_imgreg.io.records.RECORD_RANGES`). DJI writes yaw and roll
+#: within ±180 and pitch within ±90; anything else is a corrupt packet.
+DJI_GIMBAL_RANGES = {
+    "GimbalYawDegree": RECORD_RANGES["orientation"]["trend_deg"][:2],
+    "GimbalPitchDegree": RECORD_RANGES["orientation"]["plunge_deg"][:2],
+    "GimbalRollDegree": RECORD_RANGES["orientation"]["roll_deg"][:2],
+}
 
-def dji_gimbal_angles(xmp: str) -> tuple[float, float, float] | None:
-    """(yaw, pitch, roll) from ``drone-dji:Gimbal*Degree`` (attribute or element form)."""
-    values = []
+
+#: Accepted EXIF ``GPSImgDirection``, degrees (wrapped to [0, 360)).
+GPS_IMG_DIRECTION_RANGE = (-720.0, 720.0)
+
+
+def dji_gimbal_angles(xmp: str, source: str | os.PathLike | None = None
+                      ) -> tuple[float, float, float] | None:
+    """(yaw, pitch, roll) from ``drone-dji:Gimbal*Degree`` (attribute or element form).
+
+    Parameters
+    ----------
+    xmp : str
+        The XMP packet.
+    source : path-like, optional
+        The photo, named in the error.
+
+    Returns
+    -------
+    (yaw, pitch, roll) in degrees, or None
+        None when the packet has no gimbal angles (not a DJI photo, or only
+        some of the three tags).
+
+    Raises
+    ------
+    InputError
+        A gimbal tag is present but not a finite number within
+        :data:`DJI_GIMBAL_RANGES` (``field 'XMP drone-dji:GimbalPitchDegree'
+        must be within [-90, 90], got 135``).
+    """
+    found = {}
     for tag in _DJI_TAGS:
         match = re.search(
-            rf"drone-dji:{tag}\s*=\s*\"([^\"]+)\"|<drone-dji:{tag}>\s*([^<]+?)\s*</", xmp
+            rf"drone-dji:{tag}\s*=\s*\"([^\"]*)\"|<drone-dji:{tag}>\s*([^<]*?)\s*</", xmp
         )
-        if match is None:
-            return None
+        if match is not None:
+            found[tag] = match.group(1) if match.group(1) is not None else match.group(2)
+    if len(found) < len(_DJI_TAGS):
+        return None
+    values = []
+    for tag in _DJI_TAGS:
+        text = found[tag].strip()
+        low, high = DJI_GIMBAL_RANGES[tag]
         try:
-            value = float(match.group(1) or match.group(2))
+            value: Any = float(text)
         except ValueError:
-            return None
-        if not math.isfinite(value):
-            return None
-        values.append(value)
+            value = text
+        try:
+            values.append(check_number(value, f"XMP drone-dji:{tag}", low, high))
+        except FieldValueError as exc:
+            raise input_error(source, str(exc)) from None
     return values[0], values[1], values[2]
 
 
@@ -436,65 +484,148 @@ def attitude_from_dji_gimbal(
 
 
 # ---------------------------------------------------------------------------
+# EXIF orientation
+# ---------------------------------------------------------------------------
+
+#: EXIF ``Orientation`` → quarter turns (clockwise) that its display applies
+#: to the stored pixels (:meth:`Intrinsics.rotated`, :meth:`Pose.rotated`).
+#: The mirrored ones (2, 4, 5, 7) are listed with the turn of their
+#: unmirrored part, for messages only: a mirrored image has no camera pose.
+EXIF_QUARTER_TURNS = {1: 0, 2: 0, 3: 2, 4: 2, 5: 1, 6: 1, 7: -1, 8: -1}
+
+#: EXIF orientations whose display mirrors the stored pixels.
+EXIF_MIRRORED = (2, 4, 5, 7)
+
+
+def exif_orientation(exif: Mapping[str, Any] | None) -> int | None:
+    """The EXIF ``Orientation`` tag (1–8) of tags by name; None when absent or
+    not one of the eight values (Pillow then leaves the pixels as stored)."""
+    value = (exif or {}).get("Orientation")
+    if isinstance(value, bool):
+        return None
+    try:
+        value = int(value)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return value if 1 <= value <= 8 else None
+
+
+# ---------------------------------------------------------------------------
 # a sensor record from the metadata
 # ---------------------------------------------------------------------------
 
+_BLOCKS = ("camera", "position", "orientation")
 
-def record_from_exif(photo) -> tuple[SensorRecord, list[str]]:
+
+def _checked(value: Any, tag: str, low: float, high: float, source) -> float:
+    """An EXIF/XMP number, finite and within ``[low, high]`` (the range of the
+    record field it fills, :data:`RECORD_RANGES`); one InputError naming the
+    photo and the tag."""
+    try:
+        number: Any = _number(value) if not isinstance(value, str) else float(value)
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        number = value
+    try:
+        return check_number(number, tag, low, high)
+    except FieldValueError as exc:
+        raise input_error(source, str(exc)) from None
+
+
+def _gps_angle(gps: Mapping[str, Any], tag: str, default_ref: str, block_key: str, source
+               ) -> float:
+    """A GPS latitude or longitude in signed degrees, checked against its range."""
+    low, high, _ = RECORD_RANGES["position"][block_key]
+    degrees = gps_degrees(gps.get(tag), gps.get(f"{tag}Ref", default_ref))
+    if degrees is None:
+        raise input_error(source, f"field 'EXIF {tag}' must be three finite numbers (degrees, "
+                                  f"minutes, seconds), got {gps.get(tag)!r:.60}")
+    return _checked(degrees, f"EXIF {tag}", low, high, source)
+
+
+def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
     """A sensor record from the photo's metadata, and where each block came from.
 
-    Camera: EXIF focal length (see :meth:`Intrinsics.from_exif`). Position:
-    EXIF GPS latitude/longitude/altitude. Orientation: DJI XMP gimbal angles
-    (drone photos), else EXIF ``GPSImgDirection`` for the trend only.
+    Camera: EXIF focal length (see :meth:`Intrinsics.from_exif`; for a photo
+    turned by its EXIF orientation the focal-plane resolution is the stored
+    image's, so the camera is made at the stored size and turned with the
+    pixels). Position: EXIF GPS latitude/longitude/altitude. Orientation: DJI
+    XMP gimbal angles (drone photos), else EXIF ``GPSImgDirection`` for the
+    trend only.
 
     Parameters
     ----------
     photo : Photo
         A photo as :func:`napari_imgreg.io.photos.load_photo` reads it.
+    blocks : iterable of str
+        The blocks to read (``"camera"``, ``"position"``, ``"orientation"``):
+        those a sensor record lacks, so that a corrupt tag the record makes
+        unnecessary does not refuse the photo.
 
     Returns
     -------
     record : SensorRecord
-        Its ``source`` is the photo's path; blocks the metadata lack are None.
+        Its ``source`` is the photo's path; blocks the metadata lack (or not
+        asked for) are None.
     notes : list of str
         One per block found ("position from EXIF GPS", ...).
+
+    Raises
+    ------
+    InputError
+        A tag that fills an asked-for block is present but not a finite
+        number in the range of the record field it becomes (a DJI gimbal
+        pitch of 135°, a GPS latitude of 95°, a ``GPSImgDirection`` of NaN);
+        the message names the photo and the tag.
     """
     exif = photo.exif or {}
+    blocks = set(blocks)
+    src = photo.path
     notes: list[str] = []
-    record = SensorRecord(source=photo.path)
+    record = SensorRecord(source=src)
     w, h = photo.size
-    try:
-        record.camera = Intrinsics.from_exif(exif, w, h).to_dict()
-        notes.append("camera from EXIF focal length")
-    except ValueError:
-        pass
+    if "camera" in blocks:
+        # EXIF sizes and focal-plane resolutions are those of the stored image.
+        turns = EXIF_QUARTER_TURNS.get(exif_orientation(exif) or 1, 0)
+        stored = (h, w) if turns % 2 else (w, h)
+        try:
+            record.camera = Intrinsics.from_exif(exif, *stored).rotated(turns).to_dict()
+            notes.append("camera from EXIF focal length")
+        except ValueError:
+            pass
     gps = exif.get("GPSInfo")
     if not isinstance(gps, Mapping):  # an empty GPS IFD leaves its offset (an int)
         gps = {}
-    lat = gps_degrees(gps.get("GPSLatitude"), gps.get("GPSLatitudeRef", "N"))
-    lon = gps_degrees(gps.get("GPSLongitude"), gps.get("GPSLongitudeRef", "E"))
-    if lat is not None and lon is not None:
+    if "position" in blocks and gps.get("GPSLatitude") is not None \
+            and gps.get("GPSLongitude") is not None:
+        lat = _gps_angle(gps, "GPSLatitude", "N", "lat", src)
+        lon = _gps_angle(gps, "GPSLongitude", "E", "lon", src)
         record.position = {"lat": lat, "lon": lon}
         alt = gps.get("GPSAltitude")
         try:
-            alt = float(alt) if alt is not None else None
-        except (TypeError, ValueError):
-            alt = None
-        if alt is not None and math.isfinite(alt):
+            unknown_alt = alt is not None and not math.isfinite(_number(alt))
+        except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+            unknown_alt = False  # not a number at all: refused just below
+        if alt is not None and not unknown_alt:
+            alt = _checked(alt, "EXIF GPSAltitude", *RECORD_RANGES["position"]["alt"][:2], src)
             below = gps.get("GPSAltitudeRef") in (1, b"\x01")
             record.position["alt"] = -alt if below else alt
-        notes.append("position from EXIF GPS")
-    gimbal = dji_gimbal_angles(exif.get("XMP") or "")
+        # A 0/0 altitude is how some phones write "no vertical fix": the DEM gives it.
+        notes.append("position from EXIF GPS" + (" (GPSAltitude unknown, 0/0: ignored)"
+                                                 if unknown_alt else ""))
+    if "orientation" not in blocks:
+        return record, notes
+    gimbal = dji_gimbal_angles(exif.get("XMP") or "", src)
     if gimbal is not None:
         trend, plunge, roll = attitude_from_dji_gimbal(*gimbal)
         record.orientation = {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
         notes.append("attitude from DJI gimbal angles (XMP)")
     elif gps.get("GPSImgDirection") is not None:
-        try:
-            record.orientation = {"trend_deg": float(gps["GPSImgDirection"]) % 360.0}
-            notes.append("trend from EXIF GPSImgDirection")
-            if str(gps.get("GPSImgDirectionRef", "T")).strip().upper().startswith("M"):
-                notes.append("trend is a magnetic heading: declination not applied")
-        except (TypeError, ValueError):
-            pass
+        # EXIF says 0.00 to 359.99; writers that add a declination past a
+        # full turn are wrapped. Beyond two turns the tag is corrupt.
+        trend = _checked(gps["GPSImgDirection"], "EXIF GPSImgDirection",
+                         *GPS_IMG_DIRECTION_RANGE, src)
+        record.orientation = {"trend_deg": trend % 360.0}
+        notes.append("trend from EXIF GPSImgDirection")
+        if str(gps.get("GPSImgDirectionRef", "T")).strip().upper().startswith("M"):
+            notes.append("trend is a magnetic heading: declination not applied")
     return record, notes

@@ -603,7 +603,7 @@ def read_photo_attitudes(
         if not path.exists():
             raise input_error(path, "no such file")
         xmp_text, gps = exif.read_photo_xmp_and_gps(path)
-        gimbal = exif.dji_gimbal_angles(xmp_text or "")
+        gimbal = exif.dji_gimbal_angles(xmp_text or "", path)
         if gimbal is not None:
             photos.append(path.name)
             attitudes.append(exif.attitude_from_dji_gimbal(*gimbal))

@@ -58,9 +58,10 @@ def load_photo(path: str | os.PathLike) -> Photo:
 
     Any mode is converted to 8-bit RGB: 16-bit photos by their full range
     (not clipped), grey ones repeated in the three channels. The EXIF
-    orientation is applied to the pixels (``exif["Orientation"]`` keeps the
-    tag, for :func:`~napari_imgreg.prior.prior_for_photo` to turn the
-    camera with them).
+    orientation is applied to the pixels, all eight of them, so the photo
+    looks as its viewer shows it (``exif["Orientation"]`` keeps the tag, for
+    :func:`~napari_imgreg.prior.prior_for_photo` to turn the camera with
+    them: 3, 6 and 8 are turned, the mirrored 2, 4, 5 and 7 refused there).
 
     Raises
     ------

@@ -26,6 +26,7 @@ __all__ = [
     "SensorRecord",
     "read_json",
     "RECORD_RANGES",
+    "IMAGE_FRAMES",
     "parse_sensor_record",
     "load_sensor_record",
 ]
@@ -91,6 +92,13 @@ class SensorRecord:
     sun : dict or None
         Extension: ``{"azimuth_deg", "elevation_deg"}`` of the sun at capture,
         azimuth clockwise from *true* north; overrides the time.
+    image_frame : str or None
+        Extension: ``"stored"`` when ``camera`` and ``orientation`` are those
+        of the image as stored in the file (the sensor's, as a phone logs
+        them), ``"shown"`` when they are of the photo with its EXIF
+        orientation applied (as napari-imgreg saves a pose); None: decided
+        from the camera block's size (see
+        :func:`napari_imgreg.prior.prior_from_record`).
     """
 
     camera: dict | None = None
@@ -100,6 +108,7 @@ class SensorRecord:
     source: Path | None = None
     time: str | None = None
     sun: dict | None = None
+    image_frame: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -114,6 +123,8 @@ class SensorRecord:
             out["time"] = self.time
         if self.sun is not None:
             out["sun"] = dict(self.sun)
+        if self.image_frame is not None:
+            out["image_frame"] = self.image_frame
         return out
 
     @property
@@ -178,6 +189,10 @@ RECORD_RANGES: dict[str, dict[str, tuple[float, float, bool]]] = {
     },
 }
 
+#: The values of the record's ``image_frame`` (extension): the frame of its
+#: camera and attitude, the image as stored in the file or as shown.
+IMAGE_FRAMES = ("stored", "shown")
+
 #: Fields whose value must be above (not at) the low end of the range.
 _POSITIVE = {("camera", k) for k in ("fx", "fy", "focal_length_mm", "sensor_width_mm",
                                      "sensor_height_mm", "focal_length_35mm")}
@@ -206,9 +221,9 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
     InputError
         A block is not an object, a field has the wrong type or lies outside
         its range (:data:`RECORD_RANGES`: a zero or negative focal length, a
-        width of 10¹², a latitude of 95°, an integer of 2⁶³), or the camera
-        gives a width without a height; the message names the file and the
-        field.
+        width of 10¹², a latitude of 95°, an integer of 2⁶³), the camera
+        gives a width without a height, or ``image_frame`` is not one of
+        :data:`IMAGE_FRAMES`; the message names the file and the field.
     """
     src = Path(source) if source is not None else None
     if not isinstance(data, dict):
@@ -291,7 +306,16 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
             raise input_error(src, "field 'sun' must be an object")
         _number(sun, "azimuth_deg", "sun", src)
         _number(sun, "elevation_deg", "sun", src)
-    return SensorRecord(camera, position, orientation, sigma, src, when, sun)
+    frame = data.get("image_frame")
+    if frame is not None and frame not in IMAGE_FRAMES:
+        raise input_error(src, f"field 'image_frame' must be one of "
+                               f"{', '.join(repr(f) for f in IMAGE_FRAMES)}, got {_short(frame)}")
+    return SensorRecord(camera, position, orientation, sigma, src, when, sun, frame)
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _aware_iso(text: str) -> datetime | None:
