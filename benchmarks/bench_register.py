@@ -30,11 +30,22 @@ more.
 Rough outcrops (issue 13), asked for by name: ``rough_same_light``,
 ``rough_changed_light`` and ``rough_changed_untextured`` — photos rendered
 from a true surface with relief the model does not resolve (beds standing
-0.4–1.2 m proud, gullies, roughness, grain), the model smoothed and baked
-under a diffuse survey light (:mod:`napari_imgreg.sample.rough`); method
-``before`` is ours without the independent error estimate's gate (commit
-a2c4237's registration). The full-size run (48 photos per tier over 6 scenes
-of 1.2 M triangles, 1632 × 1224 photos; hours on 2 cores)::
+0.4–1.2 m proud, gullies, roughness, grain), the model smoothed (relief kept
+above 1.5 m) and baked under a diffuse survey light, the photos under a sun
+10–25° high raking the face (:mod:`napari_imgreg.sample.rough`, data version
+``rough-r2``: calibrated so that ``before`` is graded excellent while ≥ 4 px
+off on at least a third of the changed-light photos); method ``before`` is ours
+without the independent error estimate's gate (commit a2c4237's
+registration). ``--dump DIR`` writes every trial's pose and matches beside the
+truth, to study the error estimate without re-registering. The full-size run
+(48 photos per tier over 6 scenes of 1.2 M triangles, 1632 × 1224 photos;
+each scene's rough data take about 2 min to generate. Measured per
+changed-light photo on 2 cores at load ≈ 2: before 7–45 s, baseline ≈ 2 s; at
+load 12–17: before 28–280 s, ours 128–420 s (ours runs every stage when the
+gate rejects a pose), baseline 8–18 s; same-light photos 5–40 s each. On a
+free machine allow about 2 min per changed-light photo for the three methods,
+i.e. 2–3 h for 48 changed-light photos and as much again for the untextured
+tier)::
 
     .venv/bin/python benchmarks/bench_register.py --size large --scenes 6 --photos 8 \
         --tiers rough_same_light,rough_changed_light,rough_changed_untextured \
@@ -507,6 +518,35 @@ def untextured(scene: Scene) -> Scene:
     return bare
 
 
+def dump_trials(path: Path, reg, truth) -> None:
+    """Every trial's pose and matches beside the truth (``--dump``): the error
+    estimate can then be studied on many poses without re-registering."""
+    arrays: dict[str, np.ndarray] = {
+        "true_R": truth.pose.R, "true_t": truth.pose.t, "K": truth.intrinsics.K,
+        "size": np.array([truth.intrinsics.width, truth.intrinsics.height]),
+        "check_xyz": truth.check_xyz, "check_pixels": truth.check_pixels,
+        "best": np.array(-1 if reg.best_trial is None else reg.best_trial)}
+    for k, t in enumerate(reg.trials):
+        c = t.correspondences
+        if t.pose is None or c is None or c.xyz is None:
+            continue
+        use = c.lifted & c.feature_inlier
+        arrays[f"t{k}_R"], arrays[f"t{k}_t"] = t.pose.R, t.pose.t
+        arrays[f"t{k}_xyz"], arrays[f"t{k}_uv"] = c.xyz[use], c.photo_points[use]
+        arrays[f"t{k}_render_uv"] = c.render_points[use]
+        arrays[f"t{k}_info"] = np.array([t.origin, t.matcher, t.render_mode, str(t.verified),
+                                         str(t.residual_flow_px)])
+        if t.uncertainty is not None:
+            arrays[f"t{k}_unc"] = np.array([t.uncertainty.reprojection_px,
+                                            t.uncertainty.position_m, t.uncertainty.rotation_deg])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **arrays)
+
+
+#: Folder of :func:`dump_trials` files (``--dump``), None: not written.
+DUMP_DIR: Path | None = None
+
+
 def evaluate(scene: Scene, photo_path: Path, method: str) -> dict:
     truth = load_truth(photo_path)
     photo = load_photo(photo_path)
@@ -516,6 +556,9 @@ def evaluate(scene: Scene, photo_path: Path, method: str) -> dict:
     with (_without_uncertainty_gate() if method == "before" else contextlib.nullcontext()):
         reg = register(scene, photo.image, prior, params, photo_path.name)
     seconds = time.perf_counter() - t0
+    if DUMP_DIR is not None:
+        dump_trials(DUMP_DIR / f"{'bare-' if scene.name.endswith('(untextured)') else ''}{photo_path.parent.name}-{photo_path.parent.parent.parent.name}-"
+                    f"{photo_path.stem}-{method}.npz", reg, truth)
     cp = _check_point_errors(reg, truth)
     cp = np.where(np.isfinite(cp), cp, 1e6)  # behind the camera: a miss
     cp_med = float(np.median(cp))
@@ -737,6 +780,13 @@ def calibration_plot(rows: list[dict], path: Path, method: str = "ours") -> None
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.2, 4.4), dpi=110)
+    # Every trial's pose (the wrong ones too): the estimate over the whole range.
+    tp = [(max(t["uncertainty_px"], 0.05), min(max(t["cp_median_px"], 0.05), 1e3))
+          for r in rows if r["method"] in (method, "before") for t in r.get("trials", [])
+          if t.get("uncertainty_px") is not None and t.get("cp_median_px") is not None]
+    if tp:
+        ax.scatter(*zip(*tp), s=9, color="#9e9e9e", alpha=0.6,
+                   label=f"trial poses ({method} and before)", zorder=1)
     tiers = sorted({r["tier"] for r in rows})
     for tier in tiers:
         sel = [r for r in rows if r["method"] == method and r["tier"] == tier
@@ -773,16 +823,25 @@ def calibration_plot(rows: list[dict], path: Path, method: str = "ours") -> None
 def rough_report(rows: list[dict], meta: dict, plot: Path | None, report_path: Path | None) -> str:
     """The markdown section of the rough tiers: verdicts per method, and the calibration."""
     start, end = ROUGH_MARKS
+    sp = RoughSpec()
+
+    def rng(v, unit=""):
+        return f"{v[0]:g}–{v[1]:g}{unit}"
     lines = [start, "## Rough outcrops under another sun (issue 13)", "",
              f"{meta['n_scenes']} scene(s) (seeds {meta['seeds']}, {meta['triangles']:,} triangles, "
              f"photos {meta['photo_size'][0]}×{meta['photo_size'][1]}), {meta['n_per_scene']} cameras "
-             "each. The photos are rendered from a **true surface** with relief the model does not "
-             "resolve (sandstone beds standing 0.4–1.2 m proud, gullies 0.8–2 m deep, 0.15 m "
-             "roughness, bump-mapped grain); the user's model keeps that relief only above 1 m "
+             f"each; sample data version `rough-r{ROUGH_VERSION}`. The photos are rendered from a "
+             "**true surface** with relief the model does not resolve (sandstone beds standing "
+             f"{rng(sp.bed_relief_m, ' m')} proud, gullies {rng(sp.gully_depth_m, ' m')} deep, "
+             f"{sp.roughness_m:g} m roughness, bump-mapped grain of RMS slope {sp.grain_rms_slope:g}); "
+             f"the user's model keeps that relief only above {sp.model_resolution_m:g} m "
              "and its texture was baked under a high diffuse survey light. `rough_changed_light`: "
-             "a low sun (10–40° high, 45–80° off the face's azimuth) and phone effects; EXIF capture "
+             f"a low sun ({rng(sp.sun_elevation_deg, '°')} high, {rng(sp.sun_oblique_deg, '°')} off "
+             f"the face's azimuth, sky light {sp.photo_ambient:g}) and phone effects at strength "
+             f"{sp.phone_strength:g}; EXIF capture "
              "time where that sun is possible at the site, none where not. `rough_same_light`: the "
-             "survey light. Check points: a 12 × 9 grid over the whole frame, on the true surface. "
+             f"survey light. Check points: a {sp.check_grid[0]} × {sp.check_grid[1]} grid over the "
+             "whole frame, on the true surface. "
              "*before*: the pipeline without the independent error estimate's gate (commit "
              "a2c4237's registration). *claims*: `registered` or graded good/excellent.",
              "",
@@ -968,7 +1027,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="per-photo rows, stem of .json/.csv (default: in the cache)")
     parser.add_argument("--from-rows", nargs="+", type=Path, metavar="ROWS.json",
                         help="report from the rows (and .meta.json) of earlier runs, merged")
+    parser.add_argument("--dump", type=Path, default=None,
+                        help="folder for every trial's pose and matches (error-estimate studies)")
     args = parser.parse_args(argv)
+    global DUMP_DIR
+    DUMP_DIR = args.dump
     if args.from_rows:
         return report_from_rows(args.from_rows, args.report)
 
@@ -1037,6 +1100,7 @@ def main(argv: list[str] | None = None) -> int:
                     row = {"tier": tier, "scene_seed": seed, "photo": photo_path.name,
                            **evaluate(model, photo_path, method)}
                     rows.append(row)
+                    write_rows(rows, rows_stem)  # a stopped run keeps what it measured
                     print(
                         f"{tier:13s} seed {seed} {photo_path.name} {method:8s} "
                         f"{row['status']:10s} {row['grade']:9s} cp {row['cp_median_px']:8.2f} px "

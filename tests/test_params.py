@@ -42,7 +42,7 @@ def test_dict_round_trip():
                       "max_iterations", "converged_deg", "converged_m", "auto_adapt",
                       "max_trials", "search_prior", "n_search", "verify",
                       "sun_relight", "edge_align", "dense_refine", "area_match", "area",
-                      "edges", "dense"}
+                      "edges", "dense", "uncertainty", "seed"}
     assert RegistrationParams.from_dict(d) == p
     assert RegistrationParams.from_dict(RegistrationParams().to_dict()) == RegistrationParams()
 

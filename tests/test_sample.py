@@ -458,10 +458,22 @@ def test_rough_conditions_rake_the_face_low_and_obliquely():
     spec = RoughSpec()
     for k in range(20):
         c = rough_conditions(rng_for(5, k), spec, (170.0, 60.0))
-        assert 10.0 <= c.sun_elevation_deg <= 40.0
+        assert 10.0 <= c.sun_elevation_deg <= 25.0  # ROUGH_VERSION 2: a low sun
         off = abs((c.sun_azimuth_deg - 180.0 + 180.0) % 360.0 - 180.0)
         assert 45.0 <= off <= 80.0
         assert c.ambient == spec.photo_ambient and c.shadows
+
+
+def test_rough_tier_version_2_is_the_harsher_one():
+    """The cache key moved with the harsher defaults (issue 13: before's false verdicts)."""
+    from napari_imgreg.sample.rough import ROUGH_VERSION, RoughSpec
+
+    spec = RoughSpec()
+    assert ROUGH_VERSION == "2"
+    assert spec.model_resolution_m == 1.5 and spec.sun_elevation_deg == (10.0, 25.0)
+    assert spec.grain_rms_slope == 0.45 and spec.roughness_m == 0.2
+    assert spec.phone_strength == 0.9
+    assert spec.bed_relief_m == (0.4, 1.2)  # beds as the issue describes them
 
 
 def test_rough_scene_model_true_surface_and_check_points_over_the_frame(cheap_pair, tmp_path):

@@ -18,6 +18,7 @@ from .pose import PoseParams
 from .stages.area import AreaParams
 from .stages.dense import DenseParams
 from .stages.edges import EdgeParams
+from .uncertainty import UncertaintyParams
 from ..validate import FieldValueError, check_ranges
 
 __all__ = ["RegistrationParams", "load_params"]
@@ -107,6 +108,15 @@ class RegistrationParams:
         search range come from the prior's ``sigma``).
     dense : DenseParams
         Settings of the MI refinement (here stopped after 6 s, not 10 s).
+    uncertainty : UncertaintyParams
+        Settings of the pose's independent error estimate (split-half
+        cross-validation), which a verified pose must keep small.
+    seed : int
+        Seed of every random draw of a registration (OpenCV's RNG for FLANN,
+        USAC and RANSAC at the start of each round, the perturbed priors, the
+        error estimate's simulated matches), [0, 2³¹ − 1]: the same photo,
+        model and parameters give the same result whatever ran before.
+        Default 0.
     """
 
     # Wallis on both images by default: it pulls the photo's and the render's
@@ -138,6 +148,8 @@ class RegistrationParams:
     area: AreaParams = field(default_factory=AreaParams)
     edges: EdgeParams = field(default_factory=EdgeParams)
     dense: DenseParams = field(default_factory=_registration_dense)
+    uncertainty: UncertaintyParams = field(default_factory=UncertaintyParams)
+    seed: int = 0
 
     #: Inclusive valid range of each numeric field, used alike by ``--params``
     #: files, the GUI and code (:func:`~napari_imgreg.validate.param_range`);
@@ -150,6 +162,7 @@ class RegistrationParams:
         "converged_m": (0.0, 100.0),
         "max_trials": (1, 50),
         "n_search": (0, 1000),
+        "seed": (0, 2**31 - 1),
     }
 
     def __post_init__(self) -> None:
@@ -186,6 +199,7 @@ class RegistrationParams:
             area=replace(self.area),
             edges=replace(self.edges),
             dense=replace(self.dense),
+            uncertainty=replace(self.uncertainty),
         )
 
     def to_dict(self) -> dict:
@@ -214,6 +228,7 @@ class RegistrationParams:
             "area": AreaParams,
             "edges": EdgeParams,
             "dense": DenseParams,
+            "uncertainty": UncertaintyParams,
         }
         names = {f.name for f in fields(cls)}
         kwargs = {}

@@ -614,7 +614,8 @@ def register_photo(
     if not best.verified and params.search_prior and not (untextured and robust):
         # Search the prior's uncertainty at reduced resolution, one round each.
         candidates = [_above_ground(scene, c)[0]
-                      for c in _perturbed_priors(prior, params.n_search, start=start_prior)]
+                      for c in _perturbed_priors(prior, params.n_search, seed=params.seed,
+                                                       start=start_prior)]
         search_width = min(params.match_width, 800)
         scored = []
         for k, cand in enumerate(candidates):

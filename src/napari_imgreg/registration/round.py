@@ -372,6 +372,7 @@ def pose_round(
     params: PoseParams,
     given_pose: Pose | None = None,
     timings: dict[str, float] | None = None,
+    rng_seed: int = 0,
 ) -> Round:
     """A round's second half: the pose from the lifted matches, and the round's metrics.
 
@@ -389,6 +390,8 @@ def pose_round(
         the same metrics, for a hand-made pose.
     timings : dict, optional
         Its ``"pose"`` entry gets the seconds spent.
+    rng_seed : int
+        Seed of RANSAC (``RegistrationParams.seed``).
 
     Returns
     -------
@@ -397,7 +400,8 @@ def pose_round(
     m = matched
     t0 = perf_counter()
     if given_pose is None:
-        estimate = estimate_pose(intrinsics, m.xyz[m.lifted], m.photo_points[m.lifted], params)
+        estimate = estimate_pose(intrinsics, m.xyz[m.lifted], m.photo_points[m.lifted], params,
+                                 rng_seed=rng_seed)
     else:
         estimate = pose_agreement(intrinsics, given_pose, m.xyz[m.lifted],
                                   m.photo_points[m.lifted], params)
@@ -444,10 +448,13 @@ def score_round(
         correlate clearly), the lifted ones and the pose's inliers; area
         rounds add ``area_width_px`` and ``area_search_px``.
     """
+    # Reproducible: FLANN's trees and USAC draw from OpenCV's global RNG; each
+    # round starts it from the params' seed, whatever ran before.
+    cv2.setRNGSeed(int(params.seed))
     matched = match_round(source, pose, params, width, matcher=matcher, near=near,
                           search_px=search_px, mode=mode)
     return pose_round(matched, source.intrinsics, params.pose, None if solve else pose,
-                      source.timings)
+                      source.timings, rng_seed=int(params.seed))
 
 
 def round_metrics(points_photo: int, points_render: int, inlier: np.ndarray,
@@ -620,6 +627,7 @@ def trial_from_round(
         :data:`~napari_imgreg.registration.uncertainty.UNCERTAIN_PX` is not
         verified (so never "registered", never graded above "fair").
     uncertainty_params : UncertaintyParams, optional
+        Default ``params.uncertainty``.
 
     Returns
     -------
@@ -640,7 +648,8 @@ def trial_from_round(
         use = corr.lifted & corr.feature_inlier
         uncertainty = estimate_uncertainty(
             intrinsics, pose, corr.xyz[use], corr.photo_points[use],
-            frame_points(last.rendered.xyz), uncertainty_params, params.pose)
+            frame_points(last.rendered.xyz), uncertainty_params or params.uncertainty,
+            params.pose, rng_seed=int(params.seed))
     uncertain = uncertainty is not None and not uncertainty.is_small(image_width)
     flow_verified = verified
     verified = verified and not uncertain

@@ -66,7 +66,7 @@ __all__ = [
 ]
 
 #: Bump when what :func:`build_rough_scene` writes changes (cache key).
-ROUGH_VERSION = "1"
+ROUGH_VERSION = "2"  # 2: harsher changed light (model 1.5 m, sun 10–25°, grain, phone)
 
 #: Random streams of this module (see :func:`napari_imgreg.sample.noise.rng_for`).
 _S_GRAIN, _S_BEDS, _S_GULLIES, _S_ROUGH, _S_LIGHT = 8100, 8200, 8300, 8400, 8500
@@ -94,25 +94,26 @@ class RoughSpec:
     gully_depth_m, gully_width_m : (float, float)
         Depth and half-width of each gully. Defaults (0.8, 2.0), (0.8, 2.5).
     roughness_m : float
-        RMS of the face's roughness at 0.4–1.5 m (ground: a third). Default 0.15.
+        RMS of the face's roughness at 0.4–1.5 m (ground: a third). Default 0.2.
     grain_rms_slope : float
-        RMS slope of the bump-mapped grain below the grid (per texel). Default 0.35.
+        RMS slope of the bump-mapped grain below the grid (per texel). Default 0.45.
     model_resolution_m : float
         The user's model keeps relief only above this scale (Gaussian sigma of
         the smoothing of the relief): what a decimated photogrammetric model
-        resolves. Default 1.0.
+        resolves. Default 1.5.
     survey_sun_azimuth_deg, survey_sun_elevation_deg, survey_ambient : float
         The survey day's light the model's texture is baked under: high and
         diffuse. Defaults 170, 60, 0.75.
     sun_elevation_deg : (float, float)
-        The photos' sun: elevation range. Default (10, 40).
+        The photos' sun: elevation range. Default (10, 25): a low sun, whose
+        shading of the unresolved relief moves keypoints most.
     sun_oblique_deg : (float, float)
         ... and how far its azimuth is from the face's outward direction
         (east or west, drawn), raking the face. Default (45, 80).
     phone_strength : float
         Strength of the phone's effects (exposure, gamma, white balance,
         vignetting, noise, blur, JPEG; :meth:`PhotoConditions.from_rng`), [0, 1].
-        Default 0.8.
+        Default 0.9.
     photo_ambient : float
         Sky light of the photos' day (lower: harder shadows). Default 0.25.
     check_grid : (int, int)
@@ -132,15 +133,15 @@ class RoughSpec:
     n_gullies: int = 12
     gully_depth_m: tuple[float, float] = (0.8, 2.0)
     gully_width_m: tuple[float, float] = (0.8, 2.5)
-    roughness_m: float = 0.15
-    grain_rms_slope: float = 0.35
-    model_resolution_m: float = 1.0
+    roughness_m: float = 0.2
+    grain_rms_slope: float = 0.45
+    model_resolution_m: float = 1.5
     survey_sun_azimuth_deg: float = 170.0
     survey_sun_elevation_deg: float = 60.0
     survey_ambient: float = 0.75
-    sun_elevation_deg: tuple[float, float] = (10.0, 40.0)
+    sun_elevation_deg: tuple[float, float] = (10.0, 25.0)
     sun_oblique_deg: tuple[float, float] = (45.0, 80.0)
-    phone_strength: float = 0.8
+    phone_strength: float = 0.9
     photo_ambient: float = 0.25
     check_grid: tuple[int, int] = (12, 9)
     exif_max_miss_deg: float = 0.5
