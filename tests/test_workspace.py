@@ -544,3 +544,150 @@ def test_the_state_is_plain_data(ws):
     assert saved["pairs"]["photo_px"] == [[10.0, 20.0], [30.0, 40.0]]
     assert saved["sun"]["source"] == "hand setting"
     assert data["params"] == json.loads(json.dumps(ws.params.to_dict()))
+
+
+# ------------------------------------------------------------ the campaign
+def _fake_pipeline(monkeypatch, fail=(), calls=None, cancel_at=None):
+    """Stand in for the registration pipeline: the true pose (a "good"
+    registration) in two progress steps; photos named in ``fail`` raise;
+    ``cancel_at`` (a photo name) raises Cancelled half-way through it."""
+    from napari_imgreg.registration import pipeline
+    from napari_imgreg.registration.pipeline import Progress
+
+    def register_photo(scene, image, prior, params, photo_name="", cancelled=None):
+        if calls is not None:
+            calls.append(photo_name)
+        yield Progress("match", 0.5, "matching")
+        if photo_name == cancel_at:
+            raise Cancelled()
+        if photo_name in fail:
+            raise ValueError(f"{photo_name}: cannot be read")
+        ps = next(p for p in ws_of[0].photos if p.name == photo_name)
+        return _recorded_registration(ps)
+
+    ws_of = [None]
+    monkeypatch.setattr(pipeline, "register_photo", register_photo)
+    return ws_of
+
+
+def test_register_all_records_every_photo_and_a_rerun_skips_them(ws, monkeypatch):
+    calls = []
+    ws_of = _fake_pipeline(monkeypatch, fail=("IMG_0002.jpg",), calls=calls)
+    ws_of[0] = ws
+    rec = Recorder(ws)
+    progress = []
+    summary = ws.register_all(on_progress=progress.append)
+    assert calls == ["IMG_0001.jpg", "IMG_0002.jpg", "IMG_0003.jpg"]
+    assert (summary.total, summary.done, summary.registered, summary.skipped) == (3, 3, 2, 0)
+    assert len(summary.failed) == 1 and summary.failed[0].startswith("IMG_0002.jpg: ")
+    assert "cannot be read" in summary.failed[0]
+    assert not summary.cancelled
+    # Overall progress, monotonic, in the three photos' thirds.
+    fractions = [p.fraction for p in progress]
+    assert fractions == pytest.approx([0.5 / 3, 1.5 / 3, 2.5 / 3])
+    assert "IMG_0003.jpg (3/3)" in progress[-1].message
+    _first, second, third = ws.photos
+    # A photo not current gets its registered pose too (an undoable edit).
+    assert third is not ws.current and third.pose is third.registration.pose
+    assert third.history.label == "Auto 1 (good)"
+    assert second.registration is None and second.pose is second.prior.pose
+    assert [ws.photo_status(p) for p in ws.photos] == ["registered", "not registered",
+                                                      "registered"]
+    assert rec.names().count("trials_changed") == 2
+
+    # Resume: only the one that did not register runs again.
+    calls.clear()
+    summary = ws.register_all()
+    assert calls == ["IMG_0002.jpg"] and summary.skipped == 2 and summary.total == 1
+    assert summary.failed and ws.photo_status(second) == "not registered"
+
+
+def test_cancelling_register_all_leaves_the_finished_photos_and_resumes(ws, monkeypatch, tmp_path):
+    calls = []
+    ws_of = _fake_pipeline(monkeypatch, calls=calls, cancel_at="IMG_0002.jpg")
+    ws_of[0] = ws
+    ws.save(tmp_path / "c.imgreg")
+    summary = ws.register_all()
+    assert summary.cancelled and summary.done == 1 and calls == ["IMG_0001.jpg", "IMG_0002.jpg"]
+    assert [ws.photo_status(p) for p in ws.photos] == ["registered", "not registered",
+                                                      "not registered"]
+    ws.detach()
+    # What is on disk is what was finished: the first photo, registered.
+    back = Workspace.open(tmp_path / "c.imgreg", scene=ws.scene, terrain=ws.terrain,
+                          autosave=False)
+    assert [back.photo_status(p) for p in back.photos] == ["registered", "not registered",
+                                                          "not registered"]
+    assert np.allclose(back.photos[0].pose.R, ws.photos[0].pose.R)
+    # Resume from the reopened workspace: the two left.
+    ws_of[0] = back
+    calls.clear()
+    _fake_pipeline(monkeypatch, calls=calls)[0] = back
+    summary = back.register_all()
+    assert calls == ["IMG_0002.jpg", "IMG_0003.jpg"] and summary.registered == 2
+
+    # Cancelled before it starts: nothing is touched.
+    job = ws.register_all_job(cancelled=lambda: True)
+    out = list(job.run())
+    assert out == [] and all(ws.photo_status(p) != "accepted" for p in ws.photos)
+
+
+def test_photo_summary_and_the_next_photo_needing_attention(ws):
+    first, second, third = ws.photos
+    assert [ws.photo_status(p) for p in ws.photos] == ["not registered"] * 3
+    row = ws.photo_summary(first)
+    assert (row.status, row.grade, row.attention) == ("not registered", "", True)
+    assert np.isnan(row.q) and np.isnan(row.reprojection_px) and np.isnan(row.time_s)
+    assert ws.next_needing_attention() == 1  # after the current one (0), going round
+
+    from napari_imgreg.registration.uncertainty import Uncertainty
+
+    reg = _recorded_registration(first)
+    reg.uncertainty = Uncertainty(reprojection_px=1.5, position_m=0.2, rotation_deg=0.1,
+                                  splits=4)
+    ws.record_registration(reg, "Auto")
+    row = ws.photo_summary(first)
+    assert (row.status, row.grade, row.q, row.reprojection_px, row.time_s, row.attention) == \
+        ("registered", "good", 0.5, 1.5, 1.0, False)
+    ws.select_photo(1)
+    assert ws.next_needing_attention() == 2
+    ws.accept()  # the second photo, as it is
+    assert ws.photo_status(second) == "accepted" and not ws.needs_attention(second)
+    assert ws.next_needing_attention() == 2
+    # A large uncertainty needs a look even at grade good.
+    reg3 = _recorded_registration(third)
+    reg3.uncertainty = Uncertainty(reprojection_px=12.0, position_m=2.0, rotation_deg=1.0,
+                                   splits=4)
+    ws.record_registration(reg3, "Auto", third, pose_if_not_current=True)
+    assert ws.needs_attention(third) and ws.next_needing_attention() == 2
+    ws.accept(third)
+    assert ws.next_needing_attention() is None
+    # Editing an accepted pose takes the acceptance back.
+    ws.nudge("turn left 1", d_trend=-1.0)
+    assert ws.photo_status(second) == "not registered" and ws.next_needing_attention() == 1
+    ws.select_next()
+    assert ws.current is third
+    ws.select_next()
+    assert ws.current is first
+    ws.select_next(-1)
+    assert ws.current is third
+
+
+def test_adopting_an_opened_workspace_keeps_saving_into_its_folder(ws, tmp_path):
+    folder = tmp_path / "c.imgreg"
+    ws.select_photo(1)
+    ws.accept()
+    ws.save(folder)
+    ws.detach()
+    opened = Workspace.open(folder, scene=ws.scene, terrain=ws.terrain)
+    view = Workspace()  # the workbench's, with views following it
+    rec = Recorder(view)
+    view.adopt(opened)
+    assert view.folder == folder.resolve() and opened.folder is None and opened.photos == []
+    assert [p.name for p in view.photos] == [p.name for p in ws.photos]
+    assert view.current.name == "IMG_0002.jpg" and view.photo_status(view.current) == "accepted"
+    assert {"scene_changed", "photos_changed", "photo_changed"} <= set(rec.names())
+    view.nudge("turn right 1", d_trend=1.0)  # saved as it happens
+    view.detach()
+    back = Workspace.open(folder, scene=ws.scene, terrain=ws.terrain, autosave=False)
+    assert back.current.name == "IMG_0002.jpg"
+    assert np.allclose(back.current.pose.R, view.current.pose.R) and not back.current.accepted

@@ -72,6 +72,7 @@ from .interpret.project import (
 )
 from .interpret.structural import Measurement
 from .io import workspace_files as wsfiles
+from .io.exif import exif_orientation
 from .io.photos import Photo, load_photo
 from .io.records import Sigma
 from .prior import Prior, prior_for_photo, save_pose_to_record
@@ -92,6 +93,10 @@ __all__ = [
     "PhotoState",
     "TrialRecord",
     "Job",
+    "PhotoSummary",
+    "BatchStep",
+    "BatchSummary",
+    "PHOTO_STATUSES",
     "WorkbenchError",
     "one_line",
     "read_scene",
@@ -206,6 +211,9 @@ class PhotoState:
         The last sun read from the photo.
     interpretations : list of Interpretation
         Features drawn on the photo, pixels.
+    accepted : bool
+        The user accepted its current pose (:meth:`Workspace.accept`): it no
+        longer needs attention until the pose changes again.
     """
 
     photo: Photo
@@ -226,6 +234,7 @@ class PhotoState:
     sun_override_source: str = ""
     sun_estimate: SunEstimate | None = None
     interpretations: list[Interpretation] = field(default_factory=list)
+    accepted: bool = False
     _convergence: float | None = None
 
     @property
@@ -297,6 +306,95 @@ class PhotoState:
                 {"geometry": item.geometry, "pixels": np.asarray(item.pixels).tolist(),
                  "properties": dict(item.properties)} for item in self.interpretations],
         }
+
+
+#: What :meth:`Workspace.photo_status` says of a photo.
+PHOTO_STATUSES = ("not registered", "failed", "registered", "accepted")
+#: Grades a registered photo needs to need no attention.
+GOOD_GRADES = ("excellent", "good")
+#: A registered photo whose estimated reprojection error is above this (pixels) needs attention.
+ATTENTION_REPROJECTION_PX = 5.0
+
+
+@dataclass
+class PhotoSummary:
+    """One row of the photos table.
+
+    Attributes
+    ----------
+    name : str
+    status : str
+        One of :data:`PHOTO_STATUSES`.
+    grade : str
+        Of its last registration (or selected trial); "" before any.
+    q : float
+        Its Q, in [-1.9, 1.9]; NaN before any.
+    reprojection_px : float
+        ``uncertainty.reprojection_px`` of its last registration, pixels
+        (NaN: not estimated).
+    time_s : float
+        Its last registration's total time, seconds (NaN: none).
+    attention : bool
+        :meth:`Workspace.needs_attention`.
+    """
+
+    name: str
+    status: str
+    grade: str
+    q: float
+    reprojection_px: float
+    time_s: float
+    attention: bool
+
+
+@dataclass
+class BatchStep:
+    """One photo's end in a Register all (yielded by its job's ``run``).
+
+    Attributes
+    ----------
+    photo : PhotoState
+    registration : Registration or None
+        None when it raised (``error`` says why).
+    error : str
+    kind : str
+        "Auto" or "Run".
+    index, total : int
+        Its place in the batch (from 0) and the batch's size.
+    """
+
+    photo: PhotoState
+    registration: Registration | None
+    error: str
+    kind: str
+    index: int
+    total: int
+
+
+@dataclass
+class BatchSummary:
+    """The end of a Register all.
+
+    Attributes
+    ----------
+    total : int
+        Photos it set out to register.
+    skipped : int
+        Photos left alone (registered or accepted already).
+    done : int
+        Photos it finished (registered or not).
+    registered : int
+    failed : list of str
+        One line per photo that did not register.
+    cancelled : bool
+    """
+
+    total: int = 0
+    skipped: int = 0
+    done: int = 0
+    registered: int = 0
+    failed: list[str] = field(default_factory=list)
+    cancelled: bool = False
 
 
 @dataclass
@@ -480,6 +578,8 @@ class Workspace:
     interpretations_changed = Signal(object)
     #: The interpretations were projected (``features_3d``, ``measurements``).
     projection_changed = Signal()
+    #: A photo was accepted, or its accepted pose changed (the photo).
+    accepted_changed = Signal(object)
     #: Saving into the workspace folder failed (one line: the file and why);
     #: the state in memory is intact and the next change tries again.
     autosave_failed = Signal(str)
@@ -601,7 +701,14 @@ class Workspace:
     # --------------------------------------------------------------- pose
     def _push(self, pose: Pose, label: str, why: str) -> None:
         self.current.history.push(pose, label)
+        self._pose_edited_by_hand(self.current)
         self.pose_changed.emit(why)
+
+    def _pose_edited_by_hand(self, ps: PhotoState) -> None:
+        """A pose the user had accepted changed: it needs a look again."""
+        if ps.accepted:
+            ps.accepted = False
+            self.accepted_changed.emit(ps)
 
     def set_pose(self, pose: Pose, label: str, continuing: bool = False) -> None:
         """Change the current photo's pose: an undoable edit named ``label``,
@@ -611,6 +718,7 @@ class Workspace:
             return
         if continuing:
             ps.history.replace(pose)
+            self._pose_edited_by_hand(ps)
             self.pose_changed.emit(label)
         else:
             self._push(pose, label, label)
@@ -658,6 +766,7 @@ class Workspace:
     def undo(self) -> bool:
         """Take back the last pose edit; False when there is none."""
         if self.current is not None and self.current.history.undo() is not None:
+            self._pose_edited_by_hand(self.current)
             self.pose_changed.emit("undo")
             return True
         return False
@@ -665,6 +774,7 @@ class Workspace:
     def redo(self) -> bool:
         """Re-apply the last undone pose edit; False when there is none."""
         if self.current is not None and self.current.history.redo() is not None:
+            self._pose_edited_by_hand(self.current)
             self.pose_changed.emit("redo")
             return True
         return False
@@ -685,7 +795,11 @@ class Workspace:
         ps = self.current
         if ps is None:
             return None
-        camera = ps.intrinsics if ps.intrinsics != ps.prior.intrinsics else None
+        # The record is marked as describing the photo as shown, so for an
+        # EXIF-turned photo the sensor-frame camera block must be replaced too
+        # (left as it is, an off-centre principal point would read mirrored).
+        turned = (exif_orientation(ps.photo.exif) or 1) != 1
+        camera = ps.intrinsics if turned or ps.intrinsics != ps.prior.intrinsics else None
         save_pose_to_record(ps.record_path, ps.pose, camera=camera)
         return ps.record_path
 
@@ -756,10 +870,16 @@ class Workspace:
         return self.registration_job(auto)(on_progress)
 
     def record_registration(self, reg: Registration, kind: str = "Run",
-                            ps: PhotoState | None = None) -> Registration:
+                            ps: PhotoState | None = None,
+                            pose_if_not_current: bool = False) -> Registration:
         """Record a registration of a photo: its trials join the photo's history
         (the best one selected) and, if it registered and the photo is still
-        current, its pose becomes the current pose (an undoable edit)."""
+        current, its pose becomes the current pose (an undoable edit).
+
+        ``pose_if_not_current``: the registered pose becomes the photo's pose
+        (an undoable edit of its history) even when another photo is current
+        (Register all: the user looks at one photo while the others register).
+        """
         ps = ps if ps is not None else self.current
         ps.runs += 1
         ps.registration = reg
@@ -767,8 +887,12 @@ class Workspace:
         for t in reg.trials:
             ps.trials.append(TrialRecord(t, ps.runs, kind))
         best = first + next((k for k, t in enumerate(reg.trials) if t.index == reg.best_trial), 0)
+        label = f"{kind} {ps.runs} ({reg.grade})"
         if reg.registered and ps is self.current:
-            self._push(reg.pose, f"{kind} {ps.runs} ({reg.grade})", "registration")
+            self._push(reg.pose, label, "registration")
+        elif reg.registered and pose_if_not_current:
+            ps.history.push(reg.pose, label)
+            self._pose_edited_by_hand(ps)
         ps.selected_trial = best
         self.trials_changed.emit()
         if ps is self.current:
@@ -1117,6 +1241,225 @@ class Workspace:
         return self.features_3d
 
     # -------------------------------------------------------------- saving
+    # ------------------------------------------------------- the campaign
+    def photo_status(self, ps: PhotoState) -> str:
+        """Where a photo stands: one of :data:`PHOTO_STATUSES`.
+
+        "accepted" (the user accepted its pose), "registered" (the last
+        registration, automatic or manual, verified its pose), "failed" (it
+        was tried and did not), "not registered" (never tried).
+        """
+        if ps.accepted:
+            return "accepted"
+        reg = ps.registration
+        manual_ok = ps.manual_solution is not None and ps.manual_solution.ok
+        if (reg is not None and reg.registered) or (reg is None and manual_ok):
+            return "registered"
+        if reg is not None or ps.manual_solution is not None or ps.runs:
+            return "failed"
+        return "not registered"
+
+    def photo_summary(self, ps: PhotoState) -> PhotoSummary:
+        """What the photos table shows of a photo (see :class:`PhotoSummary`)."""
+        reg = ps.registration
+        rec = ps.trials[ps.selected_trial] if (ps.selected_trial is not None
+                                               and 0 <= ps.selected_trial < len(ps.trials)) else None
+        grade, q = "", math.nan
+        if reg is not None:
+            grade, q = reg.grade, float(reg.q)
+        elif rec is not None:
+            grade, q = rec.trial.grade, float(rec.trial.q)
+        unc = getattr(reg, "uncertainty", None) if reg is not None else None
+        reproj = float(unc.reprojection_px) if unc is not None else math.nan
+        secs = float(reg.timings_s.get("total", math.nan)) if reg is not None else math.nan
+        return PhotoSummary(name=ps.name, status=self.photo_status(ps), grade=grade, q=q,
+                            reprojection_px=reproj, time_s=secs,
+                            attention=self.needs_attention(ps))
+
+    def needs_attention(self, ps: PhotoState) -> bool:
+        """True while a photo waits for the user: not accepted and not
+        registered at grade good or better (never tried, failed, poor or
+        fair, or an uncertainty above ``ATTENTION_REPROJECTION_PX``)."""
+        if ps.accepted:
+            return False
+        reg = ps.registration
+        if reg is None or not reg.registered:
+            return True
+        if reg.grade not in GOOD_GRADES:
+            return True
+        unc = getattr(reg, "uncertainty", None)
+        return bool(unc is not None and np.isfinite(unc.reprojection_px)
+                    and unc.reprojection_px > ATTENTION_REPROJECTION_PX)
+
+    def next_needing_attention(self, after: int | None = None) -> int | None:
+        """The index of the next photo that needs attention after photo
+        ``after`` (default: the current one), going round; the photo itself
+        last. None when none does."""
+        n = len(self.photos)
+        if not n:
+            return None
+        start = self.current_index if after is None else after
+        start = -1 if start is None else start
+        for step in range(1, n + 1):
+            k = (start + step) % n
+            if self.needs_attention(self.photos[k]):
+                return k
+        return None
+
+    def select_next(self, step: int = 1) -> None:
+        """Make the next (``step`` 1) or previous (-1) photo current, going round."""
+        if not self.photos:
+            return
+        k = self.current_index
+        self.select_photo(0 if k is None else (k + step) % len(self.photos))
+
+    def accept(self, ps: PhotoState | None = None) -> bool:
+        """The user accepts the photo's current pose (default: the current
+        photo's); it no longer needs attention until its pose changes.
+        False without a photo."""
+        ps = ps if ps is not None else self.current
+        if ps is None:
+            return False
+        if not ps.accepted:
+            ps.accepted = True
+            self.accepted_changed.emit(ps)
+        return True
+
+    def photos_to_register(self, redo: bool = False) -> list[PhotoState]:
+        """The photos Register all works on: those not yet registered (never
+        tried, or tried and failed), in order; ``redo`` every photo not accepted."""
+        if redo:
+            return [ps for ps in self.photos if not ps.accepted]
+        return [ps for ps in self.photos if self.photo_status(ps) in ("not registered", "failed")]
+
+    def register_all_job(self, auto: bool = True, redo: bool = False,
+                         cancelled: Callable[[], bool] | None = None) -> Job:
+        """Register every photo still to register (:meth:`photos_to_register`),
+        one after the other, each from its own current pose.
+
+        The job's ``run`` is a generator: it yields
+        :class:`~napari_imgreg.registration.pipeline.Progress` (``fraction``
+        over the whole batch) and, as each photo ends, a :class:`BatchStep`
+        to record where the workspace lives (:meth:`record_batch_step`), so
+        each finished photo is recorded and saved before the next one starts.
+        Cancelling (``cancelled()`` true) stops within the running photo's
+        registration; photos already recorded stay recorded, the running one
+        is left as it was, and a new Register all resumes with the rest. It
+        returns a :class:`BatchSummary`; ``apply`` returns it unchanged.
+
+        Raises
+        ------
+        WorkbenchError
+            No scene, or feature parameters that do not make a detector.
+        """
+        scene = self.require_scene()
+        try:
+            FeatureParams.from_dict(self.params.features.to_dict())
+        except (KeyError, ValueError, TypeError) as exc:
+            raise WorkbenchError(one_line(exc)) from exc
+        todo = self.photos_to_register(redo)
+        params = self.params.copy()
+        params.auto_adapt = auto
+        if not auto:
+            params.search_prior = False
+            params.max_trials = 1
+        # Captured now: the GUI may edit the photos while the batch runs.
+        work = [(ps, ps.photo.image, self.registration_prior(ps)) for ps in todo]
+        kind = "Auto" if auto else "Run"
+        is_cancelled = cancelled or (lambda: False)
+
+        def run():
+            summary = BatchSummary(total=len(work), skipped=len(self.photos) - len(work))
+            for k, (ps, image, prior) in enumerate(work):
+                if is_cancelled():
+                    summary.cancelled = True
+                    return summary
+                share = 1.0 / max(len(work), 1)
+                steps = pipeline.register_photo(scene, image, prior, params,
+                                                photo_name=ps.name, cancelled=cancelled)
+                try:
+                    while True:
+                        progress = next(steps)
+                        yield pipeline.Progress(
+                            "register all", (k + float(progress.fraction)) * share,
+                            f"{ps.name} ({k + 1}/{len(work)}): {progress.message}")
+                except StopIteration as stop:
+                    reg, error = stop.value, ""
+                except pipeline.Cancelled:
+                    summary.cancelled = True
+                    return summary
+                except Exception as exc:  # noqa: BLE001 - one bad photo does not stop the batch
+                    reg, error = None, one_line(exc)
+                summary.done += 1
+                if reg is not None and reg.registered:
+                    summary.registered += 1
+                else:
+                    summary.failed.append(f"{ps.name}: {error or 'not registered'}")
+                yield BatchStep(ps, reg, error, kind, k, len(work))
+            return summary
+
+        return Job("register all", run, lambda summary: summary,
+                   f"Registering {len(work)} photo(s)", None)
+
+    def record_batch_step(self, step: BatchStep) -> None:
+        """Record one photo's registration of a Register all (its pose becomes
+        the photo's when it registered, even when it is not current)."""
+        if step.registration is not None and step.photo in self.photos:
+            self.record_registration(step.registration, step.kind, step.photo,
+                                     pose_if_not_current=True)
+
+    def register_all(self, auto: bool = True, redo: bool = False,
+                     cancelled: Callable[[], bool] | None = None,
+                     on_progress: Callable | None = None) -> BatchSummary:
+        """Register every photo still to register (blocking); see :meth:`register_all_job`."""
+        job = self.register_all_job(auto, redo, cancelled)
+        steps = job.run()
+        try:
+            while True:
+                item = next(steps)
+                if isinstance(item, BatchStep):
+                    self.record_batch_step(item)
+                elif on_progress is not None:
+                    on_progress(item)
+        except StopIteration as stop:
+            return stop.value
+        except pipeline.Cancelled:
+            return BatchSummary(cancelled=True)
+
+    def adopt(self, other: Workspace) -> None:
+        """Take over the state of another workspace (one just opened from a
+        folder, e.g. in a worker), and its folder binding: this workspace is
+        then saved there, its views see the new state through its events.
+
+        Whatever folder this workspace was saved into is released first (its
+        files stay as they are); ``other`` is left empty and unbound.
+        """
+        self.detach()
+        store, other._store = other._store, None
+        if store is not None:
+            store.disconnect()
+        self.scene, self.terrain = other.scene, other.terrain
+        self.scene_files = dict(other.scene_files)
+        self.params = other.params
+        self.photos, self.current = list(other.photos), None
+        self.features_3d, self.measurements = other.features_3d, other.measurements
+        self.open_problems = list(other.open_problems)
+        current = other.current_index
+        other.photos, other.current, other.scene = [], None, None
+        # The views follow the events; the folder is bound after them, so that
+        # they write nothing (it holds this very state already).
+        if self.scene is not None:
+            self.scene_changed.emit()
+        self.params_changed.emit()
+        self.photos_changed.emit()
+        if self.photos:
+            self.select_photo(current if current is not None else 0)
+        self.projection_changed.emit()
+        if store is not None:
+            store.ws = self
+            self._store = store
+            store.connect()
+
     def to_dict(self) -> dict:
         """What a saved workspace will hold (JSON-ready; images and the model
         are referred to by path)."""
@@ -1174,6 +1517,13 @@ class Workspace:
         self._store = store
         store.connect()
         return wsfiles.manifest_path(folder)
+
+    def flush_manifest(self) -> None:
+        """Write the manifest (the parameters edited in place) into the workspace
+        folder; nothing happens when it is not saved. A failure is reported
+        through ``autosave_failed``."""
+        if self._store is not None:
+            self._store._guarded(self._store.save_manifest)
 
     def flush(self) -> None:
         """Write what changed without an event (the parameters edited in place)
@@ -1448,6 +1798,7 @@ def _photo_doc(ps: PhotoState, folder: Path, has_matches: bool) -> dict:
         "manual_solution": (None if ps.manual_solution is None
                             else _manual_to_dict(ps.manual_solution)),
         "registration": registration,
+        "accepted": bool(ps.accepted),
         "files": {"trials": wsfiles.PHOTO_TRIALS, "lines": wsfiles.PHOTO_LINES,
                   "correspondences": wsfiles.PHOTO_MATCHES if has_matches else None},
     }
@@ -1521,6 +1872,7 @@ class _FolderStore:
                 (ws.pose_changed, self._on_current), (ws.pairs_changed, self._on_current),
                 (ws.reference_changed, self._on_current), (ws.trial_selected, self._on_current),
                 (ws.sun_changed, self._on_photo), (ws.interpretations_changed, self._on_photo),
+                (ws.accepted_changed, self._on_accepted),
                 (ws.trials_changed, self._on_trials)):
             signal.connect(slot)
             self._connected.append((signal, slot))
@@ -1569,6 +1921,10 @@ class _FolderStore:
         # A sun (photo.json) or a drawing (LINES.geojson).
         if isinstance(ps, PhotoState):
             self._guarded(lambda: self.save_photo(ps, ("lines", "state")))
+
+    def _on_accepted(self, ps=None, *_) -> None:
+        if isinstance(ps, PhotoState):
+            self._guarded(lambda: self.save_photo(ps, ("state",)))
 
     def _on_trials(self, *_) -> None:
         # trials_changed does not say which photo: the ones whose trials changed.
@@ -1751,6 +2107,7 @@ def _read_photo(folder: Path, entry: dict, inline: dict | None,
         ps.sun_estimate = _sun_estimate_from_dict(state["sun_estimate"])
     if state.get("manual_solution"):
         ps.manual_solution = _manual_from_dict(state["manual_solution"])
+    ps.accepted = bool(state.get("accepted", False))
     registration = state.get("registration")
     if registration and inline is None:
         result = wsfiles.read_json_file(here / registration.get("result", wsfiles.PHOTO_RESULT))

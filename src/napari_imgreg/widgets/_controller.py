@@ -60,6 +60,8 @@ from ._layers import (
     world_from_napari,
 )
 from ..workspace import (
+    BatchStep,
+    BatchSummary,
     Job,
     PhotoState,
     WorkbenchError,
@@ -102,6 +104,8 @@ CAMERA_MARKER, CAMERA_FRUSTUM = 0.012, 0.035
 PREVIEW_WIDTH = 400
 #: Idle time after the last pose edit before the full-resolution render, ms.
 FULL_RENDER_DELAY_MS = 350
+#: Idle time after the last parameter edit before it is saved into the workspace folder, ms.
+PARAMS_SAVE_DELAY_MS = 500
 #: Render layer names: as textured, and relit for the photo's sun.
 RENDER_NAMES = {"plain": "render", "sunlit": "render (sun-lit)"}
 #: Correspondence lines drawn at most (an even sample of them).
@@ -466,12 +470,22 @@ class WorkbenchController(QObject):
     busy_changed = Signal()
     status = Signal(str)
     failed = Signal(str, str)  # job, one-line message
+    accepted_changed = Signal(object)  # the photo accepted (or no longer)
+    batch_started = Signal(int)  # Register all: photos to register
+    batch_progress = Signal(float, str)  # fraction of the whole batch, message
+    batch_photo_done = Signal(object)  # BatchStep, recorded
+    batch_finished = Signal(object)  # BatchSummary (None when it failed)
+    loading = Signal(str)  # what is being loaded ("" when done): the Scene tab's busy bar
+    workspace_folder_changed = Signal()  # saved into, opened from, or released a folder
 
     def __init__(self, viewer: napari.viewer.Viewer, workspace: Workspace | None = None) -> None:
         super().__init__()
         self.viewer = viewer
         #: The state the docks show and edit (Qt-free).
         self.workspace = workspace if workspace is not None else Workspace()
+        # A workspace made here is released (its folder's lock) with the docks;
+        # a script's own one is left as it is.
+        self._owns_workspace = workspace is None
         #: Every long job runs here.
         self.jobs = JobRunner(self)
         self.layers = _Layers(viewer)
@@ -498,6 +512,11 @@ class WorkbenchController(QObject):
         self._full_timer.setSingleShot(True)
         self._full_timer.setInterval(FULL_RENDER_DELAY_MS)
         self._full_timer.timeout.connect(lambda: self.request_render(full=True))
+        # Parameters are edited in place by the docks: saved once the edits pause.
+        self._params_timer = QTimer(self)
+        self._params_timer.setSingleShot(True)
+        self._params_timer.setInterval(PARAMS_SAVE_DELAY_MS)
+        self._params_timer.timeout.connect(self._save_params)
         viewer.dims.events.ndisplay.connect(self._on_ndisplay)
         self.jobs.busy_changed.connect(self.busy_changed.emit)
         self.jobs.status.connect(self.status.emit)
@@ -514,6 +533,8 @@ class WorkbenchController(QObject):
             (ws.reference_changed, self._on_reference_changed),
             (ws.pairs_changed, self._on_pairs_changed),
             (ws.sun_changed, self._on_sun_changed),
+            (ws.accepted_changed, self.accepted_changed.emit),
+            (ws.autosave_failed, self._on_autosave_failed),
         ]
         for event, handler in self._followed:
             event.connect(handler)
@@ -665,9 +686,15 @@ class WorkbenchController(QObject):
             return
         self._closed = True
         self._full_timer.stop()
+        if self._params_timer.isActive():
+            self._params_timer.stop()
+            self._save_params()
         self.jobs.shutdown()
         for event, handler in self._followed:  # the workspace may live on (a script's)
             event.disconnect(handler)
+        if self._owns_workspace:
+            # Everything is saved already; the folder may be opened again.
+            self.workspace.detach()
         try:
             self.viewer.dims.events.ndisplay.disconnect(self._on_ndisplay)
         except (TypeError, ValueError, RuntimeError):  # pragma: no cover
@@ -681,10 +708,13 @@ class WorkbenchController(QObject):
 
         def done(value):
             if value is None:
+                self.loading.emit("")
                 return
             scene, terrain = value
             self.workspace.load_scene(scene, terrain,
                                       {"mesh": mesh, "dem": dem, "georef": georef})
+            if not photos:
+                self.loading.emit("")
             self.status.emit(f"opened {scene.name}: {scene.n_faces:,} triangles"
                              + (", DEM" if scene.dem is not None else "")
                              + (f", {scene.georef.crs}" if scene.georef is not None else ""))
@@ -693,22 +723,184 @@ class WorkbenchController(QObject):
             if photos:
                 self.add_photos(photos)
 
-        self.status.emit(f"opening {Path(mesh).name}…")
+        message = f"opening {Path(mesh).name} (reading the model, building its ray engine)…"
+        self.status.emit(message)
+        self.loading.emit(message)
         # pyproj is touched (georeference, DEM): in a thread Python owns.
         self._start("open scene", in_python_thread, read_scene, mesh, dem, georef,
-                    on_returned=done, progress={"desc": f"Opening {Path(mesh).name}"})
+                    on_returned=done, on_failed=lambda msg: self.loading.emit(""),
+                    progress={"desc": f"Opening {Path(mesh).name}", "total": 0})
 
     def open_sample(self) -> None:
         """The generated sample outcrop with its DEM and its photos."""
 
         def done(folder):
             if folder is None:
+                self.loading.emit("")
                 return
             self.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif",
                             photos=sorted(folder.glob("IMG_*.jpg")))
 
+        message = ("generating the sample outcrop (the first time takes about half a "
+                   "minute; later it is read back)…")
+        self.status.emit(message)
+        self.loading.emit(message)
+        # total 0: napari shows a busy (indeterminate) bar in its activity dock.
         self._start("sample", in_python_thread, sample_scene, "small", on_returned=done,
-                    progress={"desc": "Sample scene"})
+                    on_failed=lambda msg: self.loading.emit(""),
+                    progress={"desc": "Sample scene", "total": 0})
+
+    # ----------------------------------------------------------- workspace
+    @property
+    def workspace_folder(self) -> Path | None:
+        """The folder the workspace is saved into as it changes (None: not saved)."""
+        return self.workspace.folder
+
+    def _on_autosave_failed(self, message: str) -> None:
+        self.notify_error(f"autosave failed (the work in the window is intact; the next "
+                          f"change tries again): {message}")
+
+    def params_edited(self) -> None:
+        """A dock edited the parameters in place: saved once the edits pause."""
+        if self.workspace.folder is not None:
+            self._params_timer.start()
+
+    def _save_params(self) -> None:
+        self.workspace.flush_manifest()
+
+    def save_workspace(self, folder: str | Path) -> Path | None:
+        """Save the whole workspace into ``folder`` (a new ``*.imgreg`` folder,
+        or the one it came from) and keep saving every change there."""
+        folder = Path(folder)
+        if folder.suffix != ".imgreg" and not (folder / "workspace.json").exists():
+            folder = folder.with_name(folder.name + ".imgreg")
+        try:
+            manifest = self.workspace.save(folder)
+        except (InputError, OSError) as exc:
+            self.notify_error(one_line(exc))
+            return None
+        self.status.emit(f"saved {folder.name}: every change is now saved there as it happens")
+        self.workspace_folder_changed.emit()
+        return manifest
+
+    def open_workspace(self, folder: str | Path) -> None:
+        """Open a workspace folder in a worker (its model, photos, poses,
+        trials, control points and drawings), then show it here and keep
+        saving it as it changes."""
+        folder = Path(folder)
+        if self.workspace.folder is not None and self.workspace.folder == folder.resolve():
+            self.status.emit(f"{folder.name} is open already")
+            return
+        if self.is_running("register all"):
+            self.notify_error("Cancel Register all before opening another workspace.")
+            return
+
+        def done(opened):
+            self.loading.emit("")
+            if opened is None:
+                return
+            self.jobs.cancel("registration", "manual", "sun", "reference")
+            self.workspace.adopt(opened)
+            ws = self.workspace
+            self.status.emit(f"opened {folder.name}: {len(ws.photos)} photo(s), "
+                             f"{sum(ws.photo_status(p) in ('registered', 'accepted') for p in ws.photos)}"
+                             " registered; every change is saved there as it happens")
+            for problem in ws.open_problems:
+                self.notify_error(f"{folder.name}: {problem}")
+            self.workspace_folder_changed.emit()
+
+        message = f"opening the workspace {folder.name} (model, photos, their work)…"
+        self.status.emit(message)
+        self.loading.emit(message)
+        # pyproj is touched (georeference, DEM): in a thread Python owns.
+        self._start("open workspace", in_python_thread, Workspace.open, folder,
+                    on_returned=done, on_failed=lambda msg: self.loading.emit(""),
+                    progress={"desc": f"Opening {folder.name}", "total": 0})
+
+    # ------------------------------------------------------------- campaign
+    def select_next(self, step: int = 1) -> None:
+        """The next (``step`` 1) or previous (-1) photo, going round."""
+        self.workspace.select_next(step)
+
+    def next_needing_attention(self) -> int | None:
+        """Go to the next photo that needs attention (see
+        :meth:`~napari_imgreg.workspace.Workspace.needs_attention`); returns its index."""
+        k = self.workspace.next_needing_attention()
+        if k is None:
+            self.status.emit("no photo needs attention: every photo is registered "
+                             "(good or better) or accepted")
+            return None
+        ps = self.photos[k]
+        if ps is not self.current:
+            self.select_photo(k)
+        self.status.emit(f"{ps.name}: {self.workspace.photo_status(ps)}"
+                         + (f" ({ps.registration.grade})" if ps.registration else "")
+                         + " — needs attention")
+        return k
+
+    def accept(self) -> None:
+        """Accept the current photo's pose and go to the next photo needing attention."""
+        ps = self.current
+        if not self.workspace.accept():
+            self.notify_error("Load a scene and a photo first.")
+            return
+        self.status.emit(f"{ps.name}: pose accepted")
+        k = self.workspace.next_needing_attention()
+        if k is not None and self.photos[k] is not ps:
+            self.select_photo(k)
+
+    def register_all(self, auto: bool = True, redo: bool = False) -> None:
+        """Register every photo not yet registered, one after the other, in a
+        background worker (progress, Cancel; a new Register all resumes)."""
+        if self.is_running("register all"):
+            return
+        if self.is_running("registration"):
+            self.notify_error("A registration is running: wait for it, or cancel it.")
+            return
+        cancelled = self.jobs.cancel_token("register all")
+        job = self._job(lambda: self.workspace.register_all_job(auto, redo, cancelled=cancelled))
+        if job is None:
+            return
+        todo = len(self.workspace.photos_to_register(redo))
+        if todo == 0:
+            self.status.emit("Register all: every photo is registered already")
+            self.batch_finished.emit(BatchSummary(skipped=len(self.photos)))
+            return
+
+        def yielded(item):
+            if isinstance(item, BatchStep):
+                self.workspace.record_batch_step(item)
+                reg = item.registration
+                what = (f"{reg.status} ({reg.grade}, Q = {reg.q:.2f})" if reg is not None
+                        else f"failed: {item.error}")
+                self.status.emit(f"{item.photo.name} ({item.index + 1}/{item.total}): {what}")
+                self.batch_photo_done.emit(item)
+            else:
+                self.batch_progress.emit(float(item.fraction), item.message)
+
+        def done(summary):
+            if summary is None:  # cancelled before the first yield
+                summary = BatchSummary(total=todo, cancelled=True)
+            said = (f"Register all {'cancelled' if summary.cancelled else 'done'}: "
+                    f"{summary.registered} of {summary.done} registered"
+                    + (f", {summary.skipped} skipped (done before)" if summary.skipped else "")
+                    + (f"; {summary.total - summary.done} left: Register all resumes"
+                       if summary.cancelled else ""))
+            self.status.emit(said)
+            self.batch_progress.emit(summary.done / max(summary.total, 1), said)
+            self.batch_finished.emit(summary)
+
+        self.batch_started.emit(todo)
+        self.status.emit(f"Register all: {todo} photo(s) to register…")
+        self._start("register all", job.run, on_returned=done, on_yielded=yielded,
+                    on_failed=lambda msg: self.batch_finished.emit(None),
+                    progress={"total": 100, "desc": job.description})
+
+    def cancel_register_all(self) -> None:
+        """Stop Register all within the running photo (the finished ones stay)."""
+        if self.is_running("register all"):
+            self.jobs.cancel("register all")
+            self.status.emit("cancelling Register all…")
 
     # ------------------------------------------------------------- photos
     def add_photos(self, paths: list) -> None:
@@ -721,15 +913,21 @@ class WorkbenchController(QObject):
         paths = [Path(p) for p in paths]
 
         def done(value):
+            self.loading.emit("")
             if value is None:
                 return
             loaded, errors = value
             self.workspace.add_loaded_photos(loaded)
+            self.status.emit(f"{len(loaded)} photo(s) loaded")
             for msg in errors:
                 self.notify_error(msg)
 
+        message = f"loading {len(paths)} photo(s) and their priors…"
+        self.status.emit(message)
+        self.loading.emit(message)
         self._start("load photos", in_python_thread, read_photos, paths, scene,
-                    on_returned=done, progress={"desc": f"Loading {len(paths)} photo(s)"})
+                    on_returned=done, on_failed=lambda msg: self.loading.emit(""),
+                    progress={"desc": f"Loading {len(paths)} photo(s)", "total": 0})
 
     def select_photo(self, index: int) -> None:
         """Make a photo current: show it, its pose's render, its pairs and trials."""
@@ -914,6 +1112,9 @@ class WorkbenchController(QObject):
         """Register the current photo from its current pose: one trial (Run) or
         trials adapted by the rules (Auto), in a worker with progress and Cancel."""
         if self.is_running("registration"):
+            return
+        if self.is_running("register all"):
+            self.notify_error("Register all is running: wait for it, or cancel it.")
             return
         cancelled = self.jobs.cancel_token("registration")
         job = self._job(lambda: self.workspace.registration_job(auto, cancelled=cancelled))

@@ -54,7 +54,12 @@ from ..registration.features import DESCRIPTORS, DETECTORS, PRESETS, available
 from ..registration.filters import FilterParams
 from ..io.photos import PHOTO_SUFFIXES
 from ..registration.manual import MIN_PAIRS, MIN_PAIRS_FOCAL
+from ..registration.params import RegistrationParams
+from ..registration.pose import PoseParams
+from ..registration.features import FeatureParams
+from ..validate import param_range
 from ._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
+from ._shortcuts import key_of
 
 __all__ = ["ScenePanel", "PosePanel", "FiltersPanel", "RegisterPanel", "SunBox", "ManualPanel",
            "TerrainMapCanvas", "sun_source_text"]
@@ -81,6 +86,20 @@ def _spin(lo: float, hi: float, decimals: int = 2, step: float = 1.0,
     if suffix:
         box.setSuffix(suffix)
     return box
+
+
+def _declared_range(box, settings, name: str) -> None:
+    """Give a spin box (or slider) the declared range of a parameter
+    (``RANGES`` of its dataclass, :func:`~napari_imgreg.validate.param_range`):
+    the GUI offers exactly what a ``--params`` file may hold."""
+    bounds = param_range(settings, name)
+    if bounds is None:
+        return
+    lo, hi = bounds
+    if isinstance(box, (QSpinBox, QLabeledSlider)) and not isinstance(box, QLabeledDoubleSlider):
+        box.setRange(int(math.ceil(lo)), int(min(math.floor(hi), 2**31 - 1)))
+    else:
+        box.setRange(float(lo), float(hi))
 
 
 def _set_quietly(widget, value) -> None:
@@ -136,6 +155,14 @@ class ScenePanel(QWidget):
         self.sample_button.setToolTip("The generated sample cliff with its DEM and three photos")
         self.scene_label = QLabel("No model yet.")
         self.scene_label.setWordWrap(True)
+        # Busy while a model, the sample or photos load (the first sample takes ~30 s).
+        self.loading_bar = QProgressBar()
+        self.loading_bar.setRange(0, 0)
+        self.loading_bar.setTextVisible(False)
+        self.loading_bar.setMaximumHeight(8)
+        self.loading_bar.setVisible(False)
+        self.loading_label = _hint("")
+        self.loading_label.setVisible(False)
         for edit in (self.mesh_edit, self.dem_edit, self.georef_edit):
             edit.setMinimumWidth(120)
 
@@ -175,6 +202,8 @@ class ScenePanel(QWidget):
         model_layout.addLayout(form)
         model_layout.addLayout(buttons)
         model_layout.addWidget(self.scene_label)
+        model_layout.addWidget(self.loading_bar)
+        model_layout.addWidget(self.loading_label)
         photo_box = QGroupBox("Photos")
         photo_layout = QVBoxLayout(photo_box)
         photo_layout.addWidget(_hint("Each photo's prior comes from its sensor record (the .json "
@@ -204,7 +233,16 @@ class ScenePanel(QWidget):
         controller.scene_changed.connect(self._scene_changed)
         controller.photos_changed.connect(self._photos_changed)
         controller.photo_changed.connect(self._photo_changed)
+        controller.loading.connect(self._loading)
         self._scene_changed()
+
+    def _loading(self, message: str) -> None:
+        """Say what is loading, with a busy bar; "" when it is over."""
+        self.loading_bar.setVisible(bool(message))
+        self.loading_label.setVisible(bool(message))
+        self.loading_label.setText(message[:1].upper() + message[1:])
+        for button in (self.open_button, self.sample_button):
+            button.setEnabled(not message)
 
     def _file(self, title: str, filt: str) -> str:
         path, _ = QFileDialog.getOpenFileName(self, title, "", filt)
@@ -534,7 +572,7 @@ class PosePanel(QWidget):
         ]
         for k, (key, text, amounts) in enumerate(spec):
             b = QPushButton(text)
-            b.setToolTip(f"{key} by one step")
+            b.setToolTip(f"{key} by one step (key {key_of(key)} over the canvas)")
             b.clicked.connect(lambda _=False, key=key, a=amounts: self.nudge(key, **a))
             self.nudge_buttons[key] = b
             grid.addWidget(b, k // 4, k % 4)
@@ -700,6 +738,7 @@ class FilterEditor(QWidget):
                 w = QLabeledDoubleSlider(Qt.Orientation.Horizontal)
                 w.setRange(lo, hi)
                 w.setDecimals(dec)
+            _declared_range(w, FilterParams, name)  # FIELDS' lo/hi: where none is declared
             w.valueChanged.connect(lambda v, name=name: self._changed(name, v))
             self.widgets[name] = w
             group = name.split("_")[0] if name.startswith(("wallis", "clahe")) else "basic"
@@ -747,6 +786,7 @@ class FilterEditor(QWidget):
             value = float(value)
         setattr(self.params, name, value)
         self._enable()
+        self.ctrl.params_edited()
         self.on_edit(self.which)
 
     def reset(self) -> None:
@@ -754,6 +794,7 @@ class FilterEditor(QWidget):
         for name in fresh.to_dict():
             setattr(self.params, name, getattr(fresh, name))
         self.refresh()
+        self.ctrl.params_edited()
         self.on_edit(self.which)
 
 
@@ -840,22 +881,29 @@ class RegisterPanel(QWidget):
         self.max_features_spin = QSpinBox()
         self.max_features_spin.setRange(500, 50_000)
         self.max_features_spin.setSingleStep(500)
+        _declared_range(self.max_features_spin, FeatureParams, "max_features")
         self.threshold_spin = _spin(0.05, 4.0, 2, 0.1)
         self.threshold_spin.setToolTip(
             "× the detector's default threshold: < 1 finds more, weaker points")
+        _declared_range(self.threshold_spin, FeatureParams, "threshold_scale")
         self.ratio_spin = _spin(0.5, 0.95, 2, 0.05)
+        _declared_range(self.ratio_spin, FeatureParams, "ratio")
         self.symmetric_check = QCheckBox("mutual best matches")
         self.model_combo = QComboBox()
         for name in ("fundamental", "homography", "none"):
             self.model_combo.addItem(name, name)
         self.geom_spin = _spin(0.5, 20.0, 1, 0.5, " px")
+        _declared_range(self.geom_spin, FeatureParams, "geometric_threshold_px")
         self.pnp_spin = _spin(1.0, 50.0, 1, 1.0, " px")
+        _declared_range(self.pnp_spin, PoseParams, "reprojection_error_px")
         self.width_spin = QSpinBox()
         self.width_spin.setRange(256, 8192)
         self.width_spin.setSingleStep(128)
         self.width_spin.setSuffix(" px")
+        _declared_range(self.width_spin, RegistrationParams, "match_width")
         self.trials_spin = QSpinBox()
         self.trials_spin.setRange(1, 12)
+        _declared_range(self.trials_spin, RegistrationParams, "max_trials")
         self.search_check = QCheckBox("search the prior's uncertainty when nothing registers")
         self.verify_check = QCheckBox("verify (converged, photo and render agree)")
         # Illumination-robust stages: tried in this order when keypoints do not verify.
@@ -920,9 +968,11 @@ class RegisterPanel(QWidget):
 
         self.run_button = QPushButton("Run")
         self.run_button.setToolTip("One trial with these parameters, from the current pose "
-                                   "(then the checked stages below it if it does not verify)")
+                                   "(then the checked stages below it if it does not verify); "
+                                   f"key {key_of('run')}")
         self.auto_button = QPushButton("Auto")
-        self.auto_button.setToolTip("Trials adapted by the rules until the grade is good")
+        self.auto_button.setToolTip("Trials adapted by the rules until the grade is good; "
+                                    f"key {key_of('auto')}")
         self.cancel_button = QPushButton("Cancel")
         self.cancel_button.setEnabled(False)
         buttons = QHBoxLayout()
@@ -1015,6 +1065,7 @@ class RegisterPanel(QWidget):
     def _set(self, group: str | None, name: str, value) -> None:
         target = self.ws.params if group is None else getattr(self.ws.params, group)
         setattr(target, name, value)
+        self.ctrl.params_edited()
         if group == "features":
             self._match_preset()
         elif name == "sun_relight":
@@ -1025,6 +1076,7 @@ class RegisterPanel(QWidget):
         if not name:
             return
         self.ws.params.features = replace(PRESETS[name])
+        self.ctrl.params_edited()
         self.refresh()
 
     def _match_preset(self) -> None:

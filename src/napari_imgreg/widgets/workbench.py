@@ -15,6 +15,14 @@ they show: ``workbench.controller.workspace``):
 * **Registration quality** (under the canvas): the seven metrics, Q and grade,
   hints, suggested parameters and the trial history.
 
+Above the tabs, the workspace bar opens and saves a workspace folder
+(``campaign.imgreg/``, see docs/workspace.md); once saved or opened, every
+change is saved there as it happens (through the workspace's own autosave).
+The *Photos* tab is the campaign's table (:mod:`._photos_table`) with
+Register all; the keyboard shortcuts are :mod:`._shortcuts`'. The same
+open/save are in napari's File menu (File → IO utilities), and dropping a
+``*.imgreg`` folder onto napari opens it here (:func:`get_workspace_reader`).
+
 The canvas shows the photo on the left and the render from the current pose
 on the right (2D), or the textured model with the cameras (3D).
 
@@ -28,22 +36,40 @@ from __future__ import annotations
 import logging
 from typing import TYPE_CHECKING
 
-from qtpy.QtCore import Qt, QTimer
-from qtpy.QtWidgets import QLabel, QMainWindow, QScrollArea, QTabWidget, QVBoxLayout, QWidget
+from pathlib import Path
 
+from qtpy.QtCore import Qt, QTimer
+from qtpy.QtWidgets import (
+    QFileDialog,
+    QHBoxLayout,
+    QLabel,
+    QMainWindow,
+    QPushButton,
+    QScrollArea,
+    QTabWidget,
+    QVBoxLayout,
+    QWidget,
+)
+
+from ..io import workspace_files as wsfiles
+from . import _shortcuts
 from ._controller import WorkbenchController, controller_for
 from ._panels import FiltersPanel, ManualPanel, PosePanel, RegisterPanel, ScenePanel
+from ._photos_table import PhotosTable
 from ._quality import QualityPanel
 from .interpret_widget import InterpretWidget
 
 if TYPE_CHECKING:
     import napari
 
-__all__ = ["Workbench", "QualityDock", "WORKBENCH_NAME", "QUALITY_NAME", "INTERPRET_TAB"]
+__all__ = ["Workbench", "QualityDock", "WORKBENCH_NAME", "QUALITY_NAME", "INTERPRET_TAB",
+           "PHOTOS_TAB", "workbench_for", "get_workspace_reader", "open_workspace_dialog",
+           "save_workspace_dialog"]
 
 WORKBENCH_NAME = "Registration workbench"
 QUALITY_NAME = "Registration quality"
 INTERPRET_TAB = "Interpret"
+PHOTOS_TAB = "Photos"
 
 
 def _scrolled(widget: QWidget) -> QScrollArea:
@@ -76,12 +102,14 @@ class Workbench(QWidget):
         self.filters_panel = FiltersPanel(self.controller)
         self.register_panel = RegisterPanel(self.controller)
         self.manual_panel = ManualPanel(self.controller)
+        self.photos_table = PhotosTable(self.controller)
         self.interpret_placeholder = QLabel(
             "Interpretation tools (draw traces and polygons on the registered photo, "
             "project them onto the model, measure) dock here when installed.")
         self.interpret_placeholder.setWordWrap(True)
         self.tabs = QTabWidget()
-        for panel, name in ((self.scene_panel, "Scene"), (self.pose_panel, "Pose"),
+        for panel, name in ((self.scene_panel, "Scene"), (self.photos_table, PHOTOS_TAB),
+                            (self.pose_panel, "Pose"),
                             (self.filters_panel, "Filters"), (self.register_panel, "Register"),
                             (self.manual_panel, "Manual"),
                             (self.interpret_placeholder, INTERPRET_TAB)):
@@ -89,13 +117,46 @@ class Workbench(QWidget):
         self.status_label = QLabel("")
         self.status_label.setWordWrap(True)
         self.status_label.setStyleSheet("color: #bdbdbd; font-size: 11px;")
+        # The workspace bar: where the work is saved.
+        self.open_workspace_button = QPushButton("Open workspace…")
+        self.open_workspace_button.setToolTip(
+            "Open a workspace folder (*.imgreg): the model, the photos and everything done to "
+            "them. Dropping the folder onto napari does the same.")
+        self.save_workspace_button = QPushButton("Save workspace as…")
+        self.save_workspace_button.setToolTip(
+            "Save everything into a new workspace folder (*.imgreg); from then on every change "
+            "is saved there as it happens")
+        self.workspace_label = QLabel("")
+        self.workspace_label.setWordWrap(True)
+        self.workspace_label.setStyleSheet("font-size: 11px;")
+        bar = QHBoxLayout()
+        bar.addWidget(self.open_workspace_button)
+        bar.addWidget(self.save_workspace_button)
+        self.keys_label = QLabel("Keys: " + _shortcuts.help_text(
+            ("turn left", "turn right", "run", "accept", "next", "attention", "undo"))
+            + " … (all: hover here)")
+        self.keys_label.setWordWrap(True)
+        self.keys_label.setStyleSheet("color: #9e9e9e; font-size: 10px;")
+        self.keys_label.setToolTip("<b>Keyboard shortcuts</b> (click the canvas first)<br>"
+                                   + _shortcuts.help_text(sep="<br>"))
         layout = QVBoxLayout(self)
         layout.setContentsMargins(2, 2, 2, 2)
+        layout.addLayout(bar)
+        layout.addWidget(self.workspace_label)
         layout.addWidget(self.tabs, 1)
+        layout.addWidget(self.keys_label)
         layout.addWidget(self.status_label)
         self.quality: QualityPanel | None = None
         self.interpret_widget: QWidget | None = None
         self.controller.status.connect(self.status_label.setText)
+        self.controller.workspace_folder_changed.connect(self._show_folder)
+        self.open_workspace_button.clicked.connect(lambda: open_workspace_dialog(self.viewer, self))
+        self.save_workspace_button.clicked.connect(lambda: save_workspace_dialog(self.viewer, self))
+        self._show_folder()
+        #: Keys another binding of this viewer holds already (not bound here).
+        self.keys_not_bound = _shortcuts.install(napari_viewer, self)
+        prefer_workspace_reader()
+        self.destroyed.connect(lambda *_: _uninstall_quietly(napari_viewer))
         self.controller.attach(self)
         self._try_interpret_widget()
         if dock_quality:
@@ -159,6 +220,17 @@ class Workbench(QWidget):
         if i >= 0:
             combo.setCurrentIndex(i)
 
+    def _show_folder(self) -> None:
+        folder = self.controller.workspace_folder
+        if folder is None:
+            self.workspace_label.setText(
+                "<span style='color:#ffb74d'>Not saved</span>: Save workspace as… keeps the "
+                "photos, poses, trials, control points and drawings (then saved as you work).")
+        else:
+            self.workspace_label.setText(
+                f"<span style='color:#91cf60'>Workspace</span> <b>{folder.name}</b> "
+                f"({folder.parent}): every change is saved as it happens.")
+
     def show_tab(self, name: str) -> None:
         for i in range(self.tabs.count()):
             if self.tabs.tabText(i) == name:
@@ -179,6 +251,122 @@ class QualityDock(QWidget):
         layout = QVBoxLayout(self)
         layout.setContentsMargins(2, 2, 2, 2)
         layout.addWidget(_scrolled(self.panel))
+
+
+def _uninstall_quietly(viewer) -> None:
+    try:
+        _shortcuts.uninstall(viewer)
+    except (RuntimeError, AttributeError, TypeError):  # pragma: no cover - viewer gone
+        pass
+
+
+# ---------------------------------------------- opening and saving workspaces
+def workbench_for(viewer: napari.viewer.Viewer) -> Workbench:
+    """The viewer's workbench dock (docked, with its quality panel, when there is none)."""
+    existing = _find_dock(viewer, WORKBENCH_NAME)
+    if isinstance(existing, Workbench):
+        return existing
+    return Workbench.add_to_viewer(viewer)
+
+
+def open_workspace_dialog(viewer: napari.viewer.Viewer | None = None,
+                          parent: QWidget | None = None) -> None:
+    """Ask for a workspace folder (``*.imgreg``) and open it in the workbench.
+
+    The File menu's "Open workspace…" (File → IO utilities); without a
+    viewer, napari's current one.
+    """
+    viewer = viewer if viewer is not None else _current_viewer()
+    wb = workbench_for(viewer)
+    folder = QFileDialog.getExistingDirectory(parent or wb, "Open workspace (a *.imgreg folder)")
+    if folder:
+        if not wsfiles.is_workspace(folder):
+            wb.controller.notify_error(f"{folder}: no workspace.json: not a workspace folder")
+            return
+        wb.controller.open_workspace(folder)
+
+
+def save_workspace_dialog(viewer: napari.viewer.Viewer | None = None,
+                          parent: QWidget | None = None) -> None:
+    """Ask for a new workspace folder and save the workbench's workspace into it.
+
+    The File menu's "Save workspace as…"; ``.imgreg`` is added to the name.
+    """
+    viewer = viewer if viewer is not None else _current_viewer()
+    wb = workbench_for(viewer)
+    start = str(wb.controller.workspace_folder or Path.home() / "campaign.imgreg")
+    folder, _ = QFileDialog.getSaveFileName(parent or wb, "Save workspace as (a new folder)",
+                                            start, "Workspace folder (*.imgreg)")
+    if folder:
+        wb.controller.save_workspace(folder)
+
+
+def menu_open_workspace() -> None:
+    """File → IO utilities → Open workspace (napari's current viewer)."""
+    open_workspace_dialog(_current_viewer())
+
+
+def menu_save_workspace() -> None:
+    """File → IO utilities → Save workspace as (napari's current viewer)."""
+    save_workspace_dialog(_current_viewer())
+
+
+def _current_viewer():
+    import napari
+
+    viewer = napari.current_viewer()
+    if viewer is None:  # pragma: no cover - napari's menus always have one
+        raise RuntimeError("no napari viewer")
+    return viewer
+
+
+#: The pattern of workspace folders in napari's reader preferences (napari
+#: matches a folder with its trailing separator).
+WORKSPACE_PATTERN = "*.imgreg/"
+
+
+def prefer_workspace_reader() -> bool:
+    """Make napari-imgreg napari's reader of ``*.imgreg`` folders, unless the
+    user chose another one (napari's builtin reader also claims folders, so
+    dropping one would ask which reader to use). Returns True when set here.
+
+    ``*.imgreg`` is napari-imgreg's own extension: no other reader reads it.
+    """
+    try:
+        from napari.settings import get_settings
+
+        readers = get_settings().plugins.extension2reader
+        if WORKSPACE_PATTERN in readers:
+            return False
+        get_settings().plugins.extension2reader = {**readers,
+                                                   WORKSPACE_PATTERN: "napari-imgreg"}
+        return True
+    except Exception as exc:  # noqa: BLE001  # pragma: no cover - napari's settings; the dialog remains
+        logging.getLogger(__name__).debug("reader preference not set: %s", exc)
+        return False
+
+
+def get_workspace_reader(path):
+    """napari reader contribution: a ``*.imgreg`` workspace folder opens in the workbench.
+
+    Returns None for anything else (napari then offers other readers).
+    The reader docks the workbench if needed, starts opening the workspace
+    there (in a worker) and gives napari no layer of its own: the workbench
+    makes them.
+    """
+    if isinstance(path, (list, tuple)):
+        if len(path) != 1:
+            return None
+        path = path[0]
+    folder = Path(str(path))
+    if folder.suffix != ".imgreg" or not wsfiles.is_workspace(folder):
+        return None
+
+    def read(_path):
+        workbench_for(_current_viewer()).controller.open_workspace(folder)
+        return [(None,)]  # napari's "read, no layer" sentinel
+
+    return read
 
 
 def _main_window(dock):

@@ -1,0 +1,310 @@
+"""The photos table of the workbench: every photo of the workspace, where it stands.
+
+One row per photo: a thumbnail, its name, its status (not registered,
+failed, registered, accepted), the grade and Q of its last registration, the
+expected reprojection error of its pose (``uncertainty.reprojection_px`` of
+RESULT.json, pixels), and how long its registration took. Click a header to
+sort; click a row to work on that photo. Rows that need attention
+(:meth:`~napari_imgreg.workspace.Workspace.needs_attention`) are marked, and
+"Next needing attention" (key N over the canvas) goes to the next one.
+
+Above it, **Register all** registers every photo not registered yet in the
+background (the one job runner of :mod:`._jobs`), with a progress bar and
+Cancel; each finished photo is recorded (and saved, in a saved workspace)
+before the next starts, so a cancelled batch resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from qtpy.QtCore import QSize, Qt
+from qtpy.QtGui import QColor, QIcon, QImage, QPixmap
+from qtpy.QtWidgets import (
+    QAbstractItemView,
+    QCheckBox,
+    QHBoxLayout,
+    QHeaderView,
+    QLabel,
+    QProgressBar,
+    QPushButton,
+    QTableWidget,
+    QTableWidgetItem,
+    QVBoxLayout,
+    QWidget,
+)
+
+from ..registration.quality import GRADES
+from ..workspace import PhotoState
+from ._controller import WorkbenchController
+from ._shortcuts import key_of
+
+__all__ = ["PhotosTable", "COLUMNS", "THUMBNAIL_WIDTH", "STATUS_COLORS"]
+
+#: The table's columns, left to right.
+COLUMNS = ("", "photo", "status", "grade", "Q", "± px", "time (s)")
+#: Thumbnail width, pixels.
+THUMBNAIL_WIDTH = 60
+#: Text colour of each status.
+STATUS_COLORS = {"not registered": "#bdbdbd", "failed": "#ff6e6e", "registered": "#91cf60",
+                 "accepted": "#4fc3f7"}
+_GRADE_COLORS = {g.name: g.color for g in GRADES}
+_GRADE_RANK = {g.name: k for k, g in enumerate(GRADES)}
+#: Sort order of the statuses (ascending: the ones needing work first).
+_STATUS_ORDER = {"not registered": 0, "failed": 1, "registered": 2, "accepted": 3}
+#: The role holding an item's sort key (numbers sort as numbers, missing ones last).
+SORT_ROLE = Qt.ItemDataRole.UserRole + 1
+#: The role holding the photo's index in the workspace (column 1).
+PHOTO_ROLE = Qt.ItemDataRole.UserRole + 2
+
+
+class _Item(QTableWidgetItem):
+    """A cell that sorts by its sort key, not its text."""
+
+    def __lt__(self, other: QTableWidgetItem) -> bool:
+        a, b = self.data(SORT_ROLE), other.data(SORT_ROLE)
+        if a is None or b is None:
+            return super().__lt__(other)
+        return a < b
+
+
+def _number_key(value: float) -> float:
+    # Missing values (—) sort after every number in ascending order, first in descending.
+    return value if math.isfinite(value) else float("inf")
+
+
+def _thumbnail(image: np.ndarray) -> QPixmap:
+    """A small RGB copy of a photo as a pixmap."""
+    h, w = image.shape[:2]
+    tw = THUMBNAIL_WIDTH
+    th = max(1, int(round(h * tw / max(w, 1))))
+    small = cv2.resize(np.ascontiguousarray(image[..., :3]), (tw, th),
+                       interpolation=cv2.INTER_AREA)
+    small = np.ascontiguousarray(small, dtype=np.uint8)
+    qimage = QImage(small.data, tw, th, 3 * tw, QImage.Format.Format_RGB888)
+    return QPixmap.fromImage(qimage.copy())  # copy: the array is freed
+
+
+class PhotosTable(QWidget):
+    """The photos of the workspace with their status, and Register all (see the
+    module docstring)."""
+
+    def __init__(self, controller: WorkbenchController, parent: QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.ctrl = controller
+        self.ws = controller.workspace  # the state shown here
+        self._thumbs: dict[int, QPixmap] = {}
+        self._filling = False
+
+        self.register_all_button = QPushButton("Register all")
+        self.register_all_button.setToolTip(
+            "Register every photo not registered yet (Auto: trials adapted by the rules), one "
+            "after the other, in the background. Registered and accepted photos are skipped, "
+            "so after Cancel it resumes with the rest.")
+        self.cancel_button = QPushButton("Cancel")
+        self.cancel_button.setEnabled(False)
+        self.cancel_button.setToolTip("Stop within the running photo; finished photos stay")
+        self.redo_check = QCheckBox("redo registered")
+        self.redo_check.setToolTip("Register the registered photos again too (not the accepted)")
+        self.attention_button = QPushButton(f"Next needing attention ({key_of('attention')})")
+        self.attention_button.setToolTip(
+            "The next photo not registered, failed, graded fair or poor, or with a large "
+            "expected error — and not accepted")
+        self.accept_button = QPushButton(f"Accept pose ({key_of('accept')})")
+        self.accept_button.setToolTip(
+            "Accept the current photo's pose as it is (it no longer needs attention until "
+            "the pose changes), then go to the next photo needing attention")
+        top = QHBoxLayout()
+        for w in (self.register_all_button, self.cancel_button, self.redo_check):
+            top.addWidget(w)
+        top.addStretch(1)
+        second = QHBoxLayout()
+        second.addWidget(self.attention_button)
+        second.addWidget(self.accept_button)
+        second.addStretch(1)
+        self.progress = QProgressBar()
+        self.progress.setRange(0, 100)
+        self.progress.setValue(0)
+        self.progress.setFormat("Register all: %p%")
+        self.progress.setVisible(False)
+        self.progress_label = QLabel("")
+        self.progress_label.setWordWrap(True)
+        self.progress_label.setStyleSheet("color: #bdbdbd; font-size: 11px;")
+
+        self.table = QTableWidget(0, len(COLUMNS))
+        self.table.setHorizontalHeaderLabels(list(COLUMNS))
+        self.table.setSelectionBehavior(QAbstractItemView.SelectionBehavior.SelectRows)
+        self.table.setSelectionMode(QAbstractItemView.SelectionMode.SingleSelection)
+        self.table.setEditTriggers(QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.setIconSize(QSize(THUMBNAIL_WIDTH, THUMBNAIL_WIDTH))
+        self.table.verticalHeader().setVisible(False)
+        self.table.setWordWrap(False)
+        self.table.setTextElideMode(Qt.TextElideMode.ElideMiddle)
+        self.table.setSortingEnabled(True)
+        # In the workspace's order until a header is clicked (Qt starts descending).
+        self.table.sortItems(0, Qt.SortOrder.AscendingOrder)
+        self.table.setMinimumHeight(220)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+        header.setMinimumSectionSize(28)
+        for k, tip in ((2, "not registered, failed, registered, or accepted by you"),
+                       (3, "grade of the last registration"),
+                       (4, "quality Q of the last registration, −1.9 … 1.9"),
+                       (5, ("expected reprojection error of the pose, pixels "
+                            "(RESULT.json uncertainty.reprojection_px)")),
+                       (6, "time of the last registration, seconds")):
+            self.table.horizontalHeaderItem(k).setToolTip(tip)
+        self.summary_label = QLabel("")
+        self.summary_label.setWordWrap(True)
+
+        layout = QVBoxLayout(self)
+        layout.addLayout(top)
+        layout.addWidget(self.progress)
+        layout.addWidget(self.progress_label)
+        layout.addWidget(self.table, 1)
+        layout.addWidget(self.summary_label)
+        layout.addLayout(second)
+
+        self.register_all_button.clicked.connect(
+            lambda: controller.register_all(auto=True, redo=self.redo_check.isChecked()))
+        self.cancel_button.clicked.connect(controller.cancel_register_all)
+        self.attention_button.clicked.connect(controller.next_needing_attention)
+        self.accept_button.clicked.connect(controller.accept)
+        self.table.itemSelectionChanged.connect(self._row_chosen)
+        for signal in (controller.photos_changed, controller.trials_changed,
+                       controller.scene_changed):
+            signal.connect(self.refresh)
+        controller.accepted_changed.connect(lambda _ps: self.refresh())
+        controller.photo_changed.connect(self._select_current)
+        controller.batch_started.connect(self._batch_started)
+        controller.batch_progress.connect(self._batch_progress)
+        controller.batch_finished.connect(self._batch_finished)
+        controller.busy_changed.connect(self._busy)
+        self.refresh()
+
+    # ------------------------------------------------------------- rows
+    def thumbnail(self, ps: PhotoState) -> QPixmap:
+        key = id(ps)
+        if key not in self._thumbs:
+            self._thumbs[key] = _thumbnail(ps.photo.image)
+        return self._thumbs[key]
+
+    def refresh(self) -> None:
+        """Rebuild the rows from the workspace (keeping the sort order)."""
+        photos = self.ws.photos
+        live = {id(ps) for ps in photos}
+        self._thumbs = {k: v for k, v in self._thumbs.items() if k in live}
+        self._filling = True
+        sorting = self.table.isSortingEnabled()
+        self.table.setSortingEnabled(False)  # rows move while filled otherwise
+        try:
+            self.table.setRowCount(len(photos))
+            for row, ps in enumerate(photos):
+                self._fill(row, row, ps)
+        finally:
+            self.table.setSortingEnabled(sorting)
+            self._filling = False
+        self._select_current()
+        self._summarise()
+
+    def _fill(self, row: int, index: int, ps: PhotoState) -> None:
+        s = self.ws.photo_summary(ps)
+        thumb = _Item()
+        thumb.setIcon(QIcon(self.thumbnail(ps)))
+        thumb.setData(SORT_ROLE, index)
+        thumb.setSizeHint(QSize(THUMBNAIL_WIDTH + 8, THUMBNAIL_WIDTH * 3 // 4 + 6))
+        name = _Item(("● " if s.attention else "") + s.name)
+        name.setData(SORT_ROLE, s.name)
+        name.setData(PHOTO_ROLE, index)
+        name.setToolTip("needs attention" if s.attention else "")
+        status = _Item(s.status)
+        status.setData(SORT_ROLE, _STATUS_ORDER.get(s.status, 0))
+        status.setForeground(QColor(STATUS_COLORS.get(s.status, "#ffffff")))
+        grade = _Item(s.grade or "—")
+        grade.setData(SORT_ROLE, _GRADE_RANK.get(s.grade, len(GRADES)))  # best first
+        if s.grade in _GRADE_COLORS:
+            grade.setForeground(QColor(_GRADE_COLORS[s.grade]))
+        q = _Item("—" if not math.isfinite(s.q) else f"{s.q:.2f}")
+        q.setData(SORT_ROLE, _number_key(s.q))
+        unc = _Item("—" if not math.isfinite(s.reprojection_px) else f"{s.reprojection_px:.1f}")
+        unc.setData(SORT_ROLE, _number_key(s.reprojection_px))
+        secs = _Item("—" if not math.isfinite(s.time_s) else f"{s.time_s:.1f}")
+        secs.setData(SORT_ROLE, _number_key(s.time_s))
+        for col, item in enumerate((thumb, name, status, grade, q, unc, secs)):
+            if col >= 2:
+                item.setTextAlignment(int(Qt.AlignmentFlag.AlignCenter))
+            self.table.setItem(row, col, item)
+        self.table.setRowHeight(row, THUMBNAIL_WIDTH * 3 // 4 + 6)
+
+    def photo_index_at(self, row: int) -> int | None:
+        """The workspace index of the photo shown in table row ``row``."""
+        item = self.table.item(row, 1)
+        return None if item is None else int(item.data(PHOTO_ROLE))
+
+    def row_of(self, index: int) -> int | None:
+        """The table row showing workspace photo ``index``."""
+        for row in range(self.table.rowCount()):
+            if self.photo_index_at(row) == index:
+                return row
+        return None
+
+    def _summarise(self) -> None:
+        counts: dict[str, int] = {}
+        for ps in self.ws.photos:
+            status = self.ws.photo_status(ps)
+            counts[status] = counts.get(status, 0) + 1
+        attention = sum(self.ws.needs_attention(ps) for ps in self.ws.photos)
+        parts = [f"{n} {name}" for name, n in counts.items()]
+        self.summary_label.setText(
+            (", ".join(parts) + f"; {attention} need attention (●)") if parts
+            else "No photos yet: add photos in the Scene tab, or open a workspace.")
+
+    def _select_current(self) -> None:
+        k = self.ws.current_index
+        row = self.row_of(k) if k is not None else None
+        self._filling = True
+        try:
+            if row is None:
+                self.table.clearSelection()
+            else:
+                self.table.selectRow(row)
+                self.table.scrollToItem(self.table.item(row, 1))
+        finally:
+            self._filling = False
+
+    def _row_chosen(self) -> None:
+        if self._filling:
+            return
+        rows = {i.row() for i in self.table.selectedItems()}
+        if len(rows) != 1:
+            return
+        index = self.photo_index_at(rows.pop())
+        if index is not None and index != self.ws.current_index:
+            self.ctrl.select_photo(index)
+
+    # ----------------------------------------------------------- batch
+    def _batch_started(self, todo: int) -> None:
+        self.progress.setVisible(True)
+        self.progress.setValue(0)
+        self.progress_label.setText(f"{todo} photo(s) to register…")
+
+    def _batch_progress(self, fraction: float, message: str) -> None:
+        self.progress.setValue(int(round(100 * fraction)))
+        self.progress_label.setText(message)
+
+    def _batch_finished(self, summary) -> None:
+        if summary is None:
+            self.progress_label.setText("Register all failed: see the status line")
+        else:
+            if summary.failed:
+                self.progress_label.setText(
+                    self.progress_label.text() + "<br>Not registered: "
+                    + "; ".join(summary.failed[:6]) + (" …" if len(summary.failed) > 6 else ""))
+        self.refresh()
+
+    def _busy(self) -> None:
+        running = self.ctrl.is_running("register all")
+        self.register_all_button.setEnabled(not running)
+        self.cancel_button.setEnabled(running)

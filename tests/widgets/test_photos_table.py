@@ -1,0 +1,91 @@
+"""The photos table on its own: numbers sort as numbers, missing ones after
+them; a row per photo follows the workspace; thumbnails are the photos."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from qtpy.QtCore import Qt
+
+from napari_imgreg.registration.params import RegistrationParams
+from napari_imgreg.registration.pipeline import Registration, Trial
+from napari_imgreg.sample import sample_scene
+from napari_imgreg.widgets._controller import WorkbenchController
+from napari_imgreg.widgets._photos_table import (
+    COLUMNS,
+    THUMBNAIL_WIDTH,
+    PhotosTable,
+    _thumbnail,
+)
+from napari_imgreg.workspace import Workspace, read_photos, read_scene
+
+
+def _registration(ps, q: float, secs: float) -> Registration:
+    grade = "excellent" if q >= 1.2 else "good" if q >= 0.6 else "fair" if q >= 0 else "poor"
+    trial = Trial(index=0, params=RegistrationParams(), metrics={}, q=q, grade=grade, hints=[],
+                  pose=ps.pose, start_pose=ps.pose, rounds=1, converged=True, verified=True,
+                  residual_flow_px=0.5)
+    return Registration(status="registered", photo=ps.name, intrinsics=ps.intrinsics,
+                        pose=ps.pose, prior=ps.prior, metrics={}, q=q, grade=grade, hints=[],
+                        trials=[trial], timings_s={"total": secs}, best_trial=0)
+
+
+@pytest.fixture
+def table(make_napari_viewer):
+    folder = sample_scene("small")
+    scene, terrain = read_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
+    loaded, _ = read_photos(sorted(folder.glob("IMG_*.jpg")), scene)
+    ws = Workspace()
+    ws.load_scene(scene, terrain, {"mesh": folder / "outcrop.obj"})
+    ctrl = WorkbenchController(make_napari_viewer(), workspace=ws)
+    widget = PhotosTable(ctrl)
+    ctrl.attach(widget)
+    ws.add_loaded_photos(loaded)
+    yield widget
+    ctrl.shutdown()
+
+
+def _column(table, col):
+    return [table.table.item(r, col).text() for r in range(table.table.rowCount())]
+
+
+def test_rows_follow_the_workspace_and_sort_by_number(table):
+    ws = table.ws
+    assert table.table.columnCount() == len(COLUMNS)
+    assert _column(table, 1) == ["● IMG_0001.jpg", "● IMG_0002.jpg", "● IMG_0003.jpg"]
+    first, _second, third = ws.photos
+    # Q 10-ish apart as text would sort "10" before "9": these sort as numbers.
+    ws.record_registration(_registration(first, 1.25, 9.0), "Auto", first)
+    ws.record_registration(_registration(third, -0.3, 10.5), "Auto", third)
+    assert _column(table, 4) == ["1.25", "—", "-0.30"]
+    assert _column(table, 6) == ["9.0", "—", "10.5"]
+    assert _column(table, 3) == ["excellent", "—", "poor"]
+    table.table.sortItems(6, Qt.SortOrder.AscendingOrder)
+    assert _column(table, 6) == ["9.0", "10.5", "—"]
+    table.table.sortItems(4, Qt.SortOrder.AscendingOrder)
+    assert _column(table, 4) == ["-0.30", "1.25", "—"]
+    table.table.sortItems(3, Qt.SortOrder.AscendingOrder)  # best grade first
+    assert _column(table, 3) == ["excellent", "poor", "—"]
+    table.table.sortItems(2, Qt.SortOrder.AscendingOrder)  # the ones needing work first
+    assert _column(table, 2)[0] == "not registered"
+    # The rows still name their photos after sorting.
+    for row in range(3):
+        index = table.photo_index_at(row)
+        assert table.table.item(row, 1).text().endswith(ws.photos[index].name)
+    assert table.row_of(ws.current_index) is not None
+    assert table.table.item(table.row_of(ws.current_index), 1).isSelected()
+
+
+def test_a_thumbnail_is_the_photo_made_small():
+    image = np.zeros((300, 400, 3), np.uint8)
+    image[:, :200] = (255, 0, 0)
+    pixmap = _thumbnail(image)
+    assert pixmap.width() == THUMBNAIL_WIDTH
+    assert pixmap.height() == round(300 * THUMBNAIL_WIDTH / 400)
+    qimage = pixmap.toImage()
+    left, right = qimage.pixelColor(2, 2), qimage.pixelColor(THUMBNAIL_WIDTH - 3, 2)
+    assert (left.red(), left.green(), left.blue()) == (255, 0, 0)
+    assert (right.red(), right.green(), right.blue()) == (0, 0, 0)
+    assert not math.isnan(pixmap.height())
