@@ -269,5 +269,102 @@ def main() -> None:
     viewer.close()
 
 
+def views_main(out: Path) -> None:
+    """The campaign view and the Interpret tab while drawing (issue 17), on the
+    small sample with two photos at their true poses (recorded as
+    registrations) and true bed boundaries drawn on them; no registration
+    runs, so it takes seconds::
+
+        xvfb-run -a -s "-screen 0 1600x1000x24" .venv/bin/python \\
+            docs/user_guide_screenshots.py --views
+    """
+    import napari
+    from qtpy.QtWidgets import QApplication
+
+    from napari_imgreg.interpret.project import Interpretation
+    from napari_imgreg.registration.params import RegistrationParams
+    from napari_imgreg.registration.pipeline import Registration, Trial
+    from napari_imgreg.sample import load_truth, sample_scene
+    from napari_imgreg.widgets._layers import napari_from_pixels
+    from napari_imgreg.widgets.campaign import CampaignView
+    from napari_imgreg.widgets.workbench import Workbench
+    from napari_imgreg.workspace import read_photos, read_scene
+
+    app = QApplication.instance() or QApplication([])
+
+    def pump(seconds: float = 0.3) -> None:
+        end = time.time() + seconds
+        while time.time() < end:
+            app.processEvents()
+            time.sleep(0.01)
+
+    viewer = napari.Viewer(title="napari-imgreg", show=True)
+    viewer.window._qt_window.resize(1600, 1000)
+    pump(0.5)
+    wb = Workbench.add_to_viewer(viewer)
+    ctrl = wb.controller
+    ws = ctrl.workspace
+    folder = sample_scene("small")
+    truth = load_truth(folder)
+    scene, terrain = read_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
+    loaded, _ = read_photos(sorted(folder.glob("IMG_*.jpg")), scene)
+    ws.load_scene(scene, terrain, {"mesh": folder / "outcrop.obj", "dem": folder / "dem.tif"})
+    ws.add_loaded_photos(loaded)
+    pump(2.0)
+    for ps in ws.photos[:2]:
+        pose = truth.photos[ps.name].pose
+        trial = Trial(index=0, params=RegistrationParams(), metrics={}, q=0.8, grade="good",
+                      hints=[], pose=pose, start_pose=ps.pose, rounds=1, converged=True,
+                      verified=True, residual_flow_px=0.5)
+        ws.record_registration(Registration(
+            status="registered", photo=ps.name, intrinsics=ps.intrinsics, pose=pose,
+            prior=ps.prior, metrics={}, q=0.8, grade="good", hints=[], trials=[trial],
+            timings_s={"total": 1.0}, best_trial=0), "Auto", ps=ps, pose_if_not_current=True)
+        pt = truth.photos[ps.name]
+        for feat in truth.lines["features"]:
+            px = pt.pose.project(pt.intrinsics, np.asarray(feat["geometry"]["coordinates"]))
+            ok = np.isfinite(px).all(1) & (px > 5).all(1)
+            ok &= (px[:, 0] < pt.intrinsics.width - 5) & (px[:, 1] < pt.intrinsics.height - 5)
+            if feat["properties"]["label"] == "bed_boundary" and ok.all():
+                ws.add_interpretation(Interpretation("LineString", px, {"label": "sandstone"}), ps)
+    ws.project_interpretations()
+    ws.accept(ws.photos[0])
+    pump(2.0)
+
+    # The Interpret tab while drawing: the render overlay (on, at half opacity)
+    # steps back while the line is drawn over the photo.
+    ctrl.set_blend(opacity=0.5, visible=True)
+    wb.show_tab("Interpret")
+    iw = wb.interpret_widget
+    pump(1.0)
+    shapes = iw.new_interpretation_layer()
+    px = ws.current.interpretations[0].pixels  # a true bed boundary on the photo
+    shapes.add(napari_from_pixels(px[:: max(1, len(px) // 6)]), shape_type="path",
+               edge_width=12)
+    shapes.mode = "add_polyline"
+    ctrl.fit_2d()
+    cam = ctrl.camera  # the photo, large
+    cam.center = (cam.center[0], 0.5 * ctrl.layers.height, 0.5 * ctrl.layers.width)
+    cam.zoom *= 1.9
+    pump(1.0)
+    viewer.screenshot(str(out / "workbench_drawing.png"), canvas_only=False)
+    print("wrote", out / "workbench_drawing.png")
+    shapes.mode = "pan_zoom"
+
+    # The campaign view: every camera, every mapped line, every measurement.
+    view = CampaignView(viewer, workspace=ws)
+    viewer.window.add_dock_widget(view, name="Campaign view", area="right", tabify=True)
+    view.show_3d()
+    pump(1.5)
+    viewer.screenshot(str(out / "workbench_campaign.png"), canvas_only=False)
+    print("wrote", out / "workbench_campaign.png")
+    viewer.close()
+
+
 if __name__ == "__main__":
-    main()
+    import sys
+
+    if "--views" in sys.argv:
+        views_main(OUT)
+    else:
+        main()

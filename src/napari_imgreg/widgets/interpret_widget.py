@@ -79,7 +79,7 @@ if TYPE_CHECKING:
     import napari
 
 __all__ = ["InterpretWidget", "camera_of_layer", "interpretations_from_shapes",
-           "plane_from_three_points"]
+           "is_photo_layer", "plane_from_three_points"]
 
 #: Metadata keys on the layers this widget makes.
 INTERP_KEY = INTERPRETATION_OF  # Shapes layer: name of its photo layer
@@ -101,43 +101,11 @@ _TABLE_COLUMNS = ("id", "label", "kind", "dip", "dip dir.", "plunge", "trend", "
                   "planarity", "source", "note")
 
 
-#: A 3-point plane is refused when the camera centre lies within this angle of
-#: it, seen from the points (the points then define the viewing plane, not the rock's).
-THREE_POINT_MIN_VIEW_ANGLE_DEG = 5.0
-
-
-def plane_from_three_points(points: np.ndarray, camera_center: np.ndarray | None = None
-                            ) -> tuple[float, float] | str:
-    """Dip and dip direction of the plane through three 3D points.
-
-    Parameters
-    ----------
-    points : (3, 3) array
-        The points, metres (x east, y north, z up).
-    camera_center : (3,) array, optional
-        The photo's camera centre: a plane that (nearly) contains it is the
-        viewing plane of the clicks and is refused.
-
-    Returns
-    -------
-    (dip_deg, dip_direction_deg), or a string saying why there is no plane
-    (collinear points, or the camera within
-    :data:`THREE_POINT_MIN_VIEW_ANGLE_DEG` of the plane).
-    """
-    p = np.asarray(points, np.float64).reshape(3, 3)
-    n = np.cross(p[1] - p[0], p[2] - p[0])
-    span = max(np.linalg.norm(p[1] - p[0]), np.linalg.norm(p[2] - p[0]),
-               np.linalg.norm(p[2] - p[1]))
-    if span == 0 or np.linalg.norm(n) < 1e-3 * span ** 2:
-        return "the three points are (nearly) on one line"
-    n /= np.linalg.norm(n)
-    if camera_center is not None:
-        to_cam = np.asarray(camera_center, np.float64) - p.mean(axis=0)
-        angle = np.degrees(np.arcsin(min(1.0, abs(float(n @ to_cam)) / np.linalg.norm(to_cam))))
-        if angle < THREE_POINT_MIN_VIEW_ANGLE_DEG:
-            return (f"the camera lies {angle:.1f}° from the plane of the three points "
-                    f"(< {THREE_POINT_MIN_VIEW_ANGLE_DEG:.0f}°): the viewing plane, not the rock's")
-    return dip_dip_direction(n)
+# Moved to interpret/structural.py (issue 14); kept importable from here.
+from ..interpret.structural import (  # noqa: E402
+    THREE_POINT_MIN_VIEW_ANGLE_DEG,
+    plane_from_three_points,
+)
 
 
 def camera_of_layer(layer) -> tuple[Intrinsics, Pose, str] | None:
@@ -163,6 +131,32 @@ def camera_of_layer(layer) -> tuple[Intrinsics, Pose, str] | None:
         return None
     name = Path(str(meta.get("photo_path", ""))).name or layer.name
     return intr, pose, name
+
+
+#: Names of the workbench's Image layers that are not photos (renders, their
+#: overlay, the filtered views the registration matches).
+_NOT_PHOTO_NAMES = ("render", "render (sun-lit)", "overlay render", "reference render")
+_NOT_PHOTO_SUFFIXES = (" · filtered", "render", "render (sun-lit)")
+#: Workbench layers that cover the photo and are hidden while drawing on it.
+_COVERING_NAMES = ("correspondences", "overlay render", "photo · filtered")
+#: Shapes-layer modes that are not drawing or editing shapes.
+_NOT_DRAWING_MODES = ("pan_zoom", "transform")
+#: Metadata key: a layer this widget hid while drawing (shown again afterwards).
+_HIDDEN_WHILE_DRAWING = "imgreg_hidden_while_drawing"
+
+
+def is_photo_layer(layer) -> bool:
+    """Whether an Image layer is a photo to draw on.
+
+    A layer with a camera (:func:`camera_of_layer`) or a workbench photo
+    (``metadata["photo_path"]``) is; a render, the render overlay or a
+    filtered view ("photo · filtered", "render · filtered") is not. Any other
+    image is offered, so that a RESULT.json can be attached to it.
+    """
+    if (getattr(layer, "metadata", None) or {}).get("photo_path"):
+        return True  # a workbench photo, whatever its file is called
+    name = str(getattr(layer, "name", ""))
+    return not (name in _NOT_PHOTO_NAMES or name.endswith(_NOT_PHOTO_SUFFIXES))
 
 
 def interpretations_from_shapes(layer) -> list[Interpretation]:
@@ -350,14 +344,17 @@ class InterpretWidget(QWidget):
         self.view3d_button.clicked.connect(lambda: self.show_3d())
         for event in (self.viewer.layers.events.inserted, self.viewer.layers.events.removed):
             event.connect(self._refresh_layers)
+            event.connect(self._update_drawing)
+        self.viewer.layers.selection.events.active.connect(self._update_drawing)
+        self.viewer.dims.events.ndisplay.connect(self._update_drawing)
         self._refresh_layers()
 
     # ----------------------------------------------------------- layers
     def _photo_layers(self) -> list:
         from napari.layers import Image
 
-        return [layer for layer in self.viewer.layers if isinstance(layer, Image)
-                and not layer.name.endswith("render")]
+        return [layer for layer in self.viewer.layers
+                if isinstance(layer, Image) and is_photo_layer(layer)]
 
     def _surface_layers(self) -> list:
         from napari.layers import Surface
@@ -425,6 +422,8 @@ class InterpretWidget(QWidget):
         layer.current_edge_color = self._labels[label]
         layer.current_face_color = "transparent"
         layer.events.data.connect(lambda event, layer=layer: self._shapes_edited(event, layer))
+        layer.events.mode.connect(self._update_drawing)
+        layer.events.visible.connect(self._update_drawing)
         self._draw_mode(layer)
         layer.mode = _LINE_MODE
         self.status_label.setText(
@@ -599,6 +598,46 @@ class InterpretWidget(QWidget):
         ps = self._photo_state(self.viewer.layers[photo_name])
         if ps is not None:
             self.workspace.set_interpretations(interpretations_from_shapes(layer), ps)
+
+    def drawing_layer(self):
+        """The interpretation layer being drawn or edited on, or None.
+
+        It is drawing while it is the active layer, visible, on the 2D canvas,
+        in a mode that adds or edits shapes (not pan/zoom or transform).
+        """
+        active = self.viewer.layers.selection.active
+        if (active is None or INTERP_KEY not in active.metadata or not active.visible
+                or self.viewer.dims.ndisplay != 2
+                or str(getattr(active, "mode", "pan_zoom")) in _NOT_DRAWING_MODES):
+            return None
+        return active
+
+    def _update_drawing(self, event=None) -> None:
+        """While drawing, the drawing layer is on top and the workbench layers
+        that cover the photo (correspondence lines, the render overlay, the
+        filtered photo) are hidden; they come back when drawing stops."""
+        layer = self.drawing_layer()
+        if layer is None:
+            self._show_covering_layers()
+            return
+        layers = self.viewer.layers
+        i = layers.index(layer)
+        if i != len(layers) - 1:
+            layers.move(i, len(layers))
+        for other in list(layers):
+            if other is not layer and other.name in _COVERING_NAMES and other.visible:
+                other.metadata[_HIDDEN_WHILE_DRAWING] = True
+                other.visible = False
+
+    def _show_covering_layers(self) -> None:
+        for other in list(self.viewer.layers):
+            if not other.metadata.pop(_HIDDEN_WHILE_DRAWING, False):
+                continue
+            if self.viewer.dims.ndisplay == 3 and "imgreg_visible_2d" in other.metadata:
+                # the workbench hid its 2D layers for 3D and restores them on return
+                other.metadata["imgreg_visible_2d"] = True
+            else:
+                other.visible = True
 
     def _draw_mode(self, layer) -> None:
         """Drawing happens on the photo, in 2D: leave the 3D canvas, show photo and layer."""

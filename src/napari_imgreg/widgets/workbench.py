@@ -51,6 +51,7 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
+from ._reader_preferences import prefer_imgreg_reader, prefer_workspace_reader
 from ..io import workspace_files as wsfiles
 from . import _shortcuts
 from ._controller import WorkbenchController, controller_for
@@ -156,6 +157,7 @@ class Workbench(QWidget):
         #: Keys another binding of this viewer holds already (not bound here).
         self.keys_not_bound = _shortcuts.install(napari_viewer, self)
         prefer_workspace_reader()
+        prefer_imgreg_reader()  # the demo docks us without npe2's activation hook
         self.destroyed.connect(lambda *_: _uninstall_quietly(napari_viewer))
         self.controller.attach(self)
         self._try_interpret_widget()
@@ -322,30 +324,6 @@ def _current_viewer():
 
 #: The pattern of workspace folders in napari's reader preferences (napari
 #: matches a folder with its trailing separator).
-WORKSPACE_PATTERN = "*.imgreg/"
-
-
-def prefer_workspace_reader() -> bool:
-    """Make napari-imgreg napari's reader of ``*.imgreg`` folders, unless the
-    user chose another one (napari's builtin reader also claims folders, so
-    dropping one would ask which reader to use). Returns True when set here.
-
-    ``*.imgreg`` is napari-imgreg's own extension: no other reader reads it.
-    """
-    try:
-        from napari.settings import get_settings
-
-        readers = get_settings().plugins.extension2reader
-        if WORKSPACE_PATTERN in readers:
-            return False
-        get_settings().plugins.extension2reader = {**readers,
-                                                   WORKSPACE_PATTERN: "napari-imgreg"}
-        return True
-    except Exception as exc:  # noqa: BLE001  # pragma: no cover - napari's settings; the dialog remains
-        logging.getLogger(__name__).debug("reader preference not set: %s", exc)
-        return False
-
-
 def get_workspace_reader(path):
     """napari reader contribution: a ``*.imgreg`` workspace folder opens in the workbench.
 
