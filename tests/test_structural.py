@@ -255,25 +255,48 @@ def test_pose_uncertainty_from_the_result_or_a_default():
 
 
 def test_monte_carlo_sigma_of_a_straight_stroke_matches_the_closed_form():
-    """A stroke between two drawn vertices, each off by isotropic noise of
-    RMS σ: the line through the perturbed ends tilts by |Δ⊥| / L, whose RMS
-    is 2 σ/√3 / L radians (two perpendicular axes, two ends)."""
+    """A stroke between two drawn vertices seen face-on from 100 m: each vertex
+    off by σ per axis across its ray and by s along it (the slide on an oblique
+    surface). The line through the perturbed ends tilts by |Δ⊥| / L, Δ⊥ the
+    ends' difference across the line (one axis across the ray, one along it),
+    whose RMS is sqrt(2 (σ² + s²)) / L radians."""
     from napari_imgreg.interpret.uncertainty import ErrorModel, UncertaintyParams, monte_carlo
 
     L, sigma = 20.0, 0.1
     pts = np.linspace(0, 1, 50)[:, None] * np.array([L, 0.0, 0.0])
-    model = ErrorModel(camera_position=np.array([10.0, -100.0, 0]), relative_m=sigma,
-                       n_vertices=2)
-    mc = monte_carlo([[pts]], [model], UncertaintyParams(samples=4000, seed=1))
-    tilt = []
-    for (q,) in mc:
-        d = q[-1] - q[0]
-        tilt.append(np.arccos(abs(d[0]) / np.linalg.norm(d)))
-    expected = 2 * (sigma / np.sqrt(3)) / L
-    assert np.sqrt(np.mean(np.square(tilt))) == pytest.approx(expected, rel=0.05)
-    # The stroke stays straight: the interpolation is linear between the vertices.
-    q = mc[0][0]
-    assert np.linalg.svd(q - q.mean(0), compute_uv=False)[1] < 1e-9
+    for slide in (0.0, 0.2):
+        model = ErrorModel(camera_position=np.array([10.0, -100.0, 0]), relative_m=sigma,
+                           n_vertices=2, view_m=sigma,
+                           along_ray_m=slide if slide else math.nan)
+        mc = monte_carlo([[pts]], [model], UncertaintyParams(samples=4000, seed=1))
+        tilt = []
+        for (q,) in mc:
+            d = q[-1] - q[0]
+            tilt.append(np.arccos(abs(d[0]) / np.linalg.norm(d)))
+        expected = math.sqrt(2 * (sigma**2 + slide**2)) / L
+        assert np.sqrt(np.mean(np.square(tilt))) == pytest.approx(expected, rel=0.05)
+        # The stroke stays straight: the interpolation is linear between the vertices.
+        q = mc[0][0]
+        assert np.linalg.svd(q - q.mean(0), compute_uv=False)[1] < 1e-9
+
+
+def test_monte_carlo_error_off_the_viewing_plane_is_the_hands():
+    """Issue 14: the drawing's error off the viewing plane is the image error's
+    footprint (range × px / focal), whatever the obliquity; sliding along the
+    ray stays in the viewing plane."""
+    from napari_imgreg.interpret.uncertainty import (ErrorModel, UncertaintyParams,
+                                                     monte_carlo, viewing_plane)
+
+    cam = np.array([0.0, -100.0, 0.0])
+    pts = np.stack([np.linspace(-10, 10, 40), np.zeros(40), np.zeros(40)], 1)
+    normal, _ = viewing_plane(pts, cam)  # the plane z = 0
+    model = ErrorModel(camera_position=cam, relative_m=0.3, n_vertices=2, view_m=0.1)
+    mc = monte_carlo([[pts]], [model], UncertaintyParams(samples=3000, seed=2),
+                     surface_normals=[np.array([0.0, -0.6, 0.8])])  # an oblique face
+    off = np.array([(q[[0, -1]] - cam) @ normal for (q,) in mc])
+    assert np.sqrt(np.mean(off**2)) == pytest.approx(0.1, rel=0.06)
+    along = np.array([q[[0, -1], 1] for (q,) in mc])  # depth (the ray is ~ +y)
+    assert np.sqrt(np.mean(along**2)) > 0.1  # the slide on the oblique face
 
 
 def test_facet_gets_sigmas_and_csv_has_the_columns(tmp_path):
@@ -324,3 +347,44 @@ def test_stereonet_draws_cones_and_contours(tmp_path):
     assert len(ax.collections) > 0  # the Kamb contours
     # One cone per pole at least, beyond the great circles, α95 and frame.
     assert len(ax.lines) >= 8 * 2 + 8
+
+
+def test_plane_from_three_points_known_answers():
+    from napari_imgreg.interpret.structural import plane_from_three_points
+
+    # A plane of 30°/120° through three points spanning it.
+    n = normal_from_dip(30.0, 120.0)
+    u = np.cross(n, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    pts = np.array([[0.0, 0.0, 0.0], 10 * u, 7 * v + 3 * u]) + [5.0, 2.0, 1.0]
+    dip, ddir = plane_from_three_points(pts, camera_center=np.array([0.0, -80.0, 10.0]))
+    assert dip == pytest.approx(30.0, abs=1e-9) and ddir == pytest.approx(120.0, abs=1e-9)
+    # Hand-computable: z = -y through the origin dips 45° due north.
+    assert plane_from_three_points(np.array([[0, 0, 0], [1, 0, 0], [0, 1, -1.0]])) == \
+        pytest.approx((45.0, 0.0))
+    # A horizontal plane: dip 0.
+    assert plane_from_three_points(np.array([[0, 0, 3], [4, 0, 3], [0, 5, 3.0]]))[0] == 0.0
+    assert "one line" in plane_from_three_points(np.array([[0, 0, 0], [1, 1, 1], [2, 2, 2.0]]))
+    # The camera in the plane of the points: the viewing plane, refused.
+    assert "viewing plane" in plane_from_three_points(pts, camera_center=pts[0] + 50 * u + 20 * v)
+
+
+def test_along_ray_slide_known_answer_and_round_trip():
+    """The depth error's RMS: range × px / focal × tan(incidence), gain capped."""
+    from napari_imgreg.interpret.project import _along_ray_rms
+    from napari_imgreg.interpret.uncertainty import ErrorModel
+
+    # Face-on: no slide; cos 0.6 (tan 4/3): 100 m × 1.5 px / 1000 px × 4/3 = 0.2 m.
+    assert _along_ray_rms(np.array([100.0]), np.array([1.0]), 1000.0, 1.5, 4.0) == 0.0
+    assert _along_ray_rms(np.array([100.0]), np.array([0.6]), 1000.0, 1.5, 4.0) == \
+        pytest.approx(0.2)
+    # Grazing: capped at a gain of 4 (cos 1/4, tan √15).
+    assert _along_ray_rms(np.array([100.0]), np.array([0.01]), 1000.0, 1.5, 4.0) == \
+        pytest.approx(0.15 * math.sqrt(15))
+    model = ErrorModel(np.zeros(3), 0.2, view_m=0.1, along_ray_m=0.17)
+    back = ErrorModel.from_properties({"camera_position": [0, 0, 0],
+                                       "uncertainty": model.to_properties()})
+    assert back.along_ray_m == pytest.approx(0.17)
+    older = ErrorModel.from_properties({"camera_position": [0, 0, 0], "sigma_m": 0.2})
+    assert math.isnan(older.along_ray_m)  # files without it: from relative_m and view_m

@@ -63,9 +63,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--min-view-spread", type=float, default=0.7, metavar="SIGMAS",
                    help="a trace's points must leave the plane through its camera centre by "
                    "this many times their expected error to define a plane (default 0.7)")
-    p.add_argument("--max-dip-sigma", type=float, default=4.0, metavar="DEG",
+    p.add_argument("--max-dip-sigma", type=float, default=5.0, metavar="DEG",
                    help="withhold a trace's plane whose Monte Carlo dip σ exceeds this "
-                   "(default 4°)")
+                   "(default 5°, FitThresholds.max_dip_sigma_deg)")
     p.add_argument("--min-ray-angle", type=float, default=2.0, metavar="DEG",
                    help="a trace's plane must make this angle with the viewing rays "
                    "(default 2°)")

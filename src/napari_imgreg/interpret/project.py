@@ -566,6 +566,16 @@ def surface_patch(
     return pts, faces
 
 
+def _along_ray_rms(range_m: np.ndarray, cos_incidence: np.ndarray, focal_px: float,
+                   image_px: float, max_gain: float) -> float:
+    """RMS (metres) of the slide along the ray by which an image error of
+    ``image_px`` moves hits on an oblique surface: ``range × px / focal ×
+    tan(incidence)``, the incidence capped where ``1/cos`` reaches ``max_gain``."""
+    cos = np.clip(np.abs(cos_incidence), 1.0 / max_gain, 1.0)
+    tan = np.sqrt(1.0 - cos**2) / cos
+    return float(np.sqrt(np.mean((range_m * image_px / focal_px * tan) ** 2)))
+
+
 # -------------------------------------------------------------- projection
 def project_interpretations(
     scene: Scene,
@@ -658,6 +668,8 @@ def project_interpretations(
                 n_vertices=len(item.pixels), rotation_deg=pose_uncertainty.rotation_deg,
                 position_m=pose_uncertainty.position_m,
                 view_m=float(math.hypot(np.median(rng) * image_px / focal, mesh_m)),
+                along_ray_m=_along_ray_rms(rng, cos_inc, focal, image_px,
+                                           uncertainty.max_obliquity_gain),
                 extra={"drawing_px": uncertainty.drawing_px,
                        "reprojection_px": round(pose_uncertainty.reprojection_px, 4),
                        "pose_uncertainty": pose_uncertainty.source},

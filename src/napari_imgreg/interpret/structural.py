@@ -65,6 +65,8 @@ __all__ = [
     "dip_dip_direction",
     "normal_from_dip",
     "pole_of_plane",
+    "plane_from_three_points",
+    "THREE_POINT_MIN_VIEW_ANGLE_DEG",
     "fisher_mean",
     "measure_trace",
     "measure_traces",
@@ -102,7 +104,10 @@ class FitThresholds:
     max_dip_sigma_deg : float
         And the Monte Carlo σ of the dip (the expected errors propagated
         through the geometry, which grows as the plane nears the viewing
-        plane) must not exceed this (default 4°; range 0–90).
+        plane) must not exceed this (default 5°, a 95 % cone of ±10°;
+        range 0–90). Issue 14 raised it from 4° when the σ became honest:
+        the Monte Carlo had put only 1/√3 of the hand's error off the
+        viewing plane, so its σ were too small and 4° then meant more.
     min_ray_angle_deg : float
         The fitted plane must make at least this angle with the viewing rays
         (default 2°; range 0–90): a plane containing the rays has a straight
@@ -119,7 +124,7 @@ class FitThresholds:
     min_relief: float = 0.05
     min_points: int = 5
     min_view_spread: float = 0.7
-    max_dip_sigma_deg: float = 4.0
+    max_dip_sigma_deg: float = 5.0
     min_ray_angle_deg: float = 2.0
     require_camera: bool = True
 
@@ -209,6 +214,50 @@ def normal_from_dip(dip_deg: float, dip_direction_deg: float) -> np.ndarray:
 def pole_of_plane(dip_deg: float, dip_direction_deg: float) -> tuple[float, float]:
     """Plunge and trend (degrees) of a plane's downward pole."""
     return 90.0 - dip_deg, (dip_direction_deg + 180.0) % 360.0
+
+
+#: A 3-point plane is refused when the camera centre lies within this angle of
+#: it, seen from the points (the points then define the viewing plane, not the rock's).
+THREE_POINT_MIN_VIEW_ANGLE_DEG = 5.0
+
+
+def plane_from_three_points(points: np.ndarray, camera_center: np.ndarray | None = None
+                            ) -> tuple[float, float] | str:
+    """Dip and dip direction of the plane through three 3D points.
+
+    Parameters
+    ----------
+    points : (3, 3) array
+        The points, metres (x east, y north, z up).
+    camera_center : (3,) array, optional
+        The photo's camera centre: a plane that (nearly) contains it is the
+        viewing plane of the clicks and is refused.
+
+    Returns
+    -------
+    (dip_deg, dip_direction_deg), or a string saying why there is no plane
+    (collinear points, or the camera within
+    :data:`THREE_POINT_MIN_VIEW_ANGLE_DEG` of the plane).
+
+    Examples
+    --------
+    >>> plane_from_three_points(np.array([[0, 0, 0], [1, 0, 0], [0, 1, -1.0]]))
+    (45.0, 0.0)
+    """
+    p = np.asarray(points, np.float64).reshape(3, 3)
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    span = max(np.linalg.norm(p[1] - p[0]), np.linalg.norm(p[2] - p[0]),
+               np.linalg.norm(p[2] - p[1]))
+    if span == 0 or np.linalg.norm(n) < 1e-3 * span ** 2:
+        return "the three points are (nearly) on one line"
+    n /= np.linalg.norm(n)
+    if camera_center is not None:
+        to_cam = np.asarray(camera_center, np.float64) - p.mean(axis=0)
+        angle = np.degrees(np.arcsin(min(1.0, abs(float(n @ to_cam)) / np.linalg.norm(to_cam))))
+        if angle < THREE_POINT_MIN_VIEW_ANGLE_DEG:
+            return (f"the camera lies {angle:.1f}° from the plane of the three points "
+                    f"(< {THREE_POINT_MIN_VIEW_ANGLE_DEG:.0f}°): the viewing plane, not the rock's")
+    return dip_dip_direction(n)
 
 
 def _wrap(angle: float) -> float:
@@ -475,7 +524,7 @@ class Measurement:
     view_spread : float or None
         Traces: RMS distance of the points to the best plane through the
         camera centre, in units of their expected error (the plane is
-        determined from ``min_view_spread``, default 3).
+        determined from ``min_view_spread``, default 0.7).
     ray_angle_deg : float or None
         Traces: angle between the fitted plane and the viewing rays.
     """
@@ -711,7 +760,8 @@ def measure_traces(
         e is not None for e in error_models) else None
     samples = None
     if models is not None:
-        mc = monte_carlo([[v] for v in views], models, params)
+        mc = monte_carlo([[v] for v in views], models, params,
+                         surface_normals=[surface_normal] if not multi else None)
         samples = [np.concatenate(s) for s in mc]
         if not multi:
             _trace_sigmas(m, line, samples)

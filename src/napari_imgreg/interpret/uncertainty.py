@@ -176,6 +176,11 @@ class ErrorModel:
         px / focal``, no obliquity gain: sliding along the surface stays
         near the plane) with the mesh error in quadrature, metres. NaN:
         use ``relative_m``.
+    along_ray_m : float
+        RMS over the points of the slide along the ray an image error causes
+        where the surface is oblique (``range × px / focal × tan(incidence)``,
+        the gain capped), metres: the depth error. NaN (files written before
+        it existed): ``sqrt(relative_m² − view_m²)``, from the median point.
     """
 
     camera_position: np.ndarray
@@ -186,6 +191,7 @@ class ErrorModel:
     rotation_deg: float = 0.0
     position_m: float = 0.0
     view_m: float = math.nan
+    along_ray_m: float = math.nan
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -205,6 +211,8 @@ class ErrorModel:
         }
         if math.isfinite(self.view_m):
             out["view_m"] = round(float(self.view_m), 5)
+        if math.isfinite(self.along_ray_m):
+            out["along_ray_m"] = round(float(self.along_ray_m), 5)
         out.update(self.extra)
         return out
 
@@ -243,6 +251,7 @@ class ErrorModel:
             rotation_deg=num(block.get("rotation_deg"), 0.0),
             position_m=num(block.get("position_m"), 0.0),
             view_m=num(block.get("view_m"), math.nan),
+            along_ray_m=num(block.get("along_ray_m"), math.nan),
         )
 
 
@@ -387,20 +396,85 @@ def _arc(points: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
 
 
+def _image_error(
+    rng: np.random.Generator,
+    K: int,
+    pts: np.ndarray,
+    arc: np.ndarray,
+    W: np.ndarray,
+    camera: np.ndarray,
+    model: ErrorModel,
+    normal: np.ndarray | None,
+    max_gain: float,
+) -> np.ndarray:
+    """(K, C, 3) 3D errors at the C control points from an image error there.
+
+    Across the ray: isotropic, per axis the image error's footprint (the
+    model's ``view_m`` without the mesh part, which :func:`monte_carlo`
+    adds separately). Along it: the slide that keeps the point on the
+    surface (see :func:`monte_carlo`).
+    """
+    C = W.shape[1]
+    # The control points' positions and rays (nearest point along the arc).
+    t_ctrl = np.linspace(arc[0], arc[-1], C) if arc[-1] > arc[0] else np.full(C, arc[0])
+    idx = np.clip(np.searchsorted(arc, t_ctrl), 0, len(pts) - 1)
+    rays = pts[idx] - camera
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    helper = np.where(np.abs(rays[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    e1 = np.cross(rays, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(rays, e1)
+    across = math.sqrt(max(model.view_sigma_m**2 - model.mesh_m**2, 0.0))
+    a = rng.normal(0.0, across, (K, C, 2))
+    delta = a[..., :1] * e1 + a[..., 1:] * e2
+    # The slide's RMS from the points' own obliquity: their mean square (the
+    # fit feels the steep stretches' large slides), else from the median point.
+    along = (model.along_ray_m if math.isfinite(model.along_ray_m)
+             else math.sqrt(max(model.relative_m**2 - model.view_sigma_m**2, 0.0)))
+    slide = np.zeros((K, C))
+    n = None if normal is None else np.asarray(normal, np.float64)
+    if n is not None and np.isfinite(n).all() and np.linalg.norm(n) > 0:
+        # The part the mean surface normal explains is correlated with the
+        # error across the ray; the rest (the local relief's own tilt) is not.
+        n = n / np.linalg.norm(n)
+        cos = rays @ n
+        cos = np.where(np.abs(cos) < 1.0 / max_gain, np.copysign(1.0 / max_gain, cos), cos)
+        slide = -(delta @ n) / cos
+        explained = across**2 * (1.0 - np.clip(rays @ n, -1, 1) ** 2) / cos**2
+        rest = np.sqrt(np.clip(along**2 - explained, 0.0, None))
+    else:
+        rest = np.full(C, along)
+    slide = slide + rng.normal(0.0, 1.0, (K, C)) * rest
+    return delta + slide[..., None] * rays
+
+
 def monte_carlo(
     parts_per_view: Sequence[Sequence[np.ndarray]],
     models: Sequence[ErrorModel],
     params: UncertaintyParams = DEFAULT_UNCERTAINTY,
     bootstrap: bool = False,
+    surface_normals: Sequence[np.ndarray | None] | None = None,
 ) -> list[list[np.ndarray]]:
     """Perturbed copies of a feature's points, one list of views per sample.
 
     Per sample and view: a rigid rotation about the camera centre (RMS angle
     ``rotation_deg``) and shift (RMS ``position_m``); the drawing's and
-    reprojection error, isotropic with RMS ``sqrt(relative_m² − mesh_m²)``,
-    independent at ``n_vertices`` control points along the trace and linear
-    between them (a straight stroke between two vertices stays straight);
-    the mesh's error (RMS ``mesh_m``), independent every ``mesh_edge_m``.
+    reprojection error at ``n_vertices`` control points along the trace,
+    independent between them and linear in between (a straight stroke
+    between two vertices stays straight); the mesh's error (RMS ``mesh_m``),
+    independent every ``mesh_edge_m``.
+
+    The image error is modelled as it arises: at each control point the ray
+    turns by an isotropic image error (``view_m`` across the ray per axis:
+    ``range × px / focal``, so the error *off the viewing plane* is exactly
+    the hand's), and the hit slides along the ray to stay on the surface
+    (``t = −(δ·n) / (r·n)``, capped at ``max_obliquity_gain``, with ``n``
+    the feature's mean surface normal). Without a surface normal the slide
+    is drawn independently with the RMS the obliquity adds,
+    ``sqrt(relative_m² − view_m²)``. (Issue 14: an isotropic 3D error of
+    RMS ``relative_m`` put only ``1/√3`` of the hand's error off the
+    viewing plane, and the dips of nearly-viewing-plane traces came out
+    overconfident.)
 
     Parameters
     ----------
@@ -412,6 +486,8 @@ def monte_carlo(
     bootstrap : bool
         Facets: resample the points with replacement (the fit's own scatter)
         plus independent mesh noise, instead of the drawn-vertex noise.
+    surface_normals : list of (3,) arrays or None, optional
+        One per view: the mean surface normal along the feature there.
 
     Returns
     -------
@@ -421,7 +497,8 @@ def monte_carlo(
     rng = np.random.default_rng(params.seed)
     K = params.samples
     per_view = []
-    for parts, model in zip(parts_per_view, models):
+    normals = list(surface_normals) if surface_normals is not None else [None] * len(models)
+    for parts, model, normal in zip(parts_per_view, models, normals):
         parts = [np.asarray(p, np.float64).reshape(-1, 3) for p in parts if len(p)]
         pts = np.concatenate(parts) if parts else np.zeros((0, 3))
         c = np.asarray(model.camera_position, np.float64)
@@ -436,9 +513,9 @@ def monte_carlo(
             # Parts are laid end to end along one arc (the gaps carry no noise knots).
             offsets = np.cumsum([0.0] + [float(_arc(p)[-1]) if len(p) > 1 else 0.0 for p in parts])
             arc = np.concatenate([_arc(p) + offsets[k] for k, p in enumerate(parts)])
-            draw = math.sqrt(max(model.relative_m**2 - model.mesh_m**2, 0.0))
             W = _interpolation_matrix(arc, model.n_vertices)
-            q += W @ rng.normal(0.0, draw / math.sqrt(3.0), (K, W.shape[1], 3))
+            q += W @ _image_error(rng, K, pts, arc, W, c, model, normal,
+                                  params.max_obliquity_gain)
             if model.mesh_m > 0:
                 n_mesh = (int(math.ceil(offsets[-1] / model.mesh_edge_m)) + 1
                           if model.mesh_edge_m > 0 else len(pts))

@@ -64,8 +64,14 @@ from ..interpret.files import (
 )
 from ..interpret.project import LABEL_COLORS, Feature3D, Interpretation, label_color
 from ..interpret.snap import COSTS, SnapParams, snap_trace
-from ..interpret.structural import Measurement, dip_dip_direction, draw_stereonet
+from ..interpret.structural import (  # the three-point plane moved there (issue 14); kept importable
+    THREE_POINT_MIN_VIEW_ANGLE_DEG,  # noqa: F401
+    Measurement,
+    draw_stereonet,
+    plane_from_three_points,
+)
 from ..io.records import read_json
+from ..workspace import PhotoState, Workspace, project_interpretation_sets
 from ._jobs import JobRunner
 from ._layers import (
     INTERPRETATION_OF,
@@ -73,7 +79,6 @@ from ._layers import (
     napari_from_world,
     pixels_from_napari,
 )
-from ..workspace import PhotoState, Workspace, project_interpretation_sets
 
 if TYPE_CHECKING:
     import napari
@@ -100,12 +105,6 @@ _POLYGON_TYPES = ("polygon", "rectangle", "ellipse")
 _TABLE_COLUMNS = ("id", "label", "kind", "dip", "dip dir.", "plunge", "trend", "rms (m)",
                   "planarity", "source", "note")
 
-
-# Moved to interpret/structural.py (issue 14); kept importable from here.
-from ..interpret.structural import (  # noqa: E402
-    THREE_POINT_MIN_VIEW_ANGLE_DEG,
-    plane_from_three_points,
-)
 
 
 def camera_of_layer(layer) -> tuple[Intrinsics, Pose, str] | None:
