@@ -115,3 +115,13 @@ def test_a_users_own_choice_is_kept(settings):
     assert "*.obj" not in added
     assert settings.plugins.extension2reader["*.obj"] == "napari"
     assert prefer_imgreg_reader() == []  # idempotent
+
+
+def test_the_choose_reader_dialog_preselects_napari_imgreg(tmp_path):
+    """With no preference saved, the dialog lists the readers sorted by display
+    name and preselects the first: ours must sort before "napari builtins"."""
+    from napari.plugins import _npe2
+
+    readers = _npe2.get_readers(str(tmp_path / "model.obj"))
+    assert PLUGIN_NAME in readers and len(readers) >= 2  # napari builtins claims it too
+    assert sorted(readers.values())[0] == readers[PLUGIN_NAME]
