@@ -122,7 +122,8 @@ def test_skip_existing_keeps_done_photos(batch_run, tmp_path, monkeypatch):
         return _fake_registration(prior, photo_name)
 
     monkeypatch.setattr("napari_imgreg.registration.pipeline.register", fake_register)
-    code, stdout, stderr = _run(["batch", scene, "--out", out, "--skip-existing"])
+    # In this process (--workers 0): the stand-in is not in worker processes.
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--skip-existing", "--workers", 0])
     # Only the photo without a result is redone; the fake marks it failed: exit 1.
     assert calls == ["IMG_0003.jpg"]
     assert code == 1 and stderr == ""
@@ -136,7 +137,7 @@ def test_skip_existing_keeps_done_photos(batch_run, tmp_path, monkeypatch):
 
     # Everything done: nothing is registered again.
     calls.clear()
-    code, stdout, _ = _run(["batch", scene, "--out", out, "--skip-existing"])
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--skip-existing", "--workers", 0])
     assert calls == [] and code == 1 and stdout.count("skipped") == 2
 
 
@@ -152,7 +153,9 @@ def test_bad_photos_do_not_stop_the_batch(tmp_path):
     (scene / "IMG_0005.json").write_text(json.dumps(record))
     out = tmp_path / "results"
 
-    code, stdout, stderr = _run(["batch", scene, "--out", out])
+    # In this process, so that the error lines come in the photos' order (a
+    # cluster isolates bad photos the same way: tests/test_distributed.py).
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--workers", 0])
     assert code == 2
     lines = stderr.strip().splitlines()
     assert len(lines) == 3
@@ -224,7 +227,7 @@ def test_interrupted_batch_keeps_finished_results(tmp_path, monkeypatch):
         return _fake_registration(prior, photo_name, status="registered")
 
     monkeypatch.setattr("napari_imgreg.registration.pipeline.register", fake_register)
-    code, stdout, stderr = _run(["batch", scene, "--out", out])
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--workers", 0])
     assert code == 130 and "interrupted" in stderr
     assert [p.name for p in out.glob("*.result.json")] == ["IMG_0001.result.json"]
     rows, summary = _summary(out)

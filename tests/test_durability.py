@@ -267,8 +267,9 @@ def _start_batch(scene, out, tmp_path, **env):
     full_env = {**os.environ, "PYTHONPATH": str(SRC), "MARKER": str(marker),
                 **{k: str(v) for k, v in env.items()}}
     proc = subprocess.Popen(
+        # --workers 0: in this process, where the stubbed registration is.
         [sys.executable, "-c", textwrap.dedent(BATCH_RUNNER), "batch", str(scene), "--out",
-         str(out), *env.pop("EXTRA", ())],
+         str(out), "--workers", "0", *env.pop("EXTRA", ())],
         env=full_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     return proc, marker
 
@@ -352,7 +353,7 @@ def test_closed_stdout_after_a_successful_write(photo_scene, tmp_path):
     try:
         proc = subprocess.run(
             [sys.executable, "-c", textwrap.dedent(BATCH_RUNNER), "batch", str(photo_scene),
-             "--out", str(out)],
+             "--out", str(out), "--workers", "0"],
             env=env, stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=120)
     finally:
         os.close(write_end)
@@ -389,7 +390,8 @@ def test_skip_existing_over_a_malformed_result_redoes_it(photo_scene, tmp_path, 
     (out / "IMG_0001.result.json").write_text(body)
     stdout, stderr = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        code = main(["batch", str(photo_scene), "--out", str(out), "--skip-existing"])
+        code = main(["batch", str(photo_scene), "--out", str(out), "--skip-existing",
+                     "--workers", "0"])
     assert code == 0, stderr.getvalue()
     assert "IMG_0001.jpg: existing result unreadable" in stdout.getvalue()
     assert "redoing it" in stdout.getvalue()

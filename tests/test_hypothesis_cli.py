@@ -202,6 +202,13 @@ def _stubs():
     patches = [mock.patch.object(pipeline, "register", register),
                mock.patch("napari_imgreg.sample.generate_outcrop", generate_outcrop),
                mock.patch("napari_imgreg.sample.sample_scene", lambda *a, **k: DEMO_SCENE)]
+    # batch on a local Dask cluster would register in worker processes, out of
+    # the stubs' reach and the time bound: a local run stays in this process
+    # (clusters are tested in tests/test_distributed.py; --scheduler is still fuzzed).
+    from napari_imgreg.registration import batch as dask_batch
+
+    patches.append(mock.patch.object(dask_batch.ClusterParams, "in_process",
+                                     property(lambda self: self.scheduler is None)))
     # Each mesh is parsed once (the real Scene.load, errors included), then reused.
     import importlib
 

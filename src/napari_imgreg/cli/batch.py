@@ -3,13 +3,19 @@
 After fieldwork a scene folder holds one textured mesh, optionally a DEM
 (``dem.tif`` / ``dem.asc``) and ``georef.json``, and the day's photos, each
 with an optional sensor record ``PHOTO.json`` beside it (photos without one
-fall back to their EXIF/XMP). ``batch`` loads the scene once, registers the
-photos in name order and writes, into RESULTS_DIR,
+fall back to their EXIF/XMP). ``batch`` checks the scene, registers the
+photos on Dask distributed (a local cluster of worker processes by default,
+``--workers``/``--threads-per-worker``; a running scheduler with
+``--scheduler``; in this process with ``--workers 0``; see
+:mod:`napari_imgreg.registration.batch` and docs/batch.md) and writes, into
+RESULTS_DIR,
 
 - ``<photo stem>.result.json`` per photo: the same RESULT.json as
-  ``register`` (contract §4);
+  ``register`` (contract §4), written by the worker that registered it;
 - ``summary.csv`` and ``summary.json``: one row per photo (status, grade,
-  Q, pose, error), rewritten after every photo.
+  Q, pose, error) in name order, rewritten by this process after every
+  photo. A photo whose worker died is registered again on another worker;
+  one that killed ``--allowed-failures`` + 1 workers is reported as ``error``.
 
 Every file is written atomically, so an interrupted batch (Ctrl-C, a crash)
 keeps the finished results and a summary consistent with them; run it again
@@ -39,7 +45,7 @@ import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .._atomic import atomic_write
 from .._deprecated import forward_moved_names
@@ -57,10 +63,12 @@ from ._common import (
 )
 from ..errors import InputError, input_error
 from ..io.meshes import MESH_SUFFIXES
-from ..io.photos import PHOTO_SUFFIXES, load_photo
+from ..io.photos import PHOTO_SUFFIXES
 from ..io.records import read_json
-from ..prior import prior_for_photo
 from ..validate import check_writable
+
+if TYPE_CHECKING:
+    from ..registration.batch import ClusterParams
 
 # The module, not its ``register``: looked up at call time, so tests can
 # substitute ``napari_imgreg.registration.pipeline.register``.
@@ -87,10 +95,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "batch",
         help="register every photo of a scene folder (writes RESULTS_DIR)",
         description="Register every photo in SCENE_DIR (one mesh, optional dem.tif/.asc and "
-        "georef.json, photos with optional PHOTO.json sensor records) in name order. Writes "
-        "RESULTS_DIR/<photo>.result.json per photo and summary.csv + summary.json, updated "
-        "after every photo. A bad photo is reported and skipped; the batch goes on. Exit 0 "
-        "when all registered, 1 when any failed its quality bar, 2 on bad input.",
+        "georef.json, photos with optional PHOTO.json sensor records) on a Dask cluster (local "
+        "by default). Writes RESULTS_DIR/<photo>.result.json per photo and summary.csv + "
+        "summary.json, updated after every photo. A bad photo is reported and skipped; the "
+        "batch goes on. Exit 0 when all registered, 1 when any failed its quality bar, 2 on "
+        "bad input.",
     )
     p.add_argument("scene_dir", metavar="SCENE_DIR", help="folder with the mesh and the photos")
     p.add_argument("--out", required=True, metavar="RESULTS_DIR", help="folder for the results")
@@ -101,9 +110,55 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--params", metavar="PARAMS.json", help="registration parameters (any subset)")
     p.add_argument("--skip-existing", action="store_true",
                    help="keep photos whose RESULTS_DIR/<photo>.result.json exists (resume a batch)")
-    p.add_argument("-v", "--verbose", action="store_true", help="print progress within each photo")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="print progress within each photo (with --workers 0 only)")
+    add_cluster_arguments(p)
     p.set_defaults(func=run)
     return p
+
+
+def _count(low: int, high: int, what: str):
+    """An argparse type: an integer in [low, high]."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a whole number, not {text!r}") \
+                from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{what} must be {low}-{high}, not {value}")
+        return value
+
+    return parse
+
+
+def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
+    """The Dask options of ``batch`` and ``workspace register`` (docs/batch.md)."""
+    g = p.add_argument_group(
+        "where the photos are registered (Dask distributed; docs/batch.md)",
+        "By default a local cluster: one worker process per core (at most one per photo), "
+        "each loading the scene once. A photo whose worker dies is retried on another.")
+    g.add_argument("--workers", type=_count(0, 1024, "--workers"), metavar="N",
+                   help="local worker processes (default: cores / threads per worker, at most "
+                   "one per photo); 0: no cluster, one photo after another in this process")
+    g.add_argument("--threads-per-worker", type=_count(1, 256, "--threads-per-worker"),
+                   metavar="M", help="threads of each local worker, and the size of its "
+                   "OpenCV/BLAS/ray-cast pools (default 1)")
+    g.add_argument("--scheduler", metavar="ADDRESS",
+                   help="use the workers of a running Dask scheduler (tcp://host:8786 or a "
+                   "scheduler.json file) instead of a local cluster")
+    g.add_argument("--allowed-failures", type=_count(0, 100, "--allowed-failures"), default=2,
+                   metavar="K", help="give a photo up after its worker died K+1 times "
+                   "(default 2; local clusters)")
+
+
+def cluster_params(args: argparse.Namespace) -> ClusterParams:
+    """The :class:`ClusterParams` of the command line's options."""
+    from ..registration.batch import ClusterParams
+
+    return ClusterParams(workers=args.workers, threads_per_worker=args.threads_per_worker,
+                         scheduler=args.scheduler, allowed_failures=args.allowed_failures)
 
 
 # ------------------------------------------------------------------ scene
@@ -409,18 +464,21 @@ def exit_code_of(rows: list[dict[str, Any]]) -> int:
 # ------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``batch``: check the scene, register every photo, keep the summary current."""
-    from ..registration import pipeline
+    from ..registration.batch import SceneSpec
 
     t_start = time.perf_counter()
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise input_error(out, "exists and is not a folder")
     check_writable(out, folder=True)  # before the scene loads: read-only, /proc, inside a file
-    # Everything about the scene is checked before anything is written.
+    cluster = cluster_params(args)
+    # Everything about the scene is checked here, before anything is written
+    # (and the mesh cache the workers load from is made once).
     files = find_scene_files(args.scene_dir, args.mesh, args.dem, args.georef)
     params = read_params(args.params)
     scene = load_scene(files.mesh, georef=files.georef, dem=files.dem)
-    scene.build_engine()
+    if cluster.in_process:
+        scene.build_engine()
     n = len(files.photos)
     say(
         f"scene {files.folder}: {files.mesh.name} ({scene.n_faces:,} triangles)"
@@ -433,6 +491,10 @@ def run(args: argparse.Namespace) -> int:
         say(f"  assumed: {note}")
     if files.ignored:
         say("  not photos: " + ", ".join(f"{k} ({v})" for k, v in files.ignored.items()))
+    spec = SceneSpec(str(files.mesh), None if files.dem is None else str(files.dem),
+                     None if files.georef is None else str(files.georef))
+    if not cluster.in_process:
+        scene = None  # each worker loads its own; this process only collects
 
     out.mkdir(parents=True, exist_ok=True)
     names = _result_names(files.photos)
@@ -448,16 +510,14 @@ def run(args: argparse.Namespace) -> int:
         "interrupted": False,
     }
     rows: list[dict[str, Any]] = []
-    width = len(str(n))
-    show = progress_printer(args.verbose, "      ")
 
     try:
         previous_sigterm = signal.signal(signal.SIGTERM, _raise_terminated)
     except ValueError:  # not the main thread (an embedding application): its own handler stays
         previous_sigterm = None
     try:
-        return _run_photos(args, files, scene, params, pipeline, out, names, header, rows,
-                           width, show, t_start)
+        return _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
+                           t_start)
     except _Terminated:
         return EXIT_TERMINATED
     finally:
@@ -465,74 +525,59 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(signal.SIGTERM, previous_sigterm)
 
 
-def _run_photos(args, files, scene, params, pipeline, out, names, header, rows, width, show,
+def _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
                 t_start) -> int:
-    """The photo loop of :func:`run`; the summary is current after every photo."""
+    """The photo loop of :func:`run`; the summary is current after every photo.
+
+    Results kept from an earlier run (``--skip-existing``) come first; the
+    others are tasks of a :class:`~napari_imgreg.registration.batch.PhotoRunner`,
+    which writes each RESULT.json where it ran; this process writes the
+    summary (its rows in the photos' name order) after each photo.
+    """
+    from ..registration import batch as backend
+
     n = len(files.photos)
+    width = len(str(n))
+    order = {p.name: k for k, p in enumerate(files.photos)}
+    done = 0
+
+    def record(row: dict[str, Any]) -> None:
+        nonlocal done
+        done += 1
+        rows.append(row)
+        rows.sort(key=lambda r: order[r["photo"]])
+        _write_summary(out, header, rows)
+
     try:
-        for i, photo_path in enumerate(files.photos, 1):
-            tag = f"[{i:>{width}}/{n}] {photo_path.name}"
+        todo = []
+        for photo_path in files.photos:
             result_path = out / names[photo_path]
-            t0 = time.perf_counter()
             if args.skip_existing and result_path.is_file():
                 try:
                     row = _existing_row(photo_path.name, result_path)
                 except InputError as exc:
-                    say(f"{tag}: existing result unreadable ({one_line(exc)}): redoing it")
+                    say(f"{photo_path.name}: existing result unreadable ({one_line(exc)}): "
+                        "redoing it")
                 else:
                     row.update(skipped=True, result=result_path.name)
-                    rows.append(row)
-                    _write_summary(out, header, rows)
-                    say(f"{tag}: skipped, result exists ({row['status']}, grade {row['grade']})",
-                          flush=True)
+                    record(row)
+                    say(f"[{done:>{width}}/{n}] {photo_path.name}: skipped, result exists "
+                        f"({row['status']}, grade {row['grade']})", flush=True)
                     continue
-            try:
-                photo = load_photo(photo_path)
-                prior = prior_for_photo(photo, scene)
-                w, h = photo.size
-                if (w, h) != (prior.intrinsics.width, prior.intrinsics.height):
-                    raise input_error(
-                        photo.sidecar if photo.sidecar and photo.sidecar.exists() else photo_path,
-                        f"the camera is {prior.intrinsics.width}×{prior.intrinsics.height} px "
-                        f"but the photo is {w}×{h} px",
-                    )
-                reg = pipeline.register(scene, photo.image, prior, params, photo_path.name,
-                                        on_progress=show)
-            except InputError as exc:
-                status, message, label = "bad_input", one_line(exc), "BAD INPUT"
-            except Exception as exc:  # noqa: BLE001 - one photo must not end the batch
-                status, label = "error", "ERROR"
-                message = f"{photo_path}: {type(exc).__name__}: {one_line(exc)}"
-            else:
-                status = ""
-            if status:
-                print_error("batch", message)
-                row = _error_row(photo_path.name, status, message, time.perf_counter() - t0)
-                rows.append(row)
-                _write_summary(out, header, rows)
-                say(f"{tag}: {label} — {message}", flush=True)
-                continue
-            result = reg.to_dict()
-            write_json(result_path, result)
-            row = _row_of_result(photo_path.name, result, time.perf_counter() - t0)
-            row.update(skipped=False, result=result_path.name, hints=list(reg.hints),
-                       assumptions=list(reg.assumptions))
-            rows.append(row)
-            _write_summary(out, header, rows)
-            trend, plunge, roll = reg.pose.attitude
-            x, y, z = reg.pose.center
-            err = reg.metrics.get("reprojection_error_px")
-            say(
-                f"{tag}: {reg.status.upper()} — grade {reg.grade} (Q = {reg.q:+.2f}), "
-                f"{len(reg.trials)} trial(s), {row['seconds']:.1f} s; "
-                f"({x:.1f}, {y:.1f}, {z:.1f}) m, trend {trend:.1f}° plunge {plunge:.1f}° "
-                f"roll {roll:.1f}°"
-                + (f", reprojection {err:.2f} px" if err is not None else ""),
-                flush=True,
-            )
-            if not reg.registered:
-                for hint in reg.hints[:2]:
-                    say(f"      hint: {hint}")
+            todo.append(photo_path)
+
+        show = progress_printer(args.verbose, "      ") if cluster.in_process else None
+        if scene is not None:
+            backend.cached_scene(spec, scene)  # in this process: the scene loaded above
+        tasks = [(p.name, backend.register_photo_file,
+                  (spec, str(p), str(out / names[p]), params, show)) for p in todo]
+        with backend.PhotoRunner(cluster, len(todo)) as runner:
+            if todo:
+                header["cluster"] = runner.description
+                say(f"registering {len(todo)} photo(s) on the {runner.description}", flush=True)
+            for name, outcome in runner.run(tasks):
+                _record_outcome(name, outcome, out, names[files.photos[order[name]]], record,
+                                f"[{done + 1:>{width}}/{n}] {name}")
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (_Terminated)
         header["interrupted"] = True
         header["signal"] = "SIGTERM" if isinstance(exc, _Terminated) else "SIGINT"
@@ -557,6 +602,43 @@ def _run_photos(args, files, scene, params, pipeline, out, names, header, rows, 
         + f" in {time.perf_counter() - t_start:.1f} s -> {out / 'summary.csv'}"
     )
     return exit_code_of(rows)
+
+
+def _record_outcome(name: str, outcome: Any, out: Path, result_name: str, record,
+                    tag: str) -> None:
+    """One finished task: its summary row, its stderr line when it did not run."""
+    from ..registration.batch import TaskLost
+
+    if isinstance(outcome, TaskLost):
+        outcome = {"photo": name, "status": "error", "error": f"{name}: {outcome}",
+                   "seconds": None}
+    status = outcome["status"]
+    if status in ("bad_input", "error"):
+        message = outcome["error"]
+        print_error("batch", message)
+        record(_error_row(name, status, message, outcome["seconds"]))
+        say(f"{tag}: {'BAD INPUT' if status == 'bad_input' else 'ERROR'} — {message}", flush=True)
+        return
+    result = outcome["result"]
+    row = _row_of_result(name, result, outcome["seconds"])
+    row.update(skipped=False, result=result_name, hints=outcome["hints"],
+               assumptions=outcome["assumptions"])
+    record(row)
+    def f1(key: str) -> str:
+        return "?" if row[key] is None else f"{row[key]:.1f}"
+
+    err = row["reprojection_error_px"]
+    say(
+        f"{tag}: {status.upper()} — grade {row['grade']} (Q = {row['Q'] or 0:+.2f}), "
+        f"{row['n_trials']} trial(s), {row['seconds'] or 0:.1f} s; "
+        f"({f1('x')}, {f1('y')}, {f1('z')}) m, trend {f1('trend_deg')}° "
+        f"plunge {f1('plunge_deg')}° roll {f1('roll_deg')}°"
+        + (f", reprojection {err:.2f} px" if err is not None else ""),
+        flush=True,
+    )
+    if status != "registered":
+        for hint in outcome["hints"][:2]:
+            say(f"      hint: {hint}")
 
 
 #: 0.1 names of this module -> their new names here.

@@ -34,7 +34,7 @@ from ._common import (
     read_params,
     say,
 )
-from .batch import find_scene_files
+from .batch import add_cluster_arguments, cluster_params, find_scene_files
 from ..errors import input_error
 from ..io import workspace_files as wsfiles
 
@@ -77,7 +77,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     r.add_argument("--redo", action="store_true", help="register every photo again")
     r.add_argument("--once", action="store_true",
                    help="one trial from the current pose (the workbench's Run) instead of Auto")
-    r.add_argument("-v", "--verbose", action="store_true", help="print progress")
+    r.add_argument("-v", "--verbose", action="store_true",
+                   help="print progress within each photo (with --workers 0 only)")
+    add_cluster_arguments(r)
 
     li = sub.add_parser("lines", help="set what is drawn on a photo from a pixel GeoJSON")
     li.add_argument("folder", metavar="WORKSPACE")
@@ -161,6 +163,12 @@ def _register(args: argparse.Namespace) -> int:
     done = len(asked) - len(todo)
     say(f"{args.folder}: {len(todo)} photo(s) to register"
         + (f" ({done} already done)" if done else ""))
+    cluster = cluster_params(args)
+    if not cluster.in_process and len(todo) > 1:
+        failed = _register_on_cluster(ws, todo, auto=not args.once, cluster=cluster)
+        missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered
+                      for k in asked)
+        return EXIT_FAILED if (failed or missing) else EXIT_OK
     failed = 0
     for n, k in enumerate(todo, 1):
         ws.select_photo(k)
@@ -181,6 +189,46 @@ def _register(args: argparse.Namespace) -> int:
     missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered
                   for k in asked)
     return EXIT_FAILED if (failed or missing) else EXIT_OK
+
+
+def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) -> int:
+    """Register the photos ``todo`` on Dask workers; each is recorded (and
+    autosaved) here as it comes back, so an interrupt keeps every finished
+    one. Returns how many did not register."""
+    from ..registration import batch as backend
+    from ..workspace import one_line
+
+    spec = backend.SceneSpec(*(str(Path(ws.scene_files[k]).resolve())
+                               if ws.scene_files.get(k) else None
+                               for k in ("mesh", "dem", "georef")))
+    kind = "Auto" if auto else "Run"
+    tasks = []
+    for k in todo:
+        ps = ws.photos[k]
+        # As Workspace.registration_job sets them up for one photo.
+        params = ws.params.copy()
+        params.auto_adapt = auto
+        if not auto:
+            params.search_prior = False
+            params.max_trials = 1
+        tasks.append((str(k), backend.register_prior,
+                      (spec, ps.photo.image, ws.registration_prior(ps), params, ps.name)))
+    failed = 0
+    with backend.PhotoRunner(cluster, len(todo)) as runner:
+        say(f"  on the {runner.description}", flush=True)
+        for n, (tag, reg) in enumerate(runner.run(tasks), 1):
+            ps = ws.photos[int(tag)]
+            if isinstance(reg, BaseException):
+                say(f"  [{n}/{len(todo)}] {ps.name}: not registered: {one_line(reg)}")
+                failed += 1
+                continue
+            # Its pose becomes the photo's pose though another photo is current.
+            ws.record_registration(reg, kind, ps, pose_if_not_current=True)
+            failed += not reg.registered
+            say(f"  [{n}/{len(todo)}] {ps.name}: {reg.status} — grade {reg.grade} "
+                f"(Q = {reg.q:+.2f}), {len(reg.trials)} trial(s), "
+                f"{reg.timings_s.get('total', 0.0):.1f} s")
+    return failed
 
 
 def _lines(args: argparse.Namespace) -> int:

@@ -1,0 +1,565 @@
+"""Register many photos of one scene at once, on a Dask distributed cluster.
+
+The command line's ``batch`` and ``workspace register`` hand their photos to
+:class:`PhotoRunner`: by default a local cluster of worker processes on this
+machine, or the workers of an existing scheduler (a lab server, SLURM through
+dask-jobqueue, Kubernetes through dask-kubernetes; ``docs/batch.md``).
+
+- **One scene per worker.** A worker loads the scene and builds its ray
+  engine once, at its first photo, and keeps it (:func:`cached_scene`, keyed
+  by the scene files' paths, sizes and modification times), so a photo task
+  costs only its own registration.
+- **Photos are tasks.** Each task reads its photo and sensor record, builds
+  the prior, registers and (``batch``) writes its RESULT.json atomically
+  from the worker that ran it; the client only collects the small outcome
+  and writes the summary.
+- **A worker that dies** (killed, out of memory, a crash in a native
+  library) has its photo rescheduled on another worker by the scheduler; a
+  photo that has been on ``allowed_failures + 1`` dying workers is given up
+  and reported (Dask's ``KilledWorker``), not retried forever. Errors raised
+  *by* a photo (bad input, a failed registration) are deterministic and are
+  returned as the photo's outcome, never retried.
+- **Threads are pinned** per worker to ``threads_per_worker``: OpenCV
+  (``cv2.setNumThreads``), the package's ray-cast pool
+  (``NAPARI_IMGREG_THREADS``) and BLAS/OpenMP (``OMP_NUM_THREADS`` and
+  friends, set before a local worker process starts), so N workers × M
+  threads never ask for more than N × M cores. Embree's own thread pool is
+  used only while the ray engine's BVH is built, once per worker.
+
+``workers=0`` runs the same tasks one after the other in this process,
+without Dask: for a scene too large to load once per worker, for a debugger,
+or where worker processes cannot start.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .._atomic import atomic_write
+from .._json import dumps as strict_dumps
+from ..errors import InputError, input_error
+from ..io.photos import load_photo
+from ..prior import prior_for_photo
+from ..scene import Scene
+from . import pipeline
+
+try:  # the plugin class must live at module level to be sent to workers by reference
+    from distributed.diagnostics.plugin import WorkerPlugin
+except ImportError:  # pragma: no cover - distributed is a dependency
+    WorkerPlugin = object  # type: ignore[misc,assignment]
+
+__all__ = [
+    "ClusterParams", "SceneSpec", "PhotoRunner", "cached_scene", "register_photo_file",
+    "register_prior", "default_workers", "available_cores", "THREAD_ENV_VARS",
+]
+
+log = logging.getLogger(__name__)
+
+#: Environment variables that size the native thread pools of a worker
+#: process (BLAS, OpenMP, OpenCV's parallel backend, our ray casts).
+THREAD_ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                   "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "OPENCV_FOR_THREADS_NUM",
+                   "NAPARI_IMGREG_THREADS")
+
+
+def available_cores() -> int:
+    """The cores this process may use (CPU affinity and cgroup quota included)."""
+    try:
+        from dask.system import CPU_COUNT
+
+        return max(1, int(CPU_COUNT))
+    except ImportError:  # pragma: no cover - dask is a dependency
+        return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                   else os.cpu_count() or 1)
+
+
+def default_workers(threads_per_worker: int, n_tasks: int | None = None) -> int:
+    """Worker processes of a local cluster: one per ``threads_per_worker`` cores,
+    never more than there are photos to register (each worker loads the scene)."""
+    n = max(1, available_cores() // max(1, threads_per_worker))
+    return max(1, min(n, n_tasks)) if n_tasks else n
+
+
+@dataclass
+class ClusterParams:
+    """Where and how wide the photos are registered.
+
+    Attributes
+    ----------
+    workers : int or None
+        Local cluster: worker processes. ``None`` (default): one per core
+        divided by ``threads_per_worker``, at most one per photo to register.
+        ``0``: no cluster, the photos one after the other in this process.
+        Range 0-1024; ignored with ``scheduler``.
+    threads_per_worker : int or None
+        Local cluster: threads of each worker, and the size of its OpenCV,
+        BLAS and ray-cast pools. ``None`` (default): 1 — registration is
+        mostly Python-level work between native calls, so processes scale
+        better than threads. Range 1-256; with ``scheduler`` the workers'
+        own ``--nthreads`` applies (their pools are pinned to it).
+    scheduler : str or None
+        Address of a running Dask scheduler (``tcp://host:8786``) or a
+        scheduler file (``scheduler.json``); ``None``: a local cluster.
+    allowed_failures : int
+        How many dying workers a photo may take with it before it is given up
+        and reported (Dask's ``distributed.scheduler.allowed-failures``;
+        applied to local clusters, an existing scheduler keeps its own).
+        Range 0-100; default 2: a photo is tried on at most three workers.
+    processes : bool
+        Local cluster: workers as processes (default). ``False``: threads of
+        this process (no start-up cost, but one GIL; for tests and
+        debugging).
+    connect_timeout_s : float
+        How long to wait for ``scheduler`` to answer, seconds (default 30).
+    """
+
+    workers: int | None = None
+    threads_per_worker: int | None = None
+    scheduler: str | None = None
+    allowed_failures: int = 2
+    processes: bool = True
+    connect_timeout_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        if self.workers is not None and not 0 <= int(self.workers) <= 1024:
+            raise ValueError(f"workers must be 0-1024, not {self.workers}")
+        if self.threads_per_worker is not None and not 1 <= int(self.threads_per_worker) <= 256:
+            raise ValueError(f"threads_per_worker must be 1-256, not {self.threads_per_worker}")
+        if not 0 <= int(self.allowed_failures) <= 100:
+            raise ValueError(f"allowed_failures must be 0-100, not {self.allowed_failures}")
+
+    @property
+    def in_process(self) -> bool:
+        """No Dask at all: ``workers == 0`` without a scheduler."""
+        return self.scheduler is None and self.workers == 0
+
+    def local_shape(self, n_tasks: int | None = None) -> tuple[int, int]:
+        """``(workers, threads_per_worker)`` of the local cluster to start."""
+        threads = int(self.threads_per_worker or 1)
+        workers = int(self.workers) if self.workers else default_workers(threads, n_tasks)
+        return workers, threads
+
+
+# ------------------------------------------------------------------ scene
+def _stamp(path: str | None) -> tuple | None:
+    if path is None:
+        return None
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        return (str(p), None, None)
+    return (str(p.resolve()), st.st_size, st.st_mtime_ns)
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """The scene's files, by path: what a worker needs to load it.
+
+    Attributes
+    ----------
+    mesh : str
+    dem, georef : str or None
+    """
+
+    mesh: str
+    dem: str | None = None
+    georef: str | None = None
+
+    def key(self) -> tuple:
+        """Paths, sizes and modification times: a changed file is a new scene."""
+        return (_stamp(self.mesh), _stamp(self.dem), _stamp(self.georef))
+
+    def load(self) -> Scene:
+        """The scene with its ray engine built."""
+        scene = Scene.load(self.mesh, georef=self.georef, dem=self.dem)
+        scene.build_engine()
+        return scene
+
+
+#: This process's scene: ``(key, Scene)``; one at a time (a scene can be GBs).
+_SCENE: list[tuple[tuple, Scene]] = []
+_SCENE_LOCK = threading.Lock()
+
+
+def cached_scene(spec: SceneSpec, scene: Scene | None = None) -> Scene:
+    """The scene of ``spec``, loaded (and its engine built) once per process.
+
+    Parameters
+    ----------
+    spec : SceneSpec
+    scene : Scene, optional
+        Already loaded from ``spec``: keep it as the cached one (the client's
+        own scene when the photos run in this process).
+    """
+    key = spec.key()
+    with _SCENE_LOCK:  # threads of one worker wait for one load
+        if _SCENE and _SCENE[0][0] == key:
+            return _SCENE[0][1]
+        _SCENE.clear()  # the old scene goes before the new one loads
+        if scene is None:
+            t0 = time.perf_counter()
+            scene = spec.load()
+            log.info("scene %s loaded in %.1f s", spec.mesh, time.perf_counter() - t0)
+        else:
+            scene.build_engine()
+        _SCENE.append((key, scene))
+        return scene
+
+
+# ------------------------------------------------------------------ tasks
+def _write_json(path: Path, data: Any) -> None:
+    text = strict_dumps(data, indent=2) + "\n"  # serialised first: a bad value writes nothing
+    with atomic_write(path, encoding="utf-8") as fh:
+        fh.write(text)
+
+
+def register_photo_file(
+    scene_spec: SceneSpec,
+    photo_path: str,
+    result_path: str,
+    params: Any,
+    on_progress: Callable | None = None,
+) -> dict[str, Any]:
+    """Register one photo file and write its RESULT.json: a ``batch`` task.
+
+    Parameters
+    ----------
+    scene_spec : SceneSpec
+        The scene (loaded once per worker, :func:`cached_scene`).
+    photo_path : str
+        The photo; its sensor record ``PHOTO.json`` beside it, else EXIF.
+    result_path : str
+        Where its RESULT.json goes (written atomically, by this process).
+    params : RegistrationParams
+    on_progress : callable, optional
+        Progress within the photo (in-process runs only).
+
+    Returns
+    -------
+    dict
+        ``photo`` (file name), ``status`` (``registered``, ``failed``,
+        ``bad_input``, ``error``), ``error`` (one line, empty when none),
+        ``seconds`` (the photo's own, without a first scene load), and when
+        it registered or failed: ``result`` (the RESULT.json dict),
+        ``hints``, ``assumptions``, ``scene_load_s`` (0 when the worker had
+        the scene already) and ``pid`` (of the process that ran it).
+    """
+    t0 = time.perf_counter()
+    photo_path_ = Path(photo_path)
+    name = photo_path_.name
+    try:
+        scene = cached_scene(scene_spec)
+        # A worker's first photo also loads the scene: not the photo's time.
+        scene_s, t0 = time.perf_counter() - t0, time.perf_counter()
+        photo = load_photo(photo_path_)
+        prior = prior_for_photo(photo, scene)
+        w, h = photo.size
+        if (w, h) != (prior.intrinsics.width, prior.intrinsics.height):
+            raise input_error(
+                photo.sidecar if photo.sidecar and photo.sidecar.exists() else photo_path_,
+                f"the camera is {prior.intrinsics.width}×{prior.intrinsics.height} px "
+                f"but the photo is {w}×{h} px",
+            )
+        # Looked up at call time: a test may stand in for the pipeline.
+        reg = pipeline.register(scene, photo.image, prior, params, name, on_progress=on_progress)
+    except InputError as exc:
+        return {"photo": name, "status": "bad_input", "error": _one_line(exc),
+                "seconds": time.perf_counter() - t0}
+    except Exception as exc:  # noqa: BLE001 - one photo's crash is its outcome, not the batch's
+        return {"photo": name, "status": "error",
+                "error": f"{photo_path_}: {type(exc).__name__}: {_one_line(exc)}",
+                "seconds": time.perf_counter() - t0}
+    result = reg.to_dict()
+    _write_json(Path(result_path), result)
+    return {"photo": name, "status": reg.status, "error": "", "result": result,
+            "hints": list(reg.hints), "assumptions": list(reg.assumptions),
+            "seconds": time.perf_counter() - t0, "scene_load_s": scene_s, "pid": os.getpid()}
+
+
+def register_prior(scene_spec: SceneSpec, image: Any, prior: Any, params: Any,
+                   name: str) -> Any:
+    """Register an image from a given prior: a ``workspace register`` task.
+
+    Returns the :class:`~napari_imgreg.registration.pipeline.Registration`
+    (pickled back to the client, which records it in the workspace).
+    """
+    scene = cached_scene(scene_spec)
+    return pipeline.register(scene, image, prior, params, name)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text or type(exc).__name__
+
+
+# ----------------------------------------------------------------- runner
+class _PinThreads(WorkerPlugin):
+    """A Dask worker plugin: size every native thread pool of the worker to
+    its thread count (or ``threads``), before its first photo."""
+
+    name = "napari-imgreg-pin-threads"
+
+    def __init__(self, threads: int | None = None) -> None:
+        self.threads = threads
+
+    def setup(self, worker) -> None:
+        n = int(self.threads or worker.state.nthreads or 1)
+        pin_threads(n)
+
+
+def pin_threads(n: int) -> None:
+    """Size this process's OpenCV and ray-cast pools to ``n`` threads (BLAS
+    and OpenMP read their variables at start-up: set for local workers before
+    they start, see :class:`PhotoRunner`)."""
+    os.environ["NAPARI_IMGREG_THREADS"] = str(n)  # read at each large ray cast
+    try:
+        import cv2
+
+        cv2.setNumThreads(n)
+    except ImportError:  # pragma: no cover - a core dependency
+        pass
+
+
+class TaskLost(Exception):
+    """A photo's task gave up: its workers kept dying, or the cluster went away."""
+
+
+class PhotoRunner:
+    """Run photo tasks on a Dask cluster, or in this process (``workers=0``).
+
+    Use as a context manager; :meth:`run` yields ``(tag, outcome)`` as tasks
+    finish, where ``outcome`` is the task's return value or a
+    :class:`TaskLost`.
+
+    Parameters
+    ----------
+    cluster : ClusterParams
+    n_tasks : int
+        Photos to register (a local cluster has no more workers than that).
+    """
+
+    def __init__(self, cluster: ClusterParams, n_tasks: int) -> None:
+        self.cluster = cluster
+        self.n_tasks = n_tasks
+        self.client = None
+        self._local = None
+        self._saved_env: dict[str, str | None] = {}
+        self.description = "in this process"
+
+    # -- lifetime
+    def __enter__(self) -> PhotoRunner:
+        if self.cluster.in_process or self.n_tasks == 0:
+            return self
+        import dask
+        from distributed import Client
+
+        _quiet_distributed()
+        if self.cluster.scheduler:
+            address = self.cluster.scheduler
+            timeout = f"{self.cluster.connect_timeout_s}s"
+            target = _scheduler_address(address)
+            try:
+                self.client = Client(target, timeout=timeout)
+            except (OSError, ValueError, TypeError, KeyError) as exc:  # refused, timed out, bad
+                raise input_error(address, f"no Dask scheduler answers there "
+                                           f"({type(exc).__name__}: {_one_line(exc)})") from None
+            info = self.client.scheduler_info()
+            workers = info.get("workers", {})
+            threads = sum(w.get("nthreads", 0) for w in workers.values())
+            self.description = (f"scheduler {address}: {len(workers)} worker(s), "
+                                f"{threads} thread(s)")
+        else:
+            from distributed import LocalCluster
+
+            n_workers, threads = self.cluster.local_shape(self.n_tasks)
+            env = {name: str(threads) for name in THREAD_ENV_VARS}
+            # Set before a worker process starts (BLAS and OpenMP read them when
+            # NumPy loads): Dask's pre-spawn environment, which it also sets in
+            # this process, where nothing heavy runs while the cluster works.
+            pre_spawn = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **env}
+            self._saved_env = {name: os.environ.get(name) for name in pre_spawn}
+            with dask.config.set({
+                "distributed.nanny.pre-spawn-environ": pre_spawn,
+                "distributed.scheduler.allowed-failures": int(self.cluster.allowed_failures),
+                # A worker holds only the photos it is running (Dask's default
+                # 1.1 queues one more): a dying worker takes no innocent photo's
+                # retry budget with it, and a freed thread takes the next photo.
+                "distributed.scheduler.worker-saturation": 1.0,
+            }):
+                self._local = LocalCluster(
+                    n_workers=n_workers, threads_per_worker=threads,
+                    processes=self.cluster.processes,
+                    # Any free port: several batches may run on one machine.
+                    dashboard_address=":0",
+                    # The workers' own log lines (a task cancelled at Ctrl-C, a
+                    # restart): the command reports each photo in its own words.
+                    silence_logs=logging.ERROR,
+                )
+            self.client = Client(self._local)
+            kind = "process(es)" if self.cluster.processes else "thread(s) of this process"
+            self.description = (f"local cluster: {n_workers} worker {kind}, "
+                                f"{threads} thread(s) each")
+        self.client.register_plugin(_PinThreads(None), name=_PinThreads.name)
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the client and the local cluster (a remote cluster stays)."""
+        client, local = self.client, self._local
+        self.client = self._local = None
+        try:
+            if client is not None:
+                client.close(timeout=10)
+        except Exception:  # noqa: BLE001 - closing after an interrupt may find it half gone
+            pass
+        try:
+            if local is not None:
+                local.close(timeout=10)
+        except Exception:  # noqa: BLE001
+            pass
+        for name, value in self._saved_env.items():  # this process's own, as before
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+        self._saved_env = {}
+
+    def worker_pids(self) -> dict[str, int]:
+        """Worker address -> process id (local clusters and benchmarks)."""
+        if self.client is None:
+            return {}
+        return dict(self.client.run(os.getpid))
+
+    # -- work
+    def run(self, tasks: Iterable[tuple[str, Callable, tuple]]) -> Iterator[tuple[str, Any]]:
+        """Run ``(tag, function, args)`` tasks; yield ``(tag, outcome)`` as each finishes.
+
+        ``outcome`` is what the function returned, the exception it raised, or
+        a :class:`TaskLost` when the cluster lost it (its workers kept dying).
+        In this process the tasks run in order (an exception propagates); on
+        a cluster in any order.
+        Leaving the loop early (an interrupt) cancels what has not finished.
+        """
+        if self.client is None:
+            for tag, fn, args in tasks:
+                yield tag, fn(*args)
+            return
+        from distributed import as_completed
+
+        # Only as many photos in flight as the cluster has threads: a worker
+        # holds only what it runs, so a dying worker takes no queued photo's
+        # retry budget (allowed-failures) with it, and an interrupt has little
+        # to cancel. Rechecked as each photo finishes (workers join, leave).
+        run_id = f"{os.getpid()}-{time.time_ns()}"
+        pending = iter(enumerate(tasks))
+        futures: dict[Any, str] = {}
+        running = as_completed()
+
+        def submit_next() -> bool:
+            try:
+                k, (tag, fn, args) = next(pending)
+            except StopIteration:
+                return False
+            # The key names the photo for the dashboard and the scheduler's log.
+            key = f"napari-imgreg-photo-{Path(tag).name}-{k:05d}-{run_id}"
+            future = self.client.submit(fn, *args, key=key, pure=False, retries=0)
+            futures[future] = tag
+            running.add(future)
+            return True
+
+        def fill() -> None:
+            while running.count() < self.slots() and submit_next():
+                pass
+
+        try:
+            fill()
+            for future in running:
+                tag = futures.pop(future)
+                try:
+                    outcome = future.result()
+                except (Exception, asyncio.CancelledError) as exc:  # noqa: BLE001
+                    outcome = exc  # the task's own exception, or the cluster's
+                    if _is_lost(exc):
+                        outcome = TaskLost(_lost_message(exc, self.cluster.allowed_failures))
+                future.release()
+                yield tag, outcome
+                fill()
+        finally:
+            if futures and self.client is not None:
+                try:
+                    self.client.cancel(list(futures))
+                except Exception:  # noqa: BLE001 - the cluster may be going down
+                    pass
+
+    def slots(self) -> int:
+        """Threads of the cluster's workers now (at least 1)."""
+        try:
+            return max(1, sum(self.client.nthreads().values()))
+        except Exception:  # noqa: BLE001 - a scheduler gone away: the results say so
+            return 1
+
+
+def _scheduler_address(given: str) -> str:
+    """The address in a scheduler file (``dask scheduler --scheduler-file``), or
+    ``given`` when it is not a file.
+
+    Raises
+    ------
+    InputError
+        A file that is not a scheduler file, or a ``.json`` path that does not exist.
+    """
+    import json
+
+    path = Path(given)
+    if not path.is_file():
+        if given.endswith(".json"):
+            raise input_error(given, "no such scheduler file")
+        if path.exists():
+            raise input_error(given, "is a folder, not a scheduler address or file")
+        return given
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise input_error(given, "not a Dask scheduler file (expected the JSON that "
+                                 f"'dask scheduler --scheduler-file' writes: {_one_line(exc)})"
+                          ) from None
+    address = data.get("address") if isinstance(data, dict) else None
+    if not isinstance(address, str) or not address:
+        raise input_error(given, "not a Dask scheduler file (no 'address' in it)")
+    return address
+
+
+def _is_lost(exc: BaseException) -> bool:
+    """The cluster lost the task (its workers died, it was cancelled, the
+    scheduler went away), as opposed to the task raising."""
+    from distributed import KilledWorker
+    from distributed.comm.core import CommClosedError
+
+    return isinstance(exc, (KilledWorker, CommClosedError, asyncio.CancelledError))
+
+
+def _lost_message(exc: BaseException, allowed_failures: int) -> str:
+    if type(exc).__name__ == "KilledWorker":
+        allowed = getattr(exc, "allowed_failures", allowed_failures)  # the scheduler's own
+        return (f"the worker registering it died {allowed + 1} times (a crash in a "
+                f"native library or out of memory?); not retried")
+    return f"lost by the cluster ({type(exc).__name__}: {_one_line(exc)})"
+
+
+def _quiet_distributed() -> None:
+    """Dask's own warnings (a worker restarted, a slow event loop) are not the
+    user's business: the command reports what happened to each photo."""
+    for name in ("distributed", "distributed.nanny", "distributed.scheduler",
+                 "distributed.worker", "distributed.core", "distributed.comm"):
+        logging.getLogger(name).setLevel(logging.ERROR)

@@ -1,0 +1,358 @@
+"""Registration on Dask distributed (``batch`` and ``workspace register``):
+photos as tasks, a worker killed mid-photo, a photo that kills every worker,
+corrupt photos, SIGTERM, and the worker-local scene cache.
+
+One local cluster of two worker processes serves the whole module; in its
+workers the registration is replaced by a stand-in (a worker plugin), so
+that the tests exercise the scheduling, not the matching, and take seconds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from napari_imgreg.cli import main
+from napari_imgreg.registration import batch as backend
+
+distributed = pytest.importorskip("distributed")
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+def strict_load(text: str):
+    """json.loads that refuses NaN/Infinity, as other tools do."""
+
+    def refuse(name):
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+# ------------------------------------------------------- the stand-in
+def stand_in_register(scene, image, prior, params=None, photo_name="", on_progress=None):
+    """Registration in a worker: instant, except for the named behaviours.
+
+    ``STALL_ONCE``: the first attempt marks itself started (with its pid) and
+    waits to be killed; the next attempt registers. ``KILLER``: the worker
+    process dies at once, every time. ``STALL``: waits forever.
+    """
+    from napari_imgreg.registration import pipeline
+
+    marks = Path(os.environ["NAPARI_IMGREG_TEST_MARKS"])
+    with open(marks / "calls.txt", "a") as fh:
+        fh.write(f"{photo_name} {os.getpid()}\n")
+    if photo_name == os.environ.get("NAPARI_IMGREG_TEST_KILLER"):
+        os._exit(1)  # as a segfault in a native library would
+    stall = marks / f"started-{photo_name}"
+    if photo_name == os.environ.get("NAPARI_IMGREG_TEST_STALL"):
+        stall.write_text(str(os.getpid()))
+        while True:
+            time.sleep(0.05)
+    if photo_name == os.environ.get("NAPARI_IMGREG_TEST_STALL_ONCE") and not stall.exists():
+        stall.write_text(str(os.getpid()))
+        while True:
+            time.sleep(0.05)
+    time.sleep(0.2)
+    return pipeline.Registration(
+        status="registered", photo=photo_name, intrinsics=prior.intrinsics, pose=prior.pose,
+        prior=prior, metrics={}, q=0.5, grade="good", hints=[f"pid {os.getpid()}"], trials=[],
+        timings_s={"total": 0.2})
+
+
+class StandIn(distributed.WorkerPlugin):
+    """Put :func:`stand_in_register` in place of the pipeline in a worker."""
+
+    name = "napari-imgreg-test-stand-in"
+
+    def __init__(self, marks: str, **behaviour: str) -> None:
+        self.env = {"NAPARI_IMGREG_TEST_MARKS": marks,
+                    **{f"NAPARI_IMGREG_TEST_{k.upper()}": v for k, v in behaviour.items()}}
+
+    def setup(self, worker) -> None:
+        from napari_imgreg.registration import pipeline
+
+        for k in [k for k in os.environ if k.startswith("NAPARI_IMGREG_TEST_")]:
+            del os.environ[k]
+        os.environ.update(self.env)
+        pipeline.register = stand_in_register
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Two worker processes, one thread each; a photo may take one dying worker
+    with it (allowed-failures 1: the second death gives it up)."""
+    import dask
+
+    # As docs/batch.md advises for a cluster of ours (the CLI sets these on its own
+    # local clusters): no photo queued behind a running one on a worker.
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1,
+                          "distributed.scheduler.worker-saturation": 1.0}):
+        local = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                         dashboard_address=":0")
+    client = distributed.Client(local)
+    yield local, client
+    client.close()
+    local.close()
+
+
+@pytest.fixture
+def stand_in(cluster, tmp_path):
+    """Install the stand-in with some behaviour; returns (address, marks folder, client)."""
+    local, client = cluster
+    marks = tmp_path / "marks"
+    marks.mkdir()
+
+    def install(**behaviour):
+        client.register_plugin(StandIn(str(marks), **behaviour))
+        return local.scheduler_address, marks, client
+
+    return install
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """A scene folder: a quad mesh, five sample photos with records, two corrupt photos."""
+    from napari_imgreg.sample import sample_scene
+
+    src = sample_scene("small")
+    folder = tmp_path_factory.mktemp("distributed") / "scene"
+    folder.mkdir()
+    (folder / "wall.obj").write_text(
+        "v -200 -300 -50\nv 200 -300 -50\nv 200 300 -50\nv -200 300 -50\nf 1 2 3\nf 1 3 4\n")
+    for k in range(1, 6):
+        source = src / f"IMG_{(k - 1) % 3 + 1:04d}"
+        shutil.copy2(source.with_suffix(".jpg"), folder / f"IMG_{k:04d}.jpg")
+        shutil.copy2(source.with_suffix(".json"), folder / f"IMG_{k:04d}.json")
+    (folder / "IMG_0006.jpg").write_bytes(b"\xff\xd8 not a JPEG \x00" * 50)
+    (folder / "IMG_0007.jpg").write_bytes(b"")
+    return folder
+
+
+def _run(argv):
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in argv])
+    return code, out.getvalue(), err.getvalue()
+
+
+def _calls(marks):
+    path = marks / "calls.txt"
+    lines = path.read_text().split("\n") if path.exists() else []
+    return [tuple(line.split()) for line in lines if line]
+
+
+def _kill_when_started(marks, photo, timeout=60.0):
+    """A thread: SIGKILL the worker process that marks ``photo`` started."""
+    killed = {}
+
+    def watch():
+        marker = marks / f"started-{photo}"
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            if marker.exists() and marker.read_text():
+                pid = int(marker.read_text())
+                os.kill(pid, signal.SIGKILL)
+                killed["pid"] = pid
+                return
+            time.sleep(0.05)
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    return thread, killed
+
+
+# --------------------------------------------------------------- tests
+def test_worker_killed_mid_photo_and_corrupt_photos(scene, stand_in, tmp_path):
+    address, marks, _ = stand_in(stall_once="IMG_0002.jpg", killer="IMG_0004.jpg")
+    out = tmp_path / "results"
+    thread, killed = _kill_when_started(marks, "IMG_0002.jpg")
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--scheduler", address])
+    thread.join(timeout=5)
+    assert "pid" in killed, stdout + stderr  # the worker was killed mid-photo
+
+    # The killed worker's photo was registered again, by another process.
+    calls = [c for c in _calls(marks) if c[0] == "IMG_0002.jpg"]
+    assert len(calls) == 2 and int(calls[0][1]) == killed["pid"] != int(calls[1][1])
+    # The photo that kills its worker every time was tried twice (allowed-failures 1), then
+    # reported; the corrupt photos are reported; everything else registered.
+    assert [c[0] for c in _calls(marks)].count("IMG_0004.jpg") == 2
+    assert code == 2  # bad input among the photos
+    summary = strict_load((out / "summary.json").read_text())
+    status = {r["photo"]: r["status"] for r in summary["photos"]}
+    assert status == {"IMG_0001.jpg": "registered", "IMG_0002.jpg": "registered",
+                      "IMG_0003.jpg": "registered", "IMG_0004.jpg": "error",
+                      "IMG_0005.jpg": "registered", "IMG_0006.jpg": "bad_input",
+                      "IMG_0007.jpg": "bad_input"}
+    assert [r["photo"] for r in summary["photos"]] == sorted(status)  # name order
+    assert summary["complete"] and not summary["interrupted"]
+    assert summary["cluster"].startswith(f"scheduler {address}")
+    errors = {r["photo"]: r["error"] for r in summary["photos"] if r["error"]}
+    assert "died 2 times" in errors["IMG_0004.jpg"] and "not retried" in errors["IMG_0004.jpg"]
+    assert "cannot read image" in errors["IMG_0006.jpg"]
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 3 and all("napari-imgreg batch: error:" in line for line in lines)
+    assert "Traceback" not in stderr
+    results = sorted(p.name for p in out.glob("*.result.json"))
+    assert results == [f"IMG_000{k}.result.json" for k in (1, 2, 3, 5)]
+    for name in results:
+        assert strict_load((out / name).read_text())["status"] == "registered"
+    assert not list(out.glob(".*"))  # no temporary files left by the killed worker
+
+    # A rerun with --skip-existing registers only what has no result.
+    (marks / "calls.txt").unlink()
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--scheduler", address,
+                                 "--skip-existing"])
+    assert sorted(c[0] for c in _calls(marks)) == ["IMG_0004.jpg", "IMG_0004.jpg"]
+    assert stdout.count(": skipped, result exists") == 4
+    summary = strict_load((out / "summary.json").read_text())
+    assert summary["counts"] == {"registered": 4, "failed": 0, "bad_input": 2, "error": 1,
+                                 "skipped": 4}
+
+
+def test_workspace_register_on_the_cluster(scene, stand_in, tmp_path):
+    address, marks, _ = stand_in()
+    ws = tmp_path / "campaign.imgreg"
+    code, stdout, _ = _run(["workspace", "create", ws, scene])
+    assert code == 2 and "2 could not be read" in stdout  # the corrupt photos
+    code, stdout, stderr = _run(["workspace", "register", ws, "--scheduler", address])
+    assert code == 0, stdout + stderr
+    assert "5 photo(s) to register" in stdout and f"scheduler {address}" in stdout
+    # Each photo registered once, in the workers (not in this process).
+    assert len(_calls(marks)) == 5 and str(os.getpid()) not in {c[1] for c in _calls(marks)}
+    # Recorded and saved by this process: reopened, every photo is registered.
+    from napari_imgreg.workspace import Workspace
+
+    reopened = Workspace.open(ws, autosave=False)
+    assert [ps.registration.status for ps in reopened.photos] == ["registered"] * 5
+    code, stdout, _ = _run(["workspace", "register", ws, "--scheduler", address])
+    assert code == 0 and "0 photo(s) to register (5 already done)" in stdout
+
+
+#: `batch` against the module's cluster in a subprocess, to be sent SIGTERM.
+SIGTERM_RUNNER = """
+    import sys
+    from napari_imgreg.cli import main
+    sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in, tmp_path):
+    address, marks, _ = stand_in(stall="IMG_0003.jpg")
+    out = tmp_path / "results"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(SIGTERM_RUNNER), "batch", str(scene), "--out",
+         str(out), "--scheduler", address],
+        env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    marker = marks / "started-IMG_0003.jpg"
+    t0 = time.monotonic()
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() - t0 < 90, "the batch never reached the stalled photo"
+        time.sleep(0.05)
+    time.sleep(1.5)  # the other worker finishes the photos it can
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 143, stderr
+    assert "Traceback" not in stderr
+    summary = strict_load((out / "summary.json").read_text())
+    assert summary["interrupted"] is True and summary["signal"] == "SIGTERM"
+    assert not summary["complete"]
+    assert "IMG_0003.jpg" not in {r["photo"] for r in summary["photos"]}
+    for row in summary["photos"]:  # every row's result is there and whole
+        if row["result"]:
+            strict_load((out / row["result"]).read_text())
+    assert "--skip-existing" in stdout
+
+
+def test_the_scene_is_loaded_once_per_process_and_again_when_it_changes(tmp_path, monkeypatch):
+    mesh = tmp_path / "wall.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 0 1\nf 1 2 3\n")
+    loads = []
+    real_load = backend.SceneSpec.load
+    monkeypatch.setattr(backend.SceneSpec, "load",
+                        lambda self: loads.append(self.mesh) or real_load(self))
+    monkeypatch.setattr(backend, "_SCENE", [])
+    spec = backend.SceneSpec(str(mesh))
+    first = backend.cached_scene(spec)
+    assert backend.cached_scene(backend.SceneSpec(str(mesh))) is first
+    assert len(loads) == 1 and first._engine is not None  # the ray engine is built
+    mesh.write_text("v 0 0 0\nv 2 0 0\nv 0 0 2\nf 1 2 3\n")
+    os.utime(mesh, ns=(time.time_ns(), time.time_ns() + 10**9))
+    second = backend.cached_scene(spec)
+    assert second is not first and len(loads) == 2
+    assert second.vertices.max() == pytest.approx(2.0)
+
+
+def test_threads_are_pinned_per_worker(monkeypatch):
+    import cv2
+
+    before = cv2.getNumThreads()
+    monkeypatch.setenv("NAPARI_IMGREG_THREADS", "8")
+    try:
+        backend.pin_threads(1)
+        assert cv2.getNumThreads() == 1
+        assert os.environ["NAPARI_IMGREG_THREADS"] == "1"
+        from napari_imgreg.scene import ray_threads
+
+        assert ray_threads() == 1
+    finally:
+        cv2.setNumThreads(before)
+
+
+def test_cluster_shape_defaults_and_ranges(monkeypatch):
+    monkeypatch.setattr(backend, "available_cores", lambda: 8)
+    assert backend.ClusterParams().local_shape(100) == (8, 1)
+    assert backend.ClusterParams().local_shape(3) == (3, 1)  # never more workers than photos
+    assert backend.ClusterParams(threads_per_worker=2).local_shape(100) == (4, 2)
+    assert backend.ClusterParams(threads_per_worker=16).local_shape(100) == (1, 16)
+    assert backend.ClusterParams(workers=5).local_shape(2) == (5, 1)  # asked for: as asked
+    assert backend.ClusterParams(workers=0).in_process
+    assert not backend.ClusterParams(workers=0, scheduler="tcp://x:8786").in_process
+    for bad in ({"workers": -1}, {"threads_per_worker": 0}, {"allowed_failures": 101}):
+        with pytest.raises(ValueError):
+            backend.ClusterParams(**bad)
+
+
+def test_cluster_options_on_the_command_line(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["batch", "--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    for option in ("--workers", "--threads-per-worker", "--scheduler", "--allowed-failures"):
+        assert option in text
+    with pytest.raises(SystemExit) as exc:
+        main(["batch", "scene", "--out", "r", "--workers", "many"])
+    assert exc.value.code == 2
+    assert "--workers must be a whole number, not 'many'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["workspace", "register", "ws", "--threads-per-worker", "0"])
+    assert exc.value.code == 2
+    assert "--threads-per-worker must be 1-256, not 0" in capsys.readouterr().err
+
+
+def test_a_scheduler_that_does_not_answer_is_one_line_of_bad_input():
+    from napari_imgreg.errors import InputError
+
+    cluster = backend.ClusterParams(scheduler="tcp://127.0.0.1:9", connect_timeout_s=1)
+    with pytest.raises(InputError) as exc, backend.PhotoRunner(cluster, 3):
+        pass
+    assert str(exc.value).startswith("tcp://127.0.0.1:9: no Dask scheduler answers there")
+    assert "\n" not in str(exc.value)
+    missing = backend.ClusterParams(scheduler="/nonexistent/scheduler.json")
+    with pytest.raises(InputError, match="no such scheduler file"), \
+            backend.PhotoRunner(missing, 3):
+        pass
