@@ -591,6 +591,13 @@ def test_the_command_line_on_a_workspace_is_resumable(sample, tmp_path, capsys):
     assert _cli("workspace", "export", folder, "--out", out3d, "--measurements", meas) == 0
     assert json.loads(out3d.read_text())["features"][0]["properties"]["label"] == "sandstone"
     assert meas.read_text().startswith("id,label,kind")
+    # One GeoPackage for the campaign: traces, facets, measurements, cameras.
+    import pyogrio
+
+    gpkg = tmp_path / "campaign.gpkg"
+    assert _cli("workspace", "export", folder, "--out", gpkg) == 0
+    layers = {name for name, _ in pyogrio.list_layers(gpkg)}
+    assert {"traces", "measurements", "cameras"} <= layers, layers
     assert _cli("workspace", "add", folder, src / "IMG_0003.jpg") == 0
     assert _cli("workspace", "info", folder) == 0
     info = capsys.readouterr().out

@@ -264,7 +264,10 @@ def _export(args: argparse.Namespace) -> int:
     if not ws.features_3d:
         raise input_error(args.folder, "nothing projected yet: run 'workspace project' first")
     georef = ws.scene.georef if ws.scene is not None else None
-    interpret_files.export_features(args.out, ws.features_3d, georef, args.georeferenced)
+    # The campaign's own measurements (contacts combined across photos) fill
+    # a GeoPackage's measurements layer.
+    interpret_files.export_features(args.out, ws.features_3d, georef, args.georeferenced,
+                                    measurements=ws.measurements or None)
     if args.measurements:
         interpret_files.write_measurements_csv(args.measurements, ws.measurements)
     say(f"{args.out}: {len(ws.features_3d)} feature(s)"
