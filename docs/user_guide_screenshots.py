@@ -12,7 +12,6 @@ Look at every image before committing it.
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 import numpy as np
@@ -26,34 +25,12 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="names of the shots to take (default: all)")
     args = parser.parse_args()
 
-    import napari
-    from qtpy.QtWidgets import QApplication
+    from _screenshot_session import open_workbench
 
-    from napari_imgreg.widgets._layers import napari_from_pixels
     from napari_imgreg.sample import load_truth
-    from napari_imgreg.widgets.workbench import Workbench
+    from napari_imgreg.widgets._layers import napari_from_pixels
 
-    app = QApplication.instance() or QApplication([])
-
-    def pump(seconds: float = 0.3) -> None:
-        end = time.time() + seconds
-        while time.time() < end:
-            app.processEvents()
-            time.sleep(0.01)
-
-    def wait(cond, timeout: float = 120.0) -> None:
-        end = time.time() + timeout
-        while not cond():
-            app.processEvents()
-            time.sleep(0.01)
-            if time.time() > end:
-                raise TimeoutError
-        pump(0.5)
-
-    viewer = napari.Viewer(title="napari-imgreg", show=True)
-    viewer.window._qt_window.resize(1600, 1000)
-    pump(0.5)
-    wb = Workbench.add_to_viewer(viewer)
+    _app, viewer, wb, pump, wait = open_workbench(wait_timeout_s=120.0)
     ctrl = wb.controller
 
     def idle() -> None:
@@ -278,8 +255,7 @@ def views_main(out: Path) -> None:
         xvfb-run -a -s "-screen 0 1600x1000x24" .venv/bin/python \\
             docs/user_guide_screenshots.py --views
     """
-    import napari
-    from qtpy.QtWidgets import QApplication
+    from _screenshot_session import open_workbench
 
     from napari_imgreg.interpret.project import Interpretation
     from napari_imgreg.registration.params import RegistrationParams
@@ -287,21 +263,9 @@ def views_main(out: Path) -> None:
     from napari_imgreg.sample import load_truth, sample_scene
     from napari_imgreg.widgets._layers import napari_from_pixels
     from napari_imgreg.widgets.campaign import CampaignView
-    from napari_imgreg.widgets.workbench import Workbench
     from napari_imgreg.workspace import read_photos, read_scene
 
-    app = QApplication.instance() or QApplication([])
-
-    def pump(seconds: float = 0.3) -> None:
-        end = time.time() + seconds
-        while time.time() < end:
-            app.processEvents()
-            time.sleep(0.01)
-
-    viewer = napari.Viewer(title="napari-imgreg", show=True)
-    viewer.window._qt_window.resize(1600, 1000)
-    pump(0.5)
-    wb = Workbench.add_to_viewer(viewer)
+    _app, viewer, wb, pump, _wait = open_workbench()
     ctrl = wb.controller
     ws = ctrl.workspace
     folder = sample_scene("small")

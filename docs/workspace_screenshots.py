@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import shutil
 import tempfile
-import time
 from pathlib import Path
 
 OUT = Path(__file__).parent / "images"
@@ -30,32 +29,12 @@ def main() -> None:
     args = parser.parse_args()
 
     import napari
+    from _screenshot_session import open_workbench
     from qtpy.QtCore import QPoint, QTimer
-    from qtpy.QtWidgets import QApplication
 
-    from napari_imgreg.widgets.workbench import PHOTOS_TAB, WORKBENCH_NAME, Workbench
+    from napari_imgreg.widgets.workbench import PHOTOS_TAB, WORKBENCH_NAME
 
-    app = QApplication.instance() or QApplication([])
-
-    def pump(seconds: float = 0.3) -> None:
-        end = time.time() + seconds
-        while time.time() < end:
-            app.processEvents()
-            time.sleep(0.01)
-
-    def wait(cond, timeout: float = 900.0) -> None:
-        end = time.time() + timeout
-        while not cond():
-            app.processEvents()
-            time.sleep(0.01)
-            if time.time() > end:
-                raise TimeoutError
-        pump(0.5)
-
-    viewer = napari.Viewer(title="napari-imgreg", show=True)
-    viewer.window._qt_window.resize(1600, 1000)
-    pump(0.5)
-    wb = Workbench.add_to_viewer(viewer)
+    app, viewer, wb, pump, wait = open_workbench(wait_timeout_s=900.0)
     ctrl = wb.controller
 
     def idle() -> None:
