@@ -186,9 +186,12 @@ def test_worker_killed_mid_photo_and_corrupt_photos(scene, stand_in, tmp_path):
     # The killed worker's photo was registered again, by another process.
     calls = [c for c in _calls(marks) if c[0] == "IMG_0002.jpg"]
     assert len(calls) == 2 and int(calls[0][1]) == killed["pid"] != int(calls[1][1])
-    # The photo that kills its worker every time was tried twice (allowed-failures 1), then
-    # reported; the corrupt photos are reported; everything else registered.
-    assert [c[0] for c in _calls(marks)].count("IMG_0004.jpg") == 2
+    # The photo that kills its worker every time was tried twice (allowed-failures 1); if
+    # another photo was in flight beside it, twice more alone on the cluster; then reported.
+    # The corrupt photos are reported; everything else registered (also a photo that shared
+    # a worker IMG_0004 killed: the CI run that showed it had IMG_0005 given up).
+    killer_calls = [c[0] for c in _calls(marks)].count("IMG_0004.jpg")
+    assert killer_calls in (2, 4)
     assert code == 2  # bad input among the photos
     summary = strict_load((out / "summary.json").read_text())
     status = {r["photo"]: r["status"] for r in summary["photos"]}
@@ -200,7 +203,10 @@ def test_worker_killed_mid_photo_and_corrupt_photos(scene, stand_in, tmp_path):
     assert summary["complete"] and not summary["interrupted"]
     assert summary["cluster"].startswith(f"scheduler {address}")
     errors = {r["photo"]: r["error"] for r in summary["photos"] if r["error"]}
-    assert "died 2 times" in errors["IMG_0004.jpg"] and "not retried" in errors["IMG_0004.jpg"]
+    assert (f"died {killer_calls} times" + (", 2 of them with no other photo on the cluster"
+                                            if killer_calls == 4 else " (")
+            ) in errors["IMG_0004.jpg"]
+    assert "not retried" in errors["IMG_0004.jpg"]
     assert "cannot read image" in errors["IMG_0006.jpg"]
     lines = stderr.strip().splitlines()
     assert len(lines) == 3 and all("napari-imgreg batch: error:" in line for line in lines)

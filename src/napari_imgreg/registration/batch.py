@@ -16,7 +16,9 @@ dask-jobqueue, Kubernetes through dask-kubernetes; ``docs/batch.md``).
 - **A worker that dies** (killed, out of memory, a crash in a native
   library) has its photo rescheduled on another worker by the scheduler; a
   photo that has been on ``allowed_failures + 1`` dying workers is given up
-  and reported (Dask's ``KilledWorker``), not retried forever. Errors raised
+  and reported (Dask's ``KilledWorker``), not retried forever; two photos
+  given up while in flight together are each tried once more alone first
+  (one may only have waited behind the other). Errors raised
   *by* a photo (bad input, a failed registration) are deterministic and are
   returned as the photo's outcome, never retried.
 - **Threads are pinned** per worker to ``threads_per_worker``: OpenCV
@@ -333,6 +335,13 @@ class TaskLost(Exception):
     """A photo's task gave up: its workers kept dying, or the cluster went away."""
 
 
+class _GivenUp:
+    """Dask gave a task up after its workers died (before its solo retry)."""
+
+    def __init__(self, message: str) -> None:
+        self.message = message
+
+
 class PhotoRunner:
     """Run photo tasks on a Dask cluster, or in this process (``workers=0``).
 
@@ -456,51 +465,90 @@ class PhotoRunner:
                 yield tag, fn(*args)
             return
         from distributed import as_completed
+        from distributed import wait as future_wait
 
         # Only as many photos in flight as the cluster has threads: a worker
-        # holds only what it runs, so a dying worker takes no queued photo's
-        # retry budget (allowed-failures) with it, and an interrupt has little
-        # to cancel. Rechecked as each photo finishes (workers join, leave).
+        # mostly holds only what it runs, so a dying worker seldom takes a
+        # queued photo's retry budget (allowed-failures) with it, and an
+        # interrupt has little to cancel. Rechecked as each photo finishes
+        # (workers join, leave). The photos of a dead worker go to a busy one,
+        # though, which then holds two: hence the solo retry below.
         run_id = f"{os.getpid()}-{time.time_ns()}"
         pending = iter(enumerate(tasks))
-        futures: dict[Any, str] = {}
+        futures: dict[Any, tuple[str, tuple[str, Callable, tuple]]] = {}
+        beside: dict[Any, set[Any]] = {}  # the futures each one was ever in flight with
         running = as_completed()
+
+        def submit(task: tuple[str, Callable, tuple], number: str) -> Any:
+            tag, fn, args = task
+            # The key names the photo for the dashboard and the scheduler's log.
+            key = f"napari-imgreg-photo-{Path(tag).name}-{number}-{run_id}"
+            future = self.client.submit(fn, *args, key=key, pure=False, retries=0)
+            beside[future] = set(futures)
+            for other in futures:
+                beside[other].add(future)
+            futures[future] = (tag, task)
+            return future
 
         def submit_next() -> bool:
             try:
-                k, (tag, fn, args) = next(pending)
+                k, task = next(pending)
             except StopIteration:
                 return False
-            # The key names the photo for the dashboard and the scheduler's log.
-            key = f"napari-imgreg-photo-{Path(tag).name}-{k:05d}-{run_id}"
-            future = self.client.submit(fn, *args, key=key, pure=False, retries=0)
-            futures[future] = tag
-            running.add(future)
+            running.add(submit(task, f"{k:05d}"))
             return True
 
         def fill() -> None:
             while running.count() < self.slots() and submit_next():
                 pass
 
+        given_up: dict[Any, tuple[str, tuple[str, Callable, tuple], _GivenUp]] = {}
         try:
             fill()
             for future in running:
-                tag = futures.pop(future)
-                try:
-                    outcome = future.result()
-                except (Exception, asyncio.CancelledError) as exc:  # noqa: BLE001
-                    outcome = exc  # the task's own exception, or the cluster's
-                    if _is_lost(exc):
-                        outcome = TaskLost(_lost_message(exc, self.cluster.allowed_failures))
-                future.release()
-                yield tag, outcome
+                tag, task = futures.pop(future)
+                outcome = self._outcome(future)
+                if isinstance(outcome, _GivenUp):
+                    given_up[future] = (tag, task, outcome)
+                else:
+                    yield tag, outcome
                 fill()
+            # A worker that dies takes every photo it held with it (Dask counts
+            # each one's death), also one queued behind the photo that killed
+            # it, which lands on a busy worker after its own worker died. So
+            # photos given up together, in flight at the same time, get one
+            # more chance each, alone on the cluster: the innocent register,
+            # the photo that kills its worker by itself is reported. A photo
+            # given up with no other given up beside it is reported at once.
+            for k, (future, (tag, task, outcome)) in enumerate(given_up.items()):
+                if beside[future] & given_up.keys():
+                    retry = submit(task, f"retry{k}")
+                    future_wait(retry)
+                    futures.pop(retry)
+                    outcome = self._outcome(retry, solo=True)
+                yield tag, TaskLost(outcome.message) if isinstance(outcome, _GivenUp) else outcome
         finally:
             if futures and self.client is not None:
                 try:
                     self.client.cancel(list(futures))
                 except Exception:  # noqa: BLE001 - the cluster may be going down
                     pass
+
+    def _outcome(self, future, solo: bool = False) -> Any:
+        """A finished future's result, its exception, a :class:`TaskLost`, or a
+        :class:`_GivenUp` (Dask gave it up after its workers died)."""
+        from distributed import KilledWorker
+
+        try:
+            outcome = future.result()
+        except (Exception, asyncio.CancelledError) as exc:  # noqa: BLE001
+            outcome = exc  # the task's own exception, or the cluster's
+            if isinstance(exc, KilledWorker):
+                outcome = _GivenUp(_lost_message(exc, self.cluster.allowed_failures, solo))
+            elif _is_lost(exc):
+                outcome = TaskLost(_lost_message(exc, self.cluster.allowed_failures))
+        future.release()
+        return outcome
 
     def slots(self) -> int:
         """Threads of the cluster's workers now (at least 1)."""
@@ -549,11 +597,13 @@ def _is_lost(exc: BaseException) -> bool:
     return isinstance(exc, (KilledWorker, CommClosedError, asyncio.CancelledError))
 
 
-def _lost_message(exc: BaseException, allowed_failures: int) -> str:
+def _lost_message(exc: BaseException, allowed_failures: int, solo: bool = False) -> str:
     if type(exc).__name__ == "KilledWorker":
         allowed = getattr(exc, "allowed_failures", allowed_failures)  # the scheduler's own
-        return (f"the worker registering it died {allowed + 1} times (a crash in a "
-                f"native library or out of memory?); not retried")
+        deaths = (f"{2 * (allowed + 1)} times, {allowed + 1} of them with no other photo "
+                  f"on the cluster" if solo else f"{allowed + 1} times")
+        return (f"the worker registering it died {deaths} (a crash in a native library "
+                f"or out of memory?); not retried")
     return f"lost by the cluster ({type(exc).__name__}: {_one_line(exc)})"
 
 
