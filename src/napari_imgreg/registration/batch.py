@@ -403,6 +403,10 @@ class PhotoRunner:
                 # 1.1 queues one more): a dying worker takes no innocent photo's
                 # retry budget with it, and a freed thread takes the next photo.
                 "distributed.scheduler.worker-saturation": 1.0,
+                # Dask's statistical profiler walks every thread's stack each
+                # 10 ms, taking the GIL from the registration: the dashboard's
+                # profile page is not worth that on a machine with no spare core.
+                "distributed.worker.profile.enabled": False,
             }):
                 self._local = LocalCluster(
                     n_workers=n_workers, threads_per_worker=threads,
