@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ._common import EXIT_OK
 from ..errors import input_error
+from ..interpret.structural import DEFAULT_THRESHOLDS
 from ..validate import check_writable
 
 __all__ = ["add_parser", "run"]
@@ -60,15 +61,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "(default 10°)")
     p.add_argument("--min-relief", type=float, default=0.05,
                    help="sqrt(λ2/λ1) a trace needs to define a plane (default 0.05)")
-    p.add_argument("--min-view-spread", type=float, default=0.7, metavar="SIGMAS",
+    p.add_argument("--min-view-spread", type=float, default=DEFAULT_THRESHOLDS.min_view_spread,
+                   metavar="SIGMAS",
                    help="a trace's points must leave the plane through its camera centre by "
-                   "this many times their expected error to define a plane (default 0.7)")
+                   "this many times their expected error to define a plane (default "
+                   f"{DEFAULT_THRESHOLDS.min_view_spread:g})")
     p.add_argument("--max-dip-sigma", type=float, default=5.0, metavar="DEG",
                    help="withhold a trace's plane whose Monte Carlo dip σ exceeds this "
                    "(default 5°, FitThresholds.max_dip_sigma_deg)")
-    p.add_argument("--min-ray-angle", type=float, default=2.0, metavar="DEG",
-                   help="a trace's plane must make this angle with the viewing rays "
-                   "(default 2°)")
+    p.add_argument("--min-ray-angle", type=float, default=DEFAULT_THRESHOLDS.min_ray_angle_deg,
+                   metavar="DEG", help="a trace's plane must make this angle with the viewing "
+                   f"rays (default {DEFAULT_THRESHOLDS.min_ray_angle_deg:g}°)")
     p.add_argument("--samples", type=int, default=200,
                    help="Monte Carlo samples per feature for the σ columns (default 200, "
                    "20–5000)")
