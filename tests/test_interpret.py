@@ -374,7 +374,12 @@ def test_cli_project_refuses_bad_drawings_and_steps(tmp_path, capsys):
     assert np.allclose(feat["properties"]["camera_position"], pose.center, atol=1e-3)
     assert feat["properties"]["sigma_m"] > 0
     csv_out = tmp_path / "m.csv"
+    capsys.readouterr()
     assert main(["measure", str(out), "--out", str(csv_out)]) == 0
+    # The summary gives a straight line's real reasons, not "too few points"
+    # (its note says "the points lie in a plane through the camera").
+    summary = capsys.readouterr().out
+    assert "viewing plane" in summary and "too few points" not in summary
     import csv
 
     (row,) = list(csv.DictReader(csv_out.open()))

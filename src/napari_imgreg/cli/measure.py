@@ -25,7 +25,7 @@ _REJECTIONS = (
     ("planarity", "planarity below the threshold (a line or a blob)"),
     ("relief", "trace nearly straight (too little relief)"),
     ("outcrop surface", "plane is the outcrop surface (surface effect)"),
-    ("points", "too few points"),
+    (" points (< ", "too few points"),
     ("through the camera", "trace lies in its viewing plane (drawn straight: the plane is "
      "not determined)"),
     ("viewing rays", "plane contains the viewing rays"),
@@ -142,10 +142,12 @@ def run(args: argparse.Namespace) -> int:
         a95 = f", α95 {fm.alpha95_deg:.1f}°, k {fm.kappa:.0f}" if fm.alpha95_deg is not None else ""
         print(f"  {label}: {len(planes)} plane(s), Fisher mean dip {dip:.1f}° toward "
               f"{ddir:.1f}°{a95}")
+    if any(m.note.startswith("no plane") for m in measurements):
+        print("  no plane, by reason (a trace may have several):")
     for key, why in _REJECTIONS:
         n = sum(1 for m in measurements if m.note.startswith("no plane") and key in m.note)
         if n:
-            print(f"  no plane for {n}: {why}")
+            print(f"    {n}: {why}")
     if frame.get("frame") == "crs":
         print(f"  centroids in {frame.get('crs', 'the file CRS')}")
     if args.stereonet:
