@@ -156,8 +156,9 @@ def render(
 
     Parameters
     ----------
-    scene : Scene
-        The textured surface; its ray engine is built on first use.
+    scene : Scene or CloudScene
+        The textured surface; its ray engine is built on first use. A point
+        cloud is drawn by :func:`napari_imgreg.render_points.splat_cloud`.
     intrinsics : Intrinsics
         The camera (its distortion is honoured: the render matches the photo).
     cam_from_world : Pose
@@ -192,6 +193,12 @@ def render(
     """
     if mode not in RENDER_MODES:
         raise ValueError(f"mode must be one of {RENDER_MODES}, not {mode!r}")
+    if getattr(scene, "is_cloud", False):  # a lidar scan: splats, same result
+        from .render_points import splat_cloud
+
+        return RenderResult(**splat_cloud(scene, intrinsics, cam_from_world, scale=scale,
+                                          mode=mode, background=background,
+                                          light_direction=light_direction, ambient=ambient))
     if mode == "auto":
         mode = "color" if (scene.has_texture or scene.vertex_colors is not None) else "shaded"
     # Bounded work: refuse a render too large for memory before allocating it

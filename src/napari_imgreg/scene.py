@@ -27,7 +27,7 @@ from .solar import sun_from_record
 if TYPE_CHECKING:
     from .geo import DEM, Georef
 
-__all__ = ["Scene", "RayHits", "ray_threads"]
+__all__ = ["Scene", "RayHits", "ray_threads", "has_appearance"]
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +41,13 @@ def ray_threads() -> int:
     if env:
         return max(1, int(env))
     return max(1, os.cpu_count() or 1)
+
+
+def has_appearance(scene) -> bool:
+    """Whether a scene renders with its own appearance (a texture, vertex
+    colours, or a lidar scan's intensity) rather than grey shading only."""
+    return bool(scene.has_texture or scene.vertex_colors is not None
+                or getattr(scene, "intensity", None) is not None)
 
 
 @dataclass
@@ -142,7 +149,10 @@ class Scene:
         Parameters
         ----------
         mesh_path : path-like
-            OBJ+MTL+image, PLY, GLB/GLTF (see :func:`napari_imgreg.io.meshes.load_mesh`).
+            OBJ+MTL+image, PLY, GLB/GLTF (see :func:`napari_imgreg.io.meshes.load_mesh`);
+            or a point cloud (LAS/LAZ, E57, PTS/XYZ, a PLY of vertices only:
+            :func:`napari_imgreg.io.pointclouds.is_point_cloud_file`), for
+            which a :class:`~napari_imgreg.cloud.CloudScene` is returned.
         georef, dem : object or path-like, optional
             A :class:`~napari_imgreg.geo.Georef` / :class:`~napari_imgreg.geo.DEM`
             or the path of ``georef.json`` / a GeoTIFF or ``.asc`` DEM. When
@@ -159,7 +169,14 @@ class Scene:
         """
         from .geo import DEM, Georef
         from .io.meshes import load_mesh
+        from .io.pointclouds import is_point_cloud_file
 
+        if is_point_cloud_file(mesh_path):
+            # A lidar scan (LAS/LAZ, E57, PTS/XYZ, a PLY without faces): the
+            # point-cloud scene, behind the same interface (issue 16).
+            from .cloud import CloudScene
+
+            return CloudScene.load(mesh_path, georef=georef, dem=dem, cache=cache)
         t0 = time.perf_counter()
         data = load_mesh(mesh_path, cache=cache)
         mesh_path = Path(mesh_path)

@@ -23,6 +23,8 @@ Folder layout (see :func:`generate_outcrop`)::
     IMG_0001.jpg               photo (EXIF: camera, focal length, time, GPS)
     IMG_0001.json              phone sensor record (contract §3): the prior
     IMG_0001.truth.json        true camera and pose, conditions, check points
+    scan.laz, scan.json        optional (``generate_outcrop(..., scan=ScanSpec())``):
+                               a terrestrial laser scan of the surface (:mod:`.scan`)
 """
 
 from __future__ import annotations
@@ -205,6 +207,7 @@ def generate_outcrop(
     size: str = "small",
     seed: int = 0,
     spec: OutcropSpec | None = None,
+    scan: Any = None,
 ) -> Path:
     """Generate the sample outcrop scene into a folder.
 
@@ -220,6 +223,9 @@ def generate_outcrop(
         Everything random derives from it: same seed, same files.
     spec : OutcropSpec, optional
         Full control (other geometry, more photos, ...).
+    scan : napari_imgreg.sample.scan.ScanSpec, optional
+        Also write a terrestrial laser scan of the surface (``scan.laz``,
+        ``scan.json``; needs ``laspy[lazrs]``).
 
     Returns
     -------
@@ -254,6 +260,12 @@ def generate_outcrop(
     timings["write_model"] = time.perf_counter() - t0
     files.update({"georef": "georef.json", "dem": "dem.tif", "geology": "geology.json",
                   "truth_lines": "truth_lines.geojson"})
+    if scan is not None:  # the photos' own surface, scanned (issue 16)
+        from .scan import scan_outcrop
+
+        t0 = time.perf_counter()
+        files.update(scan_outcrop(oc, scene, georef, out, scan))
+        timings["scan"] = time.perf_counter() - t0
 
     # ---- photos
     t0 = time.perf_counter()

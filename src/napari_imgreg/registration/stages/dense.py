@@ -71,7 +71,7 @@ from .pyramid import (
     with_keywords,
 )
 from ...render import RenderResult, _light_direction
-from ...scene import Scene
+from ...scene import Scene, has_appearance
 
 __all__ = [
     "DENSE_MODES",
@@ -894,7 +894,7 @@ def _rms_shift_px(samples: _Samples, pose_a: Pose, pose_b: Pose, intr_a: Intrins
 # --------------------------------------------------------------------------
 def _resolve_modes(scene: Scene | None, modes: Sequence[str] | None, render_fn) -> tuple[str, ...]:
     coloured = render_fn is not None or (
-        scene is not None and (scene.has_texture or scene.vertex_colors is not None))
+        scene is not None and has_appearance(scene))
     if modes is None:
         return ("detail", "normal") if coloured else ("shaded", "normal")
     modes = tuple(modes)

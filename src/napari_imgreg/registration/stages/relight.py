@@ -38,7 +38,7 @@ import numpy.typing as npt
 from ...camera import Intrinsics, Pose
 from ..filters import masked_gaussian
 from ...render import RenderResult, render
-from ...scene import Scene, ray_threads
+from ...scene import Scene, has_appearance, ray_threads
 from ...solar import sun_vector_enu
 
 __all__ = [
@@ -206,6 +206,8 @@ def smooth_normals(
     crease_deg : float
         Crease angle, degrees.
     """
+    if getattr(scene, "is_cloud", False):  # a cloud's normals are smooth already (PCA)
+        return np.asarray(geo_normal, np.float32).reshape(-1, 3)
     table = _smooth_table(scene, float(crease_deg))
     out = np.empty((len(face_id), 3), np.float32)
 
@@ -347,7 +349,7 @@ def relight(
         if mode == "auto":
             if survey_sun_dir is not None:
                 mode = "survey"
-            elif not (scene.has_texture or scene.vertex_colors is not None):
+            elif not has_appearance(scene):
                 mode = "constant"
             else:
                 mode = "lowpass"
