@@ -185,8 +185,8 @@ def _tiny_obj(path):
     "case, needle",
     [
         ("missing", "scene: no such folder"),
-        ("no_mesh", "no mesh in the folder"),
-        ("two_meshes", "several meshes (a.obj, b.ply): choose one with --mesh"),
+        ("no_mesh", "no model in the folder"),
+        ("two_meshes", "several models (a.obj, b.ply): choose one with --mesh"),
         ("corrupt_mesh", "broken.obj"),
         ("no_photos", "no photos in the folder"),
         ("bad_params", "params.json: invalid JSON"),

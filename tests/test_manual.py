@@ -137,6 +137,16 @@ def test_terrain_map_of_a_dem_is_in_the_local_frame(sample):
     assert left < xmin and right > xmax and bottom < ymin and top > ymax
 
 
+def test_hillshade_of_a_map_one_cell_deep_is_flat_along_it():
+    from napari_imgreg.adjust import TerrainMap
+
+    # A thin wall seen from above: one row of cells, heights rising east by 1 m/m.
+    tmap = TerrainMap(np.arange(5.0)[None, :], (0.0, 4.0, 0.0, 0.0), "model")
+    shade = tmap.hillshade(azimuth_deg=90.0, altitude_deg=45.0)
+    # Lit from the east at 45° on a slope facing west at 45°: normal ⟂ light.
+    assert shade.shape == (1, 5) and np.allclose(shade, 0.0, atol=1e-9)
+
+
 def test_terrain_map_without_a_dem_samples_the_model(make_quad):
     plane = make_quad([10.0, 20.0, 3.0], [1, 0, 0], [0, 1, 0], 30.0, 15.0)
     tmap = terrain_map(plane, max_cells=50)

@@ -21,7 +21,7 @@ import logging
 import os
 from pathlib import Path
 
-from .widgets._layers import surface_layer_data
+from .widgets._layers import cloud_layer_data, surface_layer_data
 from .widgets._reader_preferences import (
     _READABLE,
     PLUGIN_NAME,
@@ -44,7 +44,8 @@ def on_activate(context=None) -> None:
 
 
 def get_reader(path: str | os.PathLike | list):
-    """Return a reader for OBJ/PLY/GLB/GLTF meshes, else None (npe2 contract)."""
+    """Return a reader for OBJ/PLY/GLB/GLTF meshes and LAS/LAZ/E57/PTS/XYZ (or
+    vertex-only PLY) point clouds, else None (npe2 contract)."""
     if isinstance(path, list):
         if len(path) != 1:
             return None
@@ -55,10 +56,14 @@ def get_reader(path: str | os.PathLike | list):
 
 
 def read_mesh_layers(path: str | os.PathLike | list) -> list:
-    """Layer data for one mesh file (a georef.json beside it is attached)."""
+    """Layer data for one mesh or point-cloud file (a georef.json beside it is
+    attached): a Surface layer, or a Points layer of the (decimated) cloud."""
     from .scene import Scene
 
     if isinstance(path, list):
         path = path[0]
     scene = Scene.load(path)
+    if getattr(scene, "is_cloud", False):
+        scene.build_engine()  # the spacing that sizes the points
+        return [cloud_layer_data(scene)]
     return [surface_layer_data(scene)]

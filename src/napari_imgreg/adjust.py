@@ -252,8 +252,12 @@ class TerrainMap:
         z = self.heights
         dx, dy = self.spacing
         filled = np.where(np.isfinite(z), z, np.nanmean(z) if np.isfinite(z).any() else 0.0)
-        # Rows run south: d/dy (north) is minus the row gradient.
-        dz_row, dz_col = np.gradient(filled, dy or 1.0, dx or 1.0)
+        # Rows run south: d/dy (north) is minus the row gradient. A map one
+        # cell deep (a thin wall seen from above) is flat along that axis.
+        dz_row = (np.gradient(filled, dy or 1.0, axis=0) if filled.shape[0] > 1
+                  else np.zeros_like(filled))
+        dz_col = (np.gradient(filled, dx or 1.0, axis=1) if filled.shape[1] > 1
+                  else np.zeros_like(filled))
         dzdx, dzdy = dz_col, -dz_row
         az, alt = math.radians(azimuth_deg), math.radians(altitude_deg)
         light = np.array(
@@ -297,6 +301,9 @@ def terrain_map(scene: Scene, max_cells: int = 400) -> TerrainMap:
     step = size / max(2, max_cells - 1)
     xs = np.arange(x0, x1 + step / 2, step)
     ys = np.arange(y1, y0 - step / 2, -step)  # north row first
+    if getattr(scene, "is_cloud", False):  # the highest point per cell (no rays needed)
+        z = np.asarray(scene.height_grid(xs, ys), np.float64)
+        return TerrainMap(z, (xs[0], xs[-1], ys[-1], ys[0]), "model")
     X, Y = np.meshgrid(xs, ys)
     top = z1 + 10.0
     origins = np.stack([X.ravel(), Y.ravel(), np.full(X.size, top)], axis=1)

@@ -27,7 +27,7 @@ from .solar import sun_from_record
 if TYPE_CHECKING:
     from .geo import DEM, Georef
 
-__all__ = ["Scene", "RayHits", "ray_threads", "has_appearance"]
+__all__ = ["Scene", "RayHits", "ray_threads", "has_appearance", "size_text"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +48,13 @@ def has_appearance(scene) -> bool:
     colours, or a lidar scan's intensity) rather than grey shading only."""
     return bool(scene.has_texture or scene.vertex_colors is not None
                 or getattr(scene, "intensity", None) is not None)
+
+
+def size_text(scene) -> str:
+    """How big a scene is, for messages: "126,990 triangles" or "3,755,840 points"."""
+    if getattr(scene, "is_cloud", False):
+        return f"{scene.n_points:,} points"
+    return f"{scene.n_faces:,} triangles"
 
 
 @dataclass

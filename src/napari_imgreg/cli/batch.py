@@ -63,6 +63,8 @@ from ._common import (
 )
 from ..errors import InputError, input_error
 from ..io.meshes import MESH_SUFFIXES
+from ..io.pointclouds import POINT_CLOUD_SUFFIXES
+from ..scene import size_text
 from ..io.photos import PHOTO_SUFFIXES
 from ..io.records import read_json
 from ..validate import check_writable
@@ -291,16 +293,18 @@ def find_scene_files(
     files = sorted((p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")),
                    key=lambda p: _natural_key(p.name))
 
-    meshes = [p for p in files if p.suffix.lower() in MESH_SUFFIXES]
+    # A model is a mesh or a lidar point cloud (LAS/LAZ, E57, PTS/XYZ; a PLY either).
+    meshes = [p for p in files if p.suffix.lower() in {*MESH_SUFFIXES, *POINT_CLOUD_SUFFIXES}]
     if mesh is not None:
         mesh_path = _resolve(mesh, folder)
         if not mesh_path.exists():
             raise input_error(mesh_path, "no such file")
     elif not meshes:
-        raise input_error(folder, "no mesh in the folder (expected an OBJ, PLY, GLB or GLTF file)")
+        raise input_error(folder, "no model in the folder (expected a mesh: OBJ, PLY, GLB, "
+                                  "GLTF; or a point cloud: LAS, LAZ, E57, PTS, XYZ)")
     elif len(meshes) > 1:
         raise input_error(
-            folder, f"several meshes ({', '.join(p.name for p in meshes)}): choose one with --mesh"
+            folder, f"several models ({', '.join(p.name for p in meshes)}): choose one with --mesh"
         )
     else:
         mesh_path = meshes[0]
@@ -481,7 +485,7 @@ def run(args: argparse.Namespace) -> int:
         scene.build_engine()
     n = len(files.photos)
     say(
-        f"scene {files.folder}: {files.mesh.name} ({scene.n_faces:,} triangles)"
+        f"scene {files.folder}: {files.mesh.name} ({size_text(scene)})"
         + (f", DEM {files.dem.name}" if files.dem else ", no DEM")
         + (", georeferenced" if scene.georef is not None else "")
         + f"; {n} photo{'s' if n != 1 else ''} (loaded in {time.perf_counter() - t_start:.1f} s)",

@@ -16,6 +16,7 @@ from ..errors import input_error
 from ..io.photos import save_image
 from ..prior import load_camera_and_pose
 from ..render import render
+from ..scene import size_text
 from ..validate import MAX_RENDER_PIXELS, check_option, check_writable
 
 #: Largest ``--scale``: finer than 8× the camera shows nothing new.
@@ -82,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     trend, plunge, roll = pose.attitude
     x, y, z = pose.center
     print(
-        f"rendered {scene.name} ({scene.n_faces:,} triangles) from the {kind} pose "
+        f"rendered {scene.name} ({size_text(scene)}) from the {kind} pose "
         f"at ({x:.1f}, {y:.1f}, {z:.1f}) m, trend {trend:.1f}° plunge {plunge:.1f}° "
         f"roll {roll:.1f}°"
     )

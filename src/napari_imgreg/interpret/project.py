@@ -657,9 +657,12 @@ def project_interpretations(
             rng = np.linalg.norm(hits - center, axis=1)
             rays = (hits - center) / np.maximum(rng[:, None], 1e-12)
             cos_inc = np.abs(np.einsum("ij,ij->i", rays, line.normals[on_pts]))
-            tri = scene.vertices[scene.faces[line.face_id[on_pts]]]
-            edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
-            edge_m = float(np.median(edges))
+            if getattr(scene, "is_cloud", False):  # the cloud's point spacing there
+                edge_m = float(np.median(scene.spacing[line.face_id[on_pts]]))
+            else:
+                tri = scene.vertices[scene.faces[line.face_id[on_pts]]]
+                edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
+                edge_m = float(np.median(edges))
             mesh_m = uncertainty.mesh_error_fraction * edge_m
             rel = point_sigma(rng, cos_inc, focal, image_px, mesh_m, uncertainty.max_obliquity_gain)
             relative = float(np.median(rel))

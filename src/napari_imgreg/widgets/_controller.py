@@ -43,6 +43,7 @@ from ..errors import InputError
 from ..prior import Prior
 from ..registration.filters import apply_filters, reduce_for_matching
 from ..registration.params import RegistrationParams
+from ..scene import size_text
 from ..registration.pipeline import Trial
 from ..registration.stages.relight import render_sunlit
 from ..render import RenderResult, render
@@ -51,6 +52,7 @@ from ._jobs import JobRunner, in_python_thread
 from ._layers import (
     INTERPRETATION_OF,
     camera_from_view,
+    cloud_layer_data,
     frustum_segments,
     napari_from_pixels,
     napari_from_world,
@@ -363,12 +365,14 @@ class _Layers:
 
     # -- 3D
     def show_surface(self, scene: Scene) -> None:
-        data, kwargs, _ = surface_layer_data(scene, name="outcrop")
+        cloud = getattr(scene, "is_cloud", False)  # a lidar scan: a Points layer
+        data, kwargs, _ = (cloud_layer_data if cloud else surface_layer_data)(
+            scene, name="outcrop")
         old = self.get("surface")
         if old is not None:
             self.viewer.layers.remove(old)
         kwargs["visible"] = self.viewer.dims.ndisplay == 3
-        self._put("surface", self._add("add_surface", data, **kwargs))
+        self._put("surface", self._add("add_points" if cloud else "add_surface", data, **kwargs))
 
     def show_cameras(self, centers: np.ndarray, segments: np.ndarray, current: int,
                      marker_m: float = 5.0) -> None:
@@ -715,7 +719,7 @@ class WorkbenchController(QObject):
                                       {"mesh": mesh, "dem": dem, "georef": georef})
             if not photos:
                 self.loading.emit("")
-            self.status.emit(f"opened {scene.name}: {scene.n_faces:,} triangles"
+            self.status.emit(f"opened {scene.name}: {size_text(scene)}"
                              + (", DEM" if scene.dem is not None else "")
                              + (f", {scene.georef.crs}" if scene.georef is not None else ""))
             for w in scene.warnings:

@@ -55,6 +55,7 @@ from ..registration.filters import FilterParams
 from ..io.photos import PHOTO_SUFFIXES
 from ..registration.manual import MIN_PAIRS, MIN_PAIRS_FOCAL
 from ..registration.params import RegistrationParams
+from ..scene import size_text
 from ..registration.pose import PoseParams
 from ..registration.features import FeatureParams
 from ..validate import param_range
@@ -283,7 +284,7 @@ class ScenePanel(QWidget):
             if files.get(key):
                 edit.setText(files[key])
         lo, hi = scene.bounds
-        parts = [f"<b>{scene.name}</b>: {scene.n_faces:,} triangles",
+        parts = [f"<b>{scene.name}</b>: {size_text(scene)}",
                  "textured" if scene.has_texture else "no texture",
                  f"{hi[0] - lo[0]:.0f} × {hi[1] - lo[1]:.0f} × {hi[2] - lo[2]:.0f} m"]
         if scene.georef is not None:
