@@ -31,6 +31,7 @@ __all__ = [
     "pixels_to_full",
     "pixels_to_scaled",
     "SENSOR_WIDTHS_MM",
+    "ESTIMABLE_FIELDS",
 ]
 
 #: Focal length bounds per image side: fx ≥ this × width (a view under 170°).
@@ -41,6 +42,9 @@ MAX_FOCAL_PER_SIDE = 10_000.0
 MAX_COORDINATE_M = 1e8
 #: Largest magnitude of a distortion coefficient (fisheye lenses stay below 10).
 MAX_DISTORTION = 1000.0
+#: The camera fields a registration may estimate (``Intrinsics.estimated``,
+#: RESULT.json ``camera.estimated``).
+ESTIMABLE_FIELDS = ("fx", "fy", "cx", "cy", "dist")
 
 # Sensor widths (mm) of common field cameras, used when EXIF lacks both the
 # 35 mm equivalent focal length and the focal-plane resolution.
@@ -74,6 +78,13 @@ class Intrinsics:
         Principal point in pixels (pixel centres at integers).
     dist : tuple of float
         OpenCV distortion ``(k1, k2, p1, p2, k3)``; empty for none.
+    estimated : tuple of str
+        The fields (of :data:`ESTIMABLE_FIELDS`) that are not read from the
+        photo's record or EXIF. Before registration: values assumed as a
+        start, to be estimated (a record without a focal length gets
+        ``("fx", "fy")`` at a 65° field of view); after: the values the
+        registration estimated (RESULT.json ``camera.estimated``). Empty: all
+        read (known).
 
     Raises
     ------
@@ -82,8 +93,9 @@ class Intrinsics:
         width and height whole numbers in [1, 65535]; fx at least
         0.044 × width and fy 0.044 × height (a view under 170°), at most
         10 000 × the longer side; cx in [−width, 2 width], cy likewise; at
-        most 5 distortion coefficients, each within ±1000. The message
-        names the field (``field 'fx' ...``).
+        most 5 distortion coefficients, each within ±1000; ``estimated``
+        names outside :data:`ESTIMABLE_FIELDS`. The message names the field
+        (``field 'fx' ...``).
     """
 
     width: int
@@ -93,6 +105,7 @@ class Intrinsics:
     cx: float
     cy: float
     dist: tuple[float, ...] = field(default_factory=tuple)
+    estimated: tuple[str, ...] = field(default_factory=tuple)
 
     def __post_init__(self) -> None:
         # Checked here, where every camera is made (records, RESULT.json, the
@@ -129,6 +142,17 @@ class Intrinsics:
                 "are supported")
         object.__setattr__(self, "dist", tuple(
             float(check_number(k, "dist", -MAX_DISTORTION, MAX_DISTORTION)) for k in dist))
+        if isinstance(self.estimated, (str, bytes)) or not hasattr(self.estimated, "__iter__"):
+            raise FieldValueError("estimated", f"must be a list of camera field names, got "
+                                               f"{self.estimated!r}")
+        estimated = tuple(self.estimated)
+        unknown = [e for e in estimated if e not in ESTIMABLE_FIELDS]
+        if unknown:
+            raise FieldValueError("estimated", f"names {unknown[0]!r}; only "
+                                               f"{', '.join(ESTIMABLE_FIELDS)} can be estimated")
+        # One order whatever the caller gave, so equal cameras compare equal.
+        object.__setattr__(self, "estimated",
+                           tuple(f for f in ESTIMABLE_FIELDS if f in estimated))
 
     # ------------------------------------------------------------------ build
     @classmethod
@@ -247,11 +271,14 @@ class Intrinsics:
         dist = d.get("dist")
         if dist:
             intr = replace(intr, dist=dist)
+        estimated = d.get("estimated")
+        if estimated:
+            intr = replace(intr, estimated=estimated)
         return intr
 
     def to_dict(self) -> dict[str, Any]:
-        """The contract's pixel ``camera`` block."""
-        return {
+        """The contract's pixel ``camera`` block (with ``estimated`` when not empty)."""
+        out = {
             "width": self.width,
             "height": self.height,
             "fx": self.fx,
@@ -260,6 +287,15 @@ class Intrinsics:
             "cy": self.cy,
             "dist": list(self.dist),
         }
+        if self.estimated:
+            out["estimated"] = list(self.estimated)
+        return out
+
+    @property
+    def focal_known(self) -> bool:
+        """False when the focal length is an assumption or an estimate
+        (``"fx"`` in :attr:`estimated`): the registration estimates it."""
+        return "fx" not in self.estimated
 
     # --------------------------------------------------------------- derived
     @property
@@ -305,6 +341,7 @@ class Intrinsics:
             pixels_to_scaled(self.cx, sx),
             pixels_to_scaled(self.cy, sy),
             self.dist,
+            self.estimated,
         )
 
     def rotated(self, quarter_turns: int) -> Intrinsics:
@@ -340,6 +377,7 @@ class Intrinsics:
         else:  # (u, v) -> (w - 1 - u, h - 1 - v)
             out = Intrinsics(w, h, self.fx, self.fy, w - 1 - self.cx, h - 1 - self.cy,
                              (k1, k2, -p1, -p2, k3))
+        out = replace(out, estimated=self.estimated)
         return out if self.dist else replace(out, dist=())
 
     # ------------------------------------------------------ project/unproject

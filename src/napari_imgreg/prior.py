@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Mapping
 
@@ -268,10 +268,10 @@ def _intrinsics_of(
             sensor = block or photo  # turned by 180°, the photo's size is the sensor's
             cam["width"], cam["height"] = sensor
             base = (_camera_from_block(cam, src) if _has_focal(cam) else
-                    Intrinsics.from_fov(sensor[0], sensor[1], 65.0))
+                    _assumed_camera(sensor[0], sensor[1]))
             if not _has_focal(cam):
                 notes.append("no focal length: assumed a 65° horizontal field of view of the "
-                              "sensor (phone camera)")
+                              f"sensor (phone camera) as the start; {_ESTIMATED_NOTE}")
             turned = base.rotated(turns)
             notes.append(
                 f"camera is the sensor's {base.width}×{base.height}; the photo is shown "
@@ -295,9 +295,24 @@ def _intrinsics_of(
     if "width" not in cam or "height" not in cam:
         raise input_error(src, "no camera width/height in the record and no photo")
     if not _has_focal(cam):
-        notes.append("no focal length: assumed a 65° horizontal field of view (phone camera)")
-        return Intrinsics.from_fov(int(cam["width"]), int(cam["height"]), 65.0), 0
+        notes.append("no focal length: assumed a 65° horizontal field of view (phone camera) "
+                     f"as the start; {_ESTIMATED_NOTE}")
+        return _assumed_camera(int(cam["width"]), int(cam["height"])), 0
     return _camera_from_block(cam, src), 0
+
+
+#: The field of view assumed for a camera without a focal length (a phone's).
+ASSUMED_HFOV_DEG = 65.0
+_ESTIMATED_NOTE = ("the focal length is estimated during registration (RESULT.json "
+                   "camera.estimated)")
+
+
+def _assumed_camera(width: int, height: int) -> Intrinsics:
+    """A camera without a known focal length: :data:`ASSUMED_HFOV_DEG`, its
+    focal length marked unknown (``estimated``), so the registration
+    estimates it and starts from this one."""
+    return replace(Intrinsics.from_fov(width, height, ASSUMED_HFOV_DEG),
+                   estimated=("fx", "fy"))
 
 
 def _swapped_aspect(block: tuple[int, int], photo: tuple[int, int]) -> bool:

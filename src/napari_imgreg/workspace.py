@@ -888,6 +888,10 @@ class Workspace:
             ps.trials.append(TrialRecord(t, ps.runs, kind))
         best = first + next((k for k, t in enumerate(reg.trials) if t.index == reg.best_trial), 0)
         label = f"{kind} {ps.runs} ({reg.grade})"
+        if reg.registered and reg.intrinsics != ps.intrinsics:
+            # The focal length was estimated (a record without one): the pose
+            # belongs to that camera, and so must the overlays and projections.
+            ps.intrinsics = reg.intrinsics
         if reg.registered and ps is self.current:
             self._push(reg.pose, label, "registration")
         elif reg.registered and pose_if_not_current:

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from .._deprecated import forward_moved_names
+from ..camera import ESTIMABLE_FIELDS
 from ..errors import input_error
 from ..validate import MAX_IMAGE_SIDE_PX, FieldValueError, check_number
 
@@ -77,7 +78,13 @@ class SensorRecord:
     Attributes
     ----------
     camera : dict or None
-        The ``camera`` block (pixels or millimetres).
+        The ``camera`` block (pixels or millimetres). Without a focal length
+        (``{"width", "height"}`` only) the focal length is unknown and
+        estimated during registration. Its optional ``estimated`` (a list of
+        camera field names, as RESULT.json writes it) marks values that are
+        estimates: a block with ``fx`` and ``"estimated": ["fx", "fy"]`` (a
+        registration's result saved as the next record) gives the start of
+        another estimation, not a known focal length.
     position : dict or None
         ``{"x", "y"[, "z"]}`` local metres or ``{"lat", "lon"[, "alt"]}``.
     orientation : dict or None
@@ -261,6 +268,13 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
                 except FieldValueError:
                     raise input_error(src, f"field 'camera.dist' must be finite numbers "
                                            f"within ±1000, got {dist!r}") from None
+        estimated = camera.get("estimated")
+        if estimated is not None and not (
+                isinstance(estimated, list)
+                and all(isinstance(e, str) and e in ESTIMABLE_FIELDS for e in estimated)):
+            raise input_error(src, f"field 'camera.estimated' must be a list of camera field "
+                                   f"names ({', '.join(ESTIMABLE_FIELDS)}), got "
+                                   f"{_short(estimated)}")
 
     position = blocks["position"]
     if position is not None:

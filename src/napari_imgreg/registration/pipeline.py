@@ -15,6 +15,13 @@ enough, the first heuristic rule that fires adapts the parameters for the next
 one. If nothing registers from the prior, perturbed priors within the sensor
 record's ``sigma`` are tried at reduced resolution and the best is refined.
 
+With an unknown focal length (``Intrinsics.focal_known`` False: a record with
+the camera's size only), every round estimates the focal length with the pose
+(:attr:`~napari_imgreg.registration.pose.PoseParams.solver`) and the next
+round renders with the estimate; a trial that starts from an earlier trial's
+pose starts from its focal length too, and the result's camera is the best
+trial's, its ``estimated`` listing what was estimated.
+
 A pose is reported ``registered`` only when it is also *verified*: the last
 round converged and the matched keypoints of photo and final render coincide
 (small residual flow). Q alone can be high for a wrong but self-consistent
@@ -53,7 +60,7 @@ from .stages.dense import refine_pose_mi
 from .stages.edges import align_edges
 from .uncertainty import Uncertainty
 from ..render import RenderResult, render
-from ..scene import Scene
+from ..scene import Scene, has_appearance
 
 __all__ = [
     "Progress",
@@ -158,6 +165,8 @@ class _Context:
     def __init__(self, scene: Scene, photo_rgb: np.ndarray, intrinsics: Intrinsics,
                  params: RegistrationParams, check: Callable[[], None]) -> None:
         self.scene = scene
+        #: The camera of the current round: the prior's, or (focal length
+        #: unknown) the latest estimate; :func:`_run_trial` sets and restores it.
         self.intrinsics = intrinsics
         self.check = check
         self.timings = {"render": 0.0, "filter": 0.0, "detect_match": 0.0,
@@ -278,6 +287,7 @@ def _run_trial(
     mode: str = "plain",
     matcher: str = "keypoints",
     far_start: bool = True,
+    intrinsics: Intrinsics | None = None,
 ) -> Generator[tuple[int, int], None, Trial]:
     """Run one trial; yields (round, rounds) before each round, returns the Trial.
 
@@ -289,8 +299,28 @@ def _run_trial(
     the pose's convergence (:func:`napari_imgreg.registration.stages.area.search_schedule`;
     ``far_start``: the start is the sensor prior, not a stage's estimate).
     A trial is converged only after a round at the full area width.
+    ``intrinsics``: the camera to start from (default ``ctx.intrinsics``);
+    rounds that estimate the focal length render the next round with their
+    estimate, and the trial's ``intrinsics`` is its last estimate.
+    ``ctx.intrinsics`` is as before when the trial ends.
     """
     t_start = time.perf_counter()
+    before = ctx.intrinsics
+    if intrinsics is not None:
+        ctx.intrinsics = intrinsics
+    try:
+        trial = yield from _trial_rounds(ctx, index, start, params, origin, width, max_rounds,
+                                         mode, matcher, far_start, t_start)
+    finally:
+        ctx.intrinsics = before
+    return trial
+
+
+def _trial_rounds(ctx: _Context, index: int, start: Pose, params: RegistrationParams,
+                  origin: str, width: int | None, max_rounds: int | None, mode: str,
+                  matcher: str, far_start: bool, t_start: float
+                  ) -> Generator[tuple[int, int], None, Trial]:
+    """The rounds of :func:`_run_trial` (which sets and restores ``ctx.intrinsics``)."""
     width = width or params.match_width
     rounds = max_rounds or params.max_iterations
     pose = start
@@ -325,12 +355,18 @@ def _run_trial(
             break
         best = this
         d_rot, d_pos = _pose_change(pose, estimate.pose)
-        shift = image_shift(ctx.intrinsics, pose, estimate.pose, this.correspondences)
+        solved = estimate.intrinsics or ctx.intrinsics
+        shift = image_shift(ctx.intrinsics, pose, estimate.pose, this.correspondences, solved)
+        d_focal = abs(solved.fx / ctx.intrinsics.fx - 1.0)
+        ctx.intrinsics = solved  # the next round renders with the estimated focal length
         last_shift = shift
         last_ok_pose = estimate.pose
         pose = estimate.pose
         converged_px = AREA_CONVERGED_SHIFT_PX if area else CONVERGED_SHIFT_PX
-        if final_width and ((d_rot < params.converged_deg and d_pos < params.converged_m) or (
+        # A focal length still moving by more than 0.1 % is not converged
+        # whatever the pose did (the shift test includes it).
+        if final_width and ((d_rot < params.converged_deg and d_pos < params.converged_m
+                             and d_focal < 1e-3) or (
             shift < converged_px * ctx.intrinsics.width / 1632.0
         )):
             converged = True
@@ -340,6 +376,11 @@ def _run_trial(
         converged=converged, origin=origin, seconds=time.perf_counter() - t_start,
         image_width=ctx.intrinsics.width, render_mode=mode, matcher=matcher,
         intrinsics=ctx.intrinsics)
+
+
+def _trial_camera(t: Trial, fallback: Intrinsics) -> Intrinsics:
+    """The camera a trial's pose goes with (``fallback``: the camera it started from)."""
+    return t.intrinsics if (t.intrinsics is not None and t.pose is not None) else fallback
 
 
 def _trial_rank(t: Trial) -> tuple:
@@ -453,7 +494,8 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
                                            start_prior, "edges", extra, aligned.seconds,
                                            f"edges agree ({aligned.inlier_fraction:.0%} of the "
                                            "model's edge points on photo edges) but no matching "
-                                           "confirms the pose: not verified"))
+                                           "confirms the pose: not verified",
+                                           ctx.intrinsics))
 
     if options.dense_refine:
         best = max(trials, key=_trial_rank)
@@ -472,11 +514,13 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
                 trials.append(_stage_trial(len(trials), trial or trials[-1], refined.pose, start,
                                            "mutual information", extra, refined.seconds,
                                            "mutual information peaks here but no matching "
-                                           "confirms the pose: not verified"))
+                                           "confirms the pose: not verified",
+                                           ctx.intrinsics))
 
 
 def _stage_trial(index: int, keypoint_trial: Trial, pose: Pose, start: Pose, origin: str,
-                 extra: dict, seconds: float, hint: str) -> Trial:
+                 extra: dict, seconds: float, hint: str,
+                 intrinsics: Intrinsics | None = None) -> Trial:
     """A pose found by edges or mutual information that keypoints could not
     confirm: kept (it is usually far better than the prior, a start for the
     manual registration) but never graded above "poor" — an MI or edge optimum
@@ -489,7 +533,7 @@ def _stage_trial(index: int, keypoint_trial: Trial, pose: Pose, start: Pose, ori
         hints=[hint, *keypoint_trial.hints], pose=pose,
         start_pose=start, rounds=0, converged=False, verified=False,
         residual_flow_px=float("inf"), origin=origin, seconds=seconds,
-        render_mode=keypoint_trial.render_mode)
+        render_mode=keypoint_trial.render_mode, intrinsics=intrinsics)
 
 
 def _raising(check: Callable[[], None]) -> Callable[[], bool]:
@@ -556,7 +600,8 @@ def register_photo(
             f"prior camera {EYE_HEIGHT_M - lift:+.1f} m above the model surface: "
             f"lifted to {EYE_HEIGHT_M:g} m above it"
         )
-    untextured = not (scene.has_texture or scene.vertex_colors is not None)
+    # A lidar cloud's intensity is its appearance (it is not sun-lit).
+    untextured = not has_appearance(scene)
     # Relighting needs the photo's sun, and the texture's own sun to divide
     # out (an untextured model has none): without it, it does more harm than good.
     if params.sun_relight and prior.sun is not None and (untextured or scene.survey_sun is not None):
@@ -572,6 +617,7 @@ def register_photo(
 
     current = params
     start = start_prior
+    start_camera = intr
     origin = "prior"
 
     def rounds_of(gen, label: str, base: float | None = None, span: float = 1.0):
@@ -591,7 +637,8 @@ def register_photo(
         params.max_trials if params.auto_adapt else 1)
     for trial_no in range(n_keypoint_trials):
         trial = yield from rounds_of(
-            _run_trial(ctx, len(trials), start, current, origin, mode=first_mode),
+            _run_trial(ctx, len(trials), start, current, origin, mode=first_mode,
+                       intrinsics=start_camera),
             f"trial {trial_no + 1}: {current.features.name}")
         trials.append(trial)
         check()
@@ -609,6 +656,7 @@ def register_photo(
         current = adapted
         if trial.pose is not None and trial.metrics.get("inliers_3d", 0) >= 12:
             start, origin = trial.pose, f"trial {trial.index + 1}"
+            start_camera = _trial_camera(trial, start_camera)
 
     best = max(trials, key=_trial_rank)
     if not best.verified and params.search_prior and not (untextured and robust):
@@ -622,19 +670,23 @@ def register_photo(
             yield progress("search", f"searching the prior's uncertainty ({k + 1}/{len(candidates)})",
                            (len(trials) + 0.5 * k / len(candidates)) / n_budget)
             t = run_to_end(_run_trial(ctx, -1, cand, best.params, "search",
-                                      width=search_width, max_rounds=2, mode=first_mode))
+                                      width=search_width, max_rounds=2, mode=first_mode,
+                                      intrinsics=start_camera))
             if t.pose is not None:
                 scored.append(t)
             check()
         if scored:
             lead = max(scored, key=lambda t: (t.metrics.get("inliers_3d", 0), t.q))
             trial = yield from rounds_of(
-                _run_trial(ctx, len(trials), lead.pose, best.params, "search", mode=first_mode),
+                _run_trial(ctx, len(trials), lead.pose, best.params, "search", mode=first_mode,
+                           intrinsics=_trial_camera(lead, start_camera)),
                 "refining the best start from the search", base=len(trials) + 0.5, span=0.5)
             trials.append(trial)
         best = max(trials, key=_trial_rank)
 
     if robust and not _good(best):
+        # The stages render (and align edges, refine MI) with the best camera so far.
+        ctx.intrinsics = _trial_camera(best, start_camera)
         yield from _robust_stages(ctx, prior, start_prior, best.params, trials, first_mode,
                                   params, progress, rounds_of, n_budget, untextured)
         best = max(trials, key=_trial_rank)
@@ -644,6 +696,17 @@ def register_photo(
     else:
         status = "registered" if best.metrics.get("inliers_3d", 0) >= 7 else "failed"
     pose = best.pose if best.pose is not None else prior.pose
+    camera = _trial_camera(best, intr)
+    if not intr.focal_known:
+        if camera.focal_known or camera is intr:
+            assumptions.append(
+                f"focal length unknown and not estimated (no pose solved with it): the assumed "
+                f"{intr.hfov_deg:.0f}° horizontal view (fx = {intr.fx:.1f} px) stands")
+        else:
+            assumptions.append(
+                f"focal length estimated during registration: fx = fy = {camera.fx:.1f} px "
+                f"({camera.hfov_deg:.1f}° horizontal view; the start was {intr.fx:.1f} px); "
+                f"estimated: {', '.join(camera.estimated)}")
     hints = list(best.hints)
     if status == "failed" and not hints:
         hints = ["No verified pose: try the manual control-point registration."]
@@ -653,7 +716,7 @@ def register_photo(
     return Registration(
         status=status,
         photo=photo_name,
-        intrinsics=intr,
+        intrinsics=camera,
         pose=pose,
         prior=prior,
         metrics=best.metrics,

@@ -28,7 +28,7 @@ reported and poses solved at the photo's full resolution.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from time import perf_counter
 from typing import Protocol
 
@@ -44,7 +44,7 @@ from .features import (
 )
 from .filters import apply_filters, illumination_invariant
 from .params import RegistrationParams
-from .pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement
+from .pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement, with_known_focal
 from .quality import (
     REFERENCE_WIDTH_PX,
     Grade,
@@ -148,6 +148,10 @@ class Trial:
     #: The pose's expected error by cross-validation (RESULT.json ``uncertainty``);
     #: None when not estimated (no pose, or a pose scored without the camera).
     uncertainty: Uncertainty | None = None
+    #: The camera the pose goes with: the photo's, or the one estimated with
+    #: the pose when its focal length is unknown (``estimated`` lists what).
+    #: None: the photo's camera, unchanged (a pose scored without the camera).
+    intrinsics: Intrinsics | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -382,7 +386,9 @@ def pose_round(
     intrinsics : Intrinsics
         The photo's camera, full resolution.
     params : PoseParams
-        RANSAC EPnP settings; their threshold also decides a given pose's inliers.
+        RANSAC EPnP settings (or, with ``solver``, the unknown-focal solver's,
+        whose estimate then carries the solved camera); their threshold also
+        decides a given pose's inliers.
     given_pose : Pose, optional
         Test this pose against the correspondences
         (:func:`~napari_imgreg.registration.pose.pose_agreement`) instead of
@@ -400,8 +406,9 @@ def pose_round(
     m = matched
     t0 = perf_counter()
     if given_pose is None:
+        # An unknown focal length is estimated with the pose (params.solver "auto").
         estimate = estimate_pose(intrinsics, m.xyz[m.lifted], m.photo_points[m.lifted], params,
-                                 rng_seed=rng_seed)
+                                 rng_seed=rng_seed, auto_focal=True)
     else:
         estimate = pose_agreement(intrinsics, given_pose, m.xyz[m.lifted],
                                   m.photo_points[m.lifted], params)
@@ -503,17 +510,21 @@ def round_metrics(points_photo: int, points_render: int, inlier: np.ndarray,
     return metrics, pose_inlier
 
 
-def image_shift(intr: Intrinsics, a: Pose, b: Pose, corr: Correspondences) -> float:
+def image_shift(intr: Intrinsics, a: Pose, b: Pose, corr: Correspondences,
+                intr_b: Intrinsics | None = None) -> float:
     """Median distance (pixels) by which the pose-inlier 3D points move in the
     image from pose ``a`` to pose ``b``: how much a pose change *shows*.
 
     Far from the camera, a rotation and a translation can nearly cancel in
     the image; the change in angle and metres then overstates what moved.
+    ``intr_b`` is the camera of pose ``b`` when it differs (a focal length
+    estimated with the pose): the shift then includes the focal change.
     """
     if corr.xyz is None or corr.pose_inlier.sum() < 3:
         return float("inf")
     pts = corr.xyz[corr.pose_inlier]
-    return float(np.median(np.linalg.norm(a.project(intr, pts) - b.project(intr, pts), axis=1)))
+    moved = b.project(intr_b or intr, pts)
+    return float(np.median(np.linalg.norm(a.project(intr, pts) - moved, axis=1)))
 
 
 def residual_flow(corr: Correspondences, regional_px: float | None = None) -> float:
@@ -620,7 +631,9 @@ def trial_from_round(
     render_mode, matcher : str
         As in :func:`score_round`.
     intrinsics : Intrinsics, optional
-        The photo's camera, full resolution. Given: the pose's ``uncertainty``
+        The photo's camera, full resolution (with an estimated focal length:
+        the estimate, held fixed by the uncertainty, which therefore leaves
+        the focal length's own error out). Given: the pose's ``uncertainty``
         is estimated (:func:`~napari_imgreg.registration.uncertainty.estimate_uncertainty`
         on the round's lifted matches, compared over the render's whole
         frame), and a pose whose estimate reaches
@@ -646,10 +659,12 @@ def trial_from_round(
     uncertainty = None
     if intrinsics is not None and pose is not None:
         use = corr.lifted & corr.feature_inlier
+        # The camera is held fixed (an estimated focal length too): the halves
+        # are solved by EPnP whatever solver found the pose.
         uncertainty = estimate_uncertainty(
-            intrinsics, pose, corr.xyz[use], corr.photo_points[use],
+            with_known_focal(intrinsics), pose, corr.xyz[use], corr.photo_points[use],
             frame_points(last.rendered.xyz), uncertainty_params or params.uncertainty,
-            params.pose, rng_seed=int(params.seed))
+            replace(params.pose, solver="epnp"), rng_seed=int(params.seed))
     uncertain = uncertainty is not None and not uncertainty.is_small(image_width)
     flow_verified = verified
     verified = verified and not uncertain
@@ -673,6 +688,10 @@ def trial_from_round(
             f"Photo and {render} disagree (residual flow {flow:.1f} px, "
             f"{metrics['inliers_3d']} 3D inliers): pose not verified."
         )
+    if pose is not None and intrinsics is not None and last.estimate.intrinsics is not None:
+        hints.append(
+            f"Focal length estimated with the pose: fx = {intrinsics.fx:.1f} px (a "
+            f"{intrinsics.hfov_deg:.1f}° horizontal view); the uncertainty holds it fixed.")
     if uncertain:
         hints.append(
             f"Independent check: poses solved from separate halves of the photo disagree "
@@ -700,4 +719,5 @@ def trial_from_round(
         render_mode=render_mode,
         matcher=matcher,
         uncertainty=uncertainty,
+        intrinsics=intrinsics,
     )
