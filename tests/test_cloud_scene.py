@@ -269,3 +269,18 @@ def test_load_reads_the_file_and_reuses_its_normals_cache(planes, tmp_path):
     second = CloudScene.load(path)
     assert second._normals is not None  # from the cache, not computed again
     assert np.allclose(second.normals, first.normals, atol=1e-3)
+
+
+def test_cloud_and_mesh_scenes_read_one_dem_the_same_way():
+    """Both scenes take the DEM through geo.dem_height_local: CRS heights minus the origin."""
+    from napari_imgreg.geo import dem_height_local
+
+    class FlatDem:  # a DEM at 350 m + 0.01 m per metre east, in CRS coordinates
+        def height_at(self, e, n):
+            return 350.0 + 0.01 * (e - 579000.0)
+
+    class Origin:
+        origin = (579000.0, 5912000.0, 340.0)
+
+    assert dem_height_local(FlatDem(), Origin(), 100.0, 5.0) == pytest.approx(11.0)
+    assert dem_height_local(FlatDem(), None, 579100.0, 0.0) == pytest.approx(351.0)

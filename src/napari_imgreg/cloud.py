@@ -35,6 +35,7 @@ from numba import njit
 
 from .camera import Intrinsics, Pose
 from .errors import InputError
+from .geo import dem_height_local
 from .render_points import SplatParams, splat_depth, warm_up
 from .validate import check_number
 
@@ -687,11 +688,7 @@ class CloudScene:
             Outside the DEM, or no points near (x, y) without a DEM.
         """
         if self.dem is not None:
-            if self.georef is not None:
-                e, n, oz = x + self.georef.origin[0], y + self.georef.origin[1], self.georef.origin[2]
-            else:
-                e, n, oz = x, y, 0.0
-            return float(self.dem.height_at(e, n)) - oz
+            return dem_height_local(self.dem, self.georef, x, y)
         tree, z = self._terrain_tree()
         radius = self.params.terrain_radius_m
         for _ in range(9):

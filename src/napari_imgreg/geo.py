@@ -40,6 +40,7 @@ __all__ = [
     "Georef",
     "DEM",
     "camera_altitude",
+    "dem_height_local",
     "DEFAULT_HEIGHT_ABOVE_GROUND_M",
 ]
 
@@ -568,3 +569,13 @@ def camera_altitude(
         The point is outside the DEM or on nodata.
     """
     return float(dem.height_at(e, n)) + float(height_above_ground_m)
+
+
+def dem_height_local(dem, georef, x: float, y: float) -> float:
+    """The DEM's height at local (x, y), in the local frame (metres): the DEM is
+    in the georeference CRS, so the origin is added, then its height taken off."""
+    if georef is not None:
+        e, n, oz = x + georef.origin[0], y + georef.origin[1], georef.origin[2]
+    else:
+        e, n, oz = x, y, 0.0
+    return float(dem.height_at(e, n)) - oz

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import InputError, input_error
+from .geo import dem_height_local
 from .io.rasters import read_geotiff
 from .io.records import parse_sensor_record, read_json
 from .solar import sun_from_record
@@ -443,11 +444,7 @@ class Scene:
             Outside the DEM, or no surface under (x, y) without a DEM.
         """
         if self.dem is not None:
-            if self.georef is not None:
-                e, n, oz = x + self.georef.origin[0], y + self.georef.origin[1], self.georef.origin[2]
-            else:
-                e, n, oz = x, y, 0.0
-            return float(self.dem.height_at(e, n)) - oz
+            return dem_height_local(self.dem, self.georef, x, y)
         top = self.bounds[1, 2] + 10.0
         hits = self.cast_rays(np.array([[x, y, top]]), np.array([[0.0, 0.0, -1.0]]))
         if not hits.hit[0]:
