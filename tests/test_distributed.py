@@ -362,3 +362,25 @@ def test_a_scheduler_that_does_not_answer_is_one_line_of_bad_input():
     with pytest.raises(InputError, match="no such scheduler file"), \
             backend.PhotoRunner(missing, 3):
         pass
+
+
+def _worker_settings():
+    import dask
+
+    return {"mmap": os.environ.get("MALLOC_MMAP_THRESHOLD_"),
+            "trim": os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+            "omp": os.environ.get("OMP_NUM_THREADS"),
+            "monitor": dask.config.get("distributed.admin.system-monitor.interval"),
+            "memory": dask.config.get("distributed.worker.memory.monitor-interval"),
+            "profile": dask.config.get("distributed.worker.profile.enabled")}
+
+
+def test_local_workers_start_tuned_with_quiet_housekeeping(monkeypatch):
+    from napari_imgreg import _allocator
+
+    monkeypatch.delenv(_allocator.OPT_OUT_VARIABLE, raising=False)
+    with backend.PhotoRunner(backend.ClusterParams(workers=1, threads_per_worker=1), 1) as run:
+        (settings,) = run.client.run(_worker_settings).values()
+    assert settings == {"mmap": str(_allocator.MMAP_THRESHOLD_BYTES),
+                        "trim": str(_allocator.TRIM_THRESHOLD_BYTES),  # not Dask's 65536
+                        "omp": "1", "monitor": "5s", "memory": "1s", "profile": False}

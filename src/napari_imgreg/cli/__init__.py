@@ -19,6 +19,7 @@ import argparse
 import sys
 
 from .. import __version__
+from .._allocator import tune_allocator
 from .._deprecated import forward_moved_names
 from . import (
     batch,
@@ -58,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    tune_allocator()  # image buffers reused, not re-faulted (see _allocator)
     # A reader that closed our stdout (``| head``) must not turn a command
     # that did its work into a traceback: its lines are dropped instead.
     sys.stdout = _QuietWhenClosed(sys.stdout)

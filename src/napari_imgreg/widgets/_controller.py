@@ -36,6 +36,7 @@ import numpy as np
 from matplotlib.colors import to_rgba
 from qtpy.QtCore import QObject, QTimer, Signal
 
+from .._allocator import tune_allocator
 from .._deprecated import forward_moved_names
 from ..adjust import TerrainMap
 from ..camera import Intrinsics, Pose, match_scale
@@ -484,6 +485,9 @@ class WorkbenchController(QObject):
 
     def __init__(self, viewer: napari.viewer.Viewer, workspace: Workspace | None = None) -> None:
         super().__init__()
+        # napari's process registers here too: keep its image buffers (see
+        # _allocator; NAPARI_IMGREG_MALLOC=default opts out).
+        tune_allocator()
         self.viewer = viewer
         #: The state the docks show and edit (Qt-free).
         self.workspace = workspace if workspace is not None else Workspace()
