@@ -8,6 +8,8 @@ interpretations) are tested without a viewer in ``tests/test_workspace.py``."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import shutil
 
 import numpy as np
@@ -645,6 +647,15 @@ def test_manual_pairs_from_the_truth_recover_the_pose(workbench, qtbot):
     np.testing.assert_allclose(ctrl.workspace.pairs()[0], photo_px)
     np.testing.assert_allclose(ctrl.workspace.pairs()[1], ref_px)
     assert panel.focal_check.isEnabled()
+    assert not panel.focal_check.isChecked()  # the record gives the focal length
+    # A photo whose focal length is not known: solving it is ticked for the user,
+    # until they untick it.
+    ctrl.current.intrinsics = replace(ctrl.current.intrinsics, estimated=("fx", "fy"))
+    panel.refresh_buttons()
+    assert panel.focal_check.isChecked() and "not known" in panel.focal_check.toolTip()
+    panel.focal_check.setChecked(False)
+    panel.refresh_buttons()
+    assert not panel.focal_check.isChecked()
 
 
 def test_reference_from_the_3d_view_sees_what_the_view_shows(workbench, qtbot):

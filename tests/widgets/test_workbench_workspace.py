@@ -341,6 +341,22 @@ def test_parameter_spin_boxes_take_the_declared_ranges(workbench):
             assert (w.minimum(), w.maximum()) == pytest.approx((lo, hi)), name
 
 
+def test_camera_solver_choice_edits_the_pose_parameters(workbench):
+    from napari_imgreg.registration.pose import POSE_SOLVERS
+    from napari_imgreg.widgets._panels import SOLVER_CHOICES
+
+    panel = workbench.register_panel
+    assert tuple(name for name, _, _ in SOLVER_CHOICES) == POSE_SOLVERS  # every solver offered
+    params = workbench.controller.workspace.params
+    assert panel.solver_combo.currentData() == params.pose.solver == "auto"
+    panel.solver_combo.setCurrentIndex(panel.solver_combo.findData("dlt"))
+    assert params.pose.solver == "dlt"
+    panel.k1_check.setChecked(True)
+    assert params.pose.estimate_k1
+    panel.solver_combo.setCurrentIndex(panel.solver_combo.findData("epnp"))
+    assert params.pose.solver == "epnp" and not panel.k1_check.isEnabled()  # nothing to estimate
+
+
 def test_the_first_sample_load_says_what_it_is_doing(workbench, qtbot, monkeypatch):
     wb = workbench
     from napari_imgreg.widgets import _controller

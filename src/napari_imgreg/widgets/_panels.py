@@ -77,6 +77,23 @@ def _hint(text: str) -> QLabel:
     return label
 
 
+#: The camera solvers offered (``PoseParams.solver``): value, label, tooltip.
+SOLVER_CHOICES = (
+    ("auto", "Auto (focal length from the record, else estimated)",
+     "EPnP with the photo's camera when its focal length is known (record or EXIF); "
+     "otherwise P4Pf, estimating the focal length with the pose."),
+    ("epnp", "EPnP: the camera as given",
+     "Never change the camera: the record's focal length, or the assumed one."),
+    ("p4pf", "P4Pf: estimate the focal length",
+     "Estimate the focal length with the pose (square pixels, principal point at the "
+     "centre), then refine both together. For a photo whose focal length is unknown or "
+     "suspect (a cropped or zoomed photo)."),
+    ("dlt", "DLT: estimate the whole camera",
+     "Seed 003's six-point DLT: focal lengths and principal point estimated too. Needs "
+     "matched 3D points off one plane; falls back to P4Pf on a planar face."),
+)
+
+
 def _spin(lo: float, hi: float, decimals: int = 2, step: float = 1.0,
           suffix: str = "") -> QDoubleSpinBox:
     box = QDoubleSpinBox()
@@ -897,6 +914,20 @@ class RegisterPanel(QWidget):
         _declared_range(self.geom_spin, FeatureParams, "geometric_threshold_px")
         self.pnp_spin = _spin(1.0, 50.0, 1, 1.0, " px")
         _declared_range(self.pnp_spin, PoseParams, "reprojection_error_px")
+        # How the camera is solved: the choice a photo without a known focal
+        # length (or a suspect one) needs; the texts say what each assumes.
+        self.solver_combo = QComboBox()
+        for name, label, tip in SOLVER_CHOICES:
+            self.solver_combo.addItem(label, name)
+            self.solver_combo.setItemData(self.solver_combo.count() - 1, tip,
+                                          Qt.ItemDataRole.ToolTipRole)
+        self.solver_combo.setToolTip(
+            "How the camera is solved from the matches. Auto estimates the focal length only "
+            "when the photo's record does not give it.")
+        self.k1_check = QCheckBox("estimate k1 too")
+        self.k1_check.setToolTip(
+            "With an estimated focal length, also estimate the lens's radial distortion k1 "
+            "(needs matches out to the photo's corners).")
         self.width_spin = QSpinBox()
         self.width_spin.setRange(256, 8192)
         self.width_spin.setSingleStep(128)
@@ -951,6 +982,10 @@ class RegisterPanel(QWidget):
         geom_row.addWidget(self.geom_spin)
         form.addRow("Epipolar check", geom_row)
         form.addRow("PnP threshold", self.pnp_spin)
+        solver_row = QHBoxLayout()
+        solver_row.addWidget(self.solver_combo, 1)
+        solver_row.addWidget(self.k1_check)
+        form.addRow("Camera solver", solver_row)
         form.addRow("Match width", self.width_spin)
         form.addRow("Trials (Auto)", self.trials_spin)
         form.addRow(self.search_check)
@@ -1038,6 +1073,9 @@ class RegisterPanel(QWidget):
         self.geom_spin.valueChanged.connect(
             lambda v: self._set(feat, "geometric_threshold_px", v))
         self.pnp_spin.valueChanged.connect(lambda v: self._set("pose", "reprojection_error_px", v))
+        self.solver_combo.currentIndexChanged.connect(
+            lambda: self._set("pose", "solver", self.solver_combo.currentData()))
+        self.k1_check.toggled.connect(lambda v: self._set("pose", "estimate_k1", bool(v)))
         self.width_spin.valueChanged.connect(lambda v: self._set(None, "match_width", int(v)))
         self.trials_spin.valueChanged.connect(lambda v: self._set(None, "max_trials", int(v)))
         self.search_check.toggled.connect(lambda v: self._set(None, "search_prior", bool(v)))
@@ -1071,6 +1109,8 @@ class RegisterPanel(QWidget):
             self._match_preset()
         elif name == "sun_relight":
             self.sun_box.refresh_notes()
+        elif name == "solver":
+            self.k1_check.setEnabled(value != "epnp")  # EPnP estimates no camera
 
     def _preset(self) -> None:
         name = self.preset_combo.currentData()
@@ -1097,6 +1137,9 @@ class RegisterPanel(QWidget):
         _set_quietly(self.model_combo, f.geometric_model)
         _set_quietly(self.geom_spin, float(f.geometric_threshold_px))
         _set_quietly(self.pnp_spin, float(p.pose.reprojection_error_px))
+        _set_quietly(self.solver_combo, p.pose.solver)
+        _set_quietly(self.k1_check, bool(p.pose.estimate_k1))
+        self.k1_check.setEnabled(p.pose.solver != "epnp")
         _set_quietly(self.width_spin, int(p.match_width))
         _set_quietly(self.trials_spin, int(p.max_trials))
         _set_quietly(self.search_check, p.search_prior)
@@ -1337,6 +1380,10 @@ class ManualPanel(QWidget):
         self.table.setSelectionMode(QAbstractItemView.SingleSelection)
         self.table.setMinimumHeight(180)
         self.focal_check = QCheckBox(f"also solve the focal length (≥ {MIN_PAIRS_FOCAL} pairs)")
+        # Ticked for the user when the photo's focal length is not known (no
+        # focal length in its record, or only an estimate), until they untick it.
+        self._focal_choice_by_user = False
+        self.focal_check.toggled.connect(self._focal_chosen)
         self.solve_button = QPushButton("Solve pose")
         self.solve_button.setEnabled(False)
         self.result_label = QLabel("")
@@ -1376,7 +1423,7 @@ class ManualPanel(QWidget):
             lambda: controller.solve_manual(self.focal_check.isChecked()))
         controller.pairs_changed.connect(self.refresh)
         controller.reference_ready.connect(self._reference_ready)
-        controller.photo_changed.connect(self._reference_ready)
+        controller.photo_changed.connect(self._photo_changed)
         controller.manual_finished.connect(self._solved)
         controller.busy_changed.connect(self.refresh_buttons)
         self._residuals: np.ndarray | None = None
@@ -1386,6 +1433,10 @@ class ManualPanel(QWidget):
         rows = self.table.selectionModel().selectedRows() if self.table.selectionModel() else []
         if rows:
             self.ctrl.delete_pair(rows[0].row())
+
+    def _photo_changed(self) -> None:
+        self._focal_choice_by_user = False  # another photo: its own camera decides again
+        self._reference_ready()
 
     def _reference_ready(self) -> None:
         ps = self.ws.current
@@ -1432,6 +1483,9 @@ class ManualPanel(QWidget):
         self.table.resizeColumnsToContents()
         self.refresh_buttons()
 
+    def _focal_chosen(self, _checked: bool) -> None:
+        self._focal_choice_by_user = True
+
     def refresh_buttons(self) -> None:
         ps = self.ws.current
         has_ref = ps is not None and ps.reference is not None
@@ -1439,7 +1493,15 @@ class ManualPanel(QWidget):
         busy = self.ctrl.is_running("manual")
         self.solve_button.setEnabled(has_ref and int(valid.sum()) >= MIN_PAIRS and not busy)
         self.pick_button.setEnabled(has_ref)
-        self.focal_check.setEnabled(int(valid.sum()) >= MIN_PAIRS_FOCAL)
+        enough = int(valid.sum()) >= MIN_PAIRS_FOCAL
+        self.focal_check.setEnabled(enough)
+        unknown = ps is not None and not ps.intrinsics.focal_known
+        if not self._focal_choice_by_user:
+            _set_quietly(self.focal_check, unknown and enough)
+        self.focal_check.setToolTip(
+            "The photo's focal length is not known (its record gives none, or it was "
+            "estimated): solving it from the pairs is recommended." if unknown else
+            "The photo's focal length comes from its record; solve it only if you doubt it.")
         for b in (self.ref_pose_button, self.ref_view_button):
             b.setEnabled(ps is not None and not self.ctrl.is_running("reference"))
 
