@@ -79,16 +79,16 @@ def _hint(text: str) -> QLabel:
 
 #: The camera solvers offered (``PoseParams.solver``): value, label, tooltip.
 SOLVER_CHOICES = (
-    ("auto", "Auto (focal length from the record, else estimated)",
+    ("auto", "Auto",
      "EPnP with the photo's camera when its focal length is known (record or EXIF); "
      "otherwise P4Pf, estimating the focal length with the pose."),
-    ("epnp", "EPnP: the camera as given",
+    ("epnp", "EPnP: camera as given",
      "Never change the camera: the record's focal length, or the assumed one."),
-    ("p4pf", "P4Pf: estimate the focal length",
+    ("p4pf", "P4Pf: estimate focal",
      "Estimate the focal length with the pose (square pixels, principal point at the "
      "centre), then refine both together. For a photo whose focal length is unknown or "
      "suspect (a cropped or zoomed photo)."),
-    ("dlt", "DLT: estimate the whole camera",
+    ("dlt", "DLT: whole camera",
      "Seed 003's six-point DLT: focal lengths and principal point estimated too. Needs "
      "matched 3D points off one plane; falls back to P4Pf on a planar face."),
 )
@@ -924,7 +924,7 @@ class RegisterPanel(QWidget):
         self.solver_combo.setToolTip(
             "How the camera is solved from the matches. Auto estimates the focal length only "
             "when the photo's record does not give it.")
-        self.k1_check = QCheckBox("estimate k1 too")
+        self.k1_check = QCheckBox("k1 too")
         self.k1_check.setToolTip(
             "With an estimated focal length, also estimate the lens's radial distortion k1 "
             "(needs matches out to the photo's corners).")
