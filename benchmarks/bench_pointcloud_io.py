@@ -177,6 +177,9 @@ def report(m: dict) -> str:
 
 
 def main() -> None:
+    from napari_imgreg._allocator import tune_allocator
+
+    tune_allocator()  # as the CLI and the workbench do, so the figures are the product's
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=float, nargs="+", default=[5e6, 50e6])
     parser.add_argument("--cap", type=float, default=10e6, help="max_points of the decimated reads")

@@ -284,3 +284,155 @@ def test_cloud_and_mesh_scenes_read_one_dem_the_same_way():
 
     assert dem_height_local(FlatDem(), Origin(), 100.0, 5.0) == pytest.approx(11.0)
     assert dem_height_local(FlatDem(), None, 579100.0, 0.0) == pytest.approx(351.0)
+
+
+# ------------------------------------------------------- level of detail
+@pytest.fixture(scope="module")
+def lod_planes(planes):
+    """The plane cloud with a level of detail (every size gets one)."""
+    from napari_imgreg.cloud import LodParams
+
+    scene = CloudScene(planes.xyz, intensity=planes.intensity, normals=planes.normals,
+                       spacing=planes.spacing,
+                       params=CloudParams(lod=LodParams(min_points=0, block_points=1024)))
+    scene.build_engine()
+    return scene
+
+
+def test_level_of_detail_levels_nest_in_blocks(lod_planes):
+    lod = lod_planes.level_of_detail
+    n = lod_planes.n_points
+    # Every point once, in blocks; each level a prefix of its block, no
+    # larger than the finer one, each coarser level about a quarter of it.
+    assert np.array_equal(np.sort(lod.ids), np.arange(n))
+    assert lod.counts[:, 0].sum() == n and (np.diff(lod.counts, axis=1) <= 0).all()
+    assert np.array_equal(lod.starts, np.r_[0, np.cumsum(lod.counts[:-1, 0])])
+    per_level = lod.counts.sum(axis=0)
+    assert 2.5 < per_level[0] / per_level[1] < 6.0
+    assert np.allclose(lod.xyz32, lod_planes.xyz32[lod.ids])
+    assert np.array_equal(lod.normals, lod_planes.normals[lod.ids])
+    # Each block's points lie within its sphere.
+    block = np.repeat(np.arange(lod.n_blocks), lod.counts[:, 0])
+    off = np.linalg.norm(lod.xyz32 - lod.centre[block], axis=1)
+    assert (off <= lod.half_diagonal[block] + 1e-5).all()
+    # An even sample for display: a whole level, within the budget.
+    few = lod.sample(20_000)
+    assert len(few) == per_level[np.flatnonzero(per_level <= 20_000)[0]]
+    assert len(np.unique(few)) == len(few)
+    assert np.abs(lod_planes.xyz[few, :2].mean(axis=0)).max() < 0.2  # spread over the planes
+    # A small cloud has none by default.
+    assert CloudScene(lod_planes.xyz[:5000]).level_of_detail is None
+
+
+def test_level_of_detail_render_matches_every_point(lod_planes):
+    # From far away (12 m up: ~6 cm per pixel) the coarse levels suffice:
+    # far fewer points are drawn, the image is the same surfaces.
+    pose = Pose.from_center(np.diag([1.0, -1.0, -1.0]), np.array([0.1, -0.05, 12.0]))
+    lod = lod_planes.level_of_detail
+    from napari_imgreg.render_points import _field_of_view
+
+    blocks, level, _ = lod.choose(pose.R, pose.t, _field_of_view(INTR), F, 0.75, 0.01, 1.0)
+    assert lod.counts[blocks, level].sum() < 0.5 * lod_planes.n_points
+    auto = RenderResult(**splat_cloud(lod_planes, INTR, pose))  # "auto" is the default
+    full = RenderResult(**splat_cloud(lod_planes, INTR, pose, detail="full"))
+    assert "select" in auto.timings_s
+    # render() passes the choice through: "full" there is every point too.
+    from napari_imgreg.render import render
+
+    assert np.array_equal(render(lod_planes, INTR, pose, detail="full").depth, full.depth,
+                          equal_nan=True)
+    assert "select" in render(lod_planes, INTR, pose).timings_s
+    assert abs(auto.mask.mean() - full.mask.mean()) < 0.01
+    both = auto.mask & full.mask
+    # Depth of the right plane (within 1 cm of every point's; the two planes
+    # are ~1 m apart), the right intensity, scene indices in face_id.
+    assert np.median(np.abs(auto.depth[both] - full.depth[both])) < 1e-3
+    assert (np.abs(auto.depth[both] - full.depth[both]) < 0.01).mean() > 0.98
+    assert (auto.rgb[both, 0] == full.rgb[both, 0]).mean() > 0.98
+    ids = auto.face_id[auto.mask]
+    seen = lod_planes.xyz[ids]
+    cam = pose.transform(seen)
+    assert np.median(np.abs(cam[:, 2] - auto.depth[auto.mask])) < 0.05
+    # Close up every block in view is drawn whole: the plane's exact depth.
+    near = RenderResult(**splat_cloud(lod_planes, INTR, POSE))
+    depth, surface, near_edge = _truth(INTR, POSE)
+    seen = ~near_edge & (surface >= 0)
+    assert np.abs(near.depth[seen] - depth[seen]).max() < 1e-3
+    # Looking away: nothing in view, nothing drawn.
+    away = Pose.from_center(np.eye(3), np.array([0.0, 0.0, 5.0]))  # camera z = +Z: up
+    blocks, _, _ = lod.choose(away.R, away.t, _field_of_view(INTR), F, 0.75, 0.01, 1.0)
+    assert len(blocks) == 0
+    assert not splat_cloud(lod_planes, INTR, away)["mask"].any()
+    with pytest.raises(ValueError, match="detail"):
+        splat_cloud(lod_planes, INTR, POSE, detail="coarse")
+    with pytest.raises(ValueError, match="render_detail"):
+        CloudParams(render_detail="coarse")
+
+
+# ------------------------------------------- the faster kernels, same image
+def _before():
+    """The kernels as they were before the speed-ups (a frozen copy kept for
+    the benchmark), or skip where the benchmarks folder is not shipped."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "_splat_before.py"
+    if not path.exists():
+        pytest.skip("benchmarks/_splat_before.py not present")
+    import sys
+
+    if "_splat_before" in sys.modules:
+        return sys.modules["_splat_before"]
+    spec = importlib.util.spec_from_file_location("_splat_before", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["_splat_before"] = module  # (its dataclasses look their module up)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("case", ["plain", "distorted-blended"])
+def test_faster_kernels_draw_the_same_image_as_before(planes, case, monkeypatch):
+    # Bit for bit: depth, point index and colour, on two threads (balanced
+    # bands; the old split was even) with hole filling of every pass.
+    monkeypatch.setenv("NAPARI_IMGREG_THREADS", "2")
+    before = _before()
+    intr, pose, params = INTR, POSE, SplatParams()
+    if case == "distorted-blended":
+        intr = Intrinsics(W, H, F, F, 97.0, 77.0, (-0.2, 0.05, 0.001, -0.001, 0.0))
+        pose = Pose.from_center(POSE.R, np.array([0.3, 0.2, 2.6]))  # near: large splats
+        params = SplatParams(blend_min_radius_px=0.5, fill_passes=5)
+    new = splat_cloud(planes, intr, pose, params=params)
+    old = before.splat_cloud(planes, intr, pose, params=before.SplatParams(**vars(params)))
+    assert new["mask"].mean() > 0.5
+    for key in ("depth", "face_id", "rgb", "xyz", "normal"):
+        assert np.array_equal(new[key], old[key], equal_nan=True), key
+
+
+def test_render_does_not_depend_on_the_threads(planes, monkeypatch):
+    monkeypatch.setenv("NAPARI_IMGREG_THREADS", "1")
+    one = splat_cloud(planes, INTR, POSE)
+    monkeypatch.setenv("NAPARI_IMGREG_THREADS", "3")
+    three = splat_cloud(planes, INTR, POSE)
+    for key in ("depth", "face_id", "rgb"):
+        assert np.array_equal(one[key], three[key], equal_nan=True), key
+
+
+def test_level_of_detail_is_cached_beside_the_file(lod_planes, tmp_path):
+    params = lod_planes.params
+
+    def scene():
+        s = CloudScene(lod_planes.xyz, normals=lod_planes.normals, spacing=lod_planes.spacing,
+                       params=params)
+        s.source = tmp_path / "scan.laz"
+        return s
+
+    first = scene().level_of_detail
+    assert (tmp_path / "scan.laz.imgreg-lod.npz").exists()
+    again = scene()
+    order = again._read_lod_cache()
+    assert order is not None and np.array_equal(order[0], first.ids)
+    assert np.array_equal(again.level_of_detail.counts, first.counts)
+    # Other points: not used.
+    other = CloudScene(lod_planes.xyz + 1.0, params=params)
+    other.source = tmp_path / "scan.laz"
+    assert other._read_lod_cache() is None

@@ -25,6 +25,7 @@ import math
 import os
 import threading
 import time
+import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,11 +43,67 @@ from .validate import check_number
 if TYPE_CHECKING:
     from .geo import DEM, Georef
 
-__all__ = ["CloudParams", "CloudRayHits", "CloudScene"]
+__all__ = ["RENDER_DETAILS", "CloudLevelOfDetail", "CloudParams", "CloudRayHits", "CloudScene",
+           "LodParams"]
 
 log = logging.getLogger(__name__)
 
 _CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class LodParams:
+    """The level of detail of a large cloud, for interactive renders.
+
+    Built once per scene (:meth:`CloudScene.build_engine`): the points are
+    sorted into cubic *blocks* and, within each block, coarsest level first,
+    so that each level is a prefix of the block and a subset of the next
+    finer one. Level *L* keeps one point (the first in the file's order) per
+    cubic voxel of ``2**L`` times the cloud's median grid step; its surfels
+    grow by the square root of the block's thinning, so they still cover the
+    surface. A render (``detail="auto"``) culls the blocks outside the view
+    and draws each of the others at the coarsest level whose surfels, at the
+    block's nearest point, are at most ``max_radius_px`` pixels in radius.
+
+    Attributes
+    ----------
+    min_points : int
+        Clouds with fewer points get no level of detail: every render draws
+        every point (identical to ``detail="full"``), in [0, 10**10].
+        10 M keeps the registration benchmarks' 3–8 M-point scans on the
+        full renderer; above it a full render of the whole cloud takes
+        seconds.
+    max_radius_px : float
+        Screen radius of a level's median surfel at which the next coarser
+        level is taken, pixels, in [0.25, 8]. 1.0 keeps a level's point
+        spacing (radius / ``splat_scale``) within about 1.3 pixel footprints
+        (every point covers at least ``SplatParams.min_radius_px`` anyway):
+        on the benchmark wall of 50 M points seen from 13 m, level 1, 6.5 M
+        points drawn for 1.4 M covered pixels, depth within 2.5 mm (median)
+        of every point's render (``docs/benchmarks.md``, ``bench_cloud_render``).
+    block_points : int
+        Points per block at full resolution on a plane (the block side is
+        ``sqrt(block_points)`` grid steps), in [256, 1 000 000]: smaller
+        blocks cull and choose levels more finely, at more per-block work.
+    max_levels : int
+        Coarsest level, in [1, 12] (level 8 keeps 1 / 65 536 of a plane).
+    """
+
+    min_points: int = 10_000_000
+    max_radius_px: float = 1.0
+    block_points: int = 4096
+    max_levels: int = 8
+
+    def __post_init__(self) -> None:
+        check_number(self.min_points, "min_points", 0, 1e10, integer=True)
+        check_number(self.max_radius_px, "max_radius_px", 0.25, 8.0)
+        check_number(self.block_points, "block_points", 256, 1_000_000, integer=True)
+        check_number(self.max_levels, "max_levels", 1, 12, integer=True)
+
+
+#: Values of ``detail``: ``"auto"`` draws a large cloud through its level of
+#: detail (:class:`LodParams`), ``"full"`` every point.
+RENDER_DETAILS = ("auto", "full")
 
 
 @dataclass(frozen=True)
@@ -86,6 +143,13 @@ class CloudParams:
     terrain_radius_m : float
         ``terrain_height`` without a DEM takes the lowest points within this
         horizontal radius (doubled up to 8 times until 10 points are found).
+    lod : LodParams
+        The level of detail of clouds of ``lod.min_points`` points or more.
+    render_detail : {"auto", "full"}
+        What a render draws when its caller does not say (``render()`` does
+        not): ``"auto"`` the level of detail where the cloud has one,
+        ``"full"`` every point (e.g. for a registration that wants the
+        full-resolution z-buffer of a cloud above ``lod.min_points``).
     """
 
     k_normals: int = 16
@@ -97,8 +161,13 @@ class CloudParams:
     gap_scale: float = 1.5
     ray_window_px: int = 1024
     terrain_radius_m: float = 1.0
+    lod: LodParams = field(default_factory=LodParams)
+    render_detail: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.render_detail not in RENDER_DETAILS:
+            raise ValueError(f"render_detail must be one of {RENDER_DETAILS}, "
+                             f"not {self.render_detail!r}")
         check_number(self.k_normals, "k_normals", 6, 64, integer=True)
         check_number(self.k_spacing, "k_spacing", 1, self.k_normals - 1, integer=True)
         check_number(self.chunk_points, "chunk_points", 1000, 10_000_000, integer=True)
@@ -233,6 +302,8 @@ class CloudScene:
         self._cache: dict[Any, np.ndarray] = {}
         self._engine = None
         self._engine_lock = threading.Lock()
+        self._lod: CloudLevelOfDetail | None = None
+        self._lod_lock = threading.Lock()
 
     # ------------------------------------------------------------ construct
     @classmethod
@@ -267,6 +338,7 @@ class CloudScene:
         dem: DEM | str | os.PathLike | None = None,
         cache: bool = True,
         params: CloudParams = CloudParams(),
+        max_points: int | None | str = "default",
     ) -> CloudScene:
         """Load a point-cloud file (and optionally a georeference and a DEM).
 
@@ -274,6 +346,9 @@ class CloudScene:
         ``georef`` is None. With ``cache``, the normals and spacings are read
         from (or, once computed, written to) ``<file>.imgreg-normals.npz``
         beside the file; a cache of other points or parameters is ignored.
+        ``max_points`` is the reader's cap (``"default"``: the reader's own,
+        :class:`~napari_imgreg.io.pointclouds.PointCloudParams`; None: every
+        point, drawn through the level of detail above ``params.lod.min_points``).
 
         Raises
         ------
@@ -291,7 +366,10 @@ class CloudScene:
             georef = Georef.load(georef)
         if dem is not None and not isinstance(dem, DEM):
             dem = DEM.load(dem)
-        cloud = read_point_cloud(path, georef=georef)
+        if isinstance(max_points, str):
+            cloud = read_point_cloud(path, georef=georef)
+        else:
+            cloud = read_point_cloud(path, georef=georef, max_points=max_points)
         scene = cls.from_point_cloud(cloud, georef=georef, dem=dem, name=path.stem,
                                      params=params)
         scene.warnings = list(getattr(cloud, "notes", None) or [])
@@ -376,6 +454,35 @@ class CloudScene:
             self._compute_normals()
         return self._surface_variation
 
+    @property
+    def render_detail(self) -> str:
+        """What a render draws by default: ``params.render_detail``."""
+        return self.params.render_detail
+
+    @property
+    def level_of_detail(self) -> CloudLevelOfDetail | None:
+        """The blocks and levels of a cloud of ``params.lod.min_points``
+        points or more, None for a smaller cloud. Built on first use
+        (:meth:`build_engine` builds it) and, for a loaded file, cached beside
+        it as ``<file>.imgreg-lod.npz`` (its points' order; ignored when the
+        points or ``block_points`` / ``max_levels`` differ)."""
+        if self.n_points < self.params.lod.min_points:
+            return None
+        if self._lod is None:
+            normals, spacing, colors = self.normals, self.spacing, self.colors
+            with self._lod_lock:
+                if self._lod is None:
+                    t0 = time.perf_counter()
+                    order = self._read_lod_cache()
+                    if order is None:
+                        order = CloudLevelOfDetail.block_order(self.xyz, spacing,
+                                                               self.params.lod)
+                        self._write_lod_cache(*order)
+                    self._lod = CloudLevelOfDetail.assemble(*order, self.xyz32, normals,
+                                                            colors, spacing)
+                    self.timings_s["lod"] = time.perf_counter() - t0
+        return self._lod
+
     def splat_radius(self, scale: float) -> np.ndarray:
         """(N,) float32 surfel radii, metres: ``scale × spacing``."""
         key = ("radius", float(scale))
@@ -409,8 +516,9 @@ class CloudScene:
         return self._engine
 
     def build_engine(self) -> float:
-        """Compute normals and spacings (or take them from the cache) and
-        compile the render kernels; returns the seconds it took."""
+        """Compute normals and spacings (or take them from the cache), the
+        level of detail of a large cloud, and compile the render kernels;
+        returns the seconds it took."""
         with self._engine_lock:
             if self._engine is not None:
                 return 0.0
@@ -420,13 +528,14 @@ class CloudScene:
             # Compile (or load) the kernels now, so that the first real
             # render is not charged for it.
             warm_up()
+            _ = self.level_of_detail
             t_probe, id_probe = np.full(1, np.inf), np.full(1, -1, np.int64)
             _cast_brute(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), self.xyz32[:1],
                         self.normals[:1], self.splat_radius(self.params.splat.splat_scale)[:1],
                         self.params.splat.grazing_cos, t_probe, id_probe)
             self._engine = self
             self.timings_s["normals"] = t1 - t0
-            self.timings_s["compile"] = time.perf_counter() - t1
+            self.timings_s["compile"] = time.perf_counter() - t1 - self.timings_s.get("lod", 0.0)
             self.timings_s["build"] = time.perf_counter() - t0
             return self.timings_s["build"]
 
@@ -513,7 +622,7 @@ class CloudScene:
                 variation = data["surface_variation"].astype(np.float32)
             if normals.shape != (self.n_points, 3) or spacing.shape != (self.n_points,):
                 return
-        except (OSError, ValueError, KeyError) as exc:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             log.info("%s: normals cache not used (%s)", path, exc)
             return
         self._normals, self._spacing, self._surface_variation = normals, spacing, variation
@@ -532,6 +641,49 @@ class CloudScene:
                          surface_variation=self._surface_variation.astype(np.float16))
         except OSError as exc:  # a read-only folder: compute again next time
             log.info("%s: normals cache not written (%s)", path, exc)
+
+    def _lod_cache_path(self) -> Path | None:
+        return None if self.source is None else self.source.with_name(
+            self.source.name + ".imgreg-lod.npz")
+
+    def _lod_fingerprint(self) -> str:
+        lod = self.params.lod
+        return self._fingerprint() + repr((lod.block_points, lod.max_levels))
+
+    def _read_lod_cache(self):
+        """(ids, starts, counts, step) of the level of detail from
+        ``<file>.imgreg-lod.npz`` beside the source, or None."""
+        path = self._lod_cache_path()
+        if path is None or not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                if str(data["fingerprint"]) != self._lod_fingerprint():
+                    return None
+                ids = data["ids"].astype(np.int32)
+                starts = data["starts"].astype(np.int64)
+                counts = data["counts"].astype(np.int64)
+                step = float(data["step_m"])
+            if (len(ids) != self.n_points or counts.shape[0] != len(starts)
+                    or int(counts[:, 0].sum()) != self.n_points):
+                return None
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            log.info("%s: level-of-detail cache not used (%s)", path, exc)
+            return None
+        return ids, starts, counts, step
+
+    def _write_lod_cache(self, ids, starts, counts, step) -> None:
+        path = self._lod_cache_path()
+        if path is None:
+            return
+        from ._atomic import atomic_path
+
+        try:
+            with atomic_path(path) as tmp:
+                np.savez(tmp, fingerprint=np.array(self._lod_fingerprint()), ids=ids,
+                         starts=starts, counts=counts.astype(np.int32), step_m=np.array(step))
+        except OSError as exc:  # a read-only folder: build again next time
+            log.info("%s: level-of-detail cache not written (%s)", path, exc)
 
     # --------------------------------------------------------- ray queries
     def cast_rays(
@@ -909,3 +1061,342 @@ def _cast_brute(origins, dirs, xyz, normals, radius, grazing, out_t, out_id,
                                               xyz, normals, radius, grazing, gap_scale, gap_tol,
                                               out_t, out_id),
                       range(n_threads)))
+
+
+# -------------------------------------------------------- level of detail
+@njit(cache=True, nogil=True, error_model="numpy")
+def _voxel_keys(xyz, cand, lo, inv_cell, dims, out):  # pragma: no cover
+    # Flat voxel index of points cand (all points when cand is empty).
+    m = out.shape[0]
+    for j in range(m):
+        i = cand[j] if cand.shape[0] else j
+        a = np.int64((xyz[i, 0] - lo[0]) * inv_cell)
+        b = np.int64((xyz[i, 1] - lo[1]) * inv_cell)
+        c = np.int64((xyz[i, 2] - lo[2]) * inv_cell)
+        out[j] = (min(a, dims[0] - 1) * dims[1] + min(b, dims[1] - 1)) * dims[2] + min(c, dims[2] - 1)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _first_of_each(keys, expected):  # pragma: no cover
+    # Positions (increasing) of the first occurrence of each distinct
+    # (non-negative) key: an open-addressing hash set sized for `expected`
+    # distinct keys, doubled and run again when there are more.
+    bits = 4
+    while (1 << bits) < 2 * max(expected, 1):
+        bits += 1
+    out = np.empty(keys.shape[0], np.int64)
+    while True:
+        size = 1 << bits
+        mask = size - 1
+        table = np.full(size, -1, np.int64)
+        n = 0
+        full = False
+        for j in range(keys.shape[0]):
+            k = keys[j]
+            # Fibonacci hashing: the top bits of k × 2^64 / φ (wrapping).
+            h = ((k * -7046029254386353131) >> (64 - bits)) & mask
+            while True:
+                if table[h] == -1:
+                    table[h] = k
+                    out[n] = j
+                    n += 1
+                    break
+                if table[h] == k:
+                    break
+                h = (h + 1) & mask
+            if n * 2 > size:
+                full = True
+                break
+        if not full:
+            return out[:n]
+        bits += 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _counting_order(keys, n_bins):  # pragma: no cover
+    # The stable order that sorts keys in [0, n_bins).
+    start = np.zeros(n_bins + 1, np.int64)
+    for j in range(keys.shape[0]):
+        start[keys[j] + 1] += 1
+    for b in range(n_bins):
+        start[b + 1] += start[b]
+    order = np.empty(keys.shape[0], np.int64)
+    for j in range(keys.shape[0]):
+        order[start[keys[j]]] = j
+        start[keys[j]] += 1
+    return order
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _gather_kernel(lo, hi, starts, counts, offsets, factors, xyz_p, normals_p, colors_p,
+                   spacing_p, ids_p, out_xyz, out_normals, out_colors, out_radius,
+                   out_ids):  # pragma: no cover
+    # Copy the chosen prefix of blocks lo..hi into the sub-cloud, the surfel
+    # radius scaled by the level's factor (splat_scale included).
+    for b in range(lo, hi):
+        s = starts[b]
+        o = offsets[b]
+        f = factors[b]
+        for k in range(counts[b]):
+            for c in range(3):
+                out_xyz[o + k, c] = xyz_p[s + k, c]
+                out_normals[o + k, c] = normals_p[s + k, c]
+                out_colors[o + k, c] = colors_p[s + k, c]
+            out_radius[o + k] = spacing_p[s + k] * f
+            out_ids[o + k] = ids_p[s + k]
+
+
+class _SubCloud:
+    """The points a level-of-detail render draws, with the members
+    :func:`~napari_imgreg.render_points.splat_depth` reads; ``ids`` maps
+    them back to the scene's point indices."""
+
+    def __init__(self, n: int) -> None:
+        self.xyz32 = np.empty((n, 3), np.float32)
+        self.normals = np.empty((n, 3), np.float32)
+        self.colors = np.empty((n, 3), np.uint8)
+        self.radius = np.empty(n, np.float32)
+        self.ids = np.empty(n, np.int32)
+
+    def splat_radius(self, scale: float) -> np.ndarray:
+        return self.radius  # scaled when gathered
+
+    @property
+    def n_points(self) -> int:
+        return len(self.ids)
+
+
+@dataclass
+class CloudLevelOfDetail:
+    """A cloud's points in blocks, each block's points coarsest level first
+    (see :class:`LodParams`). Built by :meth:`build`; 35 bytes per point.
+
+    Attributes
+    ----------
+    xyz32, normals : (N, 3) float32 arrays
+        The points and their normals, in block order.
+    colors : (N, 3) uint8 array
+    spacing : (N,) float32 array
+        Full-resolution spacing, metres.
+    ids : (N,) int32 array
+        Each point's index in the scene.
+    starts : (B,) int64 array
+        First point of each block.
+    counts : (B, L + 1) int64 array
+        Points of each block at levels 0 (all) … L (coarsest).
+    centre : (B, 3) float64 array
+        Centre of each block's bounding box, metres.
+    half_diagonal : (B,) float64 array
+        Radius of the sphere around it that holds the block, metres.
+    mean_spacing : (B,) float64 array
+        Mean full-resolution spacing of the block's points, metres.
+    step_m : float
+        The grid step of level 0 (level L's voxel is ``step_m × 2**L``).
+    """
+
+    xyz32: np.ndarray
+    normals: np.ndarray
+    colors: np.ndarray
+    spacing: np.ndarray
+    ids: np.ndarray
+    starts: np.ndarray
+    counts: np.ndarray
+    centre: np.ndarray
+    half_diagonal: np.ndarray
+    mean_spacing: np.ndarray
+    step_m: float
+
+    @property
+    def n_blocks(self) -> int:
+        return len(self.starts)
+
+    @property
+    def n_levels(self) -> int:
+        return self.counts.shape[1]
+
+    @classmethod
+    def build(cls, xyz: np.ndarray, xyz32: np.ndarray, normals: np.ndarray, colors: np.ndarray,
+              spacing: np.ndarray, params: LodParams = LodParams()) -> CloudLevelOfDetail:
+        """Levels and blocks of a cloud.
+
+        Parameters
+        ----------
+        xyz : (N, 3) float64 array
+            The points, metres.
+        xyz32, normals : (N, 3) float32 arrays
+        colors : (N, 3) uint8 array
+        spacing : (N,) float32 array
+            Local spacing (:attr:`CloudScene.spacing`), metres.
+        params : LodParams
+        """
+        ids, starts, counts, step = cls.block_order(xyz, spacing, params)
+        return cls.assemble(ids, starts, counts, step, xyz32, normals, colors, spacing)
+
+    @staticmethod
+    def block_order(xyz: np.ndarray, spacing: np.ndarray, params: LodParams = LodParams()
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """The points' order (block by block, coarsest level first), as
+        ``ids``, ``starts``, ``counts`` and ``step_m`` of the attributes."""
+        n = len(xyz)
+        lo = xyz.min(axis=0)
+        extent = xyz.max(axis=0) - lo
+        step = max(float(np.median(spacing[:: max(1, n // 200_000)])) / math.sqrt(2.0), 1e-9)
+        # Level of each point: the coarsest level at which it is its voxel's
+        # first point in the file's order (as the reader's decimation keeps
+        # the first point read: a measured point, each at about the same
+        # place in its voxel, so a level is an even sampling). A level-L
+        # voxel is the union of eight level-(L-1) voxels, so the levels nest.
+        level = np.zeros(n, np.uint8)
+        cand = np.arange(n, dtype=np.int64)
+        for lev in range(1, params.max_levels + 1):
+            cell = step * 2.0 ** lev
+            dims = (extent / cell).astype(np.int64) + 1
+            keys = np.empty(len(cand), np.int64)
+            _voxel_keys(xyz, cand, lo, 1.0 / cell, dims, keys)
+            first = _first_of_each(keys, len(cand) // 2 + 16)
+            del keys
+            cand = cand[first]
+            level[cand] = lev
+            if len(cand) <= 1:
+                break
+        del cand
+        n_levels = int(level.max()) + 1
+        # Blocks, and within each block the coarsest level first (stable:
+        # the file's order, usually the scan's, within a level).
+        block = max(step * math.sqrt(params.block_points), 1e-9)
+        bdims = (extent / block).astype(np.int64) + 1
+        bkey = np.empty(n, np.int64)
+        _voxel_keys(xyz, np.empty(0, np.int64), lo, 1.0 / block, bdims, bkey)
+        bkey *= n_levels
+        bkey += (n_levels - 1) - level
+        n_bins = int(np.prod(bdims)) * n_levels
+        if n_bins <= 16_000_000:
+            order = _counting_order(bkey, n_bins)  # O(N), stable
+        else:  # a sparse, wide cloud: a sort
+            order = np.argsort(bkey, kind="stable")
+        bkey = bkey[order] // n_levels
+        starts = np.flatnonzero(np.r_[True, bkey[1:] != bkey[:-1]])
+        del bkey
+        lev_sorted = level[order]
+        del level
+        counts = np.empty((len(starts), n_levels), np.int64)
+        for lev in range(n_levels):
+            counts[:, lev] = np.add.reduceat((lev_sorted >= lev).astype(np.int64), starts)
+        del lev_sorted
+        return order.astype(np.int32), starts.astype(np.int64), counts, step
+
+    @classmethod
+    def assemble(cls, ids: np.ndarray, starts: np.ndarray, counts: np.ndarray, step: float,
+                 xyz32: np.ndarray, normals: np.ndarray, colors: np.ndarray,
+                 spacing: np.ndarray) -> CloudLevelOfDetail:
+        """The level of detail from an order (:meth:`block_order`, or the
+        cache) and the scene's arrays."""
+        xyz_p = xyz32[ids]
+        lo_b = np.minimum.reduceat(xyz_p, starts, axis=0).astype(np.float64)
+        hi_b = np.maximum.reduceat(xyz_p, starts, axis=0).astype(np.float64)
+        spacing_p = spacing[ids]
+        mean_spacing = np.add.reduceat(spacing_p.astype(np.float64), starts) / counts[:, 0]
+        # Compile (or load) the gather kernel now, not in the first render.
+        none = np.zeros(0, np.int64)
+        _gather_kernel(0, 0, none, none, none, np.zeros(0, np.float32), xyz_p, normals[:1],
+                       colors[:1], spacing_p, ids, xyz_p[:0], normals[:0], colors[:0],
+                       spacing_p[:0], ids[:0])
+        return cls(xyz32=xyz_p, normals=normals[ids], colors=colors[ids], spacing=spacing_p,
+                   ids=ids, starts=starts, counts=counts,
+                   centre=(lo_b + hi_b) / 2.0,
+                   half_diagonal=np.linalg.norm(hi_b - lo_b, axis=1) / 2.0,
+                   mean_spacing=mean_spacing, step_m=step)
+
+    def sample(self, max_points: int) -> np.ndarray:
+        """Scene indices of an even sample of at most ``max_points`` points
+        (the finest whole level that fits; e.g. for a 3D view of the cloud).
+
+        Returns
+        -------
+        (M,) int32 array
+            Point indices into the scene, M ≤ ``max_points`` (at least the
+            coarsest level's points).
+        """
+        totals = self.counts.sum(axis=0)
+        fits = np.flatnonzero(totals <= max_points)
+        lev = int(fits[0]) if len(fits) else self.n_levels - 1
+        within = np.arange(len(self.ids)) - np.repeat(self.starts, self.counts[:, 0])
+        return self.ids[within < np.repeat(self.counts[:, lev], self.counts[:, 0])]
+
+    def choose(self, R: np.ndarray, t: np.ndarray, fov: np.ndarray, focal_px: float,
+               splat_scale: float, near: float, max_radius_px: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The blocks a camera sees and the level of each.
+
+        Parameters
+        ----------
+        R, t : (3, 3), (3,) arrays
+            ``cam_from_world``.
+        fov : (4,) array
+            Field of view in normalised coordinates: x min, x max, y min, y max.
+        focal_px : float
+            The larger focal length, pixels.
+        splat_scale : float
+            Surfel radius over spacing.
+        near : float
+            Nearest depth drawn, metres.
+        max_radius_px : float
+            See :class:`LodParams`.
+
+        Returns
+        -------
+        blocks : (K,) int64 array
+            Indices of the blocks in view.
+        level : (K,) int64 array
+            The level drawn of each.
+        factor : (K,) float64 array
+            Its surfels' radius over their full-resolution spacing
+            (``splat_scale`` included).
+        """
+        c = self.centre @ R.T + t
+        rho = self.half_diagonal
+        x, y, z = c[:, 0], c[:, 1], c[:, 2]
+        keep = z + rho > near
+        # Outside one of the four planes of the view's sides (through the
+        # camera centre), by more than the block's radius.
+        for a, comp, sign in ((fov[0], x, -1.0), (fov[1], x, 1.0), (fov[2], y, -1.0),
+                              (fov[3], y, 1.0)):
+            keep &= sign * (comp - a * z) / math.sqrt(1.0 + a * a) <= rho
+        blocks = np.flatnonzero(keep)
+        d_near = np.maximum(z[blocks] - rho[blocks], near)
+        counts = self.counts[blocks]
+        with np.errstate(divide="ignore"):
+            thin = np.sqrt(counts[:, :1] / np.maximum(counts, 0).astype(np.float64))
+        thin[counts == 0] = np.inf
+        radius_px = (splat_scale * self.mean_spacing[blocks, None] * thin * focal_px
+                     / d_near[:, None])
+        level = np.maximum((radius_px <= max_radius_px).sum(axis=1) - 1, 0)
+        factor = splat_scale * thin[np.arange(len(blocks)), level]
+        return blocks, level, factor
+
+    def subcloud(self, R: np.ndarray, t: np.ndarray, fov: np.ndarray, focal_px: float,
+                 splat_scale: float, near: float, max_radius_px: float,
+                 n_threads: int = 1) -> _SubCloud:
+        """The points to draw for a camera (arguments of :meth:`choose`),
+        gathered into contiguous arrays."""
+        blocks, level, factor = self.choose(R, t, fov, focal_px, splat_scale, near,
+                                            max_radius_px)
+        counts = self.counts[blocks, level]
+        offsets = np.zeros(len(blocks), np.int64)
+        np.cumsum(counts[:-1], out=offsets[1:])
+        total = int(counts.sum())
+        sub = _SubCloud(total)
+        args = (self.starts[blocks], counts, offsets, factor.astype(np.float32), self.xyz32,
+                self.normals, self.colors, self.spacing, self.ids, sub.xyz32, sub.normals,
+                sub.colors, sub.radius, sub.ids)
+        k = len(blocks)
+        if n_threads <= 1 or total < 500_000:
+            _gather_kernel(0, k, *args)
+        else:
+            # Blocks split at equal shares of the points.
+            cuts = np.searchsorted(offsets, np.linspace(0, total, n_threads + 1)[1:-1])
+            bounds = np.r_[0, cuts, k]
+            with ThreadPoolExecutor(n_threads) as pool:
+                list(pool.map(lambda b: _gather_kernel(int(bounds[b]), int(bounds[b + 1]), *args),
+                              range(n_threads)))
+        return sub

@@ -151,6 +151,7 @@ def render(
     background: tuple[int, int, int] = (0, 0, 0),
     light_direction: np.ndarray | None = None,
     ambient: float = 0.35,
+    detail: str | None = None,
 ) -> RenderResult:
     """Render colour and per-pixel geometry of a scene from a camera pose.
 
@@ -180,6 +181,11 @@ def render(
         Default: from over the photographer's left shoulder.
     ambient : float
         Ambient share of the shading, in [0, 1].
+    detail : {None, "auto", "full"}
+        A point cloud only: ``"full"`` draws every point, ``"auto"`` a large
+        cloud's level of detail (each visible block at the coarsest level
+        whose splats stay about a pixel wide); ``None``: the cloud's
+        ``CloudParams.render_detail`` (default ``"auto"``). Meshes ignore it.
 
     Returns
     -------
@@ -198,7 +204,8 @@ def render(
 
         return RenderResult(**splat_cloud(scene, intrinsics, cam_from_world, scale=scale,
                                           mode=mode, background=background,
-                                          light_direction=light_direction, ambient=ambient))
+                                          light_direction=light_direction, ambient=ambient,
+                                          detail=detail))
     if mode == "auto":
         mode = "color" if (scene.has_texture or scene.vertex_colors is not None) else "shaded"
     # Bounded work: refuse a render too large for memory before allocating it

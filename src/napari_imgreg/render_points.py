@@ -17,7 +17,18 @@ The engine is numba (chosen by measurement, ``docs/benchmarks.md``, section
 took 1.72 s where the numba kernel projects in 0.32 s, and NumPy's
 ``np.minimum.at`` z-buffer of one pixel per point 0.46 s, with neither
 splats nor filling). The kernels are compiled once per install (~7 s of
-CPU) and then loaded from numba's on-disk cache.
+CPU) and then loaded from numba's on-disk cache. They run on
+``NAPARI_IMGREG_THREADS`` Python threads (all cores by default; a batch
+worker pins 1): the projection over blocks of points, the z-buffer over bands
+of rows cut at equal shares of the splat work (each pixel belongs to one band
+and sees the points in index order, so the image does not depend on the
+threads), hole filling over its candidate pixels, which after the first pass
+are only those around the pixels the previous pass filled.
+
+A cloud of ``LodParams.min_points`` points or more is drawn through its level
+of detail (:class:`~napari_imgreg.cloud.CloudLevelOfDetail`) unless a render
+asks for ``detail="full"``: only the blocks in view, each at the coarsest
+level whose surfels are still about a pixel.
 
 This module imports nothing above :mod:`camera` and :mod:`validate`:
 :func:`splat_cloud` returns the fields of a
@@ -35,7 +46,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 from numba import njit
 
@@ -53,6 +63,8 @@ CLOUD_RENDER_MODES = ("auto", "color", "shaded", "color_shaded", "normal")
 
 # Grey of a cloud without intensity or colour (the mesh renderer's grey).
 _GREY = 180
+# The finish kernel's id_map when point indices are the scene's own.
+_NO_ID_MAP = np.empty(0, np.int32)
 
 
 @dataclass(frozen=True)
@@ -137,17 +149,24 @@ def _threads() -> int:
 # per install, then loaded from numba's on-disk cache).
 @njit(cache=True, nogil=True, error_model="numpy")
 def _project_kernel(lo, hi, xyz, radius, R, t, fx, fy, cx, cy, dist, fov, width, height,
-                    near, min_r, max_r, out_u, out_v, out_z, out_r):  # pragma: no cover
+                    near, min_r, max_r, out_u, out_v, out_z, out_r, vis,
+                    row_work):  # pragma: no cover
     # Camera-frame depth, distorted pixel position and screen radius of
-    # points lo..hi; out_z < 0 marks a point that cannot touch the image.
+    # points lo..hi; the indices of those that can touch the image go to
+    # vis[lo:lo + count], in order, and count is returned.
+    # row_work (height,) adds each point's splat work (pixels of its box,
+    # plus two for its set-up) to the rows it covers: the bands of the
+    # z-buffer are cut at equal shares of it.
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    # Without distortion the polynomial is the identity to the last bit.
+    distorted = k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0
     fmax = max(fx, fy)
+    count = 0
     for i in range(lo, hi):
         X = np.float64(xyz[i, 0])
         Y = np.float64(xyz[i, 1])
         Z = np.float64(xyz[i, 2])
         z = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + t[2]
-        out_z[i] = -1.0
         if z <= near:
             continue
         x = (R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + t[0]) / z
@@ -157,15 +176,17 @@ def _project_kernel(lo, hi, xyz, radius, R, t, fx, fy, cx, cy, dist, fov, width,
         rn = rw / max(z - rw, near)
         if x + rn < fov[0] or x - rn > fov[1] or y + rn < fov[2] or y - rn > fov[3]:
             continue  # outside the field of view (also where a polynomial folds)
-        r2 = x * x + y * y
-        radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        xd, yd, mag = x, y, 1.0
+        if distorted:
+            r2 = x * x + y * y
+            radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+            xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+            yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+            # Bound of the distortion's local magnification (its derivative).
+            mag = (1.0 + 3.0 * abs(k1) * r2 + 5.0 * abs(k2) * r2 * r2
+                   + 7.0 * abs(k3) * r2 * r2 * r2 + 6.0 * (abs(p1) + abs(p2)) * math.sqrt(r2))
         u = fx * xd + cx
         v = fy * yd + cy
-        # Bound of the distortion's local magnification (its derivative).
-        mag = (1.0 + 3.0 * abs(k1) * r2 + 5.0 * abs(k2) * r2 * r2 + 7.0 * abs(k3) * r2 * r2 * r2
-               + 6.0 * (abs(p1) + abs(p2)) * math.sqrt(r2))
         r = min(max(rn * fmax * mag, min_r), max_r)
         if u + r < -0.5 or u - r > width - 0.5 or v + r < -0.5 or v - r > height - 0.5:
             continue
@@ -173,6 +194,14 @@ def _project_kernel(lo, hi, xyz, radius, R, t, fx, fy, cx, cy, dist, fov, width,
         out_v[i] = v
         out_z[i] = z
         out_r[i] = r
+        vis[lo + count] = i
+        count += 1
+        y0 = max(math.ceil(v - r), 0)
+        y1 = min(math.floor(v + r), height - 1)
+        cols = min(math.floor(u + r), width - 1) - max(math.ceil(u - r), 0) + 3
+        for yy in range(y0, y1 + 1):
+            row_work[yy] += cols
+    return count
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -205,10 +234,17 @@ def _surfel_hit(i, xyz, normals, R, t, dx, dy, rw2, grazing):  # pragma: no cove
 def _splat_kernel(y_lo, y_hi, vis, xyz, normals, radius, colors, R, t, u, v, z, rad, rays,
                   min_r, grazing, blend_tol, zbuf, ids, csum, wsum, do_depth,
                   do_blend):  # pragma: no cover
-    # Rows y_lo..y_hi-1 of the z-buffer (do_depth) or of the colour sums
-    # (do_blend): each thread owns a band of rows, so no two write a pixel.
+    # Rows y_lo..y_hi-1 of the z-buffer (do_depth: emptied here first) or of
+    # the colour sums (do_blend): each thread owns a band of rows, so no two
+    # write a pixel, and each pixel sees the points in index order whatever
+    # the bands.
     width = zbuf.shape[1]
     min_r2 = min_r * min_r
+    if do_depth:
+        for yy in range(y_lo, y_hi):
+            for xx in range(width):
+                zbuf[yy, xx] = np.inf
+                ids[yy, xx] = -1
     for j in range(vis.shape[0]):
         i = vis[j]
         r = rad[i]
@@ -276,7 +312,7 @@ def _splat_kernel(y_lo, y_hi, vis, xyz, normals, radius, colors, R, t, u, v, z, 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _fill_kernel(lo, hi, cand, zbuf, ids, csum, wsum, xyz, normals, R, t, rays, min_nb, tol,
-                 grazing, znew, idnew, cnew, wnew):  # pragma: no cover
+                 grazing, do_colour, znew, idnew, cnew, wnew):  # pragma: no cover
     # One hole-filling pass over the candidate pixels cand[lo:hi] (flat
     # indices; see the module docstring). The new values go to *new (idnew
     # -1: unchanged), applied after the pass, so every pixel of a pass sees
@@ -324,6 +360,8 @@ def _fill_kernel(lo, hi, cand, zbuf, ids, csum, wsum, xyz, normals, R, t, rays, 
             zs = zsum / count  # the tangent plane does not reach here
         znew[j] = zs
         idnew[j] = i
+        if not do_colour:
+            continue
         wnew[j] = 0.0
         for c in range(3):
             cnew[j, c] = 0.0
@@ -336,11 +374,58 @@ def _fill_kernel(lo, hi, cand, zbuf, ids, csum, wsum, xyz, normals, R, t, rays, 
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _finish_kernel(y_lo, y_hi, zbuf, ids, csum, wsum, normals, colors, R, center, rays, mode,
-                   light, ambient, grey, bg, use_blend, rgb, xyz_out, depth, normal_out,
+def _is_fill_candidate(zbuf, yy, xx, grow):  # pragma: no cover
+    # Empty, or behind its nearest 3 × 3 neighbour by more than the
+    # tolerance: in float32, the image clipped at 3e38 (the border
+    # replicated), as an OpenCV min filter of the float32 image decides it.
+    height, width = zbuf.shape
+    z = np.float32(min(zbuf[yy, xx], 3e38))
+    nearest = z
+    for y2 in range(max(yy - 1, 0), min(yy + 1, height - 1) + 1):
+        for x2 in range(max(xx - 1, 0), min(xx + 1, width - 1) + 1):
+            nearest = min(nearest, np.float32(min(zbuf[y2, x2], 3e38)))
+    return z > nearest * grow
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fill_candidates_rows(y_lo, y_hi, zbuf, grow, flags):  # pragma: no cover
+    # The first pass's candidates, rows y_lo..y_hi-1.
+    for yy in range(y_lo, y_hi):
+        for xx in range(zbuf.shape[1]):
+            flags[yy, xx] = _is_fill_candidate(zbuf, yy, xx, grow)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fill_candidates_near(changed, zbuf, grow, stamp, pass_no, out):  # pragma: no cover
+    # A later pass's candidates: only a pixel whose 3 × 3 neighbourhood the
+    # previous pass changed can decide otherwise than it did then (the
+    # others would repeat their answer), so only those are tested.
+    height, width = zbuf.shape
+    n = 0
+    for j in range(changed.shape[0]):
+        yy = changed[j] // width
+        xx = changed[j] % width
+        for y2 in range(max(yy - 1, 0), min(yy + 1, height - 1) + 1):
+            for x2 in range(max(xx - 1, 0), min(xx + 1, width - 1) + 1):
+                q = y2 * width + x2
+                if stamp[q] == pass_no:
+                    continue
+                stamp[q] = pass_no
+                if _is_fill_candidate(zbuf, y2, x2, grow):
+                    out[n] = q
+                    n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _finish_kernel(y_lo, y_hi, zbuf, ids, csum, wsum, normals, colors, id_map, R, center, rays,
+                   mode, light, ambient, grey, bg, use_blend, rgb, xyz_out, depth, normal_out,
                    face_id):  # pragma: no cover
-    # Per-pixel outputs in the RenderResult conventions, rows y_lo..y_hi-1.
+    # Per-pixel outputs in the RenderResult conventions, rows y_lo..y_hi-1;
+    # face_id through id_map (a level-of-detail sub-cloud's scene indices)
+    # unless it is empty.
     width = zbuf.shape[1]
+    mapped = id_map.shape[0] > 0
     for yy in range(y_lo, y_hi):
         for xx in range(width):
             i = ids[yy, xx]
@@ -353,7 +438,7 @@ def _finish_kernel(y_lo, y_hi, zbuf, ids, csum, wsum, normals, colors, R, center
                     normal_out[yy, xx, c] = 0.0
                     rgb[yy, xx, c] = bg[c]
                 continue
-            face_id[yy, xx] = i
+            face_id[yy, xx] = id_map[i] if mapped else i
             depth[yy, xx] = zs
             dx = rays[yy, xx, 0]
             dy = rays[yy, xx, 1]
@@ -372,6 +457,12 @@ def _finish_kernel(y_lo, y_hi, zbuf, ids, csum, wsum, normals, colors, R, center
             normal_out[yy, xx, 0] = n0
             normal_out[yy, xx, 1] = n1
             normal_out[yy, xx, 2] = n2
+            if mode == 0 and not use_blend:
+                # The point's own colour (what the general branch below
+                # computes, float round trip included, for a uint8).
+                for c in range(3):
+                    rgb[yy, xx, c] = colors[i, c]
+                continue
             shade = ambient + (1.0 - ambient) * max(n0 * light[0] + n1 * light[1] + n2 * light[2],
                                                     0.0)
             for c in range(3):
@@ -381,25 +472,42 @@ def _finish_kernel(y_lo, y_hi, zbuf, ids, csum, wsum, normals, colors, R, center
                 elif mode == 1:  # grey Lambert shading
                     val = grey * shade
                 else:
-                    w = wsum[yy, xx]
-                    if use_blend and w > 0.0:
-                        val = csum[yy, xx, c] / w
-                    else:
-                        val = np.float64(colors[i, c])
+                    val = np.float64(colors[i, c])
+                    if use_blend:
+                        w = wsum[yy, xx]
+                        if w > 0.0:
+                            val = csum[yy, xx, c] / w
                     if mode == 2:
                         val *= shade
                 rgb[yy, xx, c] = np.uint8(min(max(val + 0.5, 0.0), 255.0))
 
 
-def _run_blocks(kernel, n: int, n_threads: int, *args) -> None:
-    """Run ``kernel(lo, hi, *args)`` over [0, n) in ``n_threads`` blocks."""
-    if n_threads <= 1 or n < 2:
-        kernel(0, n, *args)
+def _run_blocks(kernel, n: int, n_threads: int, *args, bounds=None) -> None:
+    """Run ``kernel(lo, hi, *args)`` over [0, n) in ``n_threads`` blocks
+    (or the blocks between consecutive ``bounds``)."""
+    if bounds is None:
+        if n_threads <= 1 or n < 2:
+            kernel(0, n, *args)
+            return
+        bounds = np.linspace(0, n, n_threads + 1).astype(int)
+    if len(bounds) <= 2:
+        kernel(int(bounds[0]), int(bounds[-1]), *args)
         return
-    bounds = np.linspace(0, n, n_threads + 1).astype(int)
-    with ThreadPoolExecutor(n_threads) as pool:
+    with ThreadPoolExecutor(len(bounds) - 1) as pool:
         list(pool.map(lambda b: kernel(int(bounds[b]), int(bounds[b + 1]), *args),
-                      range(n_threads)))
+                      range(len(bounds) - 1)))
+
+
+def _balanced_bands(work: np.ndarray, n_bands: int) -> np.ndarray:
+    """Row bounds (n_bands + 1,) cutting rows at equal shares of ``work``."""
+    height = len(work)
+    if n_bands <= 1 or height < 2:
+        return np.array([0, height])
+    cum = np.cumsum(work)
+    if cum[-1] <= 0:
+        return np.linspace(0, height, n_bands + 1).astype(int)
+    cuts = np.searchsorted(cum, cum[-1] * np.arange(1, n_bands) / n_bands) + 1
+    return np.unique(np.r_[0, np.clip(cuts, 1, height - 1), height])
 
 
 @functools.lru_cache(maxsize=8)
@@ -421,6 +529,17 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
         out[..., 1] = ((np.arange(h) - intrinsics.cy) / intrinsics.fy)[:, None]
     out.setflags(write=False)
     return out
+
+
+def _field_of_view(intrinsics: Intrinsics) -> np.ndarray:
+    """(x min, x max, y min, y max) of the view in normalised coordinates,
+    from the pixel rays of the image border (a distortion polynomial must
+    not fold far points in), with a 2-pixel margin."""
+    rays = pixel_rays(intrinsics)
+    border = np.concatenate([rays[0], rays[-1], rays[:, 0], rays[:, -1]])
+    margin = 2.0 / max(intrinsics.fx, intrinsics.fy)
+    return np.array([border[:, 0].min() - margin, border[:, 0].max() + margin,
+                     border[:, 1].min() - margin, border[:, 1].max() + margin])
 
 
 class _WarmUpCloud:
@@ -485,10 +604,11 @@ def splat_depth(
     dict
         ``zbuf`` (H, W) float64 depth along the optical axis (inf where
         empty), ``ids`` (H, W) int32 point index (-1), ``csum`` (H, W, 3)
-        float64 and ``wsum`` (H, W) float64 colour sums (zeros without
-        ``colors``), ``rays`` (H, W, 2) the pixel rays, ``n_visible`` points
-        that touched the image, ``blended`` (the colour sums were made: see
-        ``blend_min_radius_px``) and ``timings_s``.
+        float64 and ``wsum`` (H, W) float64 colour sums (where ``blended``;
+        empty (0, 0, 3) and (0, 0) arrays otherwise), ``rays`` (H, W, 2) the
+        pixel rays, ``n_visible`` points that touched the image, ``blended``
+        (the colour sums were made: ``colors`` and splats of a median
+        radius of ``blend_min_radius_px`` or more) and ``timings_s``.
     """
     n_threads = _threads()
     t0 = time.perf_counter()
@@ -501,60 +621,85 @@ def splat_depth(
     n = len(xyz)
     R = np.ascontiguousarray(pose.R, np.float64)
     t = np.ascontiguousarray(pose.t, np.float64)
-    # Field of view in normalised coordinates, from the pixel rays of the
-    # image border (a distortion polynomial must not fold far points in).
-    border = np.concatenate([rays[0], rays[-1], rays[:, 0], rays[:, -1]])
-    margin = 2.0 / max(intrinsics.fx, intrinsics.fy)
-    fov = np.array([border[:, 0].min() - margin, border[:, 0].max() + margin,
-                    border[:, 1].min() - margin, border[:, 1].max() + margin])
+    fov = _field_of_view(intrinsics)
     u = np.empty(n, np.float32)
     v = np.empty(n, np.float32)
     z = np.empty(n, np.float32)
     rad = np.empty(n, np.float32)
-    _run_blocks(_project_kernel, n, n_threads if n > 200_000 else 1, xyz, radius, R, t,
-                intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy,
-                intrinsics.dist_coeffs, fov, w, h, params.near_m, params.min_radius_px,
-                params.max_radius_px, u, v, z, rad)
-    vis = np.flatnonzero(z > 0)
+    vis_blocks = np.empty(n, np.int64)
+    point_bounds = np.linspace(0, n, (n_threads if n > 200_000 else 1) + 1).astype(int)
+    row_work = np.zeros((len(point_bounds) - 1, h))
+    project_args = (xyz, radius, R, t, intrinsics.fx, intrinsics.fy, intrinsics.cx,
+                    intrinsics.cy, intrinsics.dist_coeffs, fov, w, h, params.near_m,
+                    params.min_radius_px, params.max_radius_px, u, v, z, rad, vis_blocks)
+    if len(point_bounds) == 2:
+        counts = [_project_kernel(0, n, *project_args, row_work[0])]
+    else:
+        with ThreadPoolExecutor(len(point_bounds) - 1) as pool:
+            counts = list(pool.map(lambda b: _project_kernel(int(point_bounds[b]),
+                                                             int(point_bounds[b + 1]),
+                                                             *project_args, row_work[b]),
+                                   range(len(point_bounds) - 1)))
+    if len(counts) == 1:
+        vis = vis_blocks[:counts[0]]
+    else:
+        vis = np.concatenate([vis_blocks[lo:lo + c] for lo, c in zip(point_bounds, counts)])
+    del vis_blocks
     t1 = time.perf_counter()
-    zbuf = np.full((h, w), np.inf)
-    ids = np.full((h, w), -1, np.int32)
-    csum = np.zeros((h, w, 3))
-    wsum = np.zeros((h, w))
-    band_threads = n_threads if len(vis) * 4 > 200_000 else 1
+    blended = bool(colors and params.blend and len(vis)
+                   and np.median(rad[vis[:: max(1, len(vis) // 10_000)]]) >= params.blend_min_radius_px)
+    zbuf = np.empty((h, w))
+    ids = np.empty((h, w), np.int32)
+    # Colour sums only for the blend pass (64 MB at 1632 × 1224 otherwise zeroed for nothing).
+    csum = np.zeros((h, w, 3)) if blended else np.zeros((0, 0, 3))
+    wsum = np.zeros((h, w)) if blended else np.zeros((0, 0))
+    # Bands of rows with equal shares of the splat work (the image of a
+    # cliff is rarely spread evenly over its rows).
+    bands = _balanced_bands(row_work.sum(axis=0),
+                            n_threads if len(vis) * 4 > 200_000 else 1)
     splat_args = (vis, xyz, normals, radius, colours, R, t, u, v, z, rad, rays,
                   params.min_radius_px, params.grazing_cos, params.blend_depth_tol,
                   zbuf, ids, csum, wsum)
-    _run_blocks(_splat_kernel, h, band_threads, *splat_args, True, False)
+    _run_blocks(_splat_kernel, h, 0, *splat_args, True, False, bounds=bands)
     t2 = time.perf_counter()
-    blended = bool(colors and params.blend and len(vis)
-                   and np.median(rad[vis[:: max(1, len(vis) // 10_000)]]) >= params.blend_min_radius_px)
     if blended:
-        _run_blocks(_splat_kernel, h, band_threads, *splat_args, False, True)
+        _run_blocks(_splat_kernel, h, 0, *splat_args, False, True, bounds=bands)
     t3 = time.perf_counter()
-    for _ in range(params.fill_passes):
+    grow = np.float32(1.0 + params.fill_depth_tol)
+    flat = np.empty(0, np.int64)
+    stamp = None
+    for k in range(params.fill_passes):
         # Candidates: empty pixels, and pixels behind their nearest neighbour
-        # by more than the tolerance (OpenCV's min filter finds them fast).
-        z32 = np.minimum(zbuf, 3e38).astype(np.float32)
-        nearest = cv2.erode(z32, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
-        cand = np.flatnonzero(z32 > nearest * np.float32(1.0 + params.fill_depth_tol))
+        # by more than the tolerance; after the first pass only around the
+        # pixels the previous one filled.
+        if k == 0:
+            flags = np.empty((h, w), np.bool_)
+            _run_blocks(_fill_candidates_rows, h, n_threads if h * w > 100_000 else 1, zbuf,
+                        grow, flags)
+            cand = np.flatnonzero(flags)
+        else:
+            if stamp is None:
+                stamp = np.zeros(h * w, np.uint8)
+            out = np.empty(9 * len(flat), np.int64)
+            cand = np.sort(out[:_fill_candidates_near(flat, zbuf, grow, stamp, k, out)])
         if len(cand) == 0:
             break
         znew = np.empty(len(cand))
         idnew = np.empty(len(cand), np.int32)
         cnew = np.empty((len(cand), 3))
         wnew = np.empty(len(cand))
-        _run_blocks(_fill_kernel, len(cand), band_threads if len(cand) > 50_000 else 1, cand,
+        _run_blocks(_fill_kernel, len(cand), n_threads if len(cand) > 50_000 else 1, cand,
                     zbuf, ids, csum, wsum, xyz, normals, R, t, rays, params.fill_min_neighbours,
-                    params.fill_depth_tol, params.grazing_cos, znew, idnew, cnew, wnew)
+                    params.fill_depth_tol, params.grazing_cos, blended, znew, idnew, cnew, wnew)
         done = idnew >= 0
         if not done.any():
             break
         flat = cand[done]
         zbuf.reshape(-1)[flat] = znew[done]
         ids.reshape(-1)[flat] = idnew[done]
-        csum.reshape(-1, 3)[flat] = cnew[done]
-        wsum.reshape(-1)[flat] = wnew[done]
+        if blended:
+            csum.reshape(-1, 3)[flat] = cnew[done]
+            wsum.reshape(-1)[flat] = wnew[done]
     t4 = time.perf_counter()
     return {"zbuf": zbuf, "ids": ids, "csum": csum, "wsum": wsum, "rays": rays,
             "n_visible": len(vis), "blended": blended,
@@ -572,6 +717,7 @@ def splat_cloud(
     light_direction: np.ndarray | None = None,
     ambient: float = 0.35,
     params: SplatParams = SplatParams(),
+    detail: str | None = None,
 ) -> dict:
     """Render a point cloud as surfels: colour (intensity), xyz, depth, normals.
 
@@ -600,6 +746,13 @@ def splat_cloud(
     ambient : float
         Ambient share of the shading, in [0, 1].
     params : SplatParams
+    detail : {"auto", "full"}, optional
+        ``"auto"``: a cloud with a level of detail
+        (:attr:`CloudScene.level_of_detail`, clouds of
+        ``LodParams.min_points`` points or more) is drawn through it: only
+        the blocks in view, each at the coarsest level whose surfels are
+        still about a pixel (``LodParams.max_radius_px``); ``"full"``: every
+        point. Default: the scene's ``render_detail`` (``"auto"``).
 
     Returns
     -------
@@ -609,7 +762,8 @@ def splat_cloud(
         ``depth`` (H, W) float32 (NaN), ``normal`` (H, W, 3) float32 unit,
         turned toward the camera (0 where empty), ``face_id`` (H, W) int32
         *point index* (-1), ``mask`` (H, W) bool, ``intrinsics`` (scaled),
-        ``cam_from_world`` and ``timings_s`` (``project``, ``splat``,
+        ``cam_from_world`` and ``timings_s`` (``select``: choosing and
+        gathering the level-of-detail points, ``project``, ``splat``,
         ``blend``, ``fill``, ``finish``, ``total``).
 
     Raises
@@ -620,6 +774,10 @@ def splat_cloud(
     """
     if mode not in CLOUD_RENDER_MODES:
         raise ValueError(f"mode must be one of {CLOUD_RENDER_MODES}, not {mode!r}")
+    if detail is None:
+        detail = getattr(scene, "render_detail", "full")
+    if detail not in ("auto", "full"):
+        raise ValueError(f"detail must be 'auto' or 'full', not {detail!r}")
     has_colour = scene.has_intensity or scene.vertex_colors is not None
     if mode == "auto":
         mode = "color" if has_colour else "shaded"
@@ -633,7 +791,16 @@ def splat_cloud(
     intr = intrinsics.scaled(scale)
     mode_code = {"color": 0, "shaded": 1, "color_shaded": 2, "normal": 3}[mode]
     use_colour = mode_code in (0, 2)
-    z = splat_depth(scene, intr, cam_from_world, params, colors=use_colour)
+    source, id_map = scene, _NO_ID_MAP
+    lod = getattr(scene, "level_of_detail", None) if detail == "auto" else None
+    if lod is not None:
+        source = lod.subcloud(np.ascontiguousarray(cam_from_world.R, np.float64),
+                              np.ascontiguousarray(cam_from_world.t, np.float64),
+                              _field_of_view(intr), max(intr.fx, intr.fy), params.splat_scale,
+                              params.near_m, scene.params.lod.max_radius_px, _threads())
+        id_map = source.ids
+    t_select = time.perf_counter() - t0
+    z = splat_depth(source, intr, cam_from_world, params, colors=use_colour)
     t1 = time.perf_counter()
     light = _light_direction(cam_from_world.R) if light_direction is None else light_direction
     light = np.asarray(light, np.float64).reshape(3)
@@ -645,14 +812,14 @@ def splat_cloud(
     normal = np.empty((h, w, 3), np.float32)
     face_id = np.empty((h, w), np.int32)
     _run_blocks(_finish_kernel, h, _threads() if h * w > 100_000 else 1, z["zbuf"], z["ids"],
-                z["csum"], z["wsum"], scene.normals, scene.colors,
+                z["csum"], z["wsum"], source.normals, source.colors, id_map,
                 np.ascontiguousarray(cam_from_world.R, np.float64),
                 np.ascontiguousarray(cam_from_world.center, np.float64), z["rays"], mode_code,
                 light, float(ambient), float(_GREY),
                 np.asarray(background, np.float64).reshape(3),
                 bool(z["blended"]), rgb, xyz, depth, normal, face_id)
     t2 = time.perf_counter()
-    timings = dict(z["timings_s"])
+    timings = {"select": t_select, **z["timings_s"]}
     timings.update(finish=t2 - t1, total=t2 - t0)
     return {"rgb": rgb, "xyz": xyz, "depth": depth, "normal": normal, "face_id": face_id,
             "mask": face_id >= 0, "intrinsics": intr, "cam_from_world": cam_from_world,
