@@ -160,7 +160,11 @@ def report(rows: list[dict], meta: dict) -> str:
         f"{spec.elevation_range_deg[0]:g}° to {spec.elevation_range_deg[1]:g}°; intensity = "
         f"reflectance (sandstone {spec.reflectance['sandstone']:g}, mudstone "
         f"{spec.reflectance['mudstone']:g}, scree {spec.reflectance['scree']:g}, vegetation "
-        f"{spec.reflectance['vegetation']:g}; beds ±{spec.bed_reflectance_variation:.0%}) × |cos incidence| × "
+        f"{spec.reflectance['vegetation']:g}; beds ±{spec.bed_reflectance_variation:.0%}) × within-bed "
+        f"texture (log-normal, {spec.texture_amplitude:.0%} log-std, value-noise octaves of "
+        f"{', '.join(f'{v:g}' for v in spec.texture_scales_m)} m, correlation "
+        f"{spec.texture_albedo_correlation:g} with the visible albedo's pattern within the bed) × "
+        f"|cos incidence| × "
         f"min(1, ({spec.falloff_reference_m:g} m / R)^{spec.falloff_exponent:g}) × "
         f"(1 + {spec.intensity_noise:g}·N(0,1)); range noise {spec.range_noise_m * 1000:g} mm; no colour. "
         "LAS 1.4 point format 6, 1 mm scale, projected CRS coordinates with the CRS record of "
@@ -202,8 +206,10 @@ def report(rows: list[dict], meta: dict) -> str:
         "vegetation elsewhere. *intensity*: medians, the rock types' at |cos incidence| > 0.9 "
         "(where they compare directly: their ratio is the reflectances' when the beds average out), the "
         "cover's over all its points (mostly grazing ground).",
-        "- The photos' own RGB is never used; scan.json beside each scan records the stations, "
-        "grid, noise, intensity model and N.",
+        "- The photos' own RGB is never used: the texture shares only a stated part of its "
+        "variance with the albedo's *within-bed* log luminance (dark stains, seeps and lichen "
+        "are dark at the laser's wavelength too), the rest is the scanner's own field; scan.json "
+        "beside each scan records the stations, grid, noise, intensity and texture model and N.",
         "",
         f"Reproduce: `{meta['command']}` (scans are cached beside the scenes: {meta['where']}).",
     ]

@@ -9,6 +9,7 @@ import pytest
 from napari_imgreg.errors import InputError
 from napari_imgreg.registration.features import FeatureParams
 from napari_imgreg.registration.filters import FilterParams
+from napari_imgreg.registration.lidar_views import LidarViewParams
 from napari_imgreg.registration.params import RegistrationParams, load_params
 from napari_imgreg.registration.pose import PoseParams
 from napari_imgreg.registration.stages.area import AreaParams
@@ -32,6 +33,7 @@ def non_default() -> RegistrationParams:
                          oriented=False, kind_weights={"albedo": 0.0, "skyline": 3.0}),
         dense=DenseParams(modes=("shaded", "normal"), levels=(128, 256), optimize_focal=True,
                           max_seconds=3.0, max_samples=50_000),
+        lidar_views=True, lidar=LidarViewParams(hog_scales=(2.0, 6.0), use_lsd_mask=False),
     )
 
 
@@ -42,7 +44,7 @@ def test_dict_round_trip():
                       "max_iterations", "converged_deg", "converged_m", "auto_adapt",
                       "max_trials", "search_prior", "n_search", "verify",
                       "sun_relight", "edge_align", "dense_refine", "area_match", "area",
-                      "edges", "dense", "uncertainty", "seed"}
+                      "edges", "dense", "uncertainty", "lidar_views", "lidar", "seed"}
     assert RegistrationParams.from_dict(d) == p
     assert RegistrationParams.from_dict(RegistrationParams().to_dict()) == RegistrationParams()
 

@@ -2,13 +2,16 @@
 
 A tiny scene with an exactly known answer: a vertical wall (the plane y = 0,
 two horizontal beds: sandstone below z = 6 m, mudstone above) standing on
-flat ground (z = 0), scanned at a coarse 10 mrad step from 15 m.
+flat ground (z = 0), scanned at a coarse 10 mrad step from 15 m. The tests of
+the rock types, the cos law and the noise switch the within-bed texture off
+(``texture_amplitude=0``, scan version 1's flat beds); the texture has its own.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,8 +21,11 @@ from napari_imgreg.sample.scan import (
     DEFAULT_REFLECTANCE,
     ScanSpec,
     SurfaceCover,
+    VisibleAlbedo,
     simulate_scan,
     station_positions,
+    texture_field,
+    value_noise,
     write_scan,
 )
 from napari_imgreg.scene import Scene
@@ -35,6 +41,8 @@ STATION_XY = (0.0, -15.0)
 # Coarse: ≈ 16 k rays per station; the wall spans ±69° in azimuth from it.
 COARSE = dict(step_mrad=10.0, azimuth_half_width_deg=60.0, elevation_range_deg=(-10.0, 35.0),
               stations_xy=(STATION_XY,))
+#: Flat beds: the within-bed texture off.
+FLAT = dict(texture_amplitude=0.0)
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +74,7 @@ def _truth(xyz: np.ndarray, origin: np.ndarray) -> dict[str, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def default_scan(wall):
-    spec = ScanSpec(**COARSE, bed_reflectance_variation=0.0)
+    spec = ScanSpec(**COARSE, **FLAT, bed_reflectance_variation=0.0)
     stations = station_positions(wall, spec)
     return spec, stations, simulate_scan(wall, GEOLOGY, spec, stations=stations)
 
@@ -99,7 +107,8 @@ def test_points_lie_on_the_surface_within_the_range_noise(default_scan):
 def test_intensity_is_reflectance_times_cos_times_falloff(wall):
     """No noise: exactly rho(rock type or cover) * |cos(incidence)| * min(1, 20 m / R)."""
     scene = wall
-    spec = ScanSpec(**COARSE, intensity_noise=0.0, range_noise_m=0.0, bed_reflectance_variation=0.0)
+    spec = ScanSpec(**COARSE, **FLAT, intensity_noise=0.0, range_noise_m=0.0,
+                    bed_reflectance_variation=0.0)
     stations = station_positions(scene, spec)
     xyz, intensity, _ = simulate_scan(scene, GEOLOGY, spec, stations=stations)
     tr = _truth(xyz, stations[0])
@@ -140,8 +149,8 @@ def test_intensity_noise_is_two_percent_and_falls_as_cos(default_scan):
 
 
 def test_cover_mask_and_bed_variation(wall):
-    spec = ScanSpec(**COARSE, intensity_noise=0.0, range_noise_m=0.0, falloff_exponent=0.0,
-                    bed_reflectance_variation=0.0)
+    spec = ScanSpec(**COARSE, **FLAT, intensity_noise=0.0, range_noise_m=0.0,
+                    falloff_exponent=0.0, bed_reflectance_variation=0.0)
     nv = len(wall.vertices)
     cover = SurfaceCover(np.zeros(nv), np.full(nv, 0.4))  # everything covered
     stations = station_positions(wall, spec)
@@ -149,7 +158,7 @@ def test_cover_mask_and_bed_variation(wall):
     tr = _truth(xyz, stations[0])
     np.testing.assert_allclose(intensity, 0.4 * tr["cos"], rtol=2e-5, atol=1e-6)
     # Beds of one rock type differ, by the stated variation (here 30 %, one bed each).
-    varied = ScanSpec(**COARSE, intensity_noise=0.0, falloff_exponent=0.0,
+    varied = ScanSpec(**COARSE, **FLAT, intensity_noise=0.0, falloff_exponent=0.0,
                       bed_reflectance_variation=0.3, seed=3)
     xyz, intensity, _ = simulate_scan(wall, GEOLOGY, varied, stations=stations)
     tr = _truth(xyz, stations[0])
@@ -160,7 +169,7 @@ def test_cover_mask_and_bed_variation(wall):
 
 def test_same_seed_same_scan_whatever_the_chunking(wall, default_scan):
     _, stations, (xyz, intensity, station) = default_scan
-    small = ScanSpec(**COARSE, bed_reflectance_variation=0.0, chunk_rays=1000)
+    small = ScanSpec(**COARSE, **FLAT, bed_reflectance_variation=0.0, chunk_rays=1000)
     xyz2, intensity2, station2 = simulate_scan(wall, GEOLOGY, small, stations=stations)
     np.testing.assert_array_equal(xyz, xyz2)
     np.testing.assert_array_equal(intensity, intensity2)
@@ -260,3 +269,80 @@ def test_scan_of_a_generated_outcrop_in_memory_and_from_its_folder(tmp_path):
     by = doc["intensity_by_surface"]
     assert by["sandstone"]["median_near_normal"] > 1.3 * by["mudstone"]["median_near_normal"]
     assert by == mem["intensity_by_surface"]
+
+
+# ------------------------------------------------------ within-bed texture
+def test_value_noise_has_unit_variance_and_decorrelates_over_a_cell():
+    rng = np.random.default_rng(5)
+    p = rng.uniform(0.0, 60.0, (200_000, 3))
+    v = value_noise(p, 1.0)
+    # Normalised analytically (corner variance 1/3, quintic fade): mean 0, sd 1.
+    assert abs(v.mean()) < 0.02 and v.std() == pytest.approx(1.0, abs=0.02)
+    near = value_noise(p + [0.03, 0.0, 0.0], 1.0)
+    far = value_noise(p + [3.0, 0.0, 0.0], 1.0)
+    assert np.corrcoef(v, near)[0, 1] > 0.98  # smooth within a cell
+    assert abs(np.corrcoef(v, far)[0, 1]) < 0.02  # independent beyond one
+    # The lattice is in metres: a 2 m cell is the 1 m cell at half the coordinates.
+    np.testing.assert_allclose(value_noise(p, 2.0), value_noise(p / 2.0, 1.0))
+
+
+def test_texture_factor_is_exp_of_amplitude_times_the_surface_field(wall):
+    """No noise, no falloff, flat bed reflectances: I = rho * cos * exp(sigma_T g(hit)),
+    the same at a point whichever chunk (or station) scans it."""
+    spec = ScanSpec(**COARSE, intensity_noise=0.0, range_noise_m=0.0, falloff_exponent=0.0,
+                    bed_reflectance_variation=0.0, texture_amplitude=0.2,
+                    texture_scales_m=(0.3, 1.0))
+    stations = station_positions(wall, spec)
+    labels: dict = {}
+    xyz, intensity, _ = simulate_scan(wall, GEOLOGY, spec, stations=stations, labels=labels)
+    tr = _truth(xyz, stations[0])
+    z = tr["hit"][:, 2]
+    # Off the contact and the wall's foot and top (where float32 hit distances
+    # may put a point on the other surface than the exact ray), and unclipped.
+    w = tr["on_wall"] & (np.abs(z - BOUNDARY_Z) > 1e-3) & (z > 0.05) & (z < WALL_TOP - 0.05)
+    w &= intensity < 1.0  # not clipped (sandstone at normal incidence and T > 1.8)
+    rho = np.where(z < BOUNDARY_Z, 0.55, 0.30)
+    log_t = np.log(intensity[w] / (rho[w] * tr["cos"][w]))
+    np.testing.assert_allclose(log_t, 0.2 * texture_field(tr["hit"][w], spec), atol=2e-5)
+    np.testing.assert_allclose(labels["texture"][w], np.exp(log_t), rtol=3e-5)
+    # Unit-variance field: a 20 % log-std within each bed (2 octaves of 0.3 and 1 m on 80 x 12 m).
+    for bed in (z < BOUNDARY_Z - 0.1, z > BOUNDARY_Z + 0.1):
+        assert np.std(log_t[bed[w]]) == pytest.approx(0.2, rel=0.12)
+        assert abs(np.mean(log_t[bed[w]])) < 0.03  # geometric mean 1: rho is kept
+    chunked = simulate_scan(wall, GEOLOGY, replace(spec, chunk_rays=1000), stations=stations)
+    np.testing.assert_array_equal(intensity, chunked.intensity)
+
+
+def test_texture_shares_the_stated_correlation_with_the_albedo_within_each_bed(wall):
+    """z = c a + sqrt(1 - c^2) g, a the albedo's log luminance standardised per bed:
+    a bed-wide offset of the albedo does not move the bed's intensity."""
+    c, sigma = 0.6, 0.15
+    spec = ScanSpec(**COARSE, intensity_noise=0.0, range_noise_m=0.0, falloff_exponent=0.0,
+                    bed_reflectance_variation=0.0, texture_amplitude=sigma,
+                    texture_albedo_correlation=c, texture_scales_m=(0.3, 1.0))
+    # uv: the wall (vertices 0-3) in the texture's upper half (u along x, v up z),
+    # the ground (4-7) in its lower half.
+    v = wall.vertices
+    uv = np.column_stack([(v[:, 0] + 40.0) / 80.0, 0.5 + 0.5 * v[:, 2] / WALL_TOP])
+    uv[4:, 1] = 0.5 * (v[4:, 1] + 40.0) / 40.0
+    rows, cols = np.mgrid[0:256, 0:512]
+    x_m = (cols + 0.5) / 512 * 80.0 - 40.0
+    z_m = (1.0 - (rows + 0.5) / 256 - 0.5) * 2.0 * WALL_TOP
+    # Stripes of a 4 m period, plus a darker mudstone bed (removed per bed).
+    log_lum = (np.sin(2 * np.pi * x_m / 4.0) + np.where(z_m > BOUNDARY_Z, -0.5, 0.0)).astype(np.float32)
+    albedo = VisibleAlbedo(uv, log_lum)
+    stations = station_positions(wall, spec)
+    xyz, intensity, _ = simulate_scan(wall, GEOLOGY, spec, stations=stations, albedo=albedo)
+    tr = _truth(xyz, stations[0])
+    z = tr["hit"][:, 2]
+    w = tr["on_wall"] & (np.abs(z - BOUNDARY_Z) > 0.2)  # off the albedo's blended contact
+    rho = np.where(z < BOUNDARY_Z, 0.55, 0.30)
+    field = np.log(intensity / (rho * tr["cos"])) / sigma
+    g = texture_field(tr["hit"], spec)
+    for bed in (w & (z < BOUNDARY_Z), w & (z > BOUNDARY_Z)):
+        a = np.sin(2 * np.pi * tr["hit"][bed, 0] / 4.0)  # the albedo pattern at the hits
+        a = (a - a.mean()) / a.std()
+        # Up to bilinear texture sampling of the stripes (256 texels across 40 m: < 1 %).
+        np.testing.assert_allclose(field[bed], c * a + np.sqrt(1 - c * c) * g[bed], atol=0.03)
+        assert np.corrcoef(field[bed], a)[0, 1] == pytest.approx(c, abs=0.08)
+        assert abs(np.mean(field[bed])) < 0.1  # the offset is gone (0.8 g's mean is ±0.03)

@@ -6,6 +6,12 @@ pulls both images toward a common radiometry (Kehl et al. 2018, "Image
 Processing and Adaptations to Radiometric Influences"): gamma, Wallis,
 brightness/contrast and CLAHE. The photo and the render each get their own
 :class:`FilterParams`.
+
+For a lidar scan's intensity render, whose grey levels are the rock's
+reflectance at the laser's wavelength and not the photo's luminance, the
+*gradient magnitude* of both images is what they share (Morago et al., seed
+003: the reflectivity view's gradient matched against the photo's):
+:func:`gradient_magnitude`, ``FilterParams(gradient=True)``.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ __all__ = [
     "filtered_for_matching",
     "illumination_invariant",
     "masked_gaussian",
+    "gradient_magnitude",
     "INVARIANT_ALPHA",
 ]
 
@@ -44,6 +51,13 @@ class FilterParams:
     gamma : float
         Output = input^(1/gamma) on [0, 1]; > 1 brightens shadows. Range 0.2–5;
         1 is off.
+    gradient : bool
+        Replace the (gamma-corrected) grey image by its gradient magnitude
+        (:func:`gradient_magnitude`) before the filters below: what an
+        intensity render and a photo have in common. Default False.
+    gradient_sigma_px : float
+        Gaussian σ of the smoothing before the Sobel derivatives, pixels at
+        the matching width (0–10; 0: none). Default 1.
     wallis : bool
         Apply the Wallis filter.
     wallis_window : int
@@ -73,6 +87,8 @@ class FilterParams:
     """
 
     gamma: float = 1.0
+    gradient: bool = False
+    gradient_sigma_px: float = 1.0
     wallis: bool = False
     wallis_window: int = 41
     wallis_target_mean: float = 127.0
@@ -89,6 +105,7 @@ class FilterParams:
     #: from a ``--params`` file; the GUI's sliders stay within it).
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "gamma": (0.2, 5.0),
+        "gradient_sigma_px": (0.0, 10.0),
         "wallis_window": (3, 501),
         "wallis_target_mean": (0.0, 255.0),
         "wallis_target_std": (1.0, 255.0),
@@ -108,6 +125,7 @@ class FilterParams:
         """True when no filter changes the image."""
         return (
             self.gamma == 1.0
+            and not self.gradient
             and not self.wallis
             and self.brightness == 0.0
             and self.contrast == 1.0
@@ -192,6 +210,47 @@ def wallis(
     return out
 
 
+def gradient_magnitude(gray: np.ndarray, sigma_px: float = 1.0,
+                       mask: np.ndarray | None = None) -> np.ndarray:
+    """Gradient magnitude of a grey image, scaled to grey levels.
+
+    ``|∇(G_σ * g)|`` by 3 × 3 Sobel derivatives (divided by 8: grey levels per
+    pixel), then scaled so that its 99th percentile (over ``mask``) is 255 and
+    clipped: edges and texture of any contrast fill the range, whatever the
+    image's brightness or gain.
+
+    Parameters
+    ----------
+    gray : (H, W) uint8 array
+    sigma_px : float
+        Gaussian σ before differentiating, pixels (≤ 0: none).
+    mask : (H, W) bool array, optional
+        Valid pixels (a render's surface): the smoothing ignores the rest
+        (normalised convolution), which is 0 in the result, and the scaling's
+        percentile is theirs. The mask's own border (the skyline, an
+        occluding contour) keeps the step it makes, as the photo shows it.
+
+    Returns
+    -------
+    (H, W) uint8 array
+    """
+    g = gray.astype(np.float32)
+    if sigma_px > 0:
+        g = (masked_gaussian(g, mask, sigma_px, reduce_wide=False) if mask is not None
+             else cv2.GaussianBlur(g, (0, 0), sigma_px))
+    if mask is not None:
+        g = np.where(mask, g, 0.0).astype(np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    mag = np.sqrt(gx * gx + gy * gy)
+    sel = mag[mask] if mask is not None else mag
+    top = float(np.percentile(sel, 99.0)) if sel.size else 0.0
+    out = np.clip(mag * (255.0 / max(top, 1e-6)) + 0.5, 0, 255).astype(np.uint8)
+    if mask is not None:
+        out[~mask] = 0
+    return out
+
+
 def brightness_contrast(gray: np.ndarray, brightness: float, contrast: float) -> np.ndarray:
     """Linear grey-level change: gain ``contrast`` about mid-grey plus ``brightness``."""
     lut = np.clip((np.arange(256) - 127.5) * contrast + 127.5 + brightness + 0.5, 0, 255)
@@ -222,6 +281,8 @@ def apply_filters(
     gray = to_gray(image)
     if params.gamma != 1.0:
         gray = gamma_correct(gray, params.gamma)
+    if params.gradient:
+        gray = gradient_magnitude(gray, params.gradient_sigma_px, mask)
     if params.wallis:
         gray = wallis(
             gray,

@@ -40,7 +40,9 @@ Everything here is a pure function of images and arrays: a render is any
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+import threading
+import weakref
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import ClassVar
 
 import cv2
@@ -50,6 +52,7 @@ from scipy.spatial import cKDTree
 
 from ..validate import check_ranges
 from . import hog
+from .features import FeatureParams, verify_geometry
 from .stages.edges import canny_edges as _canny_with_orientation
 
 __all__ = [
@@ -71,6 +74,18 @@ __all__ = [
     "plane_mask",
     "wireframe_view",
     "match_view_pair",
+    "describe_view",
+    "match_described",
+    "photo_views",
+    "render_views",
+    "PhotoViewFeatures",
+    "describe_photo_views",
+    "RenderViewMatches",
+    "match_render_views",
+    "scene_planes",
+    "LidarStageMatches",
+    "check_matches",
+    "lidar_view_matches",
     "lift_to_3d",
     "Seed003Correspondences",
     "seed003_correspondences",
@@ -110,6 +125,13 @@ class LidarViewParams:
     lsd_radius_px : float
         Photo keypoints are kept within this distance of an LSD segment,
         pixels (0–200).
+    use_lsd_mask : bool
+        Keep photo keypoints near LSD segments only (the seed's focus on
+        planar rock; default True). On the generated natural cliffs the
+        masks keep the keypoints that match off the rock: on the small
+        sample's textured mesh :func:`~napari_imgreg.registration.seed003.register_seed003`
+        registered 0 of 3 photos with both masks, 2 of 3 without them
+        (upright patches, 8 rounds).
     line_blur_px : float
         Line images (the photo's Canny edges, the wireframe view) are blurred
         by this Gaussian σ before SIFT, pixels (0–10): on a one-pixel binary
@@ -168,6 +190,10 @@ class LidarViewParams:
     plane_mask_radius_px : float
         Render keypoints are kept within this distance of segmented-plane
         pixels, pixels (0–200).
+    use_plane_mask : bool
+        Keep render keypoints near segmented planes only (the seed's;
+        default True; see ``use_lsd_mask``: on the benchmark's rough cliffs
+        the planes are mostly the ground).
     max_keypoints : int
         SIFT keypoints per image (10–1 000 000).
     sift_contrast_threshold : float
@@ -202,6 +228,7 @@ class LidarViewParams:
     canny_low_ratio: float = 0.4
     lsd_min_length_px: float = 15.0
     lsd_radius_px: float = 8.0
+    use_lsd_mask: bool = True
     line_blur_px: float = 1.0
     plane_distance_m: float = 0.05
     plane_normal_deg: float = 20.0
@@ -218,6 +245,7 @@ class LidarViewParams:
     wireframe_min_dihedral_deg: float = 20.0
     wireframe_max_offset_px: float = 3.0
     plane_mask_radius_px: float = 4.0
+    use_plane_mask: bool = True
     max_keypoints: int = 2000
     sift_contrast_threshold: float = 0.04
     hog_scales: tuple[float, ...] = field(default=(4.0, 8.0, 16.0))
@@ -1026,6 +1054,36 @@ class ViewMatches:
         return int(self.points_a.shape[0])
 
 
+def describe_view(image: np.ndarray, mask: np.ndarray | None = None,
+                  params: LidarViewParams | None = None) -> hog.HogFeatures:
+    """SIFT keypoints of one view described by oriented multi-scale HOG, with the
+    keypoint and HOG settings of ``params`` (so a photo's view can be described
+    once and matched against every round's render, :func:`match_described`).
+
+    Parameters
+    ----------
+    image : (H, W) uint8 array
+        A gradient-magnitude or :func:`line_view` image.
+    mask : (H, W) bool array, optional
+        Where keypoints may be.
+    params : LidarViewParams, optional
+
+    Returns
+    -------
+    HogFeatures
+    """
+    return _describe(image, mask, params or LidarViewParams())
+
+
+def match_described(fa: hog.HogFeatures, fb: hog.HogFeatures,
+                    params: LidarViewParams | None = None) -> ViewMatches:
+    """Ratio-test and mutual-best matching of two described views (see
+    :func:`match_view_pair`, which describes and matches in one call)."""
+    p = params or LidarViewParams()
+    pairs = hog.match_hog(fa.descriptors, fb.descriptors, p.match_ratio, mutual=True)
+    return ViewMatches(fa.points[pairs[:, 0]], fb.points[pairs[:, 1]], len(fa), len(fb))
+
+
 def _describe(image: np.ndarray, mask: np.ndarray | None, p: LidarViewParams) -> hog.HogFeatures:
     return hog.detect_and_describe_hog(
         image, mask, max_keypoints=p.max_keypoints, contrast_threshold=p.sift_contrast_threshold,
@@ -1125,6 +1183,8 @@ class Seed003Correspondences:
         the same for ``wireframe``), for the report.
     wireframe : WireframeView
         The render's wireframe view (for display and the edge stages).
+    points_render : (K, 2) float64 array
+        The matched render pixels ``(x, y)`` the 3D points were lifted from.
     """
 
     points_2d: np.ndarray
@@ -1132,6 +1192,7 @@ class Seed003Correspondences:
     source: np.ndarray
     counts: dict
     wireframe: WireframeView
+    points_render: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def __len__(self) -> int:
         return int(self.points_2d.shape[0])
@@ -1175,31 +1236,15 @@ def seed003_correspondences(
     Seed003Correspondences
     """
     p = params or LidarViewParams()
-    unknown = set(pairs) - {"reflectivity", "wireframe"}
-    if unknown:
-        raise ValueError(f"unknown view pair(s) {sorted(unknown)}; use 'reflectivity' and/or "
-                         "'wireframe'")
-    wire = wireframe_view(render, planes, p)
-    mask_photo = lsd_mask(photo, p.lsd_radius_px, p.lsd_min_length_px)
-    if photo_mask is not None:
-        mask_photo &= np.asarray(photo_mask, bool)
-    mask_render = plane_mask(wire.plane_labels, p.plane_mask_radius_px)
-    views = {}
-    if "reflectivity" in pairs:
-        views["reflectivity"] = (
-            gradient_magnitude(photo, p.gradient_sigma_px, photo_mask, p.gradient_percentile,
-                               p.gradient_gamma),
-            reflectivity_gradient(render, p))
-    if "wireframe" in pairs:
-        edges = canny_edges(photo, p.canny_sigma_px, p.canny_high_percentile, p.canny_low_ratio,
-                            photo_mask)
-        views["wireframe"] = (line_view(edges, p.line_blur_px), line_view(wire.lines, p.line_blur_px))
-    pts2, pts3, src, counts = [], [], [], {}
-    for name, (img_photo, img_render) in views.items():
-        m = match_view_pair(img_photo, img_render, mask_photo, mask_render, p)
+    photo_imgs, mask_photo = photo_views(photo, p, photo_mask, pairs)
+    render_imgs, mask_render, wire = render_views(render, planes, p, pairs)
+    pts2, pts3, ptsr, src, counts = [], [], [], [], {}
+    for name in photo_imgs:
+        m = match_view_pair(photo_imgs[name], render_imgs[name], mask_photo, mask_render, p)
         xyz, ok = lift_to_3d(render, m.points_b, p.wireframe_depth_jump)
         pts2.append(m.points_a[ok])
         pts3.append(xyz[ok])
+        ptsr.append(m.points_b[ok])
         src.append(np.full(int(ok.sum()), name))
         counts.update({f"{name}_keypoints_photo": m.n_keypoints_a,
                        f"{name}_keypoints_render": m.n_keypoints_b,
@@ -1208,4 +1253,371 @@ def seed003_correspondences(
         points_2d=np.vstack(pts2) if pts2 else np.zeros((0, 2)),
         points_3d=np.vstack(pts3) if pts3 else np.zeros((0, 3)),
         source=np.concatenate(src) if src else np.zeros(0, str),
-        counts=counts, wireframe=wire)
+        counts=counts, wireframe=wire,
+        points_render=np.vstack(ptsr) if ptsr else np.zeros((0, 2)))
+
+
+def _check_pairs(pairs: tuple[str, ...]) -> None:
+    unknown = set(pairs) - {"reflectivity", "wireframe"}
+    if unknown or not pairs:
+        raise ValueError(f"unknown view pair(s) {sorted(unknown)}; use 'reflectivity' and/or "
+                         "'wireframe'")
+
+
+def photo_views(
+    photo: np.ndarray,
+    params: LidarViewParams | None = None,
+    photo_mask: np.ndarray | None = None,
+    pairs: tuple[str, ...] = ("reflectivity", "wireframe"),
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The photo's side of seed 003's view pairs: its gradient magnitude
+    (``"reflectivity"``) and its blurred Canny edges (``"wireframe"``), and
+    where its keypoints may be (near LSD segments, inside ``photo_mask``).
+
+    Parameters
+    ----------
+    photo : (H, W, 3) or (H, W) uint8 array
+    params : LidarViewParams, optional
+    photo_mask : (H, W) bool array, optional
+    pairs : tuple of str
+
+    Returns
+    -------
+    images : dict of str to (H, W) uint8 array
+        One image per pair, in the order of ``pairs``.
+    keypoint_mask : (H, W) bool array
+    """
+    p = params or LidarViewParams()
+    _check_pairs(pairs)
+    if p.use_lsd_mask:
+        mask = lsd_mask(photo, p.lsd_radius_px, p.lsd_min_length_px)
+    else:
+        mask = np.ones(np.asarray(photo).shape[:2], bool)
+    if photo_mask is not None:
+        mask &= np.asarray(photo_mask, bool)
+    images = {}
+    for name in pairs:
+        if name == "reflectivity":
+            images[name] = gradient_magnitude(photo, p.gradient_sigma_px, photo_mask,
+                                              p.gradient_percentile, p.gradient_gamma)
+        else:
+            edges = canny_edges(photo, p.canny_sigma_px, p.canny_high_percentile,
+                                p.canny_low_ratio, photo_mask)
+            images[name] = line_view(edges, p.line_blur_px)
+    return images, mask
+
+
+def render_views(
+    render,
+    planes,
+    params: LidarViewParams | None = None,
+    pairs: tuple[str, ...] = ("reflectivity", "wireframe"),
+) -> tuple[dict[str, np.ndarray], np.ndarray, WireframeView]:
+    """The scan's side of seed 003's view pairs: the reflectivity view's
+    gradient magnitude and the wireframe view as a line image, and where the
+    render's keypoints may be (near segmented planes).
+
+    Parameters
+    ----------
+    render : RenderResult
+    planes : PlaneSegmentation or (N,) int array
+    params : LidarViewParams, optional
+    pairs : tuple of str
+
+    Returns
+    -------
+    images : dict of str to (H, W) uint8 array
+    keypoint_mask : (H, W) bool array
+    wireframe : WireframeView
+    """
+    p = params or LidarViewParams()
+    _check_pairs(pairs)
+    wire = wireframe_view(render, planes, p)
+    images = {}
+    for name in pairs:
+        if name == "reflectivity":
+            images[name] = reflectivity_gradient(render, p)
+        else:
+            images[name] = line_view(wire.lines, p.line_blur_px)
+    if p.use_plane_mask:
+        mask = plane_mask(wire.plane_labels, p.plane_mask_radius_px)
+    else:  # anywhere on the surface
+        mask = np.asarray(render.mask, bool)
+    return images, mask, wire
+
+
+@dataclass
+class PhotoViewFeatures:
+    """The photo's described views (:func:`describe_photo_views`): computed once
+    per photo and matching width, matched against every round's render.
+
+    Attributes
+    ----------
+    features : dict of str to HogFeatures
+        One per view pair, in the order of ``pairs``.
+    n_keypoints : int
+        Keypoints over all pairs.
+    shape : tuple of int
+        ``(H, W)`` of the photo as described.
+    """
+
+    features: dict
+    n_keypoints: int
+    shape: tuple
+
+
+def describe_photo_views(
+    photo: np.ndarray,
+    params: LidarViewParams | None = None,
+    photo_mask: np.ndarray | None = None,
+    pairs: tuple[str, ...] = ("reflectivity", "wireframe"),
+) -> PhotoViewFeatures:
+    """:func:`photo_views` of the photo, each described by :func:`describe_view`.
+
+    Parameters
+    ----------
+    photo : (H, W, 3) or (H, W) uint8 array
+        At the render's resolution.
+    params : LidarViewParams, optional
+    photo_mask : (H, W) bool array, optional
+    pairs : tuple of str
+
+    Returns
+    -------
+    PhotoViewFeatures
+    """
+    p = params or LidarViewParams()
+    images, mask = photo_views(photo, p, photo_mask, pairs)
+    feats = {name: describe_view(img, mask, p) for name, img in images.items()}
+    return PhotoViewFeatures(feats, sum(len(f) for f in feats.values()),
+                             tuple(np.asarray(photo).shape[:2]))
+
+
+@dataclass
+class RenderViewMatches:
+    """HOG matches of the photo's views with one render's (:func:`match_render_views`).
+
+    Attributes
+    ----------
+    photo_points, render_points : (M, 2) float64 arrays
+        Matched pixels ``(x, y)`` at the render's resolution (the photo as
+        described, at the same size).
+    source : (M,) array of str
+        The view pair of each match.
+    n_keypoints_render : int
+        The render's keypoints over all pairs.
+    counts : dict
+        ``<pair>_keypoints_photo``, ``<pair>_keypoints_render`` and
+        ``<pair>_matches``.
+    wireframe : WireframeView
+    """
+
+    photo_points: np.ndarray
+    render_points: np.ndarray
+    source: np.ndarray
+    n_keypoints_render: int
+    counts: dict
+    wireframe: WireframeView
+
+    def __len__(self) -> int:
+        return int(self.photo_points.shape[0])
+
+
+def match_render_views(
+    photo_features: PhotoViewFeatures,
+    render,
+    planes,
+    params: LidarViewParams | None = None,
+) -> RenderViewMatches:
+    """Match the photo's described views with a render's reflectivity and
+    wireframe views (the pairs ``photo_features`` was described for).
+
+    Parameters
+    ----------
+    photo_features : PhotoViewFeatures
+        At the render's size.
+    render : RenderResult
+    planes : PlaneSegmentation or (N,) int array
+    params : LidarViewParams, optional
+
+    Returns
+    -------
+    RenderViewMatches
+        Not yet checked geometrically nor lifted to 3D.
+    """
+    p = params or LidarViewParams()
+    if tuple(photo_features.shape) != tuple(render.mask.shape):
+        raise ValueError(f"the photo was described at {photo_features.shape} but the render is "
+                         f"{render.mask.shape}")
+    pairs = tuple(photo_features.features)
+    images, mask, wire = render_views(render, planes, p, pairs)
+    pa, pb, src, counts, n_render = [], [], [], {}, 0
+    for name, img in images.items():
+        fr = describe_view(img, mask, p)
+        n_render += len(fr)
+        m = match_described(photo_features.features[name], fr, p)
+        pa.append(m.points_a)
+        pb.append(m.points_b)
+        src.append(np.full(len(m), name))
+        counts.update({f"{name}_keypoints_photo": len(photo_features.features[name]),
+                       f"{name}_keypoints_render": len(fr), f"{name}_matches": len(m)})
+    return RenderViewMatches(
+        photo_points=np.vstack(pa) if pa else np.zeros((0, 2)),
+        render_points=np.vstack(pb) if pb else np.zeros((0, 2)),
+        source=np.concatenate(src) if src else np.zeros(0, str),
+        n_keypoints_render=n_render, counts=counts, wireframe=wire)
+
+
+# ------------------------------------------------------------ plane cache
+#: Plane segmentations per scene and plane settings (computed once per scan:
+#: ~1 s per million points).
+_PLANES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_PLANES_LOCK = threading.Lock()
+_PLANE_FIELDS = ("plane_distance_m", "plane_normal_deg", "plane_min_points", "plane_max_planes",
+                 "plane_hypotheses", "plane_sample_points", "plane_cell_m", "normal_neighbours")
+
+
+def scene_planes(scene, params: LidarViewParams | None = None, seed: int = 0
+                 ) -> PlaneSegmentation:
+    """The scene's RANSAC planes, one label per element its renders' ``face_id`` names.
+
+    For a point cloud: per point, with the cloud's cached PCA normals. For a
+    mesh: per triangle, on the triangles' centroids and normals (a mesh
+    render's ``face_id`` is the triangle). Cached on the scene (weakly) per
+    plane settings.
+
+    Parameters
+    ----------
+    scene : CloudScene or Scene
+    params : LidarViewParams, optional
+    seed : int
+
+    Returns
+    -------
+    PlaneSegmentation
+    """
+    p = params or LidarViewParams()
+    key = tuple(getattr(p, f) for f in _PLANE_FIELDS) + (int(seed),)
+    with _PLANES_LOCK:
+        cached = _PLANES.get(scene, {})
+        if key in cached:
+            return cached[key]
+    if getattr(scene, "is_cloud", False):
+        scene.build_engine()                      # the normals, computed once and cached
+        pts, nrm = scene.xyz, scene.normals
+    else:
+        tri = scene.vertices[scene.faces]
+        pts, nrm = tri.mean(axis=1), scene.face_array("normals")
+    planes = segment_planes(pts, nrm, p, seed=seed)
+    with _PLANES_LOCK:
+        _PLANES.setdefault(scene, {})[key] = planes
+    return planes
+
+
+# ============================================ the keypoint rounds' extra pairs
+# With RegistrationParams.lidar_views on and a point-cloud scene, every
+# keypoint round (registration.round.match_round) also matches seed 003's two
+# view pairs; those matches pass the round's own 2D check and join its
+# keypoints before the pose (one set of correspondences, one pose, the same
+# seven metrics). The photo's views are described once per photo and size
+# (the context's ``lidar_cache``), the planes once per scan (scene_planes).
+
+
+def check_matches(points_a: np.ndarray, points_b: np.ndarray, features: FeatureParams
+                  ) -> np.ndarray:
+    """The 2D check of photo ↔ render matches (``features.geometric_model``,
+    MAGSAC++), with a homography where a fundamental matrix is not determined.
+
+    From (nearly) the photo's own camera — the last rounds of an iteration —
+    photo and render points coincide, every epipolar geometry fits them and
+    the fundamental-matrix estimate fails (measured: 0 of 325 correct matches
+    kept); the views are then related by a homography (nearly the identity),
+    which is checked instead.
+
+    Parameters
+    ----------
+    points_a, points_b : (M, 2) arrays
+        Matched pixels of the two images.
+    features : FeatureParams
+
+    Returns
+    -------
+    (M,) bool array
+    """
+    inlier, model = verify_geometry(points_a, points_b, features)
+    if model is None and features.geometric_model == "fundamental" and len(points_a) >= 4:
+        inlier, _ = verify_geometry(points_a, points_b,
+                                    replace(features, geometric_model="homography"))
+    return inlier
+
+
+@dataclass
+class LidarStageMatches:
+    """The lidar views' matches of one round.
+
+    Attributes
+    ----------
+    photo_points, render_points : (M, 2) float64 arrays
+        Pixels ``(x, y)`` at the render's resolution.
+    inlier : (M,) bool array
+        Passed the round's 2D check.
+    source : (M,) array of str
+        ``"reflectivity"`` or ``"wireframe"``.
+    points_photo, points_render : int
+        Keypoints of the photo's and the render's views.
+    """
+
+    photo_points: np.ndarray
+    render_points: np.ndarray
+    inlier: np.ndarray
+    source: np.ndarray
+    points_photo: int
+    points_render: int
+
+    def __len__(self) -> int:
+        return int(self.photo_points.shape[0])
+
+
+def lidar_view_matches(
+    scene,
+    photo_small: np.ndarray,
+    rendered,
+    params: LidarViewParams,
+    features: FeatureParams,
+    cache: dict | None = None,
+) -> LidarStageMatches:
+    """Match seed 003's view pairs of the photo and a render, checked in 2D.
+
+    Parameters
+    ----------
+    scene : CloudScene
+        The scan (its planes are segmented once and cached).
+    photo_small : (h, w, 3) uint8 array
+        The photo at the round's matching width (resized to the render's
+        size if it differs by rounding).
+    rendered : RenderResult
+        The round's render.
+    params : LidarViewParams
+    features : FeatureParams
+        The round's 2D check (``geometric_model``, ``geometric_threshold_px``).
+    cache : dict, optional
+        Keeps the photo's described views between rounds.
+
+    Returns
+    -------
+    LidarStageMatches
+    """
+    h, w = rendered.mask.shape
+    key = ("lidar_views", (h, w), repr(params))
+    side = None if cache is None else cache.get(key)
+    if side is None:
+        photo = photo_small
+        if photo.shape[:2] != (h, w):
+            photo = cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA)
+        side = describe_photo_views(photo, params)
+        if cache is not None:
+            cache[key] = side
+    m = match_render_views(side, rendered, scene_planes(scene, params), params)
+    inlier = check_matches(m.photo_points, m.render_points, features)
+    return LidarStageMatches(m.photo_points, m.render_points, inlier, m.source,
+                             side.n_keypoints, m.n_keypoints_render)

@@ -14,6 +14,7 @@ from ..errors import input_error
 from ..io.records import read_json
 from .features import FeatureParams
 from .filters import FilterParams
+from .lidar_views import LidarViewParams
 from .pose import PoseParams
 from .stages.area import AreaParams
 from .stages.dense import DenseParams
@@ -111,6 +112,13 @@ class RegistrationParams:
     uncertainty : UncertaintyParams
         Settings of the pose's independent error estimate (split-half
         cross-validation), which a verified pose must keep small.
+    lidar_views : bool
+        On a point-cloud scene, add the matches of seed 003's reflectivity
+        and wireframe view pairs (:mod:`~napari_imgreg.registration.lidar_views`)
+        to each keypoint round. Default False: on the benchmark's generated
+        scans they added 2–3 matches per round, none correct, for 4–5 s.
+    lidar : LidarViewParams
+        Settings of those views.
     seed : int
         Seed of every random draw of a registration (OpenCV's RNG for FLANN,
         USAC and RANSAC at the start of each round, the perturbed priors, the
@@ -149,6 +157,8 @@ class RegistrationParams:
     edges: EdgeParams = field(default_factory=EdgeParams)
     dense: DenseParams = field(default_factory=_registration_dense)
     uncertainty: UncertaintyParams = field(default_factory=UncertaintyParams)
+    lidar_views: bool = False
+    lidar: LidarViewParams = field(default_factory=LidarViewParams)
     seed: int = 0
 
     #: Inclusive valid range of each numeric field, used alike by ``--params``
@@ -189,6 +199,48 @@ class RegistrationParams:
             area_match=False,
         )
 
+    @classmethod
+    def baseline_cloud(cls) -> RegistrationParams:
+        """The plain baseline on a lidar scan (issue 16): :meth:`baseline` on
+        the gradient magnitude of the photo and of the intensity render
+        (seed 003's reflectivity view against the photo's gradient; SIFT,
+        ratio test, EPnP, one round)."""
+        params = cls.baseline()
+        params.photo_filters = FilterParams(gradient=True)
+        params.render_filters = FilterParams(gradient=True)
+        return params
+
+    @classmethod
+    def for_cloud(cls) -> RegistrationParams:
+        """The automatic pipeline's settings for a lidar scan's intensity renders.
+
+        The default pipeline (:class:`RegistrationParams`) with keypoints
+        matched on the gradient magnitude of both images (then Wallis, as by
+        default) instead of their grey levels: a scan's intensity is the
+        rock's reflectance at the laser's wavelength (sandstone bright,
+        mudstone dark, under no sun), a photo's luminance is the visible
+        albedo under the day's light, and what they share is where either
+        changes — bed contacts, stains, the skyline, ledges — not the grey
+        levels themselves. The illumination-invariant channel is off: a grey
+        render has no chromaticity.
+
+        One keypoint trial, no adapted trials and no search of the prior's
+        uncertainty (which are keypoint trials too): in the cloud benchmark
+        (``benchmarks/bench_register_cloud.py``, ``docs/benchmarks.md``)
+        SIFT found at most one correct match per photo even when rendered
+        from the *true* camera, on grey levels or gradients alike, so those
+        trials only cost time (≈ 30 s of 80 s per photo); the pipeline goes
+        on to the stages that register these renders (area matching, edges,
+        mutual information).
+        """
+        params = cls()
+        params.photo_filters = FilterParams(gradient=True, wallis=True)
+        params.render_filters = FilterParams(gradient=True, wallis=True)
+        params.features = replace(params.features, invariant_channel=False)
+        params.max_trials = 1
+        params.search_prior = False
+        return params
+
     def copy(self) -> RegistrationParams:
         return replace(
             self,
@@ -200,6 +252,7 @@ class RegistrationParams:
             edges=replace(self.edges),
             dense=replace(self.dense),
             uncertainty=replace(self.uncertainty),
+            lidar=replace(self.lidar),
         )
 
     def to_dict(self) -> dict:
@@ -229,6 +282,7 @@ class RegistrationParams:
             "edges": EdgeParams,
             "dense": DenseParams,
             "uncertainty": UncertaintyParams,
+            "lidar": LidarViewParams,
         }
         names = {f.name for f in fields(cls)}
         kwargs = {}

@@ -175,6 +175,8 @@ class _Context:
         self._photo_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._feature_cache: dict[tuple, Features] = {}
         self._area_cache: dict[tuple, np.ndarray] = {}
+        #: The photo's described lidar views (``RegistrationParams.lidar_views``).
+        self.lidar_cache: dict = {}
         #: Toward the photo's sun (local frame), when known and usable.
         self.sun: np.ndarray | None = None
 

@@ -43,6 +43,7 @@ from .features import (
     match_guided,
 )
 from .filters import apply_filters, illumination_invariant
+from .lidar_views import lidar_view_matches
 from .params import RegistrationParams
 from .pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement, with_known_focal
 from .quality import (
@@ -335,6 +336,23 @@ def match_round(
         photo_small = photo_feats.points[matches.idx_a] if len(matches) else np.zeros((0, 2))
         render_small = render_feats.points[matches.idx_b] if len(matches) else np.zeros((0, 2))
         n_points_photo, n_points_render = len(photo_feats), len(render_feats)
+        scene = getattr(source, "scene", None)
+        if params.lidar_views and getattr(scene, "is_cloud", False):
+            # Seed 003's reflectivity and wireframe pairs join the keypoints
+            # (lidar_views.lidar_view_matches); RegistrationParams.lidar_views gates them.
+            t0 = perf_counter()
+            photo_rgb, _ = source.photo_at(width)
+            lv = lidar_view_matches(scene, photo_rgb, rendered,
+                                    params.lidar, fp,
+                                    getattr(source, "lidar_cache", None))
+            timings["lidar_views"] = timings.get("lidar_views", 0.0) + perf_counter() - t0
+            photo_small = np.vstack([photo_small, lv.photo_points])
+            render_small = np.vstack([render_small, lv.render_points])
+            inlier = np.concatenate([inlier, lv.inlier])
+            n_points_photo += lv.points_photo
+            n_points_render += lv.points_render
+            extra = {"lidar_view_matches": len(lv), "lidar_view_inliers_2d": int(lv.inlier.sum())}
+            source.check()
     elif matcher == "area":
         if search_px is None:
             raise ValueError("area matching needs search_px")

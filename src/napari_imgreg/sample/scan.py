@@ -11,15 +11,42 @@ scene's Embree engine, in chunks of ``ScanSpec.chunk_rays`` rays.
   ``range_noise_m`` (5 mm), along the ray.
 * **Intensity** (no colour: a scanner sees no RGB)::
 
-      I = ρ(surface at the hit) · |cos θ| · f(R) · (1 + σ_I · ε),  clipped to [0, 1]
+      I = ρ(surface at the hit) · T(hit) · |cos θ| · f(R) · (1 + σ_I · ε),  clipped to [0, 1]
 
   ρ is the reflectance of the rock type at the hit (the bed of ``geology.json``
   holding the hit point: sandstone brighter than mudstone, each bed varied by
   ``bed_reflectance_variation``), blended with the cover's reflectance
-  (vegetation, scree) where the surface is not bare rock; θ the incidence
+  (vegetation, scree) where the surface is not bare rock; T the surface's
+  *texture* within a bed (below); θ the incidence
   angle between the beam and the surface normal; ``f(R) = min(1, (R_ref / R)^p)``
   a range falloff (``falloff_reference_m``, ``falloff_exponent``); ε standard
   normal, σ_I = ``intensity_noise`` (2 %). The photo's colours are never used.
+* **Texture within a bed**: real TLS intensity is not flat inside a bed:
+  grain size and sorting, weathering rinds, moisture (water absorbs strongly
+  at 1550 nm), oxide and varnish stains and lichen vary it over centimetres
+  to metres — intensity is used to tell rock types apart only after
+  averaging over that scatter (Franceschi et al. 2009, *Discrimination
+  between marls and limestones using intensity data from terrestrial laser
+  scanner*, ISPRS J. Photogramm. 64) — and this texture is what seed 003's
+  reflectivity view matches. ``T = exp(σ_T · z)``, a log-normal
+  factor (geometric mean 1) of a unit-variance field
+  ``z = c · a + sqrt(1 − c²) · g`` on the true surface:
+
+  - ``g``: multi-scale 3-D value noise at the hit point, one octave per
+    ``texture_scales_m`` (0.15, 0.5, 1.5, 5 m lattice cells, each randomly
+    rotated and offset), equal variance per octave (self-similar: as much
+    contrast at 0.15 m as at 5 m);
+  - ``a``: the visible albedo's log luminance at the hit, standardised per bed
+    (and over the cover), i.e. its pattern *within* the bed — dark stains,
+    seeps and lichen are dark at 1550 nm too — when an albedo texture is
+    given (``albedo=`` / the generated scene's ``albedo.png``); c =
+    ``texture_albedo_correlation`` (0.5: a quarter of the texture's variance
+    is shared with what the eye sees, the rest is the scanner's own);
+  - σ_T = ``texture_amplitude`` (0.15: a 15 % log-std within a bed, a quarter
+    of the sandstone/mudstone log contrast ln(0.55/0.30) = 0.61, so the rock
+    types still separate by intensity as in the studies above).
+
+  ``texture_amplitude = 0`` gives the flat beds of scan version 1.
 * Rays that miss (sky) or fall outside ``[min_range_m, max_range_m]`` return
   nothing and are dropped.
 
@@ -52,6 +79,8 @@ from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 
+from numba import njit
+
 from .._atomic import atomic_path, atomic_write
 from .._json import dump as strict_json_dump
 from .noise import rng_for, smoothstep
@@ -70,10 +99,13 @@ __all__ = [
     "scan_outcrop",
     "scan_scene_folder",
     "intensity_by_surface",
+    "VisibleAlbedo",
+    "texture_field",
+    "value_noise",
 ]
 
 #: Bump when what :func:`simulate_scan` / :func:`write_scan` produce changes (cache key).
-SCAN_VERSION = "1"
+SCAN_VERSION = "2"  # 2: within-bed texture of the intensity (ScanSpec.texture_*)
 
 #: Random streams of this module (see :func:`napari_imgreg.sample.noise.rng_for`).
 _S_SCAN = 8600
@@ -139,6 +171,16 @@ class ScanSpec:
         type's (beds of one rock type differ in grain size, clay and
         moisture; clipped at 3 sigma). 0 gives every bed its rock type's
         exact ρ. Default 0.05, range [0, 0.3].
+    texture_amplitude : float
+        σ_T, the standard deviation of the natural log of the within-bed
+        texture factor T (see the module's docstring). Default 0.15, range
+        [0, 1]; 0 switches the texture off.
+    texture_scales_m : tuple of float
+        Lattice cells of the texture's value-noise octaves, metres, each in
+        [0.01, 100]. Default (0.15, 0.5, 1.5, 5.0).
+    texture_albedo_correlation : float
+        c: correlation of the texture's field with the visible albedo's
+        within-bed log luminance, where an albedo is given. Default 0.5, range [0, 1].
     falloff_reference_m, falloff_exponent : float
         Range falloff ``f(R) = min(1, (R_ref / R)^p)``. The physical echo of
         an extended target falls as ``1 / R²``; recorded TLS intensities are
@@ -171,6 +213,9 @@ class ScanSpec:
     max_range_m: float = 300.0
     reflectance: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_REFLECTANCE))
     bed_reflectance_variation: float = 0.05
+    texture_amplitude: float = 0.15
+    texture_scales_m: tuple[float, ...] = (0.15, 0.5, 1.5, 5.0)
+    texture_albedo_correlation: float = 0.5
     falloff_reference_m: float = 20.0
     falloff_exponent: float = 1.0
     intensity_noise: float = 0.02
@@ -203,6 +248,13 @@ class ScanSpec:
             need(0.0 < float(rho) <= 1.0, f"reflectance[{kind!r}] must be in (0, 1], not {rho}")
         need(0.0 <= self.bed_reflectance_variation <= 0.3,
              f"bed_reflectance_variation must be 0-0.3, not {self.bed_reflectance_variation}")
+        need(0.0 <= self.texture_amplitude <= 1.0,
+             f"texture_amplitude must be 0-1, not {self.texture_amplitude}")
+        need(len(self.texture_scales_m) >= 1 and all(0.01 <= float(v) <= 100.0
+                                                     for v in self.texture_scales_m),
+             f"texture_scales_m must be 1 or more cells of 0.01-100 m, not {self.texture_scales_m}")
+        need(0.0 <= self.texture_albedo_correlation <= 1.0,
+             f"texture_albedo_correlation must be 0-1, not {self.texture_albedo_correlation}")
         need(self.falloff_reference_m > 0.0, "falloff_reference_m must be positive")
         need(0.0 <= self.falloff_exponent <= 4.0,
              f"falloff_exponent must be 0-4, not {self.falloff_exponent}")
@@ -270,6 +322,143 @@ class SurfaceCover:
 
     rock_weight: np.ndarray
     cover_reflectance: np.ndarray
+
+
+@dataclass
+class VisibleAlbedo:
+    """The surface's visible albedo, for the part of the intensity's texture
+    it shares (:attr:`ScanSpec.texture_albedo_correlation`).
+
+    Attributes
+    ----------
+    uv : (V, 2) float array
+        Texture coordinates per vertex of the scanned surface (OpenGL: v = 0
+        at the image's bottom row).
+    log_luminance : (T_h, T_w) float32 array
+        Natural log of the albedo's linear luminance per texel.
+    """
+
+    uv: np.ndarray
+    log_luminance: np.ndarray
+
+    @classmethod
+    def from_rgb(cls, uv: np.ndarray, rgb: np.ndarray) -> VisibleAlbedo:
+        """From an sRGB albedo image (H, W, 3) uint8 and per-vertex ``uv``."""
+        c = np.asarray(rgb, np.float32)[..., :3] / 255.0
+        lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+        lum = lin @ np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709 luminance
+        return cls(np.asarray(uv, np.float64), np.log(lum + 1e-3).astype(np.float32))
+
+    def at(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """(N,) log luminance at hits on ``faces`` (N, 3) with barycentrics (N, 3)."""
+        from scipy import ndimage
+
+        uv = np.einsum("nk,nkj->nj", bary, self.uv[faces])
+        th, tw = self.log_luminance.shape
+        rows = (1.0 - uv[:, 1]) * th - 0.5
+        cols = uv[:, 0] * tw - 0.5
+        return ndimage.map_coordinates(self.log_luminance, [rows, cols], order=1, mode="nearest")
+
+
+# ------------------------------------------------------- within-bed texture
+@njit(cache=True, nogil=True)
+def _value_noise_kernel(p, rot, offset, out):  # pragma: no cover - compiled
+    """3-D value noise at points ``p`` (N, 3) in lattice units after ``p @ rot.T + offset``:
+    corner values uniform in [-1, 1] by an integer hash, quintic interpolation."""
+    n = p.shape[0]
+    for i in range(n):
+        q0 = rot[0, 0] * p[i, 0] + rot[0, 1] * p[i, 1] + rot[0, 2] * p[i, 2] + offset[0]
+        q1 = rot[1, 0] * p[i, 0] + rot[1, 1] * p[i, 1] + rot[1, 2] * p[i, 2] + offset[1]
+        q2 = rot[2, 0] * p[i, 0] + rot[2, 1] * p[i, 1] + rot[2, 2] * p[i, 2] + offset[2]
+        f0, f1, f2 = math.floor(q0), math.floor(q1), math.floor(q2)
+        t0, t1, t2 = q0 - f0, q1 - f1, q2 - f2
+        w0 = t0 * t0 * t0 * (t0 * (t0 * 6.0 - 15.0) + 10.0)
+        w1 = t1 * t1 * t1 * (t1 * (t1 * 6.0 - 15.0) + 10.0)
+        w2 = t2 * t2 * t2 * (t2 * (t2 * 6.0 - 15.0) + 10.0)
+        i0, i1, i2 = np.int64(f0), np.int64(f1), np.int64(f2)
+        acc = 0.0
+        for c in range(8):
+            a, b, d = c & 1, (c >> 1) & 1, (c >> 2) & 1
+            h = np.uint64((i0 + a) * 73856093) ^ np.uint64((i1 + b) * 19349663) \
+                ^ np.uint64((i2 + d) * 83492791)
+            # splitmix64 finaliser: a well-mixed 64-bit value per lattice point
+            h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+            h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+            h = h ^ (h >> np.uint64(31))
+            v = (h >> np.uint64(11)) * (1.0 / 9007199254740992.0) * 2.0 - 1.0
+            wa = w0 if a else 1.0 - w0
+            wb = w1 if b else 1.0 - w1
+            wd = w2 if d else 1.0 - w2
+            acc += wa * wb * wd * v
+        out[i] = acc
+
+
+def _noise_norm() -> float:
+    """1 / the standard deviation of :func:`value_noise`'s raw output over
+    uniformly placed points: corner values of variance 1/3 weighted by the
+    quintic fade, ``E[w² + (1 − w)²]`` per axis (= 181/231 by integration)."""
+    e_axis = 181.0 / 231.0
+    return 1.0 / math.sqrt((1.0 / 3.0) * e_axis ** 3)
+
+
+def value_noise(xyz: np.ndarray, cell_m: float, rotation: np.ndarray | None = None,
+                offset: np.ndarray | None = None) -> np.ndarray:
+    """Smooth 3-D value noise of unit variance at points, lattice cell ``cell_m``.
+
+    Parameters
+    ----------
+    xyz : (N, 3) array
+        Points, metres.
+    cell_m : float
+        Lattice spacing, metres: values decorrelate over about one cell.
+    rotation : (3, 3) array, optional
+        Rotation of the lattice (default identity).
+    offset : (3,) array, optional
+        Offset of the lattice, in cells.
+
+    Returns
+    -------
+    (N,) float64 array
+        Mean 0 and standard deviation 1 over uniformly placed points
+        (normalised analytically, see :func:`_noise_norm`); values in about ±3.
+    """
+    p = np.ascontiguousarray(np.asarray(xyz, np.float64) / float(cell_m))
+    rot = np.eye(3) if rotation is None else np.ascontiguousarray(rotation, np.float64)
+    off = np.zeros(3) if offset is None else np.ascontiguousarray(offset, np.float64)
+    out = np.empty(len(p), np.float64)
+    _value_noise_kernel(p, rot, off, out)
+    return out * _noise_norm()
+
+
+def texture_field(xyz: np.ndarray, spec: ScanSpec) -> np.ndarray:
+    """The texture's own multi-scale field ``g`` (N,): unit variance, mean 0.
+
+    The sum of one :func:`value_noise` octave per ``spec.texture_scales_m``
+    (each lattice randomly rotated and offset from ``spec.seed``), equal
+    variance each, divided by √(octaves). A property of the surface: the same
+    point gets the same value from every station.
+    """
+    rng = rng_for(spec.seed, _S_SCAN, 777)
+    g = np.zeros(len(xyz), np.float64)
+    for cell in spec.texture_scales_m:
+        q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+        g += value_noise(xyz, float(cell), q, rng.uniform(0.0, 1000.0, 3))
+    return g / math.sqrt(len(spec.texture_scales_m))
+
+
+def _standardised_by_group(a: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """``a`` minus its group's mean, over its group's standard deviation."""
+    out = np.zeros(len(a), np.float64)
+    if not len(a):
+        return out
+    inv = np.unique(group, return_inverse=True)[1].reshape(-1)
+    n = np.bincount(inv).astype(np.float64)
+    mean = np.bincount(inv, a) / n
+    var = np.bincount(inv, a * a) / n - mean ** 2
+    sd = np.sqrt(np.maximum(var, 0.0))
+    ok = sd[inv] > 1e-9
+    out[ok] = (a[ok] - mean[inv][ok]) / sd[inv][ok]
+    return out
 
 
 class Strata:
@@ -386,7 +575,8 @@ def _steepness_cover(normals: np.ndarray, spec: ScanSpec) -> tuple[np.ndarray, n
 def simulate_scan(true_scene, geology: Any, spec: ScanSpec | None = None, *,
                   cover: SurfaceCover | None = None,
                   stations: np.ndarray | None = None,
-                  labels: dict[str, np.ndarray] | None = None) -> ScanPoints:
+                  labels: dict[str, np.ndarray] | None = None,
+                  albedo: VisibleAlbedo | None = None) -> ScanPoints:
     """Scan a surface from each station on a regular azimuth/elevation grid.
 
     Parameters
@@ -407,7 +597,13 @@ def simulate_scan(true_scene, geology: Any, spec: ScanSpec | None = None, *,
     labels : dict, optional
         If given, filled with what each point hit (the truth, not stored in
         the scan): ``"bed"`` (N,) int32 bed index, ``"rock_weight"`` (N,)
-        float32 bare-rock weight, ``"cos_incidence"`` (N,) float32.
+        float32 bare-rock weight, ``"cos_incidence"`` (N,) float32,
+        ``"texture"`` (N,) float32 the within-bed texture factor T.
+    albedo : VisibleAlbedo, optional
+        The surface's visible albedo (uv per vertex of ``true_scene``): the
+        texture's field shares ``spec.texture_albedo_correlation`` with its
+        within-bed log luminance. Without it the texture is the scanner's own
+        field alone.
 
     Returns
     -------
@@ -424,10 +620,14 @@ def simulate_scan(true_scene, geology: Any, spec: ScanSpec | None = None, *,
     stations = np.asarray(stations, np.float64).reshape(-1, 3)
     if len(stations) > 255:
         raise ValueError("at most 255 stations (station index is uint8)")
+    nv = len(true_scene.vertices)
     if cover is not None:
-        nv = len(true_scene.vertices)
         if len(cover.rock_weight) != nv or len(cover.cover_reflectance) != nv:
             raise ValueError(f"cover has {len(cover.rock_weight)} vertices, the scene {nv}")
+    textured = spec.texture_amplitude > 0.0
+    use_albedo = textured and albedo is not None and spec.texture_albedo_correlation > 0.0
+    if use_albedo and len(albedo.uv) != nv:
+        raise ValueError(f"albedo has uv for {len(albedo.uv)} vertices, the scene {nv}")
     faces = true_scene.faces
     corner_normals = true_scene.face_array("vertex_normals")  # (F, 3, 3) smooth normals
     az, el = spec.scan_angles()
@@ -435,6 +635,7 @@ def simulate_scan(true_scene, geology: Any, spec: ScanSpec | None = None, *,
     n_el = len(el)
     cols_per_chunk = max(1, int(spec.chunk_rays) // n_el)
     out_xyz, out_int, out_st, out_bed, out_w, out_cos = [], [], [], [], [], []
+    out_g, out_a, out_group = [], [], []
     for k, origin in enumerate(stations):
         rng_range = rng_for(spec.seed, _S_SCAN, k, 0)
         rng_int = rng_for(spec.seed, _S_SCAN, k, 1)
@@ -476,14 +677,36 @@ def simulate_scan(true_scene, geology: Any, spec: ScanSpec | None = None, *,
             xyz = origin + d * r_meas[:, None]
             inten = rho * cos_inc * spec.falloff(t)
             inten *= 1.0 + spec.intensity_noise * rng_int.standard_normal(len(t))
+            if textured:
+                # The texture is the surface's: at the exact hit, whichever station.
+                out_g.append(texture_field(exact, spec))
+                if use_albedo:
+                    out_a.append(albedo.at(faces[fid], np.concatenate([w0, u, v], axis=1)))
+                    out_group.append(np.where(w_rock >= 0.5, bed, -1))
             out_xyz.append(xyz)
-            out_int.append(np.clip(inten, 0.0, 1.0).astype(np.float32))
+            out_int.append(inten if textured else np.clip(inten, 0.0, 1.0).astype(np.float32))
             out_st.append(np.full(len(t), k, np.uint8))
             if labels is not None:
                 out_bed.append(bed.astype(np.int32))
                 out_w.append(np.asarray(w_rock, np.float32))
                 out_cos.append(cos_inc.astype(np.float32))
+    texture = None
+    if textured and out_int:
+        # T = exp(σ_T z), z = c a + sqrt(1 - c²) g: the albedo's within-bed
+        # pattern (standardised per bed and over the cover) and the scanner's own field.
+        z = np.concatenate(out_g)
+        if use_albedo:
+            c = spec.texture_albedo_correlation
+            a = _standardised_by_group(np.concatenate(out_a).astype(np.float64),
+                                       np.concatenate(out_group))
+            z = c * a + math.sqrt(1.0 - c * c) * z
+        texture = np.exp(spec.texture_amplitude * z)
+        sizes = np.cumsum([len(x) for x in out_int])[:-1]
+        out_int = [np.clip(i * tex, 0.0, 1.0).astype(np.float32)
+                   for i, tex in zip(out_int, np.split(texture, sizes))]
     if labels is not None:
+        labels["texture"] = (np.ones(sum(len(x) for x in out_int), np.float32) if texture is None
+                             else texture.astype(np.float32))
         labels["bed"] = np.concatenate(out_bed) if out_bed else np.empty(0, np.int32)
         labels["rock_weight"] = np.concatenate(out_w) if out_w else np.empty(0, np.float32)
         labels["cos_incidence"] = np.concatenate(out_cos) if out_cos else np.empty(0, np.float32)
@@ -588,9 +811,19 @@ def write_scan(folder: str | os.PathLike, scan: ScanPoints, spec: ScanSpec,
             for k, p in enumerate(stations)
         ],
         "noise": {"range_m": spec.range_noise_m, "intensity_relative": spec.intensity_noise},
-        "intensity_model": ("reflectance(rock type or cover at the hit) * |cos(incidence)| * "
-                            "min(1, (falloff_reference_m / range)^falloff_exponent) * "
+        "intensity_model": ("reflectance(rock type or cover at the hit) * texture(hit) * "
+                            "|cos(incidence)| * min(1, (falloff_reference_m / range)^falloff_exponent) * "
                             "(1 + intensity_noise * N(0, 1)), clipped to [0, 1]"),
+        "texture_model": {
+            "factor": "exp(texture_amplitude * z), z = c * a + sqrt(1 - c^2) * g",
+            "g": "3-D value noise at the hit, one octave per texture_scales_m (lattice cell, m), "
+                 "equal variance each, unit variance in all",
+            "a": "visible albedo's log luminance at the hit, standardised per bed (and over the "
+                 "cover); absent (c = 0) without an albedo",
+            "texture_amplitude": spec.texture_amplitude,
+            "texture_scales_m": [float(v) for v in spec.texture_scales_m],
+            "c": spec.texture_albedo_correlation,
+        },
         "spec": spec.to_dict(),
     }
     if info:
@@ -644,12 +877,15 @@ def scan_outcrop(outcrop, scene, georef, folder: str | os.PathLike, spec: ScanSp
     stations = station_positions(scene, spec)
     strata = Strata(outcrop.geology)
     labels: dict[str, np.ndarray] = {}
+    albedo = (VisibleAlbedo.from_rgb(outcrop.uv, outcrop.albedo)
+              if getattr(outcrop, "albedo", None) is not None else None)
     pts = simulate_scan(scene, strata, spec, cover=cover_from_outcrop(outcrop, spec),
-                        stations=stations, labels=labels)
+                        stations=stations, labels=labels, albedo=albedo)
     t_sim = time.perf_counter() - t0
     laz = write_scan(folder, pts, spec, stations, georef, name=name,
                      info={"surface": scene.name, "cover": "the generator's rock mask; scree on "
                            "the talus; vegetation elsewhere",
+                           "texture_albedo": "the generator's albedo" if albedo is not None else None,
                            "intensity_by_surface": intensity_by_surface(pts, labels, strata),
                            "timings_s": {"simulate": round(t_sim, 2)}})
     return {"scan": laz.name, "scan_info": f"{name}.json"}
@@ -769,9 +1005,22 @@ def scan_scene_folder(folder: str | os.PathLike, spec: ScanSpec | None = None,
     stations = station_positions(scene, spec)
     strata = Strata(geology)
     labels: dict[str, np.ndarray] = {}
-    pts = simulate_scan(scene, strata, spec, cover=cover, stations=stations, labels=labels)
+    # The visible albedo the photos are rendered from (its within-bed pattern
+    # is partly shared by the intensity's texture); the model's uv are the
+    # true surface's (a rough scene keeps the grid and its texture coordinates).
+    albedo, albedo_note = None, None
+    albedo_path = folder / files.get("albedo", "albedo.png")
+    if albedo_path.is_file() and model.uv is not None and len(model.uv) == len(scene.vertices):
+        from PIL import Image
+
+        with Image.open(albedo_path) as im:
+            albedo = VisibleAlbedo.from_rgb(model.uv, np.asarray(im.convert("RGB")))
+        albedo_note = albedo_path.name
+    pts = simulate_scan(scene, strata, spec, cover=cover, stations=stations, labels=labels,
+                        albedo=albedo)
     timings["simulate"] = time.perf_counter() - t0
     info = {"surface": surface, "source_folder": folder.name, "cover": cover_note,
+            "texture_albedo": albedo_note,
             "geology": Path(geology).name, "seed_scene": int(manifest["seed"]),
             "intensity_by_surface": intensity_by_surface(pts, labels, strata),
             "timings_s": {k: round(v, 2) for k, v in timings.items()}}
