@@ -7,6 +7,7 @@ import pytest
 from interp_scenes import camera, combine, true_trace, wall_scene
 
 from napari_imgreg import Intrinsics, Pose
+from napari_imgreg.interpret.on_cloud import CloudProjectionParams
 from napari_imgreg.interpret.project import (
     Interpretation,
     ProjectionParams,
@@ -395,3 +396,193 @@ def test_cli_measure_refuses_out_of_range_options(tmp_path, capsys, option):
     code = main(["measure", str(tmp_path / "x.geojson"), "--out", str(tmp_path / "m.csv")] + option)
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and option[0] in err[0]
+
+
+# ------------------------------------------------------- point clouds (issue 16)
+# Clouds sampled at random from known surfaces (2 mm noise): a slab dipping
+# 40° toward 135° with an optional strip cut out and a parallel slab hidden
+# 1 m behind it, and the corrugated wall of the mesh tests.
+_SLAB_N = normal_from_dip(40.0, 135.0)
+_STRIKE = np.array([np.sin(np.radians(45.0)), np.cos(np.radians(45.0)), 0.0])
+_DOWN_DIP = np.cross(_SLAB_N, _STRIKE) * -np.sign(np.cross(_SLAB_N, _STRIKE)[2])
+_SLAB_HALF, _SLAB_PER_M2 = 8.0, 100.0  # 16 m square, ~10 cm apart
+
+
+def _slab_points(rng, offset=0.0, strip=None, per_m2=_SLAB_PER_M2):
+    n = int((2 * _SLAB_HALF) ** 2 * per_m2)
+    s, t = rng.uniform(-_SLAB_HALF, _SLAB_HALF, (2, n))
+    if strip is not None:  # no points across the strip |s| < strip (a scan shadow)
+        keep = np.abs(s) >= strip
+        s, t = s[keep], t[keep]
+    noise = rng.normal(0.0, 0.002, len(s))
+    return (s[:, None] * _STRIKE + t[:, None] * _DOWN_DIP
+            + (noise - offset)[:, None] * _SLAB_N)
+
+
+def _slab_camera():
+    """25 m in front of the slab, looking straight at it (600×450, 3 cm pixels)."""
+    intr = Intrinsics(600, 450, 800.0, 800.0, 299.5, 224.5)
+    z = -_SLAB_N
+    x = np.cross(z, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    return intr, Pose.from_center(np.stack([x, np.cross(z, x), z]), 25.0 * _SLAB_N)
+
+
+@pytest.fixture(scope="module")
+def slab_clouds():
+    from napari_imgreg.cloud import CloudScene
+
+    rng = np.random.default_rng(16)
+    front = _slab_points(rng)
+    behind = _slab_points(rng, offset=1.0, per_m2=40.0)  # hidden by the front slab
+    view_from = 30.0 * _SLAB_N[None]
+    two = CloudScene(np.vstack([front, behind]), name="two slabs", viewpoints=view_from)
+    cut = CloudScene(_slab_points(rng, strip=1.0), name="slab with a gap", viewpoints=view_from)
+    for scene in (two, cut):
+        scene.build_engine()
+    return two, len(front), cut
+
+
+def test_cloud_line_lies_on_the_sampled_plane(slab_clouds, monkeypatch):
+    import napari_imgreg.interpret.project as project_mod
+
+    scene, _, _ = slab_clouds
+    intr, pose = _slab_camera()
+    # The explicit cloud path: one render per photo, no ray query per line.
+    renders = []
+    real_view = project_mod.cloud_view
+    monkeypatch.setattr(project_mod, "cloud_view",
+                        lambda *a, **k: renders.append(1) or real_view(*a, **k))
+    monkeypatch.setattr(scene, "cast_rays", lambda *a, **k: pytest.fail("ray query on a cloud"))
+    true_line = np.array([-6.0, 6.0])[:, None] * (0.8 * _STRIKE + 0.6 * _DOWN_DIP)
+    other = np.array([-5.0, 5.0])[:, None] * _DOWN_DIP
+    items = [Interpretation("LineString", _draw(intr, pose, true_line), {"label": "fault"}),
+             Interpretation("LineString", _draw(intr, pose, other), {"label": "fault"})]
+    feats = project_interpretations(scene, intr, pose, items, source="IMG_C.jpg")
+    assert len(renders) == 1
+    f = feats[0]
+    assert len(f.parts) == 1 and f.missed == 0
+    spacing = float(np.median(scene.spacing))
+    off_plane = np.abs(f.points @ _SLAB_N)
+    assert np.median(off_plane) < 0.01 and off_plane.max() < spacing  # on the plane
+    u = (true_line[1] - true_line[0]) / np.linalg.norm(true_line[1] - true_line[0])
+    rel = f.points - true_line[0]
+    off_line = np.linalg.norm(rel - np.outer(rel @ u, u), axis=1)
+    assert off_line.max() < 0.01  # and on the drawn line
+    reproj = pose.project(intr, f.points)
+    assert np.abs(reproj[[0, -1]] - items[0].pixels[[0, -1]]).max() < 0.05
+    # The same properties as on a mesh: camera, σ (from the point spacing), photo.
+    assert np.allclose(f.properties["camera_position"], pose.center, atol=1e-3)
+    assert f.properties["source"] == "IMG_C.jpg"
+    unc = f.properties["uncertainty"]
+    assert unc["mesh_edge_m"] == pytest.approx(spacing, rel=0.2)
+    assert 0 < f.properties["sigma_m"] < 0.2
+    (m,) = measure_features([f])
+    want_plunge = np.degrees(np.arcsin(abs((0.8 * _STRIKE + 0.6 * _DOWN_DIP)[2])))
+    assert m.plunge_deg == pytest.approx(want_plunge, abs=0.5)
+    assert m.dip_deg is None  # a straight line on a plane defines no plane
+
+
+def test_cloud_line_across_a_gap_splits_in_two(slab_clouds):
+    _, _, scene = slab_clouds
+    intr, pose = _slab_camera()
+    across = np.array([-6.0, 6.0])[:, None] * _STRIKE  # crosses the 2 m strip |s| < 1
+    line = project_polyline(scene, intr, pose, _draw(intr, pose, across))
+    parts = line.parts
+    assert len(parts) == 2 and (line.part < 0).sum() > 20
+    for part in parts:
+        s = part @ _STRIKE
+        assert np.all(np.abs(s) > 1.0 - 0.25)  # nothing inside the strip (a surfel's reach)
+        assert np.linalg.norm(np.diff(part, axis=0), axis=1).max() < 0.2
+
+
+def test_cloud_line_over_an_occluding_step_splits_and_steep_rock_does_not():
+    from napari_imgreg.cloud import CloudScene
+
+    rng = np.random.default_rng(5)
+    # A wall y = 0 (x, z in [-10, 10] × [0, 10]) and a ledge 3 m in front of its
+    # left half; the camera 30 m south. Then the wall alone, seen at 75°.
+    n = 20_000
+    x, z = rng.uniform(-10, 10, n), rng.uniform(0, 10, n)
+    wall = np.stack([x, rng.normal(0, 0.002, n), z], 1)
+    xl, zl = rng.uniform(-10, 0, n // 2), rng.uniform(0, 10, n // 2)
+    ledge = np.stack([xl, np.full(n // 2, -3.0), zl], 1)
+    scene = CloudScene(np.vstack([wall, ledge]), viewpoints=np.array([[0.0, -30.0, 5.0]]))
+    intr = Intrinsics(600, 450, 600.0, 600.0, 299.5, 224.5)
+    pose = Pose.from_attitude(0.0, 0.0, 0.0, np.array([0.0, -30.0, 5.0]))
+    px = pose.project(intr, np.array([[-8.0, -3.0, 5.0], [8.0, 0.0, 5.0]]))
+    line = project_polyline(scene, intr, pose, px)
+    assert len(line.parts) == 2
+    front, back = line.parts
+    assert np.allclose(front[:, 1], -3.0, atol=0.01) and np.allclose(back[:, 1], 0.0, atol=0.01)
+    # Disabling the rule (an allowance larger than the step) bridges it: the rule splits.
+    loose = ProjectionParams(cloud=CloudProjectionParams(gap_spacings=100.0))
+    assert len(project_polyline(scene, intr, pose, px, params=loose).parts) == 1
+    # Steep but continuous: the wall seen 75° off its normal is one part.
+    wall_only = CloudScene(wall, viewpoints=np.array([[0.0, -30.0, 5.0]]))
+    a = np.radians(75.0)
+    centre = np.array([0.0, 0.0, 5.0])
+    oblique = Pose.from_attitude(-75.0, 0.0, 0.0, centre + 20.0 * np.array([np.sin(a), -np.cos(a), 0]))
+    ends = oblique.project(intr, np.array([[-6.0, 0.0, 5.0], [6.0, 0.0, 5.0]]))
+    steep = project_polyline(wall_only, intr, oblique, ends)
+    assert len(steep.parts) == 1 and (steep.part >= 0).mean() > 0.95
+
+
+def test_cloud_facet_uses_visible_points_only_and_measures_the_plane(slab_clouds):
+    scene, n_front, _ = slab_clouds
+    intr, pose = _slab_camera()
+    square = np.array([[-4, -4], [4, -4], [4, 4], [-4, 4.0]])
+    ring = _draw(intr, pose, square[:, :1] * _STRIKE + square[:, 1:] * _DOWN_DIP)
+    (facet,) = project_interpretations(scene, intr, pose,
+                                       [Interpretation("Polygon", ring, {"label": "sandstone"})],
+                                       source="IMG_C.jpg")
+    assert facet.kind == "facet" and facet.ring_complete
+    ids = facet.patch_faces
+    # The cloud's own points inside the polygon: all of the front slab's ...
+    s, t = scene.xyz[:n_front] @ _STRIKE, scene.xyz[:n_front] @ _DOWN_DIP
+    inside = np.flatnonzero((np.abs(s) < 3.9) & (np.abs(t) < 3.9))
+    assert np.isin(inside, ids).mean() > 0.98
+    # ... and none of the slab 1 m behind it, which projects there too.
+    assert ids.max() < n_front and len(ids) <= 1.05 * (8.2 ** 2) * _SLAB_PER_M2
+    assert np.abs(scene.xyz[ids] @ _SLAB_N).max() < 0.015
+    (fm,) = measure_features([facet])
+    assert fm.dip_deg == pytest.approx(40.0, abs=0.2)
+    assert fm.dip_direction_deg == pytest.approx(135.0, abs=0.3)
+    assert fm.dip_sigma_deg is not None and 0 < fm.dip_sigma_deg < 1.0
+    assert fm.photo == "IMG_C.jpg" and fm.n_points == len(facet.patch_points)
+
+
+def test_cloud_trace_on_relief_recovers_the_plane():
+    """The mesh's known-answer test on the wall's cloud: the bent trace of a
+    35°/060° plane gives its dip and dip direction."""
+    from interp_scenes import WALL_X, WALL_Z
+
+    from napari_imgreg.cloud import CloudScene
+
+    rng = np.random.default_rng(9)
+    n = 60_000  # ~20 cm apart
+    x, z = rng.uniform(*WALL_X, n), rng.uniform(*WALL_Z, n)
+    y = 4.0 * np.sin(2 * np.pi * x / 25.0) + 0.1 * z + rng.normal(0, 0.005, n)
+    scene = CloudScene(np.stack([x, y, z], 1), viewpoints=np.array([[0.0, -90.0, 15.0]]))
+    _, X = wall_scene()
+    intr, pose = camera(width=800, height=600, f=700.0)
+    (trace,) = [t for t in true_trace(X, 35.0, 60.0) if len(t) > 20]
+    drawn = Interpretation("LineString", _draw(intr, pose, trace), {"label": "sandstone"})
+    (f,) = project_interpretations(scene, intr, pose, [drawn], source="IMG_1.jpg",
+                                   pose_uncertainty=PoseUncertainty(0.1, 0.01, 0.005),
+                                   uncertainty=UncertaintyParams(drawing_px=0.2))
+    assert len(f.parts) == 1 and f.missed <= 2
+    assert np.percentile(_distance_to_polyline(f.points, trace), 95) < 0.1
+    (m,) = measure_features([f])
+    assert m.has_plane, m.note
+    assert m.dip_deg == pytest.approx(35.0, abs=1.0)
+    assert abs((m.dip_direction_deg - 60.0 + 180) % 360 - 180) < 1.5
+    assert abs(m.dip_deg - 35.0) <= 3 * m.dip_sigma_deg + 0.2
+
+
+def test_cloud_projection_params_are_checked():
+    from napari_imgreg.errors import InputError
+
+    for bad in (0.0, -1.0, float("nan"), 1e6):
+        with pytest.raises(InputError, match="gap_spacings"):
+            CloudProjectionParams(gap_spacings=bad)

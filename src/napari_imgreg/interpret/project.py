@@ -11,6 +11,14 @@ A polygon becomes its projected ring plus the *surface patch*: the visible
 faces inside it, found by one ray per pixel inside the polygon; the facet's
 plane is fitted to the patch's surface points.
 
+On a point cloud (a :class:`~napari_imgreg.cloud.CloudScene`) the same
+features are read from the photo's splat render instead of cast ray by ray:
+lines through its per-pixel depth, split where the range jumps by more than
+a few point spacings (the gap rule of :mod:`napari_imgreg.interpret.on_cloud`),
+and facets from the cloud's own points inside the polygon that the render's
+z-buffer sees. Everything after (σ, ``camera_position``, ``measure``, the
+exports) is the same for both kinds of scene.
+
 Lines from several registered photos merge into one set, each feature keeping
 ``properties.source`` (the photo it was drawn on), ``properties.camera_position``
 (the photo's camera centre) and ``properties.sigma_m`` (the expected 3D error
@@ -37,6 +45,14 @@ import numpy as np
 from ..camera import Intrinsics, Pose
 from ..scene import Scene
 from ..errors import InputError
+from .on_cloud import (
+    CloudProjectionParams,
+    CloudView,
+    cloud_breaks,
+    cloud_hits,
+    cloud_patch,
+    cloud_view,
+)
 from .structural import (
     DEFAULT_THRESHOLDS,
     FitThresholds,
@@ -122,6 +138,10 @@ class ProjectionParams:
         Parts with fewer samples are dropped (a lone hit is not a line).
     patch_max_points : int
         Surface points kept per facet patch (an even subsample) for its plane.
+    cloud : CloudProjectionParams
+        On a point cloud: the gap rule that splits lines (in place of the
+        jump test above; ``grazing_deg`` caps its oblique allowance) and the
+        visibility test of facet points.
     """
 
     step_px: float = 1.0  # range MIN_STEP_PX–100
@@ -131,6 +151,7 @@ class ProjectionParams:
     jump_window: int = 5
     min_part_points: int = 2
     patch_max_points: int = 20_000
+    cloud: CloudProjectionParams = field(default_factory=CloudProjectionParams)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.step_px) and MIN_STEP_PX <= self.step_px <= 100.0):
@@ -195,7 +216,8 @@ class Feature3D:
     patch_points : (K, 3) array or None
         Facets: surface points inside the polygon (subsampled), metres.
     patch_faces : (F,) int array or None
-        Facets: indices of the visible faces inside the polygon.
+        Facets: indices of the visible faces inside the polygon (on a point
+        cloud: of the visible cloud points, all of them).
     surface_normal : (3,) array or None
         Mean surface normal under the feature, turned toward the camera.
     samples : int
@@ -455,13 +477,15 @@ def project_polyline(
     pixels: np.ndarray,
     closed: bool = False,
     params: ProjectionParams = ProjectionParams(),
+    view: CloudView | None = None,
 ) -> ProjectedLine:
     """Cast an image polyline onto the surface, split where it leaves it.
 
     Parameters
     ----------
-    scene : Scene
-        Its ray engine (built once, reused) does the casting.
+    scene : Scene or CloudScene
+        A mesh's ray engine (built once, reused) does the casting; a cloud's
+        samples are read from ``view`` (module docstring).
     intrinsics : Intrinsics
         The photo's camera (at the photo's resolution).
     pose : Pose
@@ -471,10 +495,14 @@ def project_polyline(
     closed : bool
         A polygon's ring.
     params : ProjectionParams
+    view : CloudView, optional
+        On a cloud: the photo's render (:func:`~napari_imgreg.interpret.on_cloud.cloud_view`),
+        shared by the features of one photo; rendered here when None.
 
     Returns
     -------
     ProjectedLine
+        On a cloud ``face_id`` holds the index of the point hit.
     """
     p = check_drawing(pixels, intrinsics.width, intrinsics.height)
     if closed and len(p) > 2:
@@ -495,21 +523,30 @@ def project_polyline(
     if len(samples) == 0:
         empty = np.zeros((0, 3))
         return ProjectedLine(samples, empty, np.zeros(0), np.zeros(0, int), np.zeros(0, int), empty)
-    finite = np.isfinite(samples).all(axis=1)
-    origin, directions = pose.rays(intrinsics, np.where(finite[:, None], samples, 0.0))
-    hits = scene.cast_rays(origin, directions)
-    hits.distance[~finite] = np.inf
-    hits.face_id[~finite] = -1
-    points = scene.surface_points(hits)
-    hit = hits.hit
-    distance = hits.distance.astype(np.float64)
-    normals = np.zeros((len(samples), 3))
-    if hit.any():
-        n = scene.face_array("normals")[hits.face_id[hit]].astype(np.float64)
-        flip = np.einsum("ij,ij->i", n, directions[hit]) > 0
-        n[flip] *= -1
-        normals[hit] = n
-    cut = _breaks(directions, distance, hit, params)
+    if getattr(scene, "is_cloud", False):
+        if view is None or not view.matches(intrinsics, pose):
+            view = cloud_view(scene, intrinsics, pose, params.cloud)
+        ch = cloud_hits(scene, view, samples)
+        points, distance, face_id, normals = ch.points, ch.distance, ch.point_id, ch.normals
+        hit = ch.hit
+        cut = cloud_breaks(scene, ch, params.cloud, params.grazing_deg)
+    else:
+        finite = np.isfinite(samples).all(axis=1)
+        origin, directions = pose.rays(intrinsics, np.where(finite[:, None], samples, 0.0))
+        hits = scene.cast_rays(origin, directions)
+        hits.distance[~finite] = np.inf
+        hits.face_id[~finite] = -1
+        points = scene.surface_points(hits)
+        hit = hits.hit
+        distance = hits.distance.astype(np.float64)
+        face_id = hits.face_id.copy()
+        normals = np.zeros((len(samples), 3))
+        if hit.any():
+            n = scene.face_array("normals")[hits.face_id[hit]].astype(np.float64)
+            flip = np.einsum("ij,ij->i", n, directions[hit]) > 0
+            n[flip] *= -1
+            normals[hit] = n
+        cut = _breaks(directions, distance, hit, params)
     # Runs of hit samples not interrupted by a break form the parts.
     starts = np.concatenate([[True], cut | ~hit[:-1]]) & hit
     run = np.cumsum(starts) - 1
@@ -521,7 +558,7 @@ def project_polyline(
         if sel.sum() >= params.min_part_points:
             part[sel] = k
             k += 1
-    return ProjectedLine(samples, points, distance, hits.face_id.copy(), part, normals)
+    return ProjectedLine(samples, points, distance, face_id, part, normals)
 
 
 def surface_patch(
@@ -530,8 +567,14 @@ def surface_patch(
     pose: Pose,
     ring_pixels: np.ndarray,
     max_points: int = 20_000,
+    view: CloudView | None = None,
+    params: ProjectionParams = ProjectionParams(),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Visible surface inside an image polygon: one ray per pixel centre inside.
+
+    On a cloud: the cloud's own points whose pixel is inside the polygon and
+    that the photo's z-buffer sees
+    (:func:`~napari_imgreg.interpret.on_cloud.cloud_patch`).
 
     Parameters
     ----------
@@ -539,16 +582,26 @@ def surface_patch(
         The polygon (x, y), open or closed.
     max_points : int
         Points returned at most (an even subsample); all faces are returned.
+    view : CloudView, optional
+        On a cloud: the photo's render (made here when None).
+    params : ProjectionParams
+        On a cloud: ``cloud.visible_spacings`` and ``grazing_deg``.
 
     Returns
     -------
     points : (K, 3) array
         Surface points, metres.
     faces : (F,) int array
-        Unique indices of the faces seen inside the polygon.
+        Unique indices of the faces seen inside the polygon (on a cloud: of
+        the points, all of them).
     """
     from skimage.draw import polygon
 
+    if getattr(scene, "is_cloud", False):
+        if view is None or not view.matches(intrinsics, pose):
+            view = cloud_view(scene, intrinsics, pose, params.cloud)
+        return cloud_patch(scene, view, ring_pixels, params.cloud, params.grazing_deg,
+                           max_points)
     ring = np.asarray(ring_pixels, np.float64).reshape(-1, 2)
     if len(ring) < 3:
         return np.zeros((0, 3)), np.zeros(0, int)
@@ -637,10 +690,13 @@ def project_interpretations(
                                                       intrinsics.fx)
     focal = float((intrinsics.fx + intrinsics.fy) / 2.0)
     image_px = math.hypot(uncertainty.drawing_px, pose_uncertainty.reprojection_px)
+    # A cloud: one render of the photo's camera serves all its features.
+    view = (cloud_view(scene, intrinsics, pose, params.cloud)
+            if getattr(scene, "is_cloud", False) and len(interpretations) else None)
     out = []
     for k, item in enumerate(interpretations):
         closed = item.geometry == "Polygon"
-        line = project_polyline(scene, intrinsics, pose, item.pixels, closed, params)
+        line = project_polyline(scene, intrinsics, pose, item.pixels, closed, params, view)
         props = dict(item.properties)
         props["label"] = item.label
         props.setdefault("color", item.color)
@@ -700,7 +756,7 @@ def project_interpretations(
             # closing sample repeats the first, so the part closes on itself).
             feature.ring_complete = len(parts) == 1 and bool(on.all())
             pts, faces = surface_patch(
-                scene, intrinsics, pose, item.pixels, params.patch_max_points
+                scene, intrinsics, pose, item.pixels, params.patch_max_points, view, params
             )
             feature.patch_points, feature.patch_faces = pts, faces
         out.append(feature)
