@@ -275,6 +275,18 @@ def test_filter_sliders_preview_photo_and_render(workbench, qtbot):
     assert panel.render_editor.widgets["wallis_window"].isEnabled()
     np.testing.assert_array_equal(render_f.data, filtered_for_matching(
         rendered.rgb, ctrl.params.render_filters, ctrl.params.match_width, mask=rendered.mask))
+    # Gradient magnitude (for a lidar intensity render): its σ follows the switch.
+    editor = panel.render_editor
+    assert not editor.widgets["gradient_sigma_px"].isEnabled()
+    with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000,
+                          check_params_cb=lambda which: which == "render"):
+        editor.gradient_check.setChecked(True)
+    assert ctrl.params.render_filters.gradient and editor.widgets["gradient_sigma_px"].isEnabled()
+    np.testing.assert_array_equal(render_f.data, filtered_for_matching(
+        rendered.rgb, ctrl.params.render_filters, ctrl.params.match_width, mask=rendered.mask))
+    with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000,
+                          check_params_cb=lambda which: which == "render"):
+        editor.gradient_check.setChecked(False)
     # Linked: an edit of one applies to both.
     panel.link_check.setChecked(True)
     with qtbot.waitSignal(ctrl.filters_shown, timeout=10_000):

@@ -726,6 +726,7 @@ class FilterEditor(QWidget):
         ("gamma", "gamma", "float", 0.2, 5.0, 2),
         ("brightness", "brightness", "float", -100.0, 100.0, 0),
         ("contrast", "contrast", "float", 0.2, 3.0, 2),
+        ("gradient_sigma_px", "smoothing σ (px)", "float", 0.0, 10.0, 1),
         ("wallis_window", "window (px)", "int", 15, 151, 0),
         ("wallis_target_mean", "target mean", "float", 0.0, 255.0, 0),
         ("wallis_target_std", "target std", "float", 5.0, 120.0, 0),
@@ -744,8 +745,17 @@ class FilterEditor(QWidget):
         self.wallis_check = QCheckBox("Wallis filter (local mean and contrast)")
         self.clahe_check = QCheckBox("CLAHE (adaptive histogram equalisation)")
         self.widgets["wallis"] = self.wallis_check
+        # A lidar scan's intensity and a photo share their edges, not their grey levels.
+        self.gradient_check = QCheckBox("gradient magnitude (for a lidar intensity render)")
+        self.gradient_check.setToolTip(
+            "Match edges instead of grey levels: the image becomes the strength of its "
+            "gradient. A scan's intensity is the rock's reflectance to the laser, a photo's "
+            "brightness the day's light on it; where either changes (contacts, stains, ledges, "
+            "the skyline) is what they share.")
+        self.widgets["gradient"] = self.gradient_check
         self.widgets["clahe"] = self.clahe_check
-        forms = {"basic": QFormLayout(), "wallis": QFormLayout(), "clahe": QFormLayout()}
+        forms = {"basic": QFormLayout(), "gradient": QFormLayout(), "wallis": QFormLayout(),
+                 "clahe": QFormLayout()}
         for name, label, kind, lo, hi, dec in self.FIELDS:
             if kind == "int":
                 w = QLabeledSlider(Qt.Orientation.Horizontal)
@@ -759,14 +769,18 @@ class FilterEditor(QWidget):
             _declared_range(w, FilterParams, name)  # FIELDS' lo/hi: where none is declared
             w.valueChanged.connect(lambda v, name=name: self._changed(name, v))
             self.widgets[name] = w
-            group = name.split("_")[0] if name.startswith(("wallis", "clahe")) else "basic"
+            group = (name.split("_")[0] if name.startswith(("wallis", "clahe", "gradient"))
+                     else "basic")
             forms[group].addRow(label, w)
         self.wallis_check.toggled.connect(lambda v: self._changed("wallis", v))
+        self.gradient_check.toggled.connect(lambda v: self._changed("gradient", v))
         self.clahe_check.toggled.connect(lambda v: self._changed("clahe", v))
         self.reset_button = QPushButton("Reset")
         self.reset_button.clicked.connect(self.reset)
         layout = QVBoxLayout(self)
         layout.addLayout(forms["basic"])
+        layout.addWidget(self.gradient_check)
+        layout.addLayout(forms["gradient"])
         layout.addWidget(self.wallis_check)
         layout.addLayout(forms["wallis"])
         layout.addWidget(self.clahe_check)
@@ -792,13 +806,15 @@ class FilterEditor(QWidget):
                 w.setEnabled(p.wallis)
             elif name.startswith("clahe_"):
                 w.setEnabled(p.clahe)
+            elif name.startswith("gradient_"):
+                w.setEnabled(p.gradient)
 
     def _changed(self, name: str, value) -> None:
         if name in ("wallis_window",):
             value = int(value) | 1
         elif name == "clahe_tiles":
             value = int(value)
-        elif name in ("wallis", "clahe"):
+        elif name in ("wallis", "clahe", "gradient"):
             value = bool(value)
         else:
             value = float(value)
