@@ -8,6 +8,7 @@ import json
 import math
 import os
 import struct
+import sys
 import zlib
 
 import numpy as np
@@ -328,6 +329,57 @@ def test_unwritable_output_of_project_and_measure_is_found_first(tmp_path, run_c
     run = run_cli(argv)
     line = run.line
     assert run.code == 2 and out in line and "cannot write here" in line, line
+
+
+@pytest.mark.parametrize("case", ["inside a file", "under /proc", "read-only"])
+@pytest.mark.parametrize("action", ["create", "add", "register", "lines", "project",
+                                    "export --out", "export --measurements"])
+def test_unwritable_workspace_output_is_found_first(tmp_path, run_cli, case, action):
+    """``workspace``: what a sub-command writes (the workspace folder it saves
+    into; export's ``--out`` and ``--measurements``) is checked before anything
+    is read: the scene, photos, lines and workspace here do not even exist."""
+    cases = _bad_outputs(tmp_path)
+    if case not in cases:
+        pytest.skip("running as root: a read-only folder is writable")
+    command, _, flag = action.partition(" ")
+    missing = tmp_path / "missing"
+    if command == "export":
+        outs = {"--out": str(tmp_path / "l3d.geojson"), "--measurements": str(tmp_path / "m.csv")}
+        bad = outs[flag] = str(cases[case][0]).replace(
+            ".png", ".geojson" if flag == "--out" else ".csv")
+        argv = ["workspace", "export", missing / "campaign.imgreg",
+                "--out", outs["--out"], "--measurements", outs["--measurements"]]
+    else:
+        # A new folder for create; for the others, a workspace folder that
+        # cannot be saved into (read-only: the folder itself).
+        bad = str(cases[case][1])
+        if case == "read-only" and command != "create":
+            bad = str(tmp_path / "read_only")
+        rest = {"create": [missing / "scene"], "add": [missing / "IMG_0001.jpg"],
+                "register": [], "lines": ["IMG_0001.jpg", missing / "l.geojson"],
+                "project": []}[command]
+        argv = ["workspace", command, bad, *rest]
+    run = run_cli(argv)
+    line = run.line
+    assert run.code == 2 and bad in line and "cannot write here" in line, line
+    assert len(run.err.strip().splitlines()) == 1, run.err
+
+
+def test_workspace_photos_not_added_are_one_error_line(wall, tmp_path, run_cli):
+    """A scene folder with a corrupt photo: the workspace is made with the
+    others, each photo not added is listed, and stderr holds one error line."""
+    import shutil
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for f in wall.parent.iterdir():  # the mesh with its material and texture
+        if f.is_file():
+            shutil.copy(f, scene / f.name)
+    (scene / "IMG_0001.jpg").write_bytes(b"not a jpeg")
+    run = run_cli(["workspace", "create", tmp_path / "w.imgreg", scene])
+    assert run.code == 2 and "IMG_0001.jpg" in run.line and "not added" in run.line, run.err
+    assert len(run.err.strip().splitlines()) == 1, run.err
+    assert "1 could not be read" in run.out
 
 
 # ------------------------------------------------- EXIF orientation, attitude
@@ -732,3 +784,71 @@ def test_project_refuses_unbounded_line_coordinates(wall, tmp_path, run_cli, coo
     run = run_cli(["project", result, wall, lines, "--out", tmp_path / "l3d.geojson"])
     line = run.line
     assert run.code == 2 and str(lines) in line and needle in line, line
+    assert line.count("160×120") == 1, line  # the photo's size, said once
+
+
+# ------------------------------------------------ secondary outputs, stdout, links
+@pytest.mark.parametrize("case", ["inside a file", "under /proc"])
+@pytest.mark.parametrize("option", ["render --depth", "render --xyz", "orient --mesh-out",
+                                    "orient --plots"])
+def test_unwritable_secondary_output_is_found_first(wall, tmp_path, run_cli, case, option):
+    """Every output a command writes is checked before the work, not only
+    ``--out``: render's ``--depth``/``--xyz``, orient's ``--mesh-out``/``--plots``."""
+    (tmp_path / "a_file.txt").write_text("x")
+    command, flag = option.split()
+    base = tmp_path / "a_file.txt" if case == "inside a file" else "/proc"
+    bad = f"{base}/napari-imgreg-{flag.strip('-')}" + (
+        ".npy" if command == "render" else "" if flag == "--plots" else ".ply")
+    if command == "render":
+        argv = ["render", wall, _write_record(tmp_path, _record()), "--out", tmp_path / "r.png",
+                flag, bad]
+    else:
+        table = tmp_path / "cams.csv"
+        table.write_text("photo,trend_deg,plunge_deg,roll_deg\na,10,5,0\nb,100,3,1\nc,200,8,-1\n")
+        argv = ["orient", table, table, "--out", tmp_path / "o.json", flag, bad]
+        if flag == "--mesh-out":
+            argv += ["--apply", wall]
+    run = run_cli(argv)
+    line = run.line
+    assert run.code == 2 and bad in line and "cannot write here" in line, line
+    assert not (tmp_path / "r.png").exists() and not (tmp_path / "o.json").exists()
+
+
+def test_closed_stdout_after_a_successful_render(wall, tmp_path):
+    """A reader that has gone (``render … | head -0``): the image is written,
+    the summary lines are dropped, exit 0 and no traceback."""
+    import io
+
+    from napari_imgreg.cli import main
+
+    record = _write_record(tmp_path, _record())
+    closed = io.TextIOWrapper(io.BytesIO())
+    closed.close()
+    saved = sys.stdout
+    sys.stdout = closed
+    try:
+        code = main(["render", str(wall), str(record), "--out", str(tmp_path / "r.png")])
+    finally:
+        sys.stdout = saved
+    assert code == 0 and (tmp_path / "r.png").stat().st_size > 0
+
+
+def test_symlinked_out_of_a_command_is_followed(wall, tmp_path, run_cli):
+    """``render --out LINK``: the file the link points to gets the image, the link stays."""
+    store = tmp_path / "store"
+    store.mkdir()
+    target = store / "render.png"
+    target.write_bytes(b"old")
+    link = tmp_path / "render.png"
+    link.symlink_to(target)
+    run = run_cli(["render", wall, _write_record(tmp_path, _record()), "--out", link])
+    assert run.code == 0, run.err
+    assert link.is_symlink() and os.readlink(link) == str(target)
+    assert Image.open(target).size == (160, 120)
+
+
+def test_render_of_a_tiny_point_cloud_is_one_line(tmp_path, run_cli):
+    cloud = tmp_path / "tiny.xyz"
+    cloud.write_text("0 10 0\n1 10 0\n0 10 1\n")
+    run = run_cli(["render", cloud, _write_record(tmp_path, _record()), "--out", tmp_path / "r.png"])
+    assert run.code == 2 and str(cloud) in run.line and "16 points" in run.line

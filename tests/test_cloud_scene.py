@@ -436,3 +436,31 @@ def test_level_of_detail_is_cached_beside_the_file(lod_planes, tmp_path):
     other = CloudScene(lod_planes.xyz + 1.0, params=params)
     other.source = tmp_path / "scan.laz"
     assert other._read_lod_cache() is None
+
+
+@pytest.mark.parametrize("bad", ["normals", "surface_variation", "shape"])
+def test_a_well_formed_but_wrong_normals_cache_is_computed_again(planes, tmp_path, bad):
+    """A cache with the right fingerprint but NaN normals (or surface
+    variation, or arrays of the wrong length) is not trusted: the load
+    computes the normals again, and the rewritten cache is finite."""
+    from napari_imgreg.io.pointclouds import PointCloud, write_point_cloud
+
+    path = tmp_path / "scan.ply"
+    write_point_cloud(path, PointCloud(xyz=planes.xyz[:2000], intensity=None))
+    first = CloudScene.load(path)
+    normals = first.normals.copy()
+    n = first.n_points
+    arrays = {"normals": first.normals.astype(np.float16), "spacing": first.spacing,
+              "surface_variation": first.surface_variation.astype(np.float16)}
+    if bad == "shape":
+        arrays = {k: v[: n - 1] for k, v in arrays.items()}
+    else:
+        arrays[bad] = np.full_like(arrays[bad], np.nan)
+    cache = tmp_path / "scan.ply.imgreg-normals.npz"
+    np.savez(cache, fingerprint=np.array(first._fingerprint()), **arrays)
+    second = CloudScene.load(path)
+    assert second._normals is None  # the cache was not used
+    assert np.isfinite(second.normals).all() and np.isfinite(second.surface_variation).all()
+    assert np.allclose(second.normals, normals, atol=1e-3)
+    with np.load(cache) as data:  # written again, finite
+        assert np.isfinite(data["normals"].astype(np.float32)).all()

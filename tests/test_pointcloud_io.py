@@ -196,7 +196,26 @@ def _bad_files(written, folder, cloud):
         path.write_text(content)
         return path
 
+    def patched(suffix, name, fmt, at, *values):
+        """A LAS/LAZ with header fields set (at the LAS 1.4 public header's offsets)."""
+        import struct
+
+        data = bytearray(written[suffix].read_bytes())
+        struct.pack_into(fmt, data, at, *values)
+        path = folder / f"{name}{suffix}"
+        path.write_bytes(bytes(data))
+        return path
+
     return {
+        # header fields checked against the file's size before laspy reads
+        "VLR count beyond the room": (patched(".las", "vlrs", "<I", 100, 2**32 - 1), "number of VLRs"),
+        "LAZ VLR count beyond the room": (patched(".laz", "vlrs", "<I", 100, 2**32 - 1), "number of VLRs"),
+        "point offset beyond the file": (patched(".las", "offset", "<I", 96, 2**32 - 1),
+                                         "offset to the point data"),
+        "EVLR beyond the file": (patched(".las", "evlr", "<QI", 235, 0, 1), "EVLR 1 of 1"),
+        "EVLRs beyond the file": (patched(".las", "evlrs", "<QI", 235, 375, 2**32 - 1), "EVLRs from byte"),
+        "LAS points beyond the file": (patched(".las", "count", "<Q", 247, 10**6), "record length"),
+        "LAZ count beyond its bytes": (patched(".laz", "count", "<Q", 247, 2**40), "compressed points"),
         "truncated LAZ": (cut(".laz"), "truncated"),
         "truncated LAS": (cut(".las"), "truncated"),
         "LAZ chunk table moved": (shifted(".laz"), "cannot read LAZ"),

@@ -35,7 +35,7 @@ import numpy as np
 from numba import njit
 
 from .camera import Intrinsics, Pose
-from .errors import InputError
+from .errors import InputError, input_error
 from .geo import dem_height_local
 from .render_points import SplatParams, splat_depth, warm_up
 from .validate import check_number
@@ -353,7 +353,8 @@ class CloudScene:
         Raises
         ------
         InputError
-            A file is missing or unreadable.
+            A file is missing or unreadable, or holds fewer than
+            ``params.k_normals`` points.
         """
         from .geo import DEM, Georef
         from .io.pointclouds import read_point_cloud
@@ -370,6 +371,11 @@ class CloudScene:
             cloud = read_point_cloud(path, georef=georef)
         else:
             cloud = read_point_cloud(path, georef=georef, max_points=max_points)
+        n_read = len(np.asarray(cloud.xyz).reshape(-1, 3))
+        if n_read < params.k_normals:  # the PCA needs k_normals neighbours per point
+            raise input_error(path, f"a point cloud needs at least {params.k_normals} points "
+                              f"(its normals are fitted to {params.k_normals} neighbours), "
+                              f"got {n_read}")
         scene = cls.from_point_cloud(cloud, georef=georef, dem=dem, name=path.stem,
                                      params=params)
         scene.warnings = list(getattr(cloud, "notes", None) or [])
@@ -620,7 +626,12 @@ class CloudScene:
                 normals = data["normals"].astype(np.float32)
                 spacing = data["spacing"].astype(np.float32)
                 variation = data["surface_variation"].astype(np.float32)
-            if normals.shape != (self.n_points, 3) or spacing.shape != (self.n_points,):
+            n = self.n_points
+            # Well-formed but wrong (NaN normals, a truncated array): computed again.
+            if (normals.shape != (n, 3) or spacing.shape != (n,) or variation.shape != (n,)
+                    or not np.isfinite(normals).all() or not np.isfinite(spacing).all()
+                    or not np.isfinite(variation).all() or (spacing < 0).any()):
+                log.info("%s: normals cache not used (wrong shape or non-finite values)", path)
                 return
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             log.info("%s: normals cache not used (%s)", path, exc)

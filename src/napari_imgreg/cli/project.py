@@ -137,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
             try:
                 check_drawing(item.pixels, intr.width, intr.height, f"feature {k + 1}")
             except InputError as exc:
-                raise input_error(lines, f"{exc} (photo {intr.width}×{intr.height} px)") from None
+                # The message names the photo's size already (check_drawing).
+                raise input_error(lines, str(exc)) from None
         pose_unc = PoseUncertainty.from_result(data, intr.fx)
         status = data.get("status") if isinstance(data, dict) else None
         if kind == "prior":

@@ -16,7 +16,9 @@ starts at the 41st.
     napari-imgreg workspace info campaign.imgreg
 
 Exit codes as for every command: 0 done (``register``: every photo asked for
-is registered), 1 some photo did not register, 2 bad input (one line).
+is registered), 1 some photo did not register, 2 bad input (one line). What a
+sub-command writes (the workspace folder, ``export``'s files) is checked for
+writability first, before the scene or the workspace is read.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ from ._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_OK,
+    one_line,
+    print_error,
     progress_printer,
     read_params,
     say,
@@ -37,6 +41,7 @@ from ._common import (
 from .batch import add_cluster_arguments, cluster_params, find_scene_files
 from ..errors import input_error
 from ..io import workspace_files as wsfiles
+from ..validate import check_writable
 
 if TYPE_CHECKING:  # the commands import their backend when run: a fast --help
     from ..workspace import Workspace
@@ -105,7 +110,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Run ``workspace ACTION``."""
+    _check_outputs(args)
     return _ACTIONS[args.action](args)
+
+
+#: The sub-commands that save into the workspace folder as they go.
+_WRITE_INTO_FOLDER = ("create", "add", "register", "lines", "project")
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Refuse, before any work, an output that cannot be written: the
+    workspace folder of a sub-command that saves into it (read-only, under
+    /proc, inside a file), ``export``'s ``--out`` and ``--measurements``."""
+    if args.action in _WRITE_INTO_FOLDER:
+        check_writable(args.folder, folder=True)
+    elif args.action == "export":
+        check_writable(args.out)
+        if args.measurements:
+            check_writable(args.measurements)
 
 
 def _open(folder: str) -> Workspace:
@@ -127,14 +149,17 @@ def _create(args: argparse.Namespace) -> int:
     files = find_scene_files(args.scene, args.mesh, args.dem, args.georef)
     ws = Workspace(read_params(args.params))
     ws.open_scene(files.mesh, files.dem, files.georef)
-    ws.save(folder)
+    try:
+        ws.save(folder)
+    except OSError as exc:  # checked writable above; the disk can still fill up
+        raise input_error(folder, f"cannot write here: {exc.strerror or one_line(exc)}") from None
     # Added after saving: each photo is in the workspace as soon as it is read.
     errors = [] if args.no_photos else ws.add_photos(files.photos)
     for line in errors:
         say(f"  not added: {line}")
     say(f"{folder}: workspace with {files.mesh.name} and {len(ws.photos)} photo(s)"
         + (f"; {len(errors)} could not be read" if errors else ""))
-    return EXIT_BAD_INPUT if errors else EXIT_OK
+    return _not_added(errors) if errors else EXIT_OK
 
 
 def _add(args: argparse.Namespace) -> int:
@@ -144,7 +169,15 @@ def _add(args: argparse.Namespace) -> int:
     for line in errors:
         say(f"  not added: {line}")
     say(f"{args.folder}: {len(ws.photos) - before} photo(s) added, {len(ws.photos)} in all")
-    return EXIT_BAD_INPUT if errors else EXIT_OK
+    return _not_added(errors) if errors else EXIT_OK
+
+
+def _not_added(errors: list[str]) -> int:
+    """Exit code 2 with one error line on stderr for the photos that could
+    not be read (each is listed on stdout): the first, and how many more."""
+    more = f" (and {len(errors) - 1} more photo(s), listed above)" if len(errors) > 1 else ""
+    print_error("workspace", " ".join(f"not added: {errors[0]}{more}".split()))
+    return EXIT_BAD_INPUT
 
 
 def _register(args: argparse.Namespace) -> int:

@@ -624,10 +624,23 @@ def _check_finite(path: Path, xyz: np.ndarray) -> None:
 
 
 def _read_las(path: Path, p: PointCloudParams, georef) -> PointCloud:
+    kind = "LAZ" if path.suffix.lower() == ".laz" else "LAS"
+    try:
+        return _read_las_checked(path, p, georef, kind)
+    except (Exception, KeyboardInterrupt, SystemExit, GeneratorExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001 - lazrs's pyo3_runtime.PanicException
+        # A Rust panic in lazrs (a corrupt LAZ chunk) arrives as a
+        # BaseException that no ``except Exception`` above catches.
+        problem = f"cannot read {kind} (the decoder failed: {_why(exc)}; truncated or corrupt?)"
+        raise input_error(path, problem) from None
+
+
+def _read_las_checked(path: Path, p: PointCloudParams, georef, kind: str) -> PointCloud:
     import laspy
 
-    kind = "LAZ" if path.suffix.lower() == ".laz" else "LAS"
     notes: list[str] = []
+    _check_las_header(path, kind)
     _check_laz_sizes(path)
     try:
         # One decompression thread: the machine's other cores belong to the
@@ -684,6 +697,80 @@ def _read_las(path: Path, p: PointCloudParams, georef) -> PointCloud:
         acc, path, p, notes, intensity_limits=limits, rgb_max=rgb_max, rgb_what=kind,
         crs=crs, crs_record=crs_record, georef=georef,
     )
+
+
+#: The fixed part of the LAS public header block, bytes, by minor version
+#: (what laspy reads before the VLRs; LAS 1.5 adds the GPS time range).
+_LAS_FIXED_HEADER = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}
+_LAS_VLR_HEADER = 54  # bytes of a VLR's header
+_LAS_EVLR_HEADER = 60  # bytes of an extended VLR's header
+#: A compressed point takes at least ~1 byte (LASzip's arithmetic coder on
+#: real scans: 5–15 bytes), so a LAZ declaring more points than this many per
+#: byte of its point data cannot hold them; lazrs would decode garbage for
+#: as long as the count lasts.
+_LAZ_MAX_POINTS_PER_BYTE = 64
+
+
+def _check_las_header(path: Path, kind: str) -> None:
+    """Check the sizes the LAS public header declares against the file's size
+    before laspy reads it.
+
+    laspy trusts them: it reads as many VLRs as the header counts (hours for
+    2**32 − 1 of them), everything up to the offset to the point data in one
+    read, each extended VLR's declared length in one allocation, and the
+    point records the count and record length add up to. Each is refused
+    here with one line naming the header field. A file that is not LAS at
+    all is left to laspy, which names the problem.
+    """
+    import struct
+
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(_LAS_FIXED_HEADER[4])
+        if len(head) < _LAS_FIXED_HEADER[0] or head[:4] != b"LASF":
+            return
+        minor = head[25]
+        header_size, offset, n_vlrs = struct.unpack_from("<HII", head, 94)
+        point_format, record_length = head[104], struct.unpack_from("<H", head, 105)[0]
+
+        def bad(problem: str) -> None:
+            raise input_error(path, f"cannot read {kind} ({problem}: truncated or corrupt)")
+
+        if offset > size:
+            bad(f"its header's offset to the point data, {offset}, lies beyond the file's {size} bytes")
+        fixed = _LAS_FIXED_HEADER.get(minor, _LAS_FIXED_HEADER[4] + 18)
+        if header_size < fixed:
+            bad(f"its header size, {header_size} bytes, is smaller than LAS 1.{minor}'s {fixed}")
+        if offset < header_size:
+            bad(f"its header's offset to the point data, {offset}, lies inside its {header_size}-byte header")
+        if n_vlrs * _LAS_VLR_HEADER > offset - header_size:
+            bad(f"its header's number of VLRs, {n_vlrs}, does not fit in the {offset - header_size} bytes "
+                "between the header and the point data")
+        if minor >= 4:
+            evlr_start, n_evlrs, count = struct.unpack_from("<QIQ", head, 235)
+        else:
+            evlr_start, n_evlrs, count = 0, 0, struct.unpack_from("<I", head, 107)[0]
+        compressed = bool(point_format & 0x80) and not point_format & 0x40  # laspy's rule
+        room = size - offset
+        if not compressed and count * record_length > room:
+            bad(f"its header's point count {count} × record length {record_length} is "
+                f"{count * record_length} bytes, but {room} bytes follow the offset to the point data")
+        if compressed and count > _LAZ_MAX_POINTS_PER_BYTE * room:
+            bad(f"its header's point count {count} is more than {room} bytes of compressed points can hold")
+        if n_evlrs:
+            if evlr_start + _LAS_EVLR_HEADER * n_evlrs > size:
+                bad(f"its header's {n_evlrs} EVLRs from byte {evlr_start} do not fit in the file's {size} bytes")
+            at = evlr_start
+            for i in range(n_evlrs):  # each takes ≥ 60 bytes: at most size / 60 rounds
+                fh.seek(at)
+                evlr = fh.read(_LAS_EVLR_HEADER)
+                if len(evlr) < _LAS_EVLR_HEADER:
+                    bad(f"its EVLR {i + 1} of {n_evlrs}, at byte {at}, is cut short")
+                length = struct.unpack_from("<Q", evlr, 20)[0]
+                if at + _LAS_EVLR_HEADER + length > size:
+                    bad(f"its EVLR {i + 1} of {n_evlrs}, at byte {at}, declares {length} bytes, "
+                        "beyond the file's end")
+                at += _LAS_EVLR_HEADER + length
 
 
 # LASzip item types of the layered (LAS 1.4, point formats 6–10) compression
