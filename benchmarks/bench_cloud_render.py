@@ -15,7 +15,7 @@ is its own. The section of ``docs/benchmarks.md`` between the
     nice -n 19 .venv/bin/python benchmarks/bench_cloud_render.py --sizes 5e6 50e6 --report docs/benchmarks.md
 
 Renders are timed interleaved, several rounds, medians: ``before`` (the
-kernels as they were before this work, frozen in ``_splat_before.py``),
+kernels as they were before this work, loaded from git history by ``_splat_before.py``),
 ``full`` (the current kernels, every point) and ``auto`` (the default: the
 level of detail above ``LodParams.min_points``, else the same as ``full``),
 so that other load on the machine affects each alike. The engine comparison
@@ -185,7 +185,12 @@ def _same(a: dict, b: dict) -> dict:
 def run_one(n_points: float, runs: int) -> dict:
     tune_allocator()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    import _splat_before as before
+    import _splat_before
+
+    before = _splat_before.load()
+    if before is None:
+        raise SystemExit("bench_cloud_render: needs the repository's history (git show "
+                         f"{_splat_before.BEFORE_COMMIT}) for the old kernels")
 
     meta = prepare(n_points)
     out: dict = {"requested": n_points, "load_before": os.getloadavg()[0], **meta}
@@ -293,7 +298,7 @@ def report(results: list[dict], runs: int) -> str:
         "waited for the cores). `auto` is what `render()` draws: the level of detail "
         "(`LodParams`) for a cloud of 10 M points or more, every point below; `full` every "
         "point (`detail=\"full\"`, the z-buffer registration can ask for); `before` the "
-        "kernels as they were before this work (`benchmarks/_splat_before.py`).")
+        "kernels as they were before this work (commit d4da268's `render_points.py`, loaded by `benchmarks/_splat_before.py`).")
     header = ("| points | read LAZ | normals + spacing (once) | level of detail (once) | load "
               "(read, cached normals, level of detail, kernels) | first render | interactive "
               f"render {PHOTO.width}×{PHOTO.height} (`auto`) | its CPU | target | `full` "

@@ -371,22 +371,21 @@ def test_level_of_detail_render_matches_every_point(lod_planes):
 
 # ------------------------------------------- the faster kernels, same image
 def _before():
-    """The kernels as they were before the speed-ups (a frozen copy kept for
-    the benchmark), or skip where the benchmarks folder is not shipped."""
+    """The kernels as they were before the speed-ups (loaded from the
+    repository's history by ``benchmarks/_splat_before.py``), or skip where
+    the benchmarks folder or the history is not there."""
     import importlib.util
     from pathlib import Path
 
     path = Path(__file__).resolve().parents[1] / "benchmarks" / "_splat_before.py"
     if not path.exists():
         pytest.skip("benchmarks/_splat_before.py not present")
-    import sys
-
-    if "_splat_before" in sys.modules:
-        return sys.modules["_splat_before"]
-    spec = importlib.util.spec_from_file_location("_splat_before", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["_splat_before"] = module  # (its dataclasses look their module up)
-    spec.loader.exec_module(module)
+    spec = importlib.util.spec_from_file_location("_splat_before_loader", path)
+    loader = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(loader)
+    module = loader.load()
+    if module is None:
+        pytest.skip(f"commit {loader.BEFORE_COMMIT} not in this checkout's history")
     return module
 
 
