@@ -384,3 +384,16 @@ def test_local_workers_start_tuned_with_quiet_housekeeping(monkeypatch):
     assert settings == {"mmap": str(_allocator.MMAP_THRESHOLD_BYTES),
                         "trim": str(_allocator.TRIM_THRESHOLD_BYTES),  # not Dask's 65536
                         "omp": "1", "monitor": "5s", "memory": "1s", "profile": False}
+
+
+def test_a_dask_value_left_in_this_process_does_not_reach_our_workers(monkeypatch):
+    # An earlier plain LocalCluster leaves Dask's MALLOC_TRIM_THRESHOLD_=65536 in
+    # os.environ, which Dask would prefer to the pre-spawn config.
+    from napari_imgreg import _allocator
+
+    monkeypatch.delenv(_allocator.OPT_OUT_VARIABLE, raising=False)
+    monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "65536")
+    with backend.PhotoRunner(backend.ClusterParams(workers=1, threads_per_worker=1), 1) as run:
+        (settings,) = run.client.run(_worker_settings).values()
+    assert settings["trim"] == str(_allocator.TRIM_THRESHOLD_BYTES)
+    assert os.environ["MALLOC_TRIM_THRESHOLD_"] == "65536"  # this process's own, restored

@@ -423,6 +423,11 @@ class PhotoRunner:
             pre_spawn = worker_environment(
                 threads, dask.config.get("distributed.nanny.pre-spawn-environ", {}))
             self._saved_env = {name: os.environ.get(name) for name in pre_spawn}
+            # Dask lets a variable already in this process's environment win
+            # over its pre-spawn config, and leaves its own values there after
+            # a cluster closes (a MALLOC_TRIM_THRESHOLD_=65536 from an earlier
+            # cluster would reach our workers): set ours, restored at close.
+            os.environ.update(pre_spawn)
             with dask.config.set({
                 "distributed.nanny.pre-spawn-environ": pre_spawn,
                 "distributed.scheduler.allowed-failures": int(self.cluster.allowed_failures),
