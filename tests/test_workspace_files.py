@@ -602,6 +602,21 @@ def test_the_command_line_on_a_workspace_is_resumable(sample, tmp_path, capsys):
     assert _cli("workspace", "info", folder) == 0
     info = capsys.readouterr().out
     assert "3 photo(s)" in info and "IMG_0001.jpg: " in info and "IMG_0003.jpg: not registered" in info
+    # Each sub-command gives the folder back when it ends (not when its
+    # workspace is collected): a script can run the next one at once.
+    assert not (folder / "workspace.lock").exists()
+
+
+def test_a_failed_sub_command_gives_the_folder_back(sample, tmp_path):
+    folder = tmp_path / "campaign.imgreg"
+    assert _cli("workspace", "create", folder, sample[0], "--no-photos") == 0
+    assert not (folder / "workspace.lock").exists()
+    assert _cli("workspace", "add", folder, tmp_path / "missing.jpg") == 2
+    assert not (folder / "workspace.lock").exists()
+    with pytest.raises(InputError, match="no photo named"):
+        _cli("workspace", "register", folder, "--photo", "IMG_9.jpg")
+    assert not (folder / "workspace.lock").exists()
+    Workspace.open(folder).detach()  # and it opens again in this process
 
 
 def test_one_session_saves_into_a_folder_at_a_time(ws, tmp_path):

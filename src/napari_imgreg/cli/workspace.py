@@ -111,7 +111,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     """Run ``workspace ACTION``."""
     _check_outputs(args)
-    return _ACTIONS[args.action](args)
+    try:
+        return _ACTIONS[args.action](args)
+    finally:
+        # Released at once, not when collected: a Python caller of main()
+        # (a script, the tests) may open the same folder again right away.
+        while _OPENED:
+            _OPENED.pop().detach()
+
+
+#: The workspaces the running sub-command saves into.
+_OPENED: list[Workspace] = []
 
 
 #: The sub-commands that save into the workspace folder as they go.
@@ -133,6 +143,7 @@ def _check_outputs(args: argparse.Namespace) -> None:
 def _open(folder: str) -> Workspace:
     from ..workspace import Workspace
     ws = Workspace.open(folder)
+    _OPENED.append(ws)
     for line in ws.open_problems:
         say(f"  not opened: {line}")
     ws.autosave_failed.connect(lambda message: say(f"  not saved: {message}"))
@@ -149,6 +160,7 @@ def _create(args: argparse.Namespace) -> int:
     files = find_scene_files(args.scene, args.mesh, args.dem, args.georef)
     ws = Workspace(read_params(args.params))
     ws.open_scene(files.mesh, files.dem, files.georef)
+    _OPENED.append(ws)
     try:
         ws.save(folder)
     except OSError as exc:  # checked writable above; the disk can still fill up
