@@ -92,7 +92,8 @@ def _make_files() -> dict[str, list[str]]:
                                     "lines3d.geojson", "params.json", "bad_params.json",
                                     "georef.json", "table.csv", "table2.csv", "dem.asc",
                                     "empty.json", "note.txt")]
-    inputs += [str(scene), str(t / "missing.json"), str(t), "/proc/nope", ""]
+    inputs += [str(scene), str(t / "missing.json"), str(t), "/proc/nope", "",
+               str(WORKSPACE), "p.jpg", "IMG_0001.jpg"]
     outputs = [str(t / "out" / n) for n in ("o.json", "o.png", "o.npy", "o.geojson", "o.csv",
                                             "o.obj", "o.ply", "o.gpkg", "o.txt", "dir")]
     outputs += [str(ro / "o.json"), str(t / "note.txt" / "o.json"), "/proc/o.json", str(t),
@@ -100,6 +101,13 @@ def _make_files() -> dict[str, list[str]]:
     return {"inputs": inputs, "outputs": outputs}
 
 
+#: A real workspace (the tiny scene, one photo) that the ``workspace``
+#: sub-commands find in the pool; each run gets a fresh copy of PRISTINE, so
+#: one example's changes do not leak into the next (hypothesis replays them).
+WORKSPACE = _TMP / "ws.imgreg"
+PRISTINE = _TMP / "pristine.imgreg"
+#: Where ``workspace create`` is pointed half the time (removed before each run).
+NEW_WORKSPACE = _TMP / "new.imgreg"
 FILES = _make_files()
 
 
@@ -132,12 +140,22 @@ DEMO_SCENE = _make_demo_scene()
 
 
 def _commands() -> dict[str, list[argparse.Action]]:
+    """Each command's options; a command with sub-commands (``workspace``)
+    also gives one entry per sub-command ("workspace create", ...)."""
     from napari_imgreg.cli import build_parser
 
-    parser = build_parser()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    return {name: [a for a in p._actions if not isinstance(a, argparse._HelpAction)]
-            for name, p in sub.choices.items()}
+    def subparsers(parser):
+        return next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)),
+                    None)
+
+    commands = {}
+    for name, p in subparsers(build_parser()).choices.items():
+        commands[name] = [a for a in p._actions if not isinstance(a, argparse._HelpAction)]
+        nested = subparsers(p)
+        for sub_name, q in (nested.choices.items() if nested else ()):
+            commands[f"{name} {sub_name}"] = [a for a in q._actions
+                                              if not isinstance(a, argparse._HelpAction)]
+    return commands
 
 
 COMMANDS = _commands()
@@ -150,8 +168,26 @@ _value = st.one_of(st.sampled_from(FILES["inputs"]), st.sampled_from(FILES["outp
                    st.sampled_from(["small", "large", "color", "depth", "0", "-1", "nan", "1e9"]))
 
 
+def _half(likely):
+    """``likely`` half the time, any value otherwise."""
+    return st.booleans().flatmap(lambda yes: likely if yes else _value)
+
+
 def _value_for(action: argparse.Action):
     name = (action.option_strings or [action.dest])[-1]
+    # The workspace sub-commands get past "not a workspace" half the time
+    # (a coin, not one_of, which would flatten into _value's many branches).
+    if action.metavar == "WORKSPACE":
+        new = "new folder" in (action.help or "")  # create's, not an existing one
+        return _half(st.just(str(NEW_WORKSPACE if new else WORKSPACE)))
+    if action.metavar == "SCENE_DIR" and action.dest == "scene":  # workspace create's
+        return _half(st.just(str(DEMO_SCENE)))
+    if action.metavar in ("PHOTO_NAME", "NAME"):
+        return _half(st.sampled_from(["IMG_0001.jpg", "IMG_0002.jpg"]))
+    if action.dest == "photos":  # workspace add's
+        return _half(st.just(str(_TMP / "p.jpg")))
+    if action.dest == "lines":
+        return _half(st.just(str(_TMP / "lines.geojson")))
     if action.choices:
         return st.one_of(st.sampled_from([str(c) for c in action.choices]), _value)
     if name in ("--out", "--mesh-out", "--plots", "--render-out", "--overlay") or "out" in name:
@@ -164,7 +200,7 @@ def _value_for(action: argparse.Action):
 @st.composite
 def command_lines(draw, command: str) -> list[str]:
     actions = COMMANDS[command]
-    argv = [command]
+    argv = command.split()
     for action in actions:
         if any(o in SKIP_OPTIONS for o in action.option_strings):
             continue
@@ -235,6 +271,20 @@ def _cached_load_scene(mesh, georef=None, dem=None):
     return _SCENES[key]
 
 
+def _make_workspace() -> None:
+    """PRISTINE: a workspace of the tiny scene and its photo, made by the
+    command itself (so the suite follows its format). ``workspace register``
+    runs the real stepwise registration (not stubbed): its parameters keep
+    that to one short trial, so 500 examples stay within the CI budget."""
+    params = _TMP / "fast_params.json"
+    params.write_text(json.dumps({"sun_relight": False, "area_match": False,
+                                  "edge_align": False, "dense_refine": False,
+                                  "max_trials": 1}))
+    code, err = _run(["workspace", "create", str(PRISTINE), str(DEMO_SCENE),
+                      "--params", str(params)], fresh=False)
+    assert code == 0 and (PRISTINE / "workspace.json").is_file(), err
+
+
 def _warm_up() -> None:
     """Import what the commands import lazily, outside the time bound."""
     import napari_imgreg.interpret.files  # noqa: F401
@@ -253,8 +303,13 @@ def _warm_up() -> None:
 _WARM: list = []
 
 
-def _run(argv: list[str]) -> tuple[int, str]:
+def _run(argv: list[str], fresh: bool = True) -> tuple[int, str]:
     from napari_imgreg.cli import main
+
+    if fresh and PRISTINE.is_dir():
+        shutil.rmtree(NEW_WORKSPACE, ignore_errors=True)
+        shutil.rmtree(WORKSPACE, ignore_errors=True)
+        shutil.copytree(PRISTINE, WORKSPACE)
 
     err = io.StringIO()
     with contextlib.ExitStack() as stack:
@@ -275,6 +330,7 @@ def _run(argv: list[str]) -> tuple[int, str]:
 
 def _check(argv: list[str]) -> None:
     if not _WARM:
+        _make_workspace()
         _WARM.append(_warm_up())
     code, stderr = call_bounded(_run, argv)
     assert code in (0, 1, 2), (argv, code, stderr)
@@ -285,8 +341,8 @@ def _check(argv: list[str]) -> None:
         assert len(lines) == 1, (argv, stderr)
 
 
-#: Every command: the stubs keep each run fast enough for the CI budget
-#: (``demo`` registers the tiny DEMO_SCENE).
+#: Every command and every ``workspace`` sub-command: the stubs keep each run
+#: fast enough for the CI budget (``demo`` registers the tiny DEMO_SCENE).
 _FAST = sorted(COMMANDS)
 
 
@@ -322,3 +378,16 @@ def test_command_options_are_all_reachable():
         assert actions, command
         for action in actions:
             assert action.option_strings or action.dest, command
+    # The workspace sub-commands are drawn with their own options.
+    assert {"workspace create", "workspace add", "workspace register", "workspace lines",
+            "workspace project", "workspace export", "workspace info"} <= set(COMMANDS)
+
+
+def test_the_pool_workspace_is_fresh_for_each_run():
+    """One example's ``workspace add`` does not leak into the next one."""
+    _check(["workspace", "info", str(WORKSPACE)])
+    before = (WORKSPACE / "workspace.json").read_text()
+    code, _ = _run(["workspace", "add", str(WORKSPACE), str(_TMP / "p.jpg")])
+    assert code in (0, 1, 2)
+    _run(["workspace", "info", str(WORKSPACE)])
+    assert (WORKSPACE / "workspace.json").read_text() == before
