@@ -19,8 +19,9 @@ import math
 import numbers
 import os
 import tempfile
+from dataclasses import asdict, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from numpy import bool_ as np_bool
 
@@ -262,3 +263,43 @@ def check_writable(path: str | os.PathLike, folder: bool = False) -> Path:
     except OSError:
         pass
     return given
+
+
+def _json_ready(value: Any) -> Any:
+    """Tuples as lists, at any depth (JSON has no tuples)."""
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    return value
+
+
+class StageParams:
+    """Base of a stage's parameter dataclass: its dict (JSON) round trip.
+
+    A subclass is a ``@dataclass`` and names itself in ``KIND`` for the
+    error on an unknown key; ``RegistrationParams.from_dict`` turns that
+    error into one line naming the ``--params`` file.
+    """
+
+    KIND: ClassVar[str] = "stage"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: nested parameter blocks as dicts, tuples as lists."""
+        return _json_ready(asdict(self))  # type: ignore[call-overload]
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]):  # noqa: ANN206 - the subclass
+        """The parameters from ``d`` (every key a field; missing ones default).
+
+        Raises
+        ------
+        KeyError
+            A key that is not a field.
+        FieldValueError
+            A value outside its declared range (the subclass's check).
+        """
+        unknown = set(d) - {f.name for f in fields(cls)}  # type: ignore[arg-type]
+        if unknown:
+            raise KeyError(f"unknown {cls.KIND} parameter(s): {', '.join(sorted(unknown))}")
+        return cls(**d)

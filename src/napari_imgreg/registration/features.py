@@ -13,13 +13,13 @@ are the *feature inliers* of the quality metrics.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 import cv2
 import numpy as np
 
-from ..validate import check_ranges
+from ..validate import StageParams, check_ranges
 
 __all__ = [
     "FeatureParams",
@@ -55,7 +55,7 @@ _FACTORY = {
 
 
 @dataclass
-class FeatureParams:
+class FeatureParams(StageParams):
     """Detection, description, matching and verification settings.
 
     Attributes
@@ -106,6 +106,8 @@ class FeatureParams:
         estimated pose, so a feature's match lies within a few pixels of it.
     """
 
+    KIND: ClassVar[str] = "feature"
+
     detector: str = "SIFT"
     descriptor: str = "SIFT"
     max_features: int = 8000
@@ -152,19 +154,6 @@ class FeatureParams:
     def name(self) -> str:
         """E.g. ``"FAST–SIFT"`` (detection–description)."""
         return f"{self.detector}–{self.descriptor}"
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["grid"] = list(self.grid)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> FeatureParams:
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise KeyError(f"unknown feature parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 #: Named presets: the paper's combinations.

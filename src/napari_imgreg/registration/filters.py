@@ -16,14 +16,14 @@ reflectance at the laser's wavelength and not the photo's luminance, the
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from typing import ClassVar
 
 import cv2
 import numpy as np
 
 from ..camera import match_scale, scaled_size
-from ..validate import check_ranges
+from ..validate import StageParams, check_ranges
 
 __all__ = [
     "FilterParams",
@@ -43,7 +43,7 @@ __all__ = [
 
 
 @dataclass
-class FilterParams:
+class FilterParams(StageParams):
     """Filter settings for one image, applied in the order listed.
 
     Attributes
@@ -85,6 +85,8 @@ class FilterParams:
     clahe_tiles : int
         CLAHE tiles per image side (2–32).
     """
+
+    KIND: ClassVar[str] = "filter"
 
     gamma: float = 1.0
     gradient: bool = False
@@ -131,17 +133,6 @@ class FilterParams:
             and self.contrast == 1.0
             and not self.clahe
         )
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> FilterParams:
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise KeyError(f"unknown filter parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import threading
 import weakref
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 import cv2
@@ -50,7 +50,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ..validate import check_ranges
+from ..validate import StageParams, check_ranges
 from . import hog
 from .features import FeatureParams, verify_geometry
 from .stages.edges import canny_edges as _canny_with_orientation
@@ -93,7 +93,7 @@ __all__ = [
 
 
 @dataclass
-class LidarViewParams:
+class LidarViewParams(StageParams):
     """Settings of seed 003's views, planes, keypoints and matching.
 
     The seed gives no numbers for most of these; the defaults are the usual
@@ -220,6 +220,8 @@ class LidarViewParams:
         Lowe's ratio test on the HOG distances (0.3–1).
     """
 
+    KIND: ClassVar[str] = "lidar-view"
+
     gradient_sigma_px: float = 1.0
     gradient_percentile: float = 99.0
     gradient_gamma: float = 0.5
@@ -303,19 +305,6 @@ class LidarViewParams:
                              f"hog_cell_px ({self.hog_cell_px})")
         if self.hog_patch_px // self.hog_cell_px < self.hog_block_cells:
             raise ValueError("a HOG block (hog_block_cells) must fit in the patch's cells")
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["hog_scales"] = list(self.hog_scales)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> LidarViewParams:
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise KeyError(f"unknown lidar-view parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 # ======================================================== photo-side images

@@ -68,8 +68,6 @@ _MOVED = {
 __getattr__ = forward_moved_names(__name__, _MOVED)
 
 
-
-
 # ===================================================== manual registration
 @dataclass
 class ManualSolution:

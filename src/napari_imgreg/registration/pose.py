@@ -12,14 +12,14 @@ whose ``reason`` says why; it does not raise.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import cv2
 import numpy as np
 
 from ..camera import Intrinsics, Pose
-from ..validate import FieldValueError, check_ranges
+from ..validate import FieldValueError, StageParams, check_ranges
 from .resection import MIN_NONPLANARITY, dlt_ransac, nonplanarity, pose_unknown_focal
 
 __all__ = [
@@ -41,7 +41,7 @@ MIN_POINTS = 6
 
 
 @dataclass
-class PoseParams:
+class PoseParams(StageParams):
     """RANSAC EPnP settings.
 
     Attributes
@@ -76,6 +76,8 @@ class PoseParams:
         taken as wrong.
     """
 
+    KIND: ClassVar[str] = "pose"
+
     reprojection_error_px: float = 6.0
     iterations: int = 5000
     confidence: float = 0.999
@@ -104,17 +106,6 @@ class PoseParams:
             raise FieldValueError("min_hfov_deg", f"must be below max_hfov_deg "
                                                   f"({self.max_hfov_deg:g}), got "
                                                   f"{self.min_hfov_deg:g}")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> PoseParams:
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise KeyError(f"unknown pose parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 @dataclass

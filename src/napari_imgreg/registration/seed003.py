@@ -43,7 +43,7 @@ Where this departs from the seed, and why:
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Callable, ClassVar
 
 import cv2
@@ -52,7 +52,7 @@ import numpy as np
 from ..camera import Intrinsics, Pose, match_scale, pixels_to_full
 from ..prior import Prior
 from ..render import RenderResult, render
-from ..validate import FieldValueError, check_ranges
+from ..validate import FieldValueError, StageParams, check_ranges
 from .features import FeatureParams
 from .lidar_views import (
     LidarViewParams,
@@ -89,7 +89,7 @@ GEOMETRIC_CHECKS = ("fundamental", "homography", "none")
 
 
 @dataclass
-class Seed003Params:
+class Seed003Params(StageParams):
     """Settings of seed 003's registration path.
 
     Attributes
@@ -136,6 +136,8 @@ class Seed003Params:
         Seed of the random draws (plane RANSAC, pose RANSAC, OpenCV's RNG),
         0–2³¹ − 1.
     """
+
+    KIND: ClassVar[str] = "seed-003"
 
     views: LidarViewParams = field(default_factory=LidarViewParams)
     pairs: tuple[str, ...] = VIEW_PAIRS
@@ -198,20 +200,6 @@ class Seed003Params:
                                   max_trials=1, search_prior=False, sun_relight=False,
                                   edge_align=False, dense_refine=False, area_match=False,
                                   uncertainty=self.uncertainty, seed=self.seed)
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["views"] = self.views.to_dict()
-        d["uncertainty"] = self.uncertainty.to_dict()
-        d["pairs"] = list(self.pairs)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> Seed003Params:
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise KeyError(f"unknown seed-003 parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 # ------------------------------------------------------------------ rounds

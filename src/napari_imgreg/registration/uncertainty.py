@@ -31,14 +31,14 @@ photometric check (edges, residual flow against a render) enters it yet.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import ClassVar
 
 import cv2
 import numpy as np
 
 from ..camera import Intrinsics, Pose
-from ..validate import check_ranges
+from ..validate import StageParams, check_ranges
 from .pose import PoseParams, estimate_pose
 
 __all__ = [
@@ -56,7 +56,7 @@ UNCERTAIN_PX = 4.0
 
 
 @dataclass
-class UncertaintyParams:
+class UncertaintyParams(StageParams):
     """Settings of the split-half cross-validation, each with its valid range ``[low, high]``.
 
     Nested in :class:`~napari_imgreg.registration.params.RegistrationParams`
@@ -110,6 +110,8 @@ class UncertaintyParams:
         chosen to agree with it, and a half restricted to them agrees too.
     """
 
+    KIND: ClassVar[str] = "uncertainty"
+
     directions_deg: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0)
     min_half: int = 12
     gain: float = 1.0
@@ -137,19 +139,6 @@ class UncertaintyParams:
         if not self.directions_deg:
             raise ValueError("directions_deg must name at least one direction")
         check_ranges(self)
-
-    def to_dict(self) -> dict:
-        """JSON-ready (tuples as lists)."""
-        d = asdict(self)
-        d["directions_deg"] = list(self.directions_deg)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> UncertaintyParams:
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise KeyError(f"unknown uncertainty parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 @dataclass(frozen=True)

@@ -30,20 +30,20 @@ sub-pixel by a parabola through the peak and its neighbours.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from typing import ClassVar
 
 import cv2
 import numpy as np
 
-from ...validate import check_ranges
+from ...validate import StageParams, check_ranges
 
 __all__ = ["AreaParams", "BlockMatches", "band_pass", "match_blocks", "search_schedule",
            "prepare_render", "prepare_photo"]
 
 
 @dataclass
-class AreaParams:
+class AreaParams(StageParams):
     """Settings of area-based matching (pixels at ``width`` unless said otherwise).
 
     Each numeric field has its inclusive valid range in :attr:`RANGES`.
@@ -78,6 +78,8 @@ class AreaParams:
         background, filled with a bright level so the skyline correlates).
     """
 
+    KIND: ClassVar[str] = "area"
+
     width: int = 1024
     template_px: int = 33
     stride_px: int = 24
@@ -111,17 +113,6 @@ class AreaParams:
             raise ValueError("stride_px, search_px and far_search_px must be positive")
         if self.width < 64:
             raise ValueError(f"width must be at least 64 px, not {self.width}")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> AreaParams:
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise KeyError(f"unknown area parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 @dataclass

@@ -52,13 +52,14 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable, ClassVar, Sequence
 
 import cv2
 import numpy as np
 
 from ...camera import Intrinsics, Pose, match_scale
+from ...validate import StageParams
 from ..filters import masked_gaussian
 from .pyramid import (
     PyramidLevel,
@@ -1039,7 +1040,7 @@ def mi_score(
 
 
 @dataclass
-class DenseParams:
+class DenseParams(StageParams):
     """Settings of the MI refinement (:func:`refine_pose_mi`), each with its valid range.
 
     Attributes
@@ -1099,6 +1100,8 @@ class DenseParams:
         hence 0.
     """
 
+    KIND: ClassVar[str] = "dense"
+
     modes: tuple[str, ...] | None = None
     levels: tuple[int, ...] = (128, 256, 512)
     bins: int = 32
@@ -1151,20 +1154,6 @@ class DenseParams:
                 if m not in DENSE_MODES:
                     raise ValueError(f"unknown mode {m!r}; choose from {', '.join(DENSE_MODES)}")
         check_ranges(self)
-
-    def to_dict(self) -> dict:
-        """JSON-ready (tuples as lists)."""
-        d = asdict(self)
-        d["levels"] = list(self.levels)
-        d["modes"] = None if self.modes is None else list(self.modes)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> DenseParams:
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise KeyError(f"unknown dense parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 def refine_pose_mi(

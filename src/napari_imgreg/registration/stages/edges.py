@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Callable, ClassVar
 
 import cv2
@@ -66,6 +66,7 @@ from scipy import ndimage
 from scipy.optimize import least_squares
 
 from ...camera import Intrinsics, Pose, match_scale, pixels_to_full
+from ...validate import StageParams
 from .pyramid import (
     PyramidLevel,
     RenderFn,
@@ -953,7 +954,7 @@ class EdgeAlignment:
 
 
 @dataclass
-class EdgeParams:
+class EdgeParams(StageParams):
     """Settings of edge alignment (:func:`align_edges`), each with its valid range ``[low, high]``.
 
     Attributes
@@ -999,6 +1000,8 @@ class EdgeParams:
         by kind name (``skyline``, ``occluding``, ``crease``, ``albedo``,
         ``model_border``), each in [0, 100]; 0 leaves a kind out.
     """
+
+    KIND: ClassVar[str] = "edges"
 
     levels: tuple[int, ...] = (320, 768)
     search_rotation_deg: tuple[float, float, float] = (12.0, 6.0, 4.0)
@@ -1058,19 +1061,6 @@ class EdgeParams:
         """:attr:`kind_weights` keyed by the kind constants (:data:`SKYLINE`, ...)."""
         code = {name: kind for kind, name in EDGE_KINDS.items()}
         return {code[name]: float(weight) for name, weight in self.kind_weights.items()}
-
-    def to_dict(self) -> dict:
-        """JSON-ready (tuples as lists)."""
-        d = asdict(self)
-        d["levels"], d["search_rotation_deg"] = list(self.levels), list(self.search_rotation_deg)
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> EdgeParams:
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise KeyError(f"unknown edges parameter(s): {', '.join(sorted(unknown))}")
-        return cls(**d)
 
 
 def _rotation_grid(half_range_deg: tuple[float, float, float], step_deg: float
