@@ -228,11 +228,12 @@ def report(args, n_photos, broken, fault, fault_found, resume, tp) -> str:
         f"({', '.join(broken)}: truncated, empty, not an image). Each `batch` is a "
         f"subprocess, timed end to end (cluster start and one scene load per worker "
         f"included). Machine: {available_cores()} core(s), Python "
-        f"{platform.python_version()}; load average (1 min) {args.load_before:.1f} at the "
-        f"start and {os.getloadavg()[0]:.1f} at the end"
+        f"{platform.python_version()}; load average (1 min) {args.load_before:.1f} before "
+        f"the first run"
+        # The load after a run includes that run's own workers (shown per row),
+        # so only the load before the first run tells of other work.
         + (" (above the core count: other work shared the cores and the throughput "
-           "figures are not clean)." if max(args.load_before, os.getloadavg()[0])
-           > available_cores() else "."))
+           "figures are not clean)." if args.load_before > available_cores() else "."))
     lines += ["", "**Fault run** (`--workers 2 --threads-per-worker 1`, one worker process "
               "SIGKILLed by the benchmark mid-run):", ""]
     k = fault["killed"] or {}
