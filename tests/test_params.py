@@ -216,3 +216,24 @@ def test_baseline_differs_from_the_default_pipeline():
     assert d != b
     assert d.auto_adapt and d.search_prior and d.verify and d.max_iterations > 1
     assert d.sun_relight and d.edge_align and d.dense_refine and d.area_match
+
+
+@pytest.mark.parametrize("cls", [FilterParams, FeatureParams, PoseParams, AreaParams, EdgeParams,
+                                 DenseParams, LidarViewParams])
+def test_each_stage_round_trips_through_json_with_its_own_error(cls):
+    """The shared StageParams base: plain JSON types out (no tuples), the same
+    object back, and an unknown key named with the stage's kind."""
+    d = cls().to_dict()
+    assert json.loads(json.dumps(d)) == d  # tuples came out as lists
+    assert cls.from_dict(d) == cls()
+    with pytest.raises(KeyError, match=f"unknown {cls.KIND} parameter\\(s\\): nope"):
+        cls.from_dict({**d, "nope": 1})
+
+
+def test_seed003_settings_nest_their_views_as_plain_dicts():
+    from napari_imgreg.registration.seed003 import Seed003Params
+
+    d = Seed003Params().to_dict()
+    assert isinstance(d["views"], dict) and isinstance(d["views"]["hog_scales"], list)
+    assert isinstance(d["pairs"], list)
+    assert Seed003Params.from_dict(d).to_dict() == d
