@@ -256,7 +256,18 @@ def _stubs():
             continue
         if hasattr(module, "load_scene"):
             patches.append(mock.patch.object(module, "load_scene", _cached_load_scene))
+    # One parser for every example: building it costs ~10 ms (argparse looks up
+    # gettext catalogues for each help text), more than most examples' run;
+    # parse_args leaves a parser as it was, so reusing it tests the same thing.
+    import napari_imgreg.cli as cli
+
+    if not _PARSER:
+        _PARSER.append(cli.build_parser())
+    patches.append(mock.patch.object(cli, "build_parser", lambda: _PARSER[0]))
     return patches
+
+
+_PARSER: list = []
 
 
 _SCENES: dict = {}
@@ -306,7 +317,9 @@ _WARM: list = []
 def _run(argv: list[str], fresh: bool = True) -> tuple[int, str]:
     from napari_imgreg.cli import main
 
-    if fresh and PRISTINE.is_dir():
+    # Only a command line that may touch the pool's workspace pays for the copy.
+    touches = argv[:1] == ["workspace"] or any(str(WORKSPACE) in a for a in argv)
+    if fresh and touches and PRISTINE.is_dir():
         shutil.rmtree(NEW_WORKSPACE, ignore_errors=True)
         shutil.rmtree(WORKSPACE, ignore_errors=True)
         shutil.copytree(PRISTINE, WORKSPACE)
