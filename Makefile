@@ -41,7 +41,7 @@ demo: venv
 	$(VENV)/bin/napari-imgreg demo --out demo_output
 
 test: system-deps venv
-	xvfb-run -a -s "-screen 0 1600x1000x24" $(PY) -m pytest -q
+	xvfb-run -a -s "-screen 0 1600x1000x24" $(PY) -m pytest -q --durations=15
 
 bench: venv
 	$(PY) benchmarks/bench_render.py --report docs/benchmarks.md
