@@ -21,7 +21,7 @@ import os
 import tempfile
 from dataclasses import asdict, fields
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Self
 
 from numpy import bool_ as np_bool
 
@@ -289,7 +289,7 @@ class StageParams:
         return _json_ready(asdict(self))  # type: ignore[call-overload]
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]):  # noqa: ANN206 - the subclass
+    def from_dict(cls, d: dict[str, Any]) -> Self:
         """The parameters from ``d`` (every key a field; missing ones default).
 
         Raises
