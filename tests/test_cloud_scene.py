@@ -463,3 +463,31 @@ def test_a_well_formed_but_wrong_normals_cache_is_computed_again(planes, tmp_pat
     assert np.allclose(second.normals, normals, atol=1e-3)
     with np.load(cache) as data:  # written again, finite
         assert np.isfinite(data["normals"].astype(np.float32)).all()
+
+
+def test_parallel_rays_as_a_sun_casts_them_agree_with_the_brute_force(planes):
+    # Shadow rays: many origins, one direction (toward a sun). The binned
+    # path answers them as testing every point does, and a large query
+    # (300 rays × 150k points over the budget) no longer tests every point.
+    sun = np.array([0.3, -0.2, 1.0])
+    sun /= np.linalg.norm(sun)
+    rng = np.random.default_rng(11)
+    # Origins on the back plane, 1 cm above it: shadowed where the front
+    # square stands between them and the sun.
+    origins = np.column_stack([rng.uniform(-BACK_HALF, BACK_HALF, (400, 2)), np.full(400, 0.01)])
+    dirs = np.tile(sun, (400, 1))
+    brute = CloudScene(planes.xyz, normals=planes.normals, spacing=planes.spacing,
+                       params=CloudParams(max_brute_force=1e12))
+    binned = CloudScene(planes.xyz, normals=planes.normals, spacing=planes.spacing,
+                        params=CloudParams(max_brute_force=0.0))
+    a, b = brute.cast_rays(origins, dirs), binned.cast_rays(origins, dirs)
+    assert (a.face_id == b.face_id).all()
+    assert np.allclose(a.distance[a.hit], b.distance[b.hit], atol=1e-6)
+    # Analytically: the ray meets the front plane inside its square.
+    t_front = ((np.array([0, 0, 1.0]) - origins) @ FRONT_N) / (sun @ FRONT_N)
+    pf = origins + sun * t_front[:, None]
+    inside = np.max(np.abs(pf[:, :2]), axis=1)
+    clear = np.abs(inside - FRONT_HALF) > 0.05
+    assert clear.sum() > 300
+    assert (b.hit == ((inside <= FRONT_HALF) & (t_front > 0)))[clear].all()
+    assert 20 < b.hit.sum() < 350  # the square shades ~10 % of the back plane

@@ -736,8 +736,11 @@ class CloudScene:
         if m:
             _ = self.engine
             one_origin = bool(np.all(o == o[0]))
-            if one_origin and m * self.n_points > self.params.max_brute_force:
+            big = m * self.n_points > self.params.max_brute_force
+            if one_origin and big:
                 t, ids = self._cast_from_origin(o[0], d)
+            elif big and np.all(np.abs(d - d[0]) < 1e-9):
+                t, ids = self._cast_parallel(o, d[0])
             else:
                 _cast_brute(np.ascontiguousarray(o), np.ascontiguousarray(d), self.xyz32,
                             self.normals, self.splat_radius(self.params.splat.splat_scale),
@@ -754,6 +757,60 @@ class CloudScene:
         zeros = np.zeros(m, np.float32)
         return CloudRayHits(t.astype(np.float32), ids.astype(np.int32), zeros, zeros.copy(),
                             points)
+
+    def _cast_parallel(self, origins: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Parallel rays (a sun's shadow rays): the surfels binned on grids
+        across ``d``, each ray tested against the surfels of its 3 × 3 cells.
+
+        Exact as the brute force is: a surfel goes to the grid whose cells
+        are no smaller than its wide disc (grids double in cell size, from
+        the median disc's), so the 3 × 3 cells around a ray hold every
+        surfel it can meet.
+        """
+        helper = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        ax = np.cross(helper, d)
+        ax /= np.linalg.norm(ax)
+        ay = np.cross(d, ax)
+        gap_scale = self.params.gap_scale
+        radius = self.splat_radius(self.params.splat.splat_scale)
+        reach = radius.astype(np.float64) * gap_scale
+        xyz = self.xyz
+        pu, pv = xyz @ ax, xyz @ ay
+        # At most ~2048 cells a side per grid.
+        extent = max(float(np.ptp(pu)), float(np.ptp(pv)), 1e-6)
+        cell0 = max(float(np.median(reach)), extent / 2048.0, 1e-6)
+        level = np.ceil(np.log2(np.maximum(reach / cell0, 1.0))).astype(np.int64)
+        m = len(origins)
+        best_t, wide_t = np.full(m, np.inf), np.full(m, np.inf)
+        best_id, wide_id = np.full(m, -1, np.int64), np.full(m, -1, np.int64)
+        o = np.ascontiguousarray(origins, np.float64)
+        dd = np.ascontiguousarray(d, np.float64)
+        n_threads = max(1, min(_threads(), m))
+        bounds = np.linspace(0, m, n_threads + 1).astype(int)
+        for lv in np.unique(level):
+            members = np.flatnonzero(level == lv)
+            cell = max(cell0 * 2.0 ** int(lv), extent / 2048.0)
+            cu = np.floor(pu[members] / cell).astype(np.int64)
+            cv = np.floor(pv[members] / cell).astype(np.int64)
+            u0, v0 = int(cu.min()), int(cv.min())
+            nu, nv = int(cu.max()) - u0 + 1, int(cv.max()) - v0 + 1
+            key = (cu - u0) * nv + (cv - v0)
+            sort = np.argsort(key, kind="stable")
+            order = members[sort]
+            starts = np.searchsorted(key[sort], np.arange(nu * nv + 1)).astype(np.int64)
+            dims = np.array([u0, v0, nu, nv], np.int64)
+            args = (o, dd, ax, ay, cell, dims, starts, order, self.xyz32, self.normals, radius,
+                    self.params.splat.grazing_cos, gap_scale, best_t, best_id, wide_t, wide_id)
+            with ThreadPoolExecutor(n_threads) as pool:
+                list(pool.map(lambda k, a=args: _parallel_kernel(int(bounds[k]), int(bounds[k + 1]),
+                                                                 *a),
+                              range(n_threads)))
+        # As _brute_kernel ends: the wide hit where it lies in front or alone.
+        use_wide = (wide_id >= 0) & ((best_id < 0)
+                                     | (wide_t < best_t * (1.0 - self.params.splat.fill_depth_tol)))
+        t = np.where(use_wide, wide_t, best_t)
+        ids = np.where(use_wide, wide_id, best_id)
+        return t, ids
 
     def _cast_from_origin(self, origin: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rays from one origin through a virtual camera's splat render."""
@@ -1004,6 +1061,37 @@ def _pca_kernel(xyz, idx, out_normal, out_variation):  # pragma: no cover
         out_variation[j] = max(lam, 0.0) / tr if tr > 0.0 else 1.0 / 3.0
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _surfel_test(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius, grazing, gap_scale,
+                 best):  # pragma: no cover
+    # Where the ray (o, d) meets surfel i: (t, inner); t = inf when it
+    # misses the wide disc or lies beyond ``best``; inner: within the disc
+    # itself (not only the gap_scale wider one).
+    r = np.float64(radius[i]) * gap_scale
+    vx = xyz[i, 0] - ox
+    vy = xyz[i, 1] - oy
+    vz = xyz[i, 2] - oz
+    tp = vx * dx + vy * dy + vz * dz
+    if tp <= 0.0 or tp - r >= best:
+        return np.inf, False
+    d2 = vx * vx + vy * vy + vz * vz - tp * tp
+    r2 = r * r
+    if d2 > r2:
+        return np.inf, False  # the ray passes outside the point's (wide) sphere
+    nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+    den = nx * dx + ny * dy + nz * dz
+    if abs(den) > grazing:
+        th = (nx * vx + ny * vy + nz * vz) / den
+        qx = th * dx - vx
+        qy = th * dy - vy
+        qz = th * dz - vz
+        q2 = qx * qx + qy * qy + qz * qz
+        if th <= 0.0 or q2 > r2:
+            return np.inf, False
+        return th, q2 * gap_scale * gap_scale <= r2
+    return tp, d2 * gap_scale * gap_scale <= r2  # edge-on: where the ray passes the point
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _brute_kernel(lo, hi, origins, dirs, xyz, normals, radius, grazing, gap_scale, gap_tol,
                   out_t, out_id):  # pragma: no cover
@@ -1019,31 +1107,8 @@ def _brute_kernel(lo, hi, origins, dirs, xyz, normals, radius, grazing, gap_scal
         wide = np.inf
         wi = -1
         for i in range(xyz.shape[0]):
-            r = np.float64(radius[i]) * gap_scale
-            vx = xyz[i, 0] - ox
-            vy = xyz[i, 1] - oy
-            vz = xyz[i, 2] - oz
-            tp = vx * dx + vy * dy + vz * dz
-            if tp <= 0.0 or tp - r >= best:
-                continue
-            d2 = vx * vx + vy * vy + vz * vz - tp * tp
-            r2 = r * r
-            if d2 > r2:
-                continue  # the ray passes outside the point's (wide) sphere
-            nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
-            den = nx * dx + ny * dy + nz * dz
-            if abs(den) > grazing:
-                th = (nx * vx + ny * vy + nz * vz) / den
-                qx = th * dx - vx
-                qy = th * dy - vy
-                qz = th * dz - vz
-                q2 = qx * qx + qy * qy + qz * qz
-                if th <= 0.0 or q2 > r2:
-                    continue
-                inner = q2 * gap_scale * gap_scale <= r2
-            else:
-                th = tp  # edge-on: where the ray passes the point
-                inner = d2 * gap_scale * gap_scale <= r2
+            th, inner = _surfel_test(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius, grazing,
+                                     gap_scale, best)
             if inner and th < best:
                 best = th
                 bi = i
@@ -1055,6 +1120,35 @@ def _brute_kernel(lo, hi, origins, dirs, xyz, normals, radius, grazing, gap_scal
             bi = wi
         out_t[j] = best
         out_id[j] = bi
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _parallel_kernel(lo, hi, origins, d, ax, ay, cell, dims, starts, order, xyz, normals, radius,
+                     grazing, gap_scale, best_t, best_id, wide_t, wide_id):  # pragma: no cover
+    # Rays lo..hi, all along d, against the surfels binned by their position
+    # across d (axes ax, ay; cells no smaller than these surfels' wide discs):
+    # each ray tests the surfels of its cell and the 8 around it, as
+    # _brute_kernel does, updating its first inner and first wide hit.
+    dx, dy, dz = d[0], d[1], d[2]
+    for j in range(lo, hi):
+        ox, oy, oz = origins[j, 0], origins[j, 1], origins[j, 2]
+        cu = np.int64(math.floor((ox * ax[0] + oy * ax[1] + oz * ax[2]) / cell)) - dims[0]
+        cv = np.int64(math.floor((ox * ay[0] + oy * ay[1] + oz * ay[2]) / cell)) - dims[1]
+        best, bi, wide, wi = best_t[j], best_id[j], wide_t[j], wide_id[j]
+        for gu in range(max(cu - 1, 0), min(cu + 2, dims[2])):
+            for gv in range(max(cv - 1, 0), min(cv + 2, dims[3])):
+                c = gu * dims[3] + gv
+                for k in range(starts[c], starts[c + 1]):
+                    i = order[k]
+                    th, inner = _surfel_test(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius,
+                                             grazing, gap_scale, best)
+                    if inner and th < best:
+                        best = th
+                        bi = i
+                    if th < wide:
+                        wide = th
+                        wi = i
+        best_t[j], best_id[j], wide_t[j], wide_id[j] = best, bi, wide, wi
 
 
 def _cast_brute(origins, dirs, xyz, normals, radius, grazing, out_t, out_id,
