@@ -412,6 +412,11 @@ def _perturbed_priors(prior: Prior, n: int, seed: int = 0,
     return poses[:n]
 
 
+#: Relight a cloud's intensity renders for the photo's sun (benchmarks turn it off
+#: for the before-figure).
+_CLOUD_RELIGHT = True
+
+
 def _good(t: Trial) -> bool:
     return t.verified and t.grade in ("excellent", "good")
 
@@ -604,9 +609,13 @@ def register_photo(
         )
     # A lidar cloud's intensity is its appearance (it is not sun-lit).
     untextured = not has_appearance(scene)
-    # Relighting needs the photo's sun, and the texture's own sun to divide
-    # out (an untextured model has none): without it, it does more harm than good.
-    if params.sun_relight and prior.sun is not None and (untextured or scene.survey_sun is not None):
+    # Relighting needs the photo's sun, and the appearance's own light to
+    # divide out: a texture's survey sun, none on an untextured mesh; a
+    # scan's intensity holds no sun at all (its incidence falloff stays in
+    # the albedo). Without them it does more harm than good.
+    relightable = (untextured or scene.survey_sun is not None
+                   or (_CLOUD_RELIGHT and bool(getattr(scene, "is_cloud", False))))
+    if params.sun_relight and prior.sun is not None and relightable:
         ctx.sun = prior.sun
         assumptions.append(f"sun from the {prior.sun_source}")
     first_mode = "sunlit" if (untextured and ctx.sun is not None) else "plain"
