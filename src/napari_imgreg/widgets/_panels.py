@@ -1341,7 +1341,9 @@ class SunBox(QGroupBox):
         ws, ps, scene = self.ws, self.ws.current, self.ws.scene
         notes = []
         if ps is not None and scene is not None:
-            textured = scene.has_texture or scene.vertex_colors is not None
+            # A scan's intensity (or colours) hold no sun: clouds are always relit.
+            textured = ((scene.has_texture or scene.vertex_colors is not None)
+                        and not getattr(scene, "is_cloud", False))
             if not ws.params.sun_relight:
                 notes.append("Sun-lit matching is off (checkbox above).")
             elif ps.sun is None:
