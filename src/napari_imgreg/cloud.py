@@ -213,6 +213,17 @@ def _threads() -> int:
     return max(1, int(env)) if env else max(1, os.cpu_count() or 1)
 
 
+def _run_split(kernel, bounds: np.ndarray, *args) -> None:
+    """``kernel(lo, hi, *args)`` over the ranges ``bounds[k]..bounds[k + 1]``,
+    one thread each (the numba kernels release the GIL)."""
+    if len(bounds) <= 2:
+        kernel(int(bounds[0]), int(bounds[-1]), *args)
+        return
+    with ThreadPoolExecutor(len(bounds) - 1) as pool:
+        list(pool.map(lambda b: kernel(int(bounds[b]), int(bounds[b + 1]), *args),
+                      range(len(bounds) - 1)))
+
+
 class CloudScene:
     """A point cloud ready for splat rendering and ray queries.
 
@@ -799,12 +810,9 @@ class CloudScene:
             order = members[sort]
             starts = np.searchsorted(key[sort], np.arange(nu * nv + 1)).astype(np.int64)
             dims = np.array([u0, v0, nu, nv], np.int64)
-            args = (o, dd, ax, ay, cell, dims, starts, order, self.xyz32, self.normals, radius,
-                    self.params.splat.grazing_cos, gap_scale, best_t, best_id, wide_t, wide_id)
-            with ThreadPoolExecutor(n_threads) as pool:
-                list(pool.map(lambda k, a=args: _parallel_kernel(int(bounds[k]), int(bounds[k + 1]),
-                                                                 *a),
-                              range(n_threads)))
+            _run_split(_parallel_kernel, bounds, o, dd, ax, ay, cell, dims, starts, order,
+                       self.xyz32, self.normals, radius, self.params.splat.grazing_cos, gap_scale,
+                       best_t, best_id, wide_t, wide_id)
         # As _brute_kernel ends: the wide hit where it lies in front or alone.
         use_wide = (wide_id >= 0) & ((best_id < 0)
                                      | (wide_t < best_t * (1.0 - self.params.splat.fill_depth_tol)))
@@ -1092,6 +1100,20 @@ def _surfel_test(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius, grazing, gap_s
     return tp, d2 * gap_scale * gap_scale <= r2  # edge-on: where the ray passes the point
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _surfel_update(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius, grazing, gap_scale,
+                   best, bi, wide, wi):  # pragma: no cover
+    # The ray's first inner hit (best, bi) and first wide hit (wide, wi)
+    # after testing surfel i.
+    th, inner = _surfel_test(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius, grazing,
+                             gap_scale, best)
+    if inner and th < best:
+        best, bi = th, i
+    if th < wide:
+        wide, wi = th, i
+    return best, bi, wide, wi
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def _brute_kernel(lo, hi, origins, dirs, xyz, normals, radius, grazing, gap_scale, gap_tol,
                   out_t, out_id):  # pragma: no cover
@@ -1107,14 +1129,8 @@ def _brute_kernel(lo, hi, origins, dirs, xyz, normals, radius, grazing, gap_scal
         wide = np.inf
         wi = -1
         for i in range(xyz.shape[0]):
-            th, inner = _surfel_test(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius, grazing,
-                                     gap_scale, best)
-            if inner and th < best:
-                best = th
-                bi = i
-            if th < wide:
-                wide = th
-                wi = i
+            best, bi, wide, wi = _surfel_update(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius,
+                                                grazing, gap_scale, best, bi, wide, wi)
         if wi >= 0 and (bi < 0 or wide < best * (1.0 - gap_tol)):
             best = wide
             bi = wi
@@ -1140,14 +1156,9 @@ def _parallel_kernel(lo, hi, origins, d, ax, ay, cell, dims, starts, order, xyz,
                 c = gu * dims[3] + gv
                 for k in range(starts[c], starts[c + 1]):
                     i = order[k]
-                    th, inner = _surfel_test(i, ox, oy, oz, dx, dy, dz, xyz, normals, radius,
-                                             grazing, gap_scale, best)
-                    if inner and th < best:
-                        best = th
-                        bi = i
-                    if th < wide:
-                        wide = th
-                        wi = i
+                    best, bi, wide, wi = _surfel_update(i, ox, oy, oz, dx, dy, dz, xyz, normals,
+                                                        radius, grazing, gap_scale, best, bi,
+                                                        wide, wi)
         best_t[j], best_id[j], wide_t[j], wide_id[j] = best, bi, wide, wi
 
 
@@ -1155,17 +1166,9 @@ def _cast_brute(origins, dirs, xyz, normals, radius, grazing, out_t, out_id,
                 gap_scale=1.5, gap_tol=0.02) -> None:
     """:func:`_brute_kernel` over all rays, on a few threads (it releases the GIL)."""
     m = len(dirs)
-    n_threads = min(_threads(), m)
-    if n_threads <= 1:
-        _brute_kernel(0, m, origins, dirs, xyz, normals, radius, grazing, gap_scale, gap_tol,
-                      out_t, out_id)
-        return
-    bounds = np.linspace(0, m, n_threads + 1).astype(int)
-    with ThreadPoolExecutor(n_threads) as pool:
-        list(pool.map(lambda b: _brute_kernel(int(bounds[b]), int(bounds[b + 1]), origins, dirs,
-                                              xyz, normals, radius, grazing, gap_scale, gap_tol,
-                                              out_t, out_id),
-                      range(n_threads)))
+    bounds = np.linspace(0, m, max(1, min(_threads(), m)) + 1).astype(int)
+    _run_split(_brute_kernel, bounds, origins, dirs, xyz, normals, radius, grazing, gap_scale,
+               gap_tol, out_t, out_id)
 
 
 # -------------------------------------------------------- level of detail
@@ -1501,7 +1504,5 @@ class CloudLevelOfDetail:
             # Blocks split at equal shares of the points.
             cuts = np.searchsorted(offsets, np.linspace(0, total, n_threads + 1)[1:-1])
             bounds = np.r_[0, cuts, k]
-            with ThreadPoolExecutor(n_threads) as pool:
-                list(pool.map(lambda b: _gather_kernel(int(bounds[b]), int(bounds[b + 1]), *args),
-                              range(n_threads)))
+            _run_split(_gather_kernel, bounds, *args)
         return sub
