@@ -67,3 +67,58 @@ def test_cloud_presets():
     assert not cloud.features.invariant_channel
     # The presets survive a --params round trip.
     assert RegistrationParams.from_dict(cloud.to_dict()) == cloud
+
+
+def _plane_cloud():
+    from napari_imgreg.cloud import CloudScene
+
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-5.0, 5.0, (4000, 2))
+    return CloudScene(np.c_[xy, np.zeros(len(xy))], intensity=np.full(len(xy), 0.5),
+                      viewpoints=np.array([[0.0, 0.0, 10.0]]))
+
+
+def test_a_point_cloud_gets_the_cloud_preset_by_default(tmp_path):
+    """The command line, batches and workspaces register a point cloud with
+    for_cloud() (what the cloud benchmark measures), a mesh with the defaults;
+    a --params file's fields go over the scene's defaults."""
+    from napari_imgreg.cli._common import read_params
+
+    cloud = _plane_cloud()
+    assert RegistrationParams.for_scene(cloud) == RegistrationParams.for_cloud()
+    assert RegistrationParams.for_scene(None) == RegistrationParams()
+    assert RegistrationParams.for_cloud().area.width == 1632
+    assert RegistrationParams().area.width == 1024
+    assert read_params(None, cloud) == RegistrationParams.for_cloud()
+    f = tmp_path / "p.json"
+    f.write_text('{"area": {"template_px": 41}, "max_iterations": 6}')
+    on_cloud, on_mesh = read_params(f, cloud), read_params(f)
+    assert (on_cloud.area.template_px, on_cloud.area.width, on_cloud.max_iterations) == (41, 1632, 6)
+    assert on_cloud.photo_filters.gradient and on_cloud.max_trials == 1
+    assert (on_mesh.area.template_px, on_mesh.area.width, on_mesh.max_trials) == (41, 1024, 4)
+    assert not on_mesh.photo_filters.gradient
+    # The base is not shared with the result.
+    base = RegistrationParams.for_cloud()
+    got = RegistrationParams.from_dict({"seed": 3}, base=base)
+    assert got.area is not base.area and got.area == base.area and got.seed == 3
+
+
+def test_workspace_defaults_follow_the_scene_custom_settings_stay():
+    from dataclasses import replace
+
+    from napari_imgreg.workspace import Workspace
+
+    cloud = _plane_cloud()
+    cloud.build_engine()
+    ws = Workspace()
+    seen = []
+    ws.params_changed.connect(lambda *a: seen.append(1))
+    ws.load_scene(cloud)
+    assert ws.params == RegistrationParams.for_cloud() and seen == [1]
+    ws.load_scene(cloud)  # already its defaults: no signal
+    assert seen == [1] and ws.params.is_scene_default()
+    custom = replace(RegistrationParams(), max_iterations=7)
+    ws.set_params(custom)
+    assert not custom.is_scene_default()
+    ws.load_scene(cloud)
+    assert ws.params == custom  # a user's settings are never replaced

@@ -612,6 +612,11 @@ class Workspace:
             The paths it was read from (``mesh``, ``dem``, ``georef``).
         """
         self.scene = scene
+        own = RegistrationParams.for_scene(scene)
+        if self.params.is_scene_default() and self.params != own:
+            # Untouched defaults follow the model: a point cloud's differ.
+            self.params = own
+            self.params_changed.emit()
         self.terrain = terrain if terrain is not None else adjust.terrain_map(scene)
         self.scene_files = {k: str(v or "") for k, v in (files or {}).items()}
         self.photos, self.current = [], None

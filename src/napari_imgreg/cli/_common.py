@@ -100,12 +100,14 @@ def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
         np.save(tmp, array)
 
 
-def read_params(path: str | os.PathLike | None) -> RegistrationParams:
+def read_params(path: str | os.PathLike | None, scene: Scene | None = None) -> RegistrationParams:
     """The registration parameters of a ``--params`` JSON file (any subset of
-    the fields), or the defaults when no file was given."""
+    the fields), or the defaults when no file was given: those for the
+    ``scene`` when given (a point cloud's, :meth:`RegistrationParams.for_scene`)."""
     from ..registration.params import RegistrationParams, load_params
 
-    return load_params(path) if path else RegistrationParams()
+    base = RegistrationParams.for_scene(scene)
+    return load_params(path, base) if path else base
 
 
 def load_scene(

@@ -479,8 +479,9 @@ def run(args: argparse.Namespace) -> int:
     # Everything about the scene is checked here, before anything is written
     # (and the mesh cache the workers load from is made once).
     files = find_scene_files(args.scene_dir, args.mesh, args.dem, args.georef)
-    params = read_params(args.params)
+    read_params(args.params)  # a bad file is refused before the scene loads
     scene = load_scene(files.mesh, georef=files.georef, dem=files.dem)
+    params = read_params(args.params, scene)  # a point cloud's defaults under the file's
     if cluster.in_process:
         scene.build_engine()
     n = len(files.photos)

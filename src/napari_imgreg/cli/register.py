@@ -62,8 +62,9 @@ def run(args: argparse.Namespace) -> int:
     if args.prior and not Path(args.prior).exists():
         # Not silently replaced by the photo's EXIF.
         raise input_error(args.prior, "no such file")
-    params = read_params(args.params)
+    read_params(args.params)  # a bad file is refused before the scene loads
     scene = load_scene(args.mesh, args.georef, args.dem)
+    params = read_params(args.params, scene)  # a point cloud's defaults under the file's
     photo = load_photo(photo_path)
     prior = prior_for_photo(photo, scene, record_path=args.prior)
     reg = pipeline.register(scene, photo.image, prior, params, photo_path.name,

@@ -158,8 +158,10 @@ def _create(args: argparse.Namespace) -> int:
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
         raise input_error(folder, "exists and is not an empty folder: choose a new one")
     files = find_scene_files(args.scene, args.mesh, args.dem, args.georef)
-    ws = Workspace(read_params(args.params))
+    ws = Workspace(read_params(args.params))  # a bad file is refused before the scene loads
     ws.open_scene(files.mesh, files.dem, files.georef)
+    if args.params:  # the file's fields over the scene's defaults (a point cloud's)
+        ws.set_params(read_params(args.params, ws.scene))
     _OPENED.append(ws)
     try:
         ws.save(folder)

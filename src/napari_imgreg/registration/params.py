@@ -232,6 +232,16 @@ class RegistrationParams:
         trials only cost time (≈ 30 s of 80 s per photo); the pipeline goes
         on to the stages that register these renders (area matching, edges,
         mutual information).
+
+        Area matching runs at the photo's full width up to 1632 px (the
+        default's 1024): the splat render's relit intensity correlates with
+        the photo at r ≈ 0.5, and the finer blocks halve the residual. On
+        the seed-1 cloud scene, from the sensor priors, the check-point
+        error of three photos went 2.18, 2.23, 2.11 px → 1.06, 1.83,
+        1.00 px (``benchmarks/bench_register_cloud.py``).
+
+        The command line, batches and the workbench use these settings for
+        a point cloud unless given others (:meth:`for_scene`).
         """
         params = cls()
         params.photo_filters = FilterParams(gradient=True, wallis=True)
@@ -239,7 +249,19 @@ class RegistrationParams:
         params.features = replace(params.features, invariant_channel=False)
         params.max_trials = 1
         params.search_prior = False
+        params.area = replace(params.area, width=1632)
         return params
+
+    @classmethod
+    def for_scene(cls, scene: object | None) -> RegistrationParams:
+        """The default settings for a scene: :meth:`for_cloud` for a point
+        cloud (a scene with a true ``is_cloud``), else the defaults."""
+        return cls.for_cloud() if bool(getattr(scene, "is_cloud", False)) else cls()
+
+    def is_scene_default(self) -> bool:
+        """True when these are one of the untouched per-scene defaults
+        (:meth:`for_scene` of a mesh or of a cloud)."""
+        return self in (type(self)(), type(self).for_cloud())
 
     def copy(self) -> RegistrationParams:
         return replace(
@@ -263,8 +285,10 @@ class RegistrationParams:
         return out
 
     @classmethod
-    def from_dict(cls, d: dict, source: str | os.PathLike | None = None) -> RegistrationParams:
-        """Parameters from a (partial) dict; missing fields keep their defaults.
+    def from_dict(cls, d: dict, source: str | os.PathLike | None = None,
+                  base: RegistrationParams | None = None) -> RegistrationParams:
+        """Parameters from a (partial) dict; missing fields keep their defaults
+        (those of ``base`` when given, e.g. :meth:`for_scene`).
 
         Raises
         ------
@@ -285,7 +309,8 @@ class RegistrationParams:
             "lidar": LidarViewParams,
         }
         names = {f.name for f in fields(cls)}
-        kwargs = {}
+        defaults = base.copy() if base is not None else cls()
+        kwargs = {f.name: getattr(defaults, f.name) for f in fields(cls)} if base is not None else {}
         for key, value in d.items():
             if key not in names:
                 raise input_error(source, f"unknown parameter '{key}'")
@@ -294,9 +319,9 @@ class RegistrationParams:
                     raise input_error(source, f"field '{key}' must be an object")
                 # Missing nested fields keep the registration's defaults
                 # (which differ from the stage's own for the features and MI).
-                base = getattr(cls(), key).to_dict()
+                within = getattr(defaults, key).to_dict()
                 try:
-                    kwargs[key] = nested[key].from_dict({**base, **value})
+                    kwargs[key] = nested[key].from_dict({**within, **value})
                 except FieldValueError as exc:
                     raise input_error(source, exc.within(key)) from None
                 except (KeyError, TypeError, ValueError) as exc:
@@ -352,9 +377,11 @@ def _check_tuple(value, default: tuple, f, name: str, source) -> None:
         raise input_error(source, f"field '{name}' must be {what}, got {shown!r}")
 
 
-def load_params(path: str | os.PathLike) -> RegistrationParams:
-    """Read a ``--params`` JSON file (any subset of the fields)."""
+def load_params(path: str | os.PathLike,
+                base: RegistrationParams | None = None) -> RegistrationParams:
+    """Read a ``--params`` JSON file (any subset of the fields; the others
+    from ``base``, by default :class:`RegistrationParams`' defaults)."""
     data = read_json(path)
     if not isinstance(data, dict):
         raise input_error(path, "parameters must be a JSON object")
-    return RegistrationParams.from_dict(data, path)
+    return RegistrationParams.from_dict(data, path, base=base)
