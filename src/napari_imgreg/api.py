@@ -64,7 +64,9 @@ def register(
         The sensor prior, or the path of a sensor record; default: the
         ``.json`` sensor record beside the photo, completed from its EXIF.
     params : RegistrationParams, optional
-        Default: ``RegistrationParams()`` (the full automatic pipeline).
+        Default: the full automatic pipeline for the scene
+        (:meth:`RegistrationParams.for_scene`: ``RegistrationParams()`` on a
+        mesh, :meth:`RegistrationParams.for_cloud` on a point cloud).
     on_progress : callable, optional
         Called with a :class:`Progress` after every step.
 

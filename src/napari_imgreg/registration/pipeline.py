@@ -569,6 +569,8 @@ def register_photo(
     prior : Prior
         Camera and prior pose (from the sensor record).
     params : RegistrationParams, optional
+        By default those for the scene (:meth:`RegistrationParams.for_scene`:
+        a point cloud's differ from a mesh's).
     photo_name : str
         For RESULT.json.
     cancelled : callable, optional
@@ -584,7 +586,7 @@ def register_photo(
         ``status`` "registered" only for a verified pose; otherwise "failed"
         with the best pose found (or the prior) and hints saying why.
     """
-    params = (params or RegistrationParams()).copy()
+    params = (params or RegistrationParams.for_scene(scene)).copy()
     intr = prior.intrinsics
     h, w = photo_rgb.shape[:2]
     if (w, h) != (intr.width, intr.height):
