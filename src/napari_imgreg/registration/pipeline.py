@@ -412,11 +412,6 @@ def _perturbed_priors(prior: Prior, n: int, seed: int = 0,
     return poses[:n]
 
 
-#: Relight a cloud's intensity renders for the photo's sun (benchmarks turn it off
-#: for the before-figure).
-_CLOUD_RELIGHT = True
-
-
 def _good(t: Trial) -> bool:
     return t.verified and t.grade in ("excellent", "good")
 
@@ -616,7 +611,7 @@ def register_photo(
     # scan's intensity holds no sun at all (its incidence falloff stays in
     # the albedo). Without them it does more harm than good.
     relightable = (untextured or scene.survey_sun is not None
-                   or (_CLOUD_RELIGHT and bool(getattr(scene, "is_cloud", False))))
+                   or bool(getattr(scene, "is_cloud", False)))
     if params.sun_relight and prior.sun is not None and relightable:
         ctx.sun = prior.sun
         assumptions.append(f"sun from the {prior.sun_source}")
