@@ -586,3 +586,48 @@ def test_cloud_projection_params_are_checked():
     for bad in (0.0, -1.0, float("nan"), 1e6):
         with pytest.raises(InputError, match="gap_spacings"):
             CloudProjectionParams(gap_spacings=bad)
+
+
+def test_project_command_on_a_cloud_takes_gap_spacings(tmp_path, capsys):
+    """``project --gap-spacings``: the occluding-step line of the test above,
+    from a PLY scan through the command line, splits in two by default and
+    stays one part with a gap allowance larger than the step; a value out of
+    range is one error line and exit 2, with no output file."""
+    import json
+
+    from napari_imgreg.cli import main
+    from napari_imgreg.interpret.files import read_features_geojson, write_interpretations
+    from napari_imgreg.interpret.project import Interpretation
+    from napari_imgreg.io.pointclouds import PointCloud, write_point_cloud
+
+    rng = np.random.default_rng(5)
+    n = 20_000
+    x, z = rng.uniform(-10, 10, n), rng.uniform(0, 10, n)
+    wall = np.stack([x, rng.normal(0, 0.002, n), z], 1)
+    xl, zl = rng.uniform(-10, 0, n // 2), rng.uniform(0, 10, n // 2)
+    ledge = np.stack([xl, np.full(n // 2, -3.0), zl], 1)
+    xyz = np.vstack([wall, ledge])
+    scan = write_point_cloud(tmp_path / "scan.ply",
+                             PointCloud(xyz, np.full(len(xyz), 0.5, np.float32), None))
+    intr = Intrinsics(600, 450, 600.0, 600.0, 299.5, 224.5)
+    pose = Pose.from_attitude(0.0, 0.0, 0.0, np.array([0.0, -30.0, 5.0]))
+    result = tmp_path / "IMG.result.json"
+    result.write_text(json.dumps({"camera": intr.to_dict(), "pose": pose.to_dict()}))
+    lines = tmp_path / "lines.geojson"
+    px = pose.project(intr, np.array([[-8.0, -3.0, 5.0], [8.0, 0.0, 5.0]]))
+    write_interpretations(lines, [Interpretation("LineString", px, {"label": "fault"})])
+
+    def parts(*extra):
+        out = tmp_path / "lines3d.geojson"
+        assert main(["project", str(result), str(scan), str(lines), "--out", str(out),
+                     *extra]) == 0
+        (feature,), _ = read_features_geojson(out)
+        return len(feature.parts)
+
+    assert parts() == 2
+    assert parts("--gap-spacings", "100") == 1
+    bad = tmp_path / "bad.geojson"
+    assert main(["project", str(result), str(scan), str(lines), "--out", str(bad),
+                 "--gap-spacings", "0.1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--gap-spacings" in err[0] and not bad.exists()

@@ -67,6 +67,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--grazing", type=float, default=5.0, metavar="DEG",
                    help="split where the surface would be seen more obliquely than this "
                    "(default 5°)")
+    p.add_argument("--gap-spacings", type=float, default=None, metavar="N",
+                   help="point clouds: split a line where the range jumps by more than N "
+                   "point spacings (times the range factor, plus the oblique allowance; "
+                   "default 4, in [0.5, 100]); ignored on a mesh")
     p.set_defaults(func=run)
     return p
 
@@ -113,6 +117,15 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.pixel_noise) and 0.0 <= args.pixel_noise <= 20.0):
         raise input_error(None, f"--pixel-noise must be in [0, 20] pixels "
                           f"(got {args.pixel_noise:g})")
+    from ..interpret.on_cloud import CloudProjectionParams
+
+    if args.gap_spacings is None:
+        cloud_params = CloudProjectionParams()
+    elif not (math.isfinite(args.gap_spacings) and 0.5 <= args.gap_spacings <= 100.0):
+        raise input_error(None, f"--gap-spacings must be in [0.5, 100] point spacings "
+                          f"(got {args.gap_spacings:g})")
+    else:
+        cloud_params = CloudProjectionParams(gap_spacings=args.gap_spacings)
     unc_params = UncertaintyParams(drawing_px=args.pixel_noise)
     pairs = [(args.result, args.lines)] + [tuple(p) for p in args.also]
     for result, lines in pairs:
@@ -126,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         raise input_error(
             args.mesh, "--georeferenced needs a georeference (georef.json beside the mesh "
             "or --georef)")
-    params = ProjectionParams(step_px=args.step, grazing_deg=args.grazing)
+    params = ProjectionParams(step_px=args.step, grazing_deg=args.grazing, cloud=cloud_params)
     sets = []
     for (result, lines), items in zip(pairs, drawn):
         intr, pose, kind, notes = load_camera_and_pose(
