@@ -409,6 +409,14 @@ def report(rows: list[dict], diag: list[dict], meta: dict, mesh: list[dict]) -> 
         lines.append(f"- {mark(a['cp_median'] is not None and a['cp_median'] <= 1.5)} median "
                      f"check-point error ≤ 1.5 px: {_f(a['cp_median'])} px over the "
                      f"{a['registered']} registered photos.")
+    rough = [r for r in rows if r["tier"].startswith("rough") and r["method"] in
+             ("ours", "unknown_focal")]
+    if rough:
+        # Not the issue's tiers; the same false-verdict bound, which is what matters most.
+        fv = sum(r["false_verdict"] for r in rough)
+        lines.append(f"- {mark(fv <= TARGETS['false_verdicts'] * len(rough))} (harder tiers, "
+                     f"rough surface: relief finer than the scan's spacing, phone effects) "
+                     f"≤ 2 % false verdicts, ours and unknown_focal: {fv}/{len(rough)}.")
     u = s.get(("all", "unknown_focal"))
     if a and u:
         # Against ours on the same photos (unknown_focal may have run on fewer).
@@ -464,11 +472,25 @@ def report(rows: list[dict], diag: list[dict], meta: dict, mesh: list[dict]) -> 
             f"{len(failed)} end with *the pose was still moving after the last round* (4 rounds, "
             f"0.05° / 0.05 m), and their error estimates are "
             + (f"{min(unc):.1f}–{max(unc):.1f} px." if unc else "missing.")
-            + " Relaxing the convergence test is not the answer: a pose 8.5 px off (seed 1, "
-            "changed_light IMG_0001) has an estimate of 3.1 px and would become a false "
-            "verdict. What is left is the matching's accuracy on these renders: the scan's "
-            "relief is lit by the scanner's beam (|cos incidence|), the photo's by the sun, and "
-            "each stage's optimum sits a few pixels off.")
+            + " Relaxing the convergence test is not the answer: before relighting, a pose "
+            "8.5 px off (seed 1, changed_light IMG_0001) had an estimate of 3.1 px and would "
+            "have become a false verdict.")
+    false = [r for r in rows if r["false_verdict"] and r["method"] in ("ours", "unknown_focal")]
+    if false:
+        stages = sorted({r["winning_stage"] or "–" for r in false})
+        unc = [r["uncertainty_px"] for r in false if r.get("uncertainty_px") is not None]
+        tiers_ = sorted({r["tier"] for r in false})
+        lines.append(
+            f"- *The false verdicts* ({len(false)}, {', '.join(tiers_)}): poses "
+            f"{min(r['cp_median_px'] for r in false):.1f}–"
+            f"{max(r['cp_median_px'] for r in false):.1f} px off, won by "
+            f"{' and '.join(stages)}, whose error estimates said "
+            + (f"{min(unc):.1f}–{max(unc):.1f} px" if unc else "nothing")
+            + ". These photos have no known sun (the survey's diffuse light, no capture time), "
+            "so the intensity render is not relit; area matching fails on it, and the edge "
+            "and intensity-pattern stages end on a shared bias that the split halves cannot "
+            "see (method §4, *where the estimate is known to be too small*). The same photos "
+            "under a sun (the rough_changed_light rows) gave none.")
     lines += ["", f"Reproduce: `{meta['command']}` ({meta['cpus']} cores shared with other work, "
               f"Python {meta['python']}; load average {meta['load']}; {meta['wall_min']:.0f} min). "
               f"Per-photo rows: `{meta['rows']}`.", MARK_END]
@@ -494,9 +516,21 @@ NOTES = [
     "1–14 putative ones per photo (table above), on Wallis-filtered grey levels and on "
     "gradient magnitude alike (variants tried on two photos — σ 1–3 px, with and without a 3 × 3 median against "
     "the two stations' interleaved intensities, at 768 and 512 px — gave at most 1). Hence `for_cloud()` runs one "
-    "keypoint trial and no search; *default* and *ours* gave the same pose on same_light "
-    "IMG_0001 (area matching, 3.72 px), default in 78 s after 4 keypoint trials with 0 3D "
-    "inliers, ours in 40 s.",
+    "keypoint trial and no search (before relighting, *default* and *ours* gave the same "
+    "pose on same_light IMG_0001 — area matching, 3.72 px — default in 78 s after 4 keypoint "
+    "trials with 0 3D inliers, ours in 40 s).",
+    "- *Relighting the cloud for the photo's sun* (the EXIF capture time's sun; the scan's "
+    "intensity holds none, so the render is shaded by its PCA normals and the sun's cast "
+    "shadows traced through the surfels): grey-level r at the true camera 0.26 → 0.50–0.57 "
+    "(changed_light) and 0.31–0.34 → 0.48–0.52 (same_light; the *relit* column above). "
+    "Seed 1, ours, before → after in one process: registered changed_light 1/4 → 4/4 and "
+    "same_light 1/4 → 4/4, check points 2.7–8.7 px → 1.4–2.2 px, 22–37 s → 10–14 s per "
+    "photo. The SIFT matches stay at 0–5: area matching against the relit render does it.",
+    "- *Area matching at the photo's width* (`for_cloud()`: `area.width` 1632, the default "
+    "1024), both scenes, same photos and priors, 1024 px → 1632 px: ours 16/16 → 16/16, "
+    "median check-point error 1.71 → 1.07 px; unknown_focal (its first 8 photos, 2 per "
+    "scene and tier) 8/8 → 7/8, 2.11 → 1.15 px, median focal error 0.82 % → 0.33 % "
+    "(the 1024 px rows: `benchmarks/_cache/bench_register_cloud_rows_s{1,2}.json`).",
     "- The splat render's depth lies in front of the true surface (median 9 cm on the "
     "cliff, 24 cm on the gentle ground, 10th percentile 39 cm; same_light IMG_0001): "
     "the lifted points stay on their pixel rays (a pose from perfect 2D matches and the "
