@@ -242,3 +242,10 @@ def test_the_pipeline_relights_a_cloud_for_the_photos_sun(rock_cut):
     assert any(t.render_mode == "sunlit" for t in reg.trials) or reg.trials[0].verified
     assert reg.status == "registered", reg.hints
     assert reg.pose.rotation_error_deg(TRUE_POSE) < 0.5
+    assert not any("No sun is known" in h for h in reg.hints)
+    # Without the sun the same photo still registers here, and the result says
+    # that its error estimate has a known blind spot (method §4).
+    unlit = pipeline.register(rock_cut, img, Prior(TRUE_INTR, PRIOR_POSE), params)
+    assert not any(t.render_mode == "sunlit" for t in unlit.trials)
+    assert unlit.status == "registered", unlit.hints
+    assert any("No sun is known" in h and "control points" in h for h in unlit.hints)

@@ -718,6 +718,14 @@ def register_photo(
     hints = list(best.hints)
     if status == "failed" and not hints:
         hints = ["No verified pose: try the manual control-point registration."]
+    if status == "registered" and ctx.sun is None and bool(getattr(scene, "is_cloud", False)):
+        # The known blind spot of the error estimate (method §4): the scan's
+        # unlit render, edges and MI agree on a pose biased by the photo's light.
+        hints.append(
+            "No sun is known for this photo, so the scan's render was not relit: on rough "
+            "rock such registrations were up to 5 px off while their error estimate said "
+            "2-4 px (bench_register_cloud). Give the photo its capture time with a time zone "
+            "(or its sun), or check the pose with a few control points before mapping on it.")
     timings = dict(ctx.timings)
     timings["total"] = time.perf_counter() - t_total
     yield Progress("done", 1.0, f"{status} ({best.grade}, Q = {best.q:.2f})")
