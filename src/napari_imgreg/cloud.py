@@ -26,7 +26,6 @@ import os
 import threading
 import time
 import zipfile
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -37,7 +36,7 @@ from numba import njit
 from .camera import Intrinsics, Pose
 from .errors import InputError, input_error
 from .geo import dem_height_local
-from .render_points import SplatParams, splat_depth, warm_up
+from .render_points import SplatParams, _run_blocks, splat_depth, warm_up
 from .validate import check_number
 
 if TYPE_CHECKING:
@@ -211,17 +210,6 @@ class CloudRayHits:
 def _threads() -> int:
     env = os.environ.get("NAPARI_IMGREG_THREADS")
     return max(1, int(env)) if env else max(1, os.cpu_count() or 1)
-
-
-def _run_split(kernel, bounds: np.ndarray, *args) -> None:
-    """``kernel(lo, hi, *args)`` over the ranges ``bounds[k]..bounds[k + 1]``,
-    one thread each (the numba kernels release the GIL)."""
-    if len(bounds) <= 2:
-        kernel(int(bounds[0]), int(bounds[-1]), *args)
-        return
-    with ThreadPoolExecutor(len(bounds) - 1) as pool:
-        list(pool.map(lambda b: kernel(int(bounds[b]), int(bounds[b + 1]), *args),
-                      range(len(bounds) - 1)))
 
 
 class CloudScene:
@@ -796,8 +784,7 @@ class CloudScene:
         best_id, wide_id = np.full(m, -1, np.int64), np.full(m, -1, np.int64)
         o = np.ascontiguousarray(origins, np.float64)
         dd = np.ascontiguousarray(d, np.float64)
-        n_threads = max(1, min(_threads(), m))
-        bounds = np.linspace(0, m, n_threads + 1).astype(int)
+        n_threads = min(_threads(), m)
         for lv in np.unique(level):
             members = np.flatnonzero(level == lv)
             cell = max(cell0 * 2.0 ** int(lv), extent / 2048.0)
@@ -810,9 +797,9 @@ class CloudScene:
             order = members[sort]
             starts = np.searchsorted(key[sort], np.arange(nu * nv + 1)).astype(np.int64)
             dims = np.array([u0, v0, nu, nv], np.int64)
-            _run_split(_parallel_kernel, bounds, o, dd, ax, ay, cell, dims, starts, order,
-                       self.xyz32, self.normals, radius, self.params.splat.grazing_cos, gap_scale,
-                       best_t, best_id, wide_t, wide_id)
+            _run_blocks(_parallel_kernel, m, n_threads, o, dd, ax, ay, cell, dims, starts, order,
+                        self.xyz32, self.normals, radius, self.params.splat.grazing_cos, gap_scale,
+                        best_t, best_id, wide_t, wide_id)
         # As _brute_kernel ends: the wide hit where it lies in front or alone.
         use_wide = (wide_id >= 0) & ((best_id < 0)
                                      | (wide_t < best_t * (1.0 - self.params.splat.fill_depth_tol)))
@@ -1166,9 +1153,8 @@ def _cast_brute(origins, dirs, xyz, normals, radius, grazing, out_t, out_id,
                 gap_scale=1.5, gap_tol=0.02) -> None:
     """:func:`_brute_kernel` over all rays, on a few threads (it releases the GIL)."""
     m = len(dirs)
-    bounds = np.linspace(0, m, max(1, min(_threads(), m)) + 1).astype(int)
-    _run_split(_brute_kernel, bounds, origins, dirs, xyz, normals, radius, grazing, gap_scale,
-               gap_tol, out_t, out_id)
+    _run_blocks(_brute_kernel, m, min(_threads(), m), origins, dirs, xyz, normals, radius,
+                grazing, gap_scale, gap_tol, out_t, out_id)
 
 
 # -------------------------------------------------------- level of detail
@@ -1504,5 +1490,5 @@ class CloudLevelOfDetail:
             # Blocks split at equal shares of the points.
             cuts = np.searchsorted(offsets, np.linspace(0, total, n_threads + 1)[1:-1])
             bounds = np.r_[0, cuts, k]
-            _run_split(_gather_kernel, bounds, *args)
+            _run_blocks(_gather_kernel, k, n_threads, *args, bounds=bounds)
         return sub
