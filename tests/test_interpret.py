@@ -496,17 +496,22 @@ def test_cloud_line_across_a_gap_splits_in_two(slab_clouds):
         assert np.linalg.norm(np.diff(part, axis=0), axis=1).max() < 0.2
 
 
-def test_cloud_line_over_an_occluding_step_splits_and_steep_rock_does_not():
-    from napari_imgreg.cloud import CloudScene
-
+def _wall_and_ledge(n: int = 20_000) -> tuple[np.ndarray, np.ndarray]:
+    """Points of a wall y = 0 (x, z in [-10, 10] × [0, 10]) and of a ledge
+    y = -3 in front of its left half (x < 0)."""
     rng = np.random.default_rng(5)
-    # A wall y = 0 (x, z in [-10, 10] × [0, 10]) and a ledge 3 m in front of its
-    # left half; the camera 30 m south. Then the wall alone, seen at 75°.
-    n = 20_000
     x, z = rng.uniform(-10, 10, n), rng.uniform(0, 10, n)
     wall = np.stack([x, rng.normal(0, 0.002, n), z], 1)
     xl, zl = rng.uniform(-10, 0, n // 2), rng.uniform(0, 10, n // 2)
-    ledge = np.stack([xl, np.full(n // 2, -3.0), zl], 1)
+    return wall, np.stack([xl, np.full(n // 2, -3.0), zl], 1)
+
+
+def test_cloud_line_over_an_occluding_step_splits_and_steep_rock_does_not():
+    from napari_imgreg.cloud import CloudScene
+
+    # A wall y = 0 and a ledge 3 m in front of its left half; the camera 30 m
+    # south. Then the wall alone, seen at 75°.
+    wall, ledge = _wall_and_ledge()
     scene = CloudScene(np.vstack([wall, ledge]), viewpoints=np.array([[0.0, -30.0, 5.0]]))
     intr = Intrinsics(600, 450, 600.0, 600.0, 299.5, 224.5)
     pose = Pose.from_attitude(0.0, 0.0, 0.0, np.array([0.0, -30.0, 5.0]))
@@ -600,13 +605,7 @@ def test_project_command_on_a_cloud_takes_gap_spacings(tmp_path, capsys):
     from napari_imgreg.interpret.project import Interpretation
     from napari_imgreg.io.pointclouds import PointCloud, write_point_cloud
 
-    rng = np.random.default_rng(5)
-    n = 20_000
-    x, z = rng.uniform(-10, 10, n), rng.uniform(0, 10, n)
-    wall = np.stack([x, rng.normal(0, 0.002, n), z], 1)
-    xl, zl = rng.uniform(-10, 0, n // 2), rng.uniform(0, 10, n // 2)
-    ledge = np.stack([xl, np.full(n // 2, -3.0), zl], 1)
-    xyz = np.vstack([wall, ledge])
+    xyz = np.vstack(_wall_and_ledge())
     scan = write_point_cloud(tmp_path / "scan.ply",
                              PointCloud(xyz, np.full(len(xyz), 0.5, np.float32), None))
     intr = Intrinsics(600, 450, 600.0, 600.0, 299.5, 224.5)
