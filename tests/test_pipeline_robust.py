@@ -132,3 +132,54 @@ def test_regional_residual_flow_sees_a_systematic_misfit_not_block_noise():
     misfit = right.copy()
     misfit[render_pts[:, 0] > 340] += (3.0, 0.0)
     assert flow(misfit, True) > 2.5
+
+
+def test_biased_keypoints_go_straight_to_area_matching(sample, monkeypatch):
+    """A keypoint trial whose split halves disagree (the gate fires) is biased:
+    no adapted keypoint trials and no prior search follow it (they share the
+    bias, issue 13: 44–69 s per photo spent on them), area matching does."""
+    import napari_imgreg.registration.round as round_mod
+    from napari_imgreg.registration.uncertainty import Uncertainty
+
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    prior = prior_for_photo(photo, scene)
+    real = round_mod.estimate_uncertainty
+    calls = []
+
+    def first_biased(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:  # the first keypoint trial: halves 10 px apart
+            return Uncertainty(10.0, 2.0, 0.5, 4)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(round_mod, "estimate_uncertainty", first_biased)
+    reg = register(scene, photo.image, prior, RegistrationParams())
+    first = reg.trials[0]
+    assert first.biased and not first.verified
+    assert first.adaptation == "biased matches: to area matching"
+    assert reg.trials[1].matcher == "area" and reg.trials[1].origin == "area matching"
+    assert not any(t.origin == "search" for t in reg.trials)
+    truth = load_truth(folder / "IMG_0001.jpg")
+    assert reg.registered and reg.best_trial == 1
+    assert _check_point_px(reg, truth) < 2.0
+
+
+def test_a_trial_without_enough_inliers_is_not_called_biased():
+    from napari_imgreg.registration.round import MIN_VERIFIED_INLIERS, Trial
+    from napari_imgreg.registration.uncertainty import Uncertainty
+    from napari_imgreg.camera import Intrinsics
+
+    intr = Intrinsics.from_fov(1632, 1224, 60.0)
+    pose = Pose.from_attitude(0.0, 0.0, 0.0, np.zeros(3))
+
+    def trial(inliers, px, matcher="keypoints"):
+        return Trial(index=0, params=RegistrationParams(), metrics={"inliers_3d": inliers}, q=1.0,
+                     grade="fair", hints=[], pose=pose, start_pose=pose, rounds=2, converged=True,
+                     verified=False, residual_flow_px=1.0, matcher=matcher,
+                     uncertainty=Uncertainty(px, 1.0, 0.1, 4), intrinsics=intr)
+
+    assert trial(MIN_VERIFIED_INLIERS, 4.0).biased
+    assert not trial(MIN_VERIFIED_INLIERS, 3.9).biased          # the estimate is small
+    assert not trial(MIN_VERIFIED_INLIERS - 1, 10.0).biased     # too few matches to tell
+    assert not trial(500, 10.0, matcher="area").biased          # blocks, not keypoints

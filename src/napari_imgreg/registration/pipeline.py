@@ -418,14 +418,17 @@ def _good(t: Trial) -> bool:
 
 def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: RegistrationParams,
                    trials: list[Trial], first_mode: str, options: RegistrationParams,
-                   progress, rounds_of, n_budget: int, untextured: bool = False):
+                   progress, rounds_of, n_budget: int, untextured: bool = False,
+                   biased: bool = False):
     """Illumination-robust stages, in order of cost, each ending in a trial
     from the pose it found (so every pose is verified the same way): a
     sun-lit render; area matching from the best pose so far; edge alignment
     from the prior; MI refinement of the best pose so far. After edges and
     MI, keypoints are matched again (textured models only: a bare mesh's
     shading has no keypoints of a photo's) and then blocks by correlation.
-    Stops at the first verified good trial."""
+    ``biased``: the keypoint trials ended on biased matches
+    (:attr:`~napari_imgreg.registration.round.Trial.biased`), so area matching
+    comes before the sun-lit keypoints. Stops at the first verified good trial."""
     mode = "sunlit" if ctx.sun is not None else first_mode
     base = len(trials)
 
@@ -458,22 +461,31 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
             ctx.check()
         return trial
 
-    best = max(trials, key=_trial_rank)
-    if options.sun_relight and mode == "sunlit" and first_mode != "sunlit":
+    def sunlit_keypoints():
+        best = max(trials, key=_trial_rank)
         start = best.pose if (best.pose is not None and best.metrics.get("inliers_3d", 0) >= 12) \
             else start_prior
         trial = yield from stage_trial(start, "sun-lit render", "matching a sun-lit render", base)
         ctx.check()
-        if _good(trial):
-            return
+        return trial
 
-    if options.area_match:
+    def area_matching():
         best = max(trials, key=_trial_rank)
         near = best.pose is not None and best.metrics.get("inliers_3d", 0) >= 12
         trial = yield from stage_trial(best.pose if near else start_prior, "area matching",
                                        "area matching", base + 0.5, matcher="area",
                                        far_start=not near)
         ctx.check()
+        return trial
+
+    sunlit = options.sun_relight and mode == "sunlit" and first_mode != "sunlit"
+    # Keypoints whose halves disagree are biased (Trial.biased): blocks by
+    # correlation first, then keypoints on the relit render.
+    order = ([area_matching] if options.area_match else []) + ([sunlit_keypoints] if sunlit else [])
+    if not biased:
+        order.reverse()
+    for stage in order:
+        trial = yield from stage()
         if _good(trial):
             return
 
@@ -652,6 +664,13 @@ def register_photo(
         check()
         if trial.verified and trial.grade in ("excellent", "good"):
             break
+        if trial.biased and robust and params.area_match:
+            # The keypoints agree but their halves do not: a bias they share
+            # (shading), which another keypoint trial shares too. Blocks
+            # matched by correlation (on a relit render when the sun is
+            # known) are next, and cheaper than more keypoint trials.
+            trial.adaptation = "biased matches: to area matching"
+            break
         hits = evaluate_rules(trial.metrics, current, intr.width)
         if not params.auto_adapt or not hits:
             break
@@ -667,7 +686,8 @@ def register_photo(
             start_camera = _trial_camera(trial, start_camera)
 
     best = max(trials, key=_trial_rank)
-    if not best.verified and params.search_prior and not (untextured and robust):
+    biased = robust and params.area_match and trials[-1].biased
+    if not best.verified and params.search_prior and not (untextured and robust) and not biased:
         # Search the prior's uncertainty at reduced resolution, one round each.
         candidates = [_above_ground(scene, c)[0]
                       for c in _perturbed_priors(prior, params.n_search, seed=params.seed,
@@ -696,7 +716,7 @@ def register_photo(
         # The stages render (and align edges, refine MI) with the best camera so far.
         ctx.intrinsics = _trial_camera(best, start_camera)
         yield from _robust_stages(ctx, prior, start_prior, best.params, trials, first_mode,
-                                  params, progress, rounds_of, n_budget, untextured)
+                                  params, progress, rounds_of, n_budget, untextured, biased)
         best = max(trials, key=_trial_rank)
 
     if params.verify:

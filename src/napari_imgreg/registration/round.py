@@ -154,6 +154,17 @@ class Trial:
     #: None: the photo's camera, unchanged (a pose scored without the camera).
     intrinsics: Intrinsics | None = None
 
+    @property
+    def biased(self) -> bool:
+        """The keypoints agree on a pose, but poses from separate halves of the
+        photo do not (the uncertainty gate fired): the matches share a bias,
+        e.g. shading under another sun, that more keypoint trials share too."""
+        return bool(self.pose is not None and self.matcher == "keypoints"
+                    and self.metrics.get("inliers_3d", 0) >= MIN_VERIFIED_INLIERS
+                    and self.uncertainty is not None
+                    and self.intrinsics is not None
+                    and not self.uncertainty.is_small(self.intrinsics.width))
+
     def to_dict(self) -> dict:
         return {
             "index": self.index,
