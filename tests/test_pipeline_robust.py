@@ -137,7 +137,7 @@ def test_regional_residual_flow_sees_a_systematic_misfit_not_block_noise():
 def test_biased_keypoints_go_straight_to_area_matching(sample, monkeypatch):
     """A keypoint trial whose split halves disagree (the gate fires) is biased:
     no adapted keypoint trials and no prior search follow it (they share the
-    bias, issue 13: 44–69 s per photo spent on them), area matching does."""
+    bias, issue 13: 39–69 s per photo spent on them), area matching does."""
     import napari_imgreg.registration.round as round_mod
     from napari_imgreg.registration.uncertainty import Uncertainty
 
