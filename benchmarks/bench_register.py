@@ -42,7 +42,7 @@ truth, to study the error estimate without re-registering. The full-size run
 each scene's data take about 4 min to generate on 2 cores). Measured on a
 free machine (issue 13's run): ours 2.0 s (same light), 3.5 s (changed
 light), 10.7 s (untextured) median per photo, baseline about 1 s; before
-(no gate) 7–60 s per changed-light photo. Ours and the baseline over the
+(no gate) 2–29 s per changed-light photo (median 7.6 s). Ours and the baseline over the
 three tiers: 15 min::
 
     .venv/bin/python benchmarks/bench_register.py --size large --scenes 5 --photos 8 \
@@ -884,13 +884,18 @@ def rough_report(rows: list[dict], meta: dict, plot: Path | None, report_path: P
     return "\n".join(lines)
 
 
+def _target_line(ok: bool | None, text: str) -> str:
+    """A report's target line: ✅ met, ❌ missed, – not measured."""
+    return f"- {'–' if ok is None else ('✅' if ok else '❌')} {text}"
+
+
 def rough_targets(rows: list[dict]) -> list[str]:
     """Issue 13's must-show figures for *ours*, each marked met or not."""
     ours = [r for r in rows if r["method"] == "ours"]
     out = ["Targets (issue 13, *ours*):", ""]
 
     def line(ok: bool, text: str) -> None:
-        out.append(f"- {'✅' if ok else '❌'} {text}")
+        out.append(_target_line(ok, text))
 
     for tier, goal in (("rough_changed_light", 0.95), ("rough_same_light", 1.0),
                        ("rough_changed_untextured", 0.90)):
@@ -958,8 +963,7 @@ def verdicts(summary: dict) -> list[str]:
     out = ["Targets (issue 3):", ""]
 
     def line(ok: bool | None, text: str) -> None:
-        mark = "–" if ok is None else ("✅" if ok else "❌")
-        out.append(f"- {mark} {text}")
+        out.append(_target_line(ok, text))
 
     s = summary.get("same_light/ours")
     if s:
