@@ -183,3 +183,57 @@ def test_a_trial_without_enough_inliers_is_not_called_biased():
     assert not trial(MIN_VERIFIED_INLIERS, 3.9).biased          # the estimate is small
     assert not trial(MIN_VERIFIED_INLIERS - 1, 10.0).biased     # too few matches to tell
     assert not trial(500, 10.0, matcher="area").biased          # blocks, not keypoints
+
+
+def test_few_keypoints_under_a_known_sun_go_to_relit_area_matching_first(sample, monkeypatch):
+    """A textured model, a photo with its sun known, and keypoints that find
+    next to nothing (as when their descriptors see the survey light):
+    blocks on the relit render come next, before any adapted keypoint trial
+    or the prior search (issue 13: those cost 16–28 s on the photos whose
+    area matching then won anyway)."""
+    folder, scene = sample
+    assert scene.survey_sun is not None
+    photo = load_photo(folder / "IMG_0001.jpg")
+    prior = prior_for_photo(photo, scene)
+    assert prior.sun is not None
+    _starve_keypoints(monkeypatch)
+    reg = register(scene, photo.image, prior)
+    first, second = reg.trials[0], reg.trials[1]
+    assert first.matcher == "keypoints" and not first.verified
+    assert first.adaptation.startswith("few matches under another sun")
+    assert second.matcher == "area" and second.render_mode == "sunlit"
+    assert second.origin == "area matching"
+    assert len(reg.trials) == 2 and not any(t.origin == "search" for t in reg.trials)
+    truth = load_truth(folder / "IMG_0001.jpg")
+    assert reg.registered and reg.best_trial == 1
+    assert _check_point_px(reg, truth) < 2.0
+
+
+def _starve_keypoints(monkeypatch) -> None:
+    """Every keypoint matching keeps 5 putative matches, whatever the images."""
+    import napari_imgreg.registration.round as round_mod
+    from napari_imgreg.registration.features import Matches
+
+    def starved(real):
+        def match(a, b, params):
+            m = real(a, b, params)
+            keep = slice(0, 5)
+            return Matches(m.idx_a[keep], m.idx_b[keep], m.inlier[keep], m.model)
+        return match
+
+    monkeypatch.setattr(round_mod, "match_features", starved(round_mod.match_features))
+    monkeypatch.setattr(round_mod, "match_guided", starved(round_mod.match_guided))
+
+
+def test_without_a_sun_few_keypoints_adapt_as_before(sample, monkeypatch):
+    """No sun: nothing to relight, so no early area trial; the keypoint
+    adaptation runs as it always did."""
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    prior = prior_for_photo(photo, scene)
+    prior.sun = None
+    _starve_keypoints(monkeypatch)
+    reg = register(scene, photo.image, prior, RegistrationParams(
+        search_prior=False, edge_align=False, dense_refine=False))
+    assert not any(t.adaptation.startswith("few matches") for t in reg.trials)
+    assert reg.trials[1].matcher == "keypoints" and reg.trials[0].adaptation.startswith("rule")

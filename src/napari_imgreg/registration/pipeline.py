@@ -655,6 +655,9 @@ def register_photo(
     # one trial to try, then the structure and dense stages.
     n_keypoint_trials = 1 if (untextured and robust) else (
         params.max_trials if params.auto_adapt else 1)
+    # A textured model under a known other sun (see the loop).
+    early_area = (robust and params.area_match and params.sun_relight and ctx.sun is not None
+                  and not untextured)
     for trial_no in range(n_keypoint_trials):
         trial = yield from rounds_of(
             _run_trial(ctx, len(trials), start, current, origin, mode=first_mode,
@@ -671,6 +674,23 @@ def register_photo(
             # known) are next, and cheaper than more keypoint trials.
             trial.adaptation = "biased matches: to area matching"
             break
+        if trial_no == 0 and early_area:
+            # Under a known other sun, keypoints that find next to nothing
+            # rarely recover by adapting or searching (their descriptors see
+            # the old light): blocks on the relit render first, from the prior
+            # unless this trial found a start. The adaptations and the search
+            # still follow if the blocks fail too.
+            near = trial.pose is not None and trial.metrics.get("inliers_3d", 0) >= 12
+            trial.adaptation = "few matches under another sun: area matching on the relit render"
+            area_trial = yield from rounds_of(
+                _run_trial(ctx, len(trials), trial.pose if near else start_prior, current,
+                           "area matching", mode="sunlit", matcher="area",
+                           far_start=not near, intrinsics=start_camera),
+                "area matching on the relit render")
+            trials.append(area_trial)
+            check()
+            if _good(area_trial):
+                break
         hits = evaluate_rules(trial.metrics, current, intr.width)
         if not params.auto_adapt or not hits:
             break
