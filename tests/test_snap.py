@@ -60,6 +60,27 @@ def test_keeps_its_polarity_across_a_thin_band_and_ignores_a_stronger_edge_nearb
     assert px[:, 1].min() > 66  # never on the top edge or the skyline
 
 
+def test_polarity_is_read_at_the_scale_of_a_click_not_of_the_rocks_mottling():
+    """Clicks 1.5 px below the lower contact of a thin dark bed, each on a
+    speck of mottling whose fine-scale gradient points the other way: read at
+    the cost's 0.7 px the polarity flips and the trace runs along the bed's
+    upper contact; read at ``polarity_px`` (1.5 px, a hand's error) it keeps
+    to the lower one, to a tenth of a pixel."""
+    img = np.full((120, 200), 0.6)
+    img[58:63] = 0.3  # contacts at rows 57.5 (upper) and 62.5 (lower)
+    clicks = np.array([[20.0, 64.0], [180.0, 64.0]])
+    for c, r in clicks.astype(int):
+        img[r - 1, c], img[r + 1, c] = 0.95, 0.05  # bright above, dark below
+    img8 = (img * 255).astype(np.uint8)
+    fine = snap_trace(img8, clicks, SnapParams(polarity_px=0.7))
+    assert abs(np.median(fine[:, 1]) - 57.5) < 1.0  # the wrong contact
+    px = snap_trace(img8, clicks, SnapParams())
+    assert SnapParams().polarity_px == 1.5
+    assert np.all(np.abs(px[1:-1, 1] - 62.5) < 0.1)
+    with pytest.raises(ValueError, match="polarity_px"):
+        SnapParams(polarity_px=0.1)
+
+
 def test_waypoints_are_visited_in_order():
     img = _area_image(_contact_row)
     cols = np.array([10.0, 120.0, 230.0])
