@@ -81,6 +81,22 @@ def test_polarity_is_read_at_the_scale_of_a_click_not_of_the_rocks_mottling():
         SnapParams(polarity_px=0.1)
 
 
+def test_a_waypoint_on_the_photos_border_continues_the_trace():
+    """A waypoint clicked on the last column or row: the piece that ends there
+    is refined up to a pixel and a half past the border; the next piece must
+    still start from it, and the trace stays in the photo (it raised "click outside the photo" on 7 of 60 such
+    random cases)."""
+    rng = np.random.default_rng(0)
+    for k in range(60):
+        img = (rng.random((80, 120)) * 255).astype(np.uint8)
+        way = [119.0, rng.uniform(0, 79)] if k % 2 else [rng.uniform(0, 119), 79.0]
+        clicks = np.array([[rng.uniform(0, 119), rng.uniform(0, 79)], way,
+                           [rng.uniform(0, 119), rng.uniform(0, 79)]])
+        px = snap_trace(img, clicks)
+        assert np.isfinite(px).all()
+        assert np.all(px >= 0) and np.all(px <= [119, 79])  # in the photo
+
+
 def test_waypoints_are_visited_in_order():
     img = _area_image(_contact_row)
     cols = np.array([10.0, 120.0, 230.0])

@@ -397,15 +397,18 @@ def snap_trace(image: np.ndarray, clicks: np.ndarray, params: SnapParams = SnapP
     sub = img[r0:r1, c0:c1]
     local_clicks = clicks - (c0, r0)
     if params.cost == "gradient" and params.oriented:
-        return _snap_oriented(sub, local_clicks, params) + (c0, r0)
-    ref = None
-    if params.cost == "colour":
-        rc = np.clip(np.round(clicks[:, ::-1]).astype(int), 0, [h - 1, w - 1])
-        ref = img[rc[:, 0], rc[:, 1]].reshape(len(rc), -1)
-    cost = cost_image(sub, params, reference_colours=ref)
-    strength = (edge_strength(sub, params.smoothing_px, params.cost)
-                if params.cost in ("gradient", "colour_edge") else None)
-    return snap_path(cost, local_clicks, params, strength=strength) + (c0, r0)
+        px = _snap_oriented(sub, local_clicks, params) + (c0, r0)
+    else:
+        ref = None
+        if params.cost == "colour":
+            rc = np.clip(np.round(clicks[:, ::-1]).astype(int), 0, [h - 1, w - 1])
+            ref = img[rc[:, 0], rc[:, 1]].reshape(len(rc), -1)
+        cost = cost_image(sub, params, reference_colours=ref)
+        strength = (edge_strength(sub, params.smoothing_px, params.cost)
+                    if params.cost in ("gradient", "colour_edge") else None)
+        px = snap_path(cost, local_clicks, params, strength=strength) + (c0, r0)
+    # The sub-pixel refinement may push a vertex on the border past it.
+    return np.clip(px, 0, [w - 1, h - 1])
 
 
 def _polarity(gx: np.ndarray, gy: np.ndarray, normal: np.ndarray, clicks: np.ndarray) -> float:
@@ -444,8 +447,9 @@ def _snap_oriented(image: np.ndarray, clicks: np.ndarray, params: SnapParams) ->
                 if params.polarity_px != params.smoothing_px else (gx, gy))
     pieces: list[np.ndarray] = []
     for a, b in zip(clicks[:-1], clicks[1:]):
-        if pieces:  # continue from where the last piece ended
-            a = pieces[-1][-1]
+        if pieces:  # continue from where the last piece ended (its sub-pixel
+            # refinement may have put it up to half a pixel past the border)
+            a = np.clip(pieces[-1][-1], 0, [image.shape[1] - 1, image.shape[0] - 1])
         t = b - a
         n = np.linalg.norm(t)
         if n == 0:
