@@ -200,7 +200,7 @@ def test_few_keypoints_under_a_known_sun_go_to_relit_area_matching_first(sample,
     reg = register(scene, photo.image, prior)
     first, second = reg.trials[0], reg.trials[1]
     assert first.matcher == "keypoints" and not first.verified
-    assert first.adaptation.startswith("few matches under another sun")
+    assert first.adaptation.startswith("not verified, sun known")
     assert second.matcher == "area" and second.render_mode == "sunlit"
     assert second.origin == "area matching"
     assert len(reg.trials) == 2 and not any(t.origin == "search" for t in reg.trials)
@@ -235,5 +235,26 @@ def test_without_a_sun_few_keypoints_adapt_as_before(sample, monkeypatch):
     _starve_keypoints(monkeypatch)
     reg = register(scene, photo.image, prior, RegistrationParams(
         search_prior=False, edge_align=False, dense_refine=False))
-    assert not any(t.adaptation.startswith("few matches") for t in reg.trials)
+    assert not any(t.adaptation.startswith("not verified, sun known") for t in reg.trials)
     assert reg.trials[1].matcher == "keypoints" and reg.trials[0].adaptation.startswith("rule")
+
+
+def test_when_the_early_blocks_fail_too_the_keypoints_adapt_and_say_both(sample, monkeypatch):
+    """Keypoints and blocks both find nothing: the adapted keypoint trials
+    follow the early area trial, and the first trial's note keeps both steps."""
+    import napari_imgreg.registration.round as round_mod
+    from napari_imgreg.registration.stages.area import BlockMatches
+
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    prior = prior_for_photo(photo, scene)
+    _starve_keypoints(monkeypatch)
+    empty = np.zeros((0, 2))
+    monkeypatch.setattr(round_mod, "match_blocks", lambda *a, **k: BlockMatches(
+        empty, empty.copy(), np.zeros(0), np.zeros(0), np.zeros(0, bool)))
+    reg = register(scene, photo.image, prior, RegistrationParams(
+        search_prior=False, edge_align=False, dense_refine=False))
+    assert not reg.registered
+    first = reg.trials[0].adaptation
+    assert first.startswith("not verified, sun known: area matching on the relit render; rule")
+    assert reg.trials[1].matcher == "area" and reg.trials[2].matcher == "keypoints"

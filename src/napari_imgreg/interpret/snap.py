@@ -444,11 +444,11 @@ def _snap_oriented(image: np.ndarray, clicks: np.ndarray, params: SnapParams) ->
     """Segment by segment: the edge across each segment's normal with the clicks' polarity."""
     gx, gy = _luminance_derivatives(image, params.smoothing_px)
     pol_gx, pol_gy = (_luminance_derivatives(image, params.polarity_px)
-                if params.polarity_px != params.smoothing_px else (gx, gy))
+                      if params.polarity_px != params.smoothing_px else (gx, gy))
     pieces: list[np.ndarray] = []
     for a, b in zip(clicks[:-1], clicks[1:]):
         if pieces:  # continue from where the last piece ended (its sub-pixel
-            # refinement may have put it up to half a pixel past the border)
+            # refinement may have put it past the border)
             a = np.clip(pieces[-1][-1], 0, [image.shape[1] - 1, image.shape[0] - 1])
         t = b - a
         n = np.linalg.norm(t)

@@ -681,7 +681,7 @@ def register_photo(
             # unless this trial found a start. The adaptations and the search
             # still follow if the blocks fail too.
             near = trial.pose is not None and trial.metrics.get("inliers_3d", 0) >= 12
-            trial.adaptation = "few matches under another sun: area matching on the relit render"
+            trial.adaptation = "not verified, sun known: area matching on the relit render"
             area_trial = yield from rounds_of(
                 _run_trial(ctx, len(trials), trial.pose if near else start_prior, current,
                            "area matching", mode="sunlit", matcher="area",
@@ -695,11 +695,13 @@ def register_photo(
         if not params.auto_adapt or not hits:
             break
         adapted = hits[0].apply(current)
+        # After the early area trial its note stays in front ("...; rule 6: ...").
+        before = f"{trial.adaptation}; " if trial.adaptation else ""
         if adapted == current:
             # The rule's parameter is at its limit: another trial would repeat this one.
-            trial.adaptation = f"rule {hits[0].rule}: nothing left to adapt"
+            trial.adaptation = f"{before}rule {hits[0].rule}: nothing left to adapt"
             break
-        trial.adaptation = f"rule {hits[0].rule}: {hits[0].adaptation}"
+        trial.adaptation = f"{before}rule {hits[0].rule}: {hits[0].adaptation}"
         current = adapted
         if trial.pose is not None and trial.metrics.get("inliers_3d", 0) >= 12:
             start, origin = trial.pose, f"trial {trial.index + 1}"
