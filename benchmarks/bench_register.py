@@ -40,8 +40,9 @@ registration). ``--dump DIR`` writes every trial's pose and matches beside the
 truth, to study the error estimate without re-registering. The full-size run
 (40 photos per tier over 5 scenes of 1.2 M triangles, 1632 × 1224 photos;
 each scene's data take about 4 min to generate on 2 cores). Measured on a
-free machine (issue 13's run): ours 2.0 s (same light), 3.5 s (changed
-light), 10.7 s (untextured) median per photo, baseline about 1 s; before
+free machine (issue 13's runs): ours 2.0 s (same light), 3.1 s (changed
+light, 95th percentile 6.8 s), 10.7 s (untextured) median per photo, baseline
+about 1 s; before
 (no gate) 2–29 s per changed-light photo (median 7.6 s). Ours and the baseline over the
 three tiers: 15 min::
 
