@@ -1248,7 +1248,9 @@ def report_from_rows(paths: list[Path], report_path: Path | None) -> int:
     meta["command"] = " && ".join(m["command"] for m in metas)
     meta["rows_files"] = [str(p.with_suffix("")) for p in paths]
     meta["n_scenes"] = len({(r["scene_seed"]) for r in rows})
-    meta["seeds"] = ", ".join(str(s) for s in sorted({r["scene_seed"] for r in rows}))
+    seeds = sorted({r["scene_seed"] for r in rows})
+    meta["seeds"] = (f"{seeds[0]}–{seeds[-1]}" if seeds == list(range(seeds[0], seeds[-1] + 1))
+                     else ", ".join(str(s) for s in seeds))
     if any(r["tier"] in ROUGH_TIERS for r in rows):
         plot = None
         if report_path:

@@ -234,10 +234,10 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
     lines += [
         "",
         "Most traces sit a third of a pixel from the perfect drawing; the median and the 95th "
-        "percentile of the distances are set by the quarter that follow another edge (the other "
+        "percentile of the distances are set by the fifth to a quarter that follow another edge (the other "
         "side of a thin bed, mottling inside it, a stronger edge beside a weak contact). The "
         "model's unshaded colours, where every contact is exactly where the truth puts it, fail "
-        "as often: the limit is the tracer on thin, mottled beds from two clicks, not the "
+        "more often still: the limit is the tracer on thin, mottled beds from two clicks, not the "
         "photo's light. The last columns click once more, where each strayed trace is "
         "farthest from its contact (±1.5 px), as a user seeing it stray would.",
         "",
