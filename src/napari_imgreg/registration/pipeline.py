@@ -416,6 +416,11 @@ def _good(t: Trial) -> bool:
     return t.verified and t.grade in ("excellent", "good")
 
 
+def _is_start(t: Trial) -> bool:
+    """The trial's pose is worth starting the next trial from (≥ 12 3D inliers)."""
+    return t.pose is not None and t.metrics.get("inliers_3d", 0) >= 12
+
+
 def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: RegistrationParams,
                    trials: list[Trial], first_mode: str, options: RegistrationParams,
                    progress, rounds_of, n_budget: int, untextured: bool = False,
@@ -463,15 +468,14 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
 
     def sunlit_keypoints():
         best = max(trials, key=_trial_rank)
-        start = best.pose if (best.pose is not None and best.metrics.get("inliers_3d", 0) >= 12) \
-            else start_prior
+        start = best.pose if _is_start(best) else start_prior
         trial = yield from stage_trial(start, "sun-lit render", "matching a sun-lit render", base)
         ctx.check()
         return trial
 
     def area_matching():
         best = max(trials, key=_trial_rank)
-        near = best.pose is not None and best.metrics.get("inliers_3d", 0) >= 12
+        near = _is_start(best)
         trial = yield from stage_trial(best.pose if near else start_prior, "area matching",
                                        "area matching", base + 0.5, matcher="area",
                                        far_start=not near)
@@ -655,7 +659,7 @@ def register_photo(
     # one trial to try, then the structure and dense stages.
     n_keypoint_trials = 1 if (untextured and robust) else (
         params.max_trials if params.auto_adapt else 1)
-    # A textured model under a known other sun (see the loop).
+    # A textured model whose photo's sun is known (see the loop).
     early_area = (robust and params.area_match and params.sun_relight and ctx.sun is not None
                   and not untextured)
     for trial_no in range(n_keypoint_trials):
@@ -675,12 +679,12 @@ def register_photo(
             trial.adaptation = "biased matches: to area matching"
             break
         if trial_no == 0 and early_area:
-            # Under a known other sun, keypoints that find next to nothing
-            # rarely recover by adapting or searching (their descriptors see
-            # the old light): blocks on the relit render first, from the prior
-            # unless this trial found a start. The adaptations and the search
-            # still follow if the blocks fail too.
-            near = trial.pose is not None and trial.metrics.get("inliers_3d", 0) >= 12
+            # The sun is known and the keypoints did not verify (under another
+            # sun they find next to nothing, and rarely recover by adapting or
+            # searching: their descriptors see the survey light): blocks on
+            # the relit render first, from the prior unless this trial found a
+            # start. The adaptations and the search follow if they fail too.
+            near = _is_start(trial)
             trial.adaptation = "not verified, sun known: area matching on the relit render"
             area_trial = yield from rounds_of(
                 _run_trial(ctx, len(trials), trial.pose if near else start_prior, current,
@@ -703,7 +707,7 @@ def register_photo(
             break
         trial.adaptation = f"{before}rule {hits[0].rule}: {hits[0].adaptation}"
         current = adapted
-        if trial.pose is not None and trial.metrics.get("inliers_3d", 0) >= 12:
+        if _is_start(trial):
             start, origin = trial.pose, f"trial {trial.index + 1}"
             start_camera = _trial_camera(trial, start_camera)
 
