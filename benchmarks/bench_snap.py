@@ -62,18 +62,10 @@ POSES = Path(__file__).parent / "_cache" / "interpret_poses.json"
 OFF_CONTACT_PX = 1.5
 
 
-def _densify_px(px: np.ndarray, step: float = 0.25) -> np.ndarray:
-    """A pixel polyline resampled every ``step`` px along its length, (N, 2)."""
-    out = [px[:1]]
-    for a, b in zip(px[:-1], px[1:]):
-        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step)))
-        out.append(a + (b - a) * np.linspace(0, 1, n + 1)[1:, None])
-    return np.concatenate(out)
-
-
 def _offset_px(perfect: np.ndarray, traced: np.ndarray) -> float:
-    """Median pixel distance of a traced polyline from the perfect one."""
-    return float(np.median(cKDTree(_densify_px(perfect)).query(_densify_px(traced))[0]))
+    """Median pixel distance of a traced polyline from the perfect one (both
+    resampled every 0.25 px; ``_dense`` works in any unit)."""
+    return float(np.median(cKDTree(_dense(perfect, 4.0)).query(_dense(traced, 4.0))[0]))
 
 
 def run(sizes: list[str], photos_limit: int | None, cost: str,
@@ -111,8 +103,8 @@ def run(sizes: list[str], photos_limit: int | None, cost: str,
                 off_photo.append(off)
                 if off > OFF_CONTACT_PX:
                     # What a user does next: one waypoint where the trace strays most.
-                    dense = _densify_px(item.pixels)
-                    far = dense[np.argmax(cKDTree(_densify_px(px)).query(dense)[0])]
+                    dense = _dense(item.pixels, 4.0)
+                    far = dense[np.argmax(cKDTree(_dense(px, 4.0)).query(dense)[0])]
                     way = np.clip(far + rng.normal(0, CLICK_JITTER_PX, 2), 0,
                                   [image.shape[1] - 1, image.shape[0] - 1])
                     off = _offset_px(item.pixels,
