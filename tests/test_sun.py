@@ -343,6 +343,41 @@ def test_relight_untextured_box_is_grey_times_shading():
     assert res.rgb[res.mask & ~lit].max() == round(GREY_ALBEDO * 0.3)
 
 
+def test_shading_share_known_answers():
+    """The share of band-passed log contrast drawn by the light: a uniform
+    albedo gives 1, a uniform light 0, and two independent fields of equal
+    variance a half."""
+    from napari_imgreg.registration.stages.relight import shading_share
+
+    rng = np.random.default_rng(3)
+    mask = np.ones((96, 128), bool)
+    mask[:10] = False  # some sky
+    pix = np.flatnonzero(mask)
+
+    def field():
+        return np.exp(0.3 * rng.standard_normal(len(pix))).astype(np.float32)
+
+    assert shading_share(np.full(len(pix), 150.0, np.float32), field(), pix, mask) == pytest.approx(1.0)
+    assert shading_share(150.0 * field(), np.full(len(pix), 0.8, np.float32), pix, mask) == pytest.approx(0.0, abs=1e-9)
+    half = [shading_share(150.0 * field(), field(), pix, mask) for _ in range(5)]
+    assert np.mean(half) == pytest.approx(0.5, abs=0.05)
+
+
+def test_relit_render_says_how_much_of_it_is_synthetic_light():
+    """render_sunlit's ``shading_share``: 1 on an untextured mesh, whose every
+    edge the light draws; below a half on a textured one whose pattern carries
+    the detail; a plain render has none."""
+    survey = sun_vector_enu(160.0, 40.0)
+    textured = _panels(lambda k, pat: pat * (0.35 + 0.65 * max(0.0, float(_PANEL_NORMALS[k] @ survey))))
+    intr, pose = _panel_camera()
+    new = sun_vector_enu(230.0, 25.0)
+    lit = render_sunlit(textured, intr, pose, new, survey_sun_dir=survey)
+    assert 0.0 < lit.shading_share < 0.5
+    bare = render_sunlit(_box_on_plane(), *_down_camera(), sun_vector_enu(135.0, 45.0))
+    assert bare.shading_share == pytest.approx(1.0)
+    assert render(textured, intr, pose).shading_share is None
+
+
 # ---------------------------------------------------------------------------
 # relighting a textured render
 # ---------------------------------------------------------------------------

@@ -57,6 +57,12 @@ class RenderResult:
     timings_s : dict
         Seconds spent casting and shading (``cast_shade``), sampling the
         texture (``texture``) and in all (``total``).
+    shading_share : float or None
+        Of a render relit for another sun
+        (:func:`~napari_imgreg.registration.stages.relight.render_sunlit`):
+        the share of its fine contrast that is synthetic shading rather than
+        the model's own colours, in [0, 1] (1 for an untextured mesh). None:
+        the colours are the model's as they are.
     """
 
     rgb: np.ndarray
@@ -68,6 +74,7 @@ class RenderResult:
     intrinsics: Intrinsics
     cam_from_world: Pose
     timings_s: dict = field(default_factory=dict)
+    shading_share: float | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -46,6 +46,7 @@ __all__ = [
     "smooth_normals",
     "relight",
     "render_sunlit",
+    "shading_share",
     "estimate_sun_from_photo",
     "SunEstimate",
     "GREY_ALBEDO",
@@ -333,11 +334,26 @@ def relight(
     (H, W, 3) uint8 array
         The relit colours; the render's background where nothing is hit.
     """
+    return _relight(render_result, scene, sun_dir, ambient, survey_sun_dir, survey_ambient,
+                    shadows, albedo, survey_shadows=survey_shadows, normals=normals,
+                    gamma=gamma, survey_gamma=survey_gamma, lowpass_sigma=lowpass_sigma,
+                    penumbra_px=penumbra_px, crease_deg=crease_deg, with_share=False)[0]
+
+
+def _relight(render_result: RenderResult, scene: Scene, sun_dir: npt.ArrayLike,
+             ambient: float = 0.35, survey_sun_dir: npt.ArrayLike | None = None,
+             survey_ambient: float = 0.35, shadows: bool = True,
+             albedo: str | np.ndarray = "auto", *, survey_shadows: bool = False,
+             normals: str = "smooth", gamma: float = 1.0, survey_gamma: float | None = None,
+             lowpass_sigma: float = 0.04, penumbra_px: float = 0.8, crease_deg: float = 40.0,
+             with_share: bool = True) -> tuple[np.ndarray, float | None]:
+    """:func:`relight`'s colours and the :func:`shading_share` of its light
+    (None when no pixel sees the surface, or without ``with_share``)."""
     rr = render_result
     mask = rr.mask
     out = rr.rgb.copy()
     if not mask.any():
-        return out
+        return out, None
     if normals not in ("smooth", "flat"):
         raise ValueError(f"normals must be 'smooth' or 'flat', not {normals!r}")
     s = _unit(sun_dir).astype(np.float32)
@@ -408,7 +424,54 @@ def relight(
     lit = lit_fraction(s, shadows)
     shade = _shading(np.clip(n @ s, 0.0, None), lit, ambient, gamma)
     out.reshape(-1, 3)[pix] = np.clip(alb * shade[:, None] + 0.5, 0, 255).astype(np.uint8)
-    return out
+    return out, (shading_share(alb @ _LUMA, shade, pix, mask) if with_share else None)
+
+
+#: Band of the contrast :func:`shading_share` compares, pixels of the render:
+#: area matching's band-pass (``AreaParams``: 0.8 px inner, 6 px outer σ).
+_SHARE_BAND_PX = (0.8, 6.0)
+
+
+def shading_share(albedo_luma: np.ndarray, shade: np.ndarray, pix: np.ndarray,
+                  mask: np.ndarray) -> float:
+    """Share of a relit render's fine contrast that comes from its synthetic light.
+
+    A relit render is ``albedo × shade``; its log is the sum of the two
+    logs. Band-passed as area matching sees a render (0.8–6 px), the share
+    is ``var(shade) / (var(shade) + var(albedo))`` of the logs: 1 for an
+    untextured mesh (a uniform albedo, every edge drawn by the light), small
+    for a texture whose own colours carry the detail. Matches on the
+    synthetic part inherit what the model's light gets wrong — relief the
+    model does not resolve shades and shadows the photo, not the render —
+    and that error is shared by every match, so no split of the matches
+    sees it (:mod:`napari_imgreg.registration.uncertainty` adds it).
+
+    Parameters
+    ----------
+    albedo_luma : (N,) array
+        Luminance of the albedo at the surface pixels (8-bit scale).
+    shade : (N,) array
+        The new light's shading factor there.
+    pix : (N,) int array
+        Their flat indices in the render.
+    mask : (H, W) bool array
+        The render's surface pixels.
+
+    Returns
+    -------
+    float in [0, 1]; 0 when the render shows no contrast at all.
+    """
+    lo, hi = _SHARE_BAND_PX
+
+    def band_variance(values: np.ndarray) -> float:
+        img = _scatter(values, pix, mask.shape)
+        band = masked_gaussian(img, mask, lo, reduce_wide=False) - masked_gaussian(img, mask, hi)
+        return float(np.var(_gather(band, pix)))
+
+    v_shade = band_variance(np.log(np.maximum(shade, 1e-3)).astype(np.float32))
+    v_albedo = band_variance(np.log(np.maximum(albedo_luma, 1.0)).astype(np.float32))
+    total = v_shade + v_albedo
+    return float(v_shade / total) if total > 0 else 0.0
 
 
 def _gather(img: np.ndarray, pix: np.ndarray) -> np.ndarray:
@@ -449,12 +512,13 @@ def render_sunlit(
     Returns
     -------
     RenderResult
-        ``rgb`` relit; ``timings_s["relight"]`` holds the relighting's
-        seconds (also added to ``total``).
+        ``rgb`` relit, ``shading_share`` its synthetic light's share of the
+        contrast (:func:`shading_share`); ``timings_s["relight"]`` holds the
+        relighting's seconds (also added to ``total``).
     """
     rr = render(scene, intrinsics, pose, scale=scale, mode="color", background=background)
     t0 = time.perf_counter()
-    rr.rgb = relight(rr, scene, sun_dir, **kw)
+    rr.rgb, rr.shading_share = _relight(rr, scene, sun_dir, **kw)
     dt = time.perf_counter() - t0
     rr.timings_s["relight"] = dt
     rr.timings_s["total"] = rr.timings_s.get("total", 0.0) + dt
