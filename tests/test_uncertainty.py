@@ -187,6 +187,10 @@ def test_quality_panel_line_says_the_estimate():
     assert "0.8 px" in small and "0.05 m" in small and "#b9f6ca" in small
     large = uncertainty_text(Uncertainty(6.5, 1.2, 0.4), W)
     assert "6.5 px" in large and "#ff8a80" in large
+    biased = uncertainty_text(Uncertainty(6.5, 1.2, 0.4, 4, halves_px=6.5), W)
+    assert "halves disagree" in biased
+    synthetic = uncertainty_text(Uncertainty(4.6, 0.8, 0.3, 4, halves_px=2.0, shared_px=4.4), W)
+    assert "4.4 px of it from the render's synthetic light" in synthetic and "#ff8a80" in synthetic
     assert "unknown" in uncertainty_text(Uncertainty(math.inf, math.inf, math.inf), W)
 
 
@@ -331,3 +335,84 @@ def test_candidate_factor_keeps_wrong_matches_out_of_the_halves():
     kept = estimate_uncertainty(intr, est.pose, X, photo, E, UncertaintyParams(candidate_factor=2.0))
     assert kept.is_small(W) and err <= 2 * kept.reprojection_px
     assert UncertaintyParams().candidate_factor == 0.0  # not yet the default
+
+
+# ---------------------------------------------------------- block bootstrap
+def _cells_with_shared_errors(seed: int, cell_sigma: float, point_sigma: float = 0.3):
+    """Keypoints on the cliff and ground whose error is shared within each
+    eighth-of-the-width cell (a patch's shading and unresolved relief)."""
+    intr, true, X, u, rng = _scene(seed)
+    cell = np.floor(u / (W / 8.0)).astype(int)
+    keys = cell[:, 0] * 100 + cell[:, 1]
+    offsets = {k: rng.normal(0, cell_sigma, 2) for k in np.unique(keys)}
+    shared = np.array([offsets[k] for k in keys])
+    return intr, true, X, u + shared + rng.normal(0, point_sigma, u.shape)
+
+
+def test_bootstrap_term_is_the_error_of_a_pose_from_independent_cells():
+    """Errors shared within cells, independent between them: over many draws
+    of the cells' errors the least-squares pose errs by about what one draw's
+    block bootstrap says (Monte Carlo known answer, within the bootstrap's
+    own scatter)."""
+    from napari_imgreg.registration.uncertainty import bootstrap_term
+
+    intr, true, _X, _u, _rng = _scene(6)
+    E = _frame(intr, true)
+    errors, boots = [], []
+    for k in range(12):
+        intr, true, X, photo = _cells_with_shared_errors(100 + k, 1.5)
+        est = estimate_pose(intr, X, photo)
+        errors.append(np.linalg.norm(est.pose.project(intr, E) - true.project(intr, E), axis=1))
+        boots.append(bootstrap_term(intr, est.pose, X, photo, E, W / 8.0, 40, rng_seed=k)[0])
+    observed = float(np.median(np.sqrt(np.mean(np.square(errors), axis=0))))
+    assert float(np.median(boots)) == pytest.approx(observed, rel=0.4)
+    # The same errors counted point by point (tiny cells) look far smaller.
+    tiny = bootstrap_term(intr, est.pose, X, photo, E, 1.0, 40)[0]
+    assert tiny < 0.5 * float(np.median(boots))
+
+
+def test_bootstrap_term_needs_two_cells():
+    from napari_imgreg.registration.uncertainty import bootstrap_term
+
+    intr, true, X, u, _ = _scene(0)
+    out = bootstrap_term(intr, true, X, u, _frame(intr, true), cell_px=10 * W)
+    assert np.isinf(out).all()
+
+
+def test_synthetic_light_adds_its_shared_error_whole():
+    """The same matches, once against the model's own colours and once against
+    a render whose every edge the light drew (an untextured mesh relit):
+    the second estimate adds ``shared_gain`` × the median held-out residual
+    in quadrature, enough here to withhold the verdict, and says so."""
+    intr, _true, X, photo, est, E, err = _solve(0, 0.0)
+    photo = photo + np.random.default_rng(9).normal(0, 3.0, photo.shape)  # blocks, not keypoints
+    est = estimate_pose(intr, X, photo)
+    own = estimate_uncertainty(intr, est.pose, X, photo, E)
+    relit = estimate_uncertainty(intr, est.pose, X, photo, E, shading_share=1.0)
+    assert own.shared_px == 0.0 and own.is_small(W)
+    assert relit.shared_px > 4.0
+    assert relit.reprojection_px == pytest.approx(math.hypot(own.reprojection_px, relit.shared_px),
+                                                  rel=1e-6)
+    assert not relit.is_small(W) and not relit.halves_disagree(W)
+    quarter = estimate_uncertainty(intr, est.pose, X, photo, E, shading_share=0.25)
+    assert quarter.shared_px == pytest.approx(0.5 * relit.shared_px)
+    # The old estimate (the halves alone) is kept for reproducing the earlier benchmark.
+    halves = estimate_uncertainty(intr, est.pose, X, photo, E, UncertaintyParams(estimate="halves"),
+                                  shading_share=1.0)
+    assert halves.reprojection_px == pytest.approx(relit.halves_px)
+    with pytest.raises(ValueError, match="estimate"):
+        UncertaintyParams(estimate="guess")
+
+
+def test_a_pose_matched_on_synthetic_light_gets_a_hint_that_says_so():
+    intr, true, X, photo, est, E, _err = _solve(0, 0.0)
+    photo = photo + np.random.default_rng(9).normal(0, 3.0, photo.shape)
+    est = estimate_pose(intr, X, photo)
+    last = _round_of(intr, X, photo, est, E.reshape(30, 40, 3))
+    last.rendered.shading_share = 1.0
+    trial = trial_from_round(last, index=0, params=RegistrationParams(), pose=est.pose,
+                             start_pose=true, rounds=3, converged=True, origin="area matching",
+                             seconds=1.0, image_width=W, intrinsics=intr)
+    assert not trial.verified and trial.grade not in ("good", "excellent")
+    assert any("synthetic light" in h for h in trial.hints)
+    assert not any("halves of the photo disagree" in h for h in trial.hints)

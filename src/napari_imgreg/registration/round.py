@@ -693,7 +693,9 @@ def trial_from_round(
         uncertainty = estimate_uncertainty(
             with_known_focal(intrinsics), pose, corr.xyz[use], corr.photo_points[use],
             frame_points(last.rendered.xyz), uncertainty_params or params.uncertainty,
-            replace(params.pose, solver="epnp"), rng_seed=int(params.seed))
+            replace(params.pose, solver="epnp"),
+            shading_share=getattr(last.rendered, "shading_share", None) or 0.0,
+            rng_seed=int(params.seed))
     uncertain = uncertainty is not None and not uncertainty.is_small(image_width)
     flow_verified = verified
     verified = verified and not uncertain
@@ -722,13 +724,22 @@ def trial_from_round(
             f"Focal length estimated with the pose: fx = {intrinsics.fx:.1f} px (a "
             f"{intrinsics.hfov_deg:.1f}° horizontal view); the uncertainty holds it fixed.")
     if uncertain:
-        hints.append(
-            f"Independent check: poses solved from separate halves of the photo disagree "
-            f"(expected error ≈ {uncertainty.reprojection_px:.1f} px, camera "
-            f"≈ {uncertainty.position_m:.2f} m, {uncertainty.rotation_deg:.2f}°): the matches are "
-            "probably biased (e.g. shading under another sun) — check the overlay at control "
-            "points, or add control points by hand."
-        )
+        expected = (f"expected error ≈ {uncertainty.reprojection_px:.1f} px, camera "
+                    f"≈ {uncertainty.position_m:.2f} m, {uncertainty.rotation_deg:.2f}°")
+        if uncertainty.halves_disagree(image_width) or not math.isfinite(uncertainty.halves_px):
+            hints.append(
+                f"Independent check: poses solved from separate halves of the photo disagree "
+                f"({expected}): the matches are probably biased (e.g. shading under another "
+                "sun) — check the overlay at control points, or add control points by hand.")
+        elif uncertainty.shared_px >= 0.5 * uncertainty.reprojection_px:
+            hints.append(
+                f"Independent check: the render was matched on its synthetic light ({expected}): "
+                "the model shades only the relief it resolves, an error every match shares and "
+                "no check can see — give the model a texture, or add control points by hand.")
+        else:
+            hints.append(
+                f"Independent check: the matches leave the pose loose ({expected}): too few "
+                "separate areas of the photo were matched — add control points by hand.")
     return Trial(
         index=index,
         params=params.copy(),

@@ -97,9 +97,15 @@ def uncertainty_text(unc, width: int) -> str:
         return ("<span style='color:#ff8a80'>Expected error: unknown — too few matches on "
                 "separate halves of the photo to check the pose independently</span>")
     colour = "#b9f6ca" if unc.is_small(width) else "#ff8a80"
+    if unc.halves_disagree(width):
+        why = "the photo's halves disagree: the matches share a bias"
+    elif unc.shared_px > 0 and unc.shared_px >= 0.5 * unc.reprojection_px:
+        why = (f"≈ {unc.shared_px:.1f} px of it from the render's synthetic light, "
+               "which no check can see")
+    else:
+        why = "independent check: areas of the photo re-drawn, halves compared"
     return (f"<span style='color:{colour}'>Expected error ≈ {unc.reprojection_px:.1f} px · "
-            f"camera ≈ {unc.position_m:.2f} m · {unc.rotation_deg:.2f}° "
-            "(independent check, halves of the photo)</span>")
+            f"camera ≈ {unc.position_m:.2f} m · {unc.rotation_deg:.2f}° ({why})</span>")
 
 
 def _grade_range(k: int) -> str:
@@ -168,15 +174,17 @@ class QualityPanel(QWidget):
                                   + self.table.horizontalHeader().sizeHint().height()
                                   + 2 * self.table.frameWidth() + 2)
 
-        # The pose's error estimate by cross-validation over halves of the photo
-        # (RESULT.json "uncertainty"): what the geologist may expect, not a fit residual.
+        # The pose's independent error estimate (RESULT.json "uncertainty"):
+        # what the geologist may expect, not a fit residual.
         self.uncertainty_label = QLabel("")
         self.uncertainty_label.setWordWrap(True)
         self.uncertainty_label.setToolTip(
-            "Expected error of this pose, from poses solved on separate halves of the photo "
-            "(not the fit residual): median pixels at model points over the whole frame, "
-            f"camera centre in metres, rotation in degrees. {UNCERTAIN_PX:g} px or more (at "
-            f"{REFERENCE_WIDTH_PX} px width): not verified, graded at most fair.")
+            "Expected error of this pose, not the fit residual: poses re-solved from areas of "
+            "the photo drawn again at random, tested against poses from separate halves, and "
+            "the share of a relit render's light that no check can see. Median pixels at "
+            "model points over the whole frame, camera centre in metres, rotation in degrees. "
+            f"{UNCERTAIN_PX:g} px or more (at {REFERENCE_WIDTH_PX} px width): not verified, "
+            "graded at most fair.")
         self.hint_label = QLabel("")
         self.hint_label.setWordWrap(True)
         self.hint_label.setTextInteractionFlags(Qt.TextSelectableByMouse)
