@@ -60,25 +60,50 @@ def test_keeps_its_polarity_across_a_thin_band_and_ignores_a_stronger_edge_nearb
     assert px[:, 1].min() > 66  # never on the top edge or the skyline
 
 
-def test_polarity_is_read_at_the_scale_of_a_click_not_of_the_rocks_mottling():
+def test_polarity_is_read_along_the_contact_not_on_the_rocks_mottling_under_a_click():
     """Clicks 1.5 px below the lower contact of a thin dark bed, each on a
-    speck of mottling whose fine-scale gradient points the other way: read at
-    the cost's 0.7 px the polarity flips and the trace runs along the bed's
-    upper contact; read at ``polarity_px`` (1.5 px, a hand's error) it keeps
-    to the lower one, to a tenth of a pixel."""
+    speck of mottling whose fine-scale gradient points the other way. Read at
+    the clicks alone the polarity flipped and the trace ran along the bed's
+    upper contact; read along the clicked segment (8 px inward from each
+    click) the speck is outvoted, at the cost's fine scale too, and the trace
+    keeps to the lower contact, to a tenth of a pixel."""
     img = np.full((120, 200), 0.6)
     img[58:63] = 0.3  # contacts at rows 57.5 (upper) and 62.5 (lower)
     clicks = np.array([[20.0, 64.0], [180.0, 64.0]])
     for c, r in clicks.astype(int):
         img[r - 1, c], img[r + 1, c] = 0.95, 0.05  # bright above, dark below
     img8 = (img * 255).astype(np.uint8)
-    fine = snap_trace(img8, clicks, SnapParams(polarity_px=0.7))
-    assert abs(np.median(fine[:, 1]) - 57.5) < 1.0  # the wrong contact
-    px = snap_trace(img8, clicks, SnapParams())
+    for params in (SnapParams(), SnapParams(polarity_px=0.7)):
+        px = snap_trace(img8, clicks, params)
+        assert np.all(np.abs(px[1:-1, 1] - 62.5) < 0.1)
     assert SnapParams().polarity_px == 1.5
-    assert np.all(np.abs(px[1:-1, 1] - 62.5) < 0.1)
     with pytest.raises(ValueError, match="polarity_px"):
         SnapParams(polarity_px=0.1)
+
+
+def test_where_the_contact_fades_under_the_clicks_the_straighter_polarity_wins():
+    """The contact is clicked where its visible stretch ends, and the thin bed
+    fades there (no contrast within 12 px of either click): the polarity is
+    not readable. Both polarities are traced; the bed's base runs straight,
+    its top is a wavy erosion surface — the trace keeps to the straight one
+    that the clicks lie on."""
+    cols = np.arange(200)
+    top = 55.0 + 4.0 * np.sin(2 * np.pi * cols / 25.0)  # wavy upper contact
+    rows = np.arange(120)[:, None]
+    bed = (rows > top[None, :]) & (rows < 64.5)          # base straight at 64.5
+    fade = np.clip((np.minimum(cols - 20, 180 - cols) - 12) / 10.0, 0, 1)[None, :]
+    img = 0.6 - 0.3 * bed * fade
+    img8 = (img * 255).astype(np.uint8)
+    clicks = np.array([[20.0, 64.5], [180.0, 64.5]])
+    px = snap_trace(img8, clicks)
+    dense = np.concatenate([np.linspace(a, b, 20, endpoint=False) for a, b in zip(px[:-1], px[1:])])
+    inner = dense[(dense[:, 0] > 45) & (dense[:, 0] < 155)]
+    assert len(inner) and np.all(np.abs(inner[:, 1] - 64.5) < 0.6)
+    # Read at the clicks the bed is not there: the polarity is unclear.
+    from napari_imgreg.interpret.snap import _luminance_derivatives, _polarity
+
+    gx, gy = _luminance_derivatives(img8, 1.5)
+    assert _polarity(gx, gy, np.array([0.0, 1.0]), clicks)[1] is False
 
 
 def test_a_waypoint_on_the_photos_border_continues_the_trace():

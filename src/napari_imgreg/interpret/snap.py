@@ -411,15 +411,38 @@ def snap_trace(image: np.ndarray, clicks: np.ndarray, params: SnapParams = SnapP
     return np.clip(px, 0, [w - 1, h - 1])
 
 
-def _polarity(gx: np.ndarray, gy: np.ndarray, normal: np.ndarray, clicks: np.ndarray) -> float:
-    """+1 if the luminance rises along ``normal`` under the clicks, else -1.
+#: Pixels along the clicked segment, inward from each click, over which the
+#: contact's polarity is read (:func:`_polarity`).
+POLARITY_REACH_PX = 8
 
-    Read exactly at the clicks (bilinear): the strongest edge nearby may be
-    the other side of a thin bed, with the opposite polarity.
+#: A polarity read weaker than this fraction of the window's strong edges
+#: (99th percentile of the gradient) is not trusted (:func:`_polarity`).
+WEAK_POLARITY = 0.2
+
+
+def _polarity(gx: np.ndarray, gy: np.ndarray, normal: np.ndarray,
+              clicks: np.ndarray) -> tuple[float, bool]:
+    """Whether the luminance rises along ``normal`` on the clicked contact (+1) or falls (-1),
+    and whether the reading is clear.
+
+    Read on the segment between the two clicks, from each click
+    :data:`POLARITY_REACH_PX` pixels inward (bilinear), not only at the
+    clicks: a contact often fades where its visible stretch ends — where the
+    clicks are — and the strongest edge nearby may be the other side of a
+    thin bed, with the opposite polarity. The reading is clear when the mean
+    derivative there is at least :data:`WEAK_POLARITY` of the window's strong
+    edges.
     """
     d = gx * normal[0] + gy * normal[1]
-    v = ndimage.map_coordinates(d, [clicks[:, 1], clicks[:, 0]], order=1, mode="nearest")
-    return 1.0 if float(v.sum()) >= 0 else -1.0
+    a, b = clicks[0], clicks[-1]
+    length = float(np.linalg.norm(b - a))
+    along = (b - a) / max(length, 1e-9)
+    steps = np.arange(min(POLARITY_REACH_PX, max(int(length / 2), 1)), dtype=np.float64)
+    pts = np.concatenate([a + steps[:, None] * along, b - steps[:, None] * along])
+    v = ndimage.map_coordinates(d, [pts[:, 1], pts[:, 0]], order=1, mode="nearest")
+    mean = float(v.mean())
+    strong = float(np.percentile(np.hypot(gx, gy), 99))
+    return (1.0 if mean >= 0 else -1.0), abs(mean) >= WEAK_POLARITY * strong
 
 
 def _chord_penalty(shape: tuple[int, int], a: np.ndarray, b: np.ndarray,
@@ -440,6 +463,26 @@ def _window_max(values: np.ndarray, click: np.ndarray, radius: int) -> float:
     return float(win.max()) if win.size else 0.0
 
 
+def _path_length(px: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(px, axis=0), axis=1).sum())
+
+
+def _oriented_piece(gx: np.ndarray, gy: np.ndarray, a: np.ndarray, b: np.ndarray,
+                    normal: np.ndarray, sign: float, params: SnapParams) -> np.ndarray:
+    """The least-cost path from ``a`` to ``b`` along the edge across ``normal`` with ``sign``."""
+    strength = np.clip(sign * (gx * normal[0] + gy * normal[1]), 0, None)
+    # Saturate at the contact's own strength (under the clicks): a stronger
+    # parallel edge nearby (skyline, vegetation) is then no cheaper.
+    at_clicks = [_window_max(strength, p, params.snap_radius_px + 1) for p in (a, b)]
+    scale = max(params.saturation * float(np.mean(at_clicks)),
+                0.05 * float(np.percentile(strength, 99.5)))
+    raw = 1.0 - np.clip(strength / scale, 0, 1) if scale > 0 else np.ones_like(strength)
+    cost = params.floor + (1.0 - params.floor) * raw ** params.contrast
+    if params.stiffness > 0:
+        cost = cost + params.stiffness * _chord_penalty(cost.shape, a, b, params.corridor_px)
+    return snap_path(cost, np.stack([a, b]), params, strength=strength)
+
+
 def _snap_oriented(image: np.ndarray, clicks: np.ndarray, params: SnapParams) -> np.ndarray:
     """Segment by segment: the edge across each segment's normal with the clicks' polarity."""
     gx, gy = _luminance_derivatives(image, params.smoothing_px)
@@ -455,18 +498,15 @@ def _snap_oriented(image: np.ndarray, clicks: np.ndarray, params: SnapParams) ->
         if n == 0:
             continue
         normal = np.array([-t[1], t[0]]) / n
-        sign = _polarity(pol_gx, pol_gy, normal, np.stack([a, b]))
-        strength = np.clip(sign * (gx * normal[0] + gy * normal[1]), 0, None)
-        # Saturate at the contact's own strength (under the clicks): a stronger
-        # parallel edge nearby (skyline, vegetation) is then no cheaper.
-        at_clicks = [_window_max(strength, p, params.snap_radius_px + 1) for p in (a, b)]
-        scale = max(params.saturation * float(np.mean(at_clicks)),
-                    0.05 * float(np.percentile(strength, 99.5)))
-        raw = 1.0 - np.clip(strength / scale, 0, 1) if scale > 0 else np.ones_like(strength)
-        cost = params.floor + (1.0 - params.floor) * raw ** params.contrast
-        if params.stiffness > 0:
-            cost = cost + params.stiffness * _chord_penalty(cost.shape, a, b, params.corridor_px)
-        piece = snap_path(cost, np.stack([a, b]), params, strength=strength)
+        sign, clear = _polarity(pol_gx, pol_gy, normal, np.stack([a, b]))
+        if clear:
+            piece = _oriented_piece(gx, gy, a, b, normal, sign, params)
+        else:
+            # Unclear at the clicks: trace both polarities and keep the
+            # straighter path — a contact runs smoothly from click to click,
+            # the edge of the wrong polarity makes it wander.
+            piece = min((_oriented_piece(gx, gy, a, b, normal, sg, params) for sg in (1.0, -1.0)),
+                        key=_path_length)
         piece = piece if not pieces else piece[1:]
         if len(piece):
             pieces.append(piece)
