@@ -330,10 +330,12 @@ def estimate_uncertainty(
     *The estimate* (``params.estimate == "bootstrap"``): ``bootstrap_gain`` ×
     the block bootstrap (:func:`bootstrap_term`) and ``shared_gain`` ×
     ``√shading_share`` × the median held-out residual (the synthetic light's
-    error, shared by every match), with ``floor_px``, in quadrature; metres
-    and degrees of the shared part as the pose's geometry converts a pixel
-    (:func:`support_term`). When the halves' figure reaches
-    :data:`UNCERTAIN_PX`, each of the three numbers is at least the halves'.
+    error, shared by every match), with ``floor_px``, in quadrature. Metres
+    and degrees: the bootstrap's, but at least what that image error means
+    for the pose's geometry (:func:`support_term` per pixel), and for the
+    centre at least half the halves' figure (the line of sight's freedom).
+    When the halves' figure reaches :data:`UNCERTAIN_PX`, each of the three
+    numbers is at least the halves'.
 
     Parameters
     ----------
@@ -439,16 +441,21 @@ def estimate_uncertainty(
                                                   params.bootstrap_samples, rng_seed)
     held_px = float(np.median(held_out)) if held_out else float(np.median(fit[inl]))
     shared_px = params.shared_gain * float(np.sqrt(np.clip(shading_share, 0.0, 1.0))) * held_px
-    shared = np.zeros(3)
-    if shared_px > 0:
-        # In metres and degrees as the pose's geometry turns a pixel of error into them.
-        per_px = support_term(intrinsics, pose, X[inl], u[inl], E, 1.0, cell_px)
-        if np.isfinite(per_px).all() and per_px[0] > 0:
-            shared = shared_px * np.array([1.0, per_px[1] / per_px[0], per_px[2] / per_px[0]])
-        else:
-            shared = np.array([shared_px, np.inf, np.inf])
-    px, m, deg = np.sqrt(boot**2 + shared**2)
-    est = np.array([np.hypot(px, floor), m, deg])
+    px = float(np.sqrt(boot[0] ** 2 + shared_px**2 + floor**2))
+    # Metres and degrees: at least what this image error means for this
+    # geometry (how the matches turn a pixel into a turn and a step, as in
+    # the support term) — an error the draws do not see (the shared part, a
+    # bias along the weakly held directions) moves the camera so too. The
+    # centre's step along the line of sight barely moves the image, and a
+    # bias in the model's depth (relief it lacks lifts every match off the
+    # rock) makes it; the halves, each extrapolating, see that freedom: half
+    # their figure is a floor of the centre's error.
+    per_px = support_term(intrinsics, pose, X[inl], u[inl], E, 1.0, cell_px)
+    geometric = (px * per_px[1:] / per_px[0] if np.isfinite(per_px).all() and per_px[0] > 0
+                 else np.full(2, np.inf))
+    m = max(boot[1], geometric[0], 0.5 * halves[1])
+    deg = max(boot[2], geometric[1])
+    est = np.array([px, m, deg])
     if halves[0] >= UNCERTAIN_PX * scale:
         # The halves see a bias: the estimate is at least what they say.
         est = np.maximum(est, halves)
