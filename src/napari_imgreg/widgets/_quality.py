@@ -103,7 +103,7 @@ def uncertainty_text(unc, width: int) -> str:
         why = (f"≈ {unc.shared_px:.1f} px of it from the render's synthetic light, "
                "which no check can see")
     else:
-        why = "independent check: areas of the photo re-drawn, halves compared"
+        why = "independent check: areas of the photo resampled, halves compared"
     return (f"<span style='color:{colour}'>Expected error ≈ {unc.reprojection_px:.1f} px · "
             f"camera ≈ {unc.position_m:.2f} m · {unc.rotation_deg:.2f}° ({why})</span>")
 
