@@ -388,3 +388,24 @@ def test_along_ray_slide_known_answer_and_round_trip():
     assert back.along_ray_m == pytest.approx(0.17)
     older = ErrorModel.from_properties({"camera_position": [0, 0, 0], "sigma_m": 0.2})
     assert math.isnan(older.along_ray_m)  # files without it: from relative_m and view_m
+
+
+@pytest.mark.parametrize("angle_deg, kept", [(3.5, False), (6.0, True)])
+def test_a_plane_near_the_viewing_rays_is_refused(angle_deg, kept):
+    """A trace bent within a plane that makes ``angle_deg`` with the rays from
+    the camera: well off the viewing plane (many σ), but below 4° its dip's
+    error outgrows the Monte Carlo's σ (issue 14: a 3.2° plane was 8° off)."""
+    from napari_imgreg.interpret.structural import measure_trace
+    from napari_imgreg.interpret.uncertainty import ErrorModel
+
+    th = math.radians(angle_deg)
+    x = np.linspace(-10, 10, 60)
+    t = 5.0 * np.sin(x / 3.0)  # the bend, within the plane
+    pts = np.stack([x, 100.0 + t * math.cos(th), t * math.sin(th)], axis=1)
+    model = ErrorModel(camera_position=np.zeros(3), relative_m=0.01, n_vertices=20, view_m=0.01)
+    m = measure_trace([pts], error_model=model)
+    assert m.ray_angle_deg == pytest.approx(angle_deg, abs=0.3)
+    assert m.view_spread > 5  # far off the viewing plane: only the angle decides
+    assert m.has_plane is kept
+    if not kept:
+        assert "viewing rays" in m.note
