@@ -1023,9 +1023,9 @@ class WorkbenchController(QObject):
 
         def job_fn():
             if look[0] == "sunlit":
-                # As the pipeline renders for sun-lit matching.
+                # As the pipeline renders for sun-lit matching (a view: no shading share).
                 result = render_sunlit(scene, intr, pose, np.asarray(look[1]), scale=scale,
-                                       survey_sun_dir=scene.survey_sun)
+                                       survey_sun_dir=scene.survey_sun, with_share=False)
             else:
                 result = render(scene, intr, pose, scale=scale)
             rgb = result.rgb
