@@ -416,3 +416,21 @@ def test_a_pose_matched_on_synthetic_light_gets_a_hint_that_says_so():
     assert not trial.verified and trial.grade not in ("good", "excellent")
     assert any("synthetic light" in h for h in trial.hints)
     assert not any("halves of the photo disagree" in h for h in trial.hints)
+
+
+def test_a_render_without_the_photos_light_counts_as_synthetic_light(make_box, make_quad):
+    """The pipeline's plain render of an untextured mesh is grey shading under
+    a made-up light, and a scan's intensity holds no light at all: either way
+    none of the photo's light is in it, and its shading share is 1. A textured
+    render keeps its photographed colours (no share)."""
+    from napari_imgreg.registration.pipeline import _Context
+
+    intr = Intrinsics.from_fov(320, 240, 60.0)
+    pose = Pose.from_attitude(0.0, 0.0, 0.0, np.array([0.0, -10.0, 0.0]))
+    bare = make_box([-2.0, -1.0, -2.0], [2.0, 1.0, 2.0])
+    ctx = _Context(bare, np.zeros((240, 320, 3), np.uint8), intr, RegistrationParams(), lambda: None)
+    assert ctx.render(pose, 1.0).shading_share == 1.0
+    tex = np.full((8, 8, 3), 120, np.uint8)
+    wall = make_quad([0.0, 0.0, 0.0], [1.0, 0, 0], [0, 0, 1.0], 3.0, 3.0, texture=tex)
+    ctx = _Context(wall, np.zeros((240, 320, 3), np.uint8), intr, RegistrationParams(), lambda: None)
+    assert ctx.render(pose, 1.0).shading_share is None

@@ -197,6 +197,12 @@ class _Context:
                                      survey_sun_dir=self.scene.survey_sun)
         else:
             rendered = render(self.scene, intr, pose, scale=scale)
+            if not (self.scene.has_texture or self.scene.vertex_colors is not None):
+                # Grey shading under a made-up light, or a scan's intensity: none
+                # of the photo's light is in the render, and every match shares
+                # what the photo's shading does to it (the error estimate's
+                # synthetic-light term, whole).
+                rendered.shading_share = 1.0
         self.timings["render"] += time.perf_counter() - t0
         return rendered
 
