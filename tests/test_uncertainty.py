@@ -434,3 +434,43 @@ def test_a_render_without_the_photos_light_counts_as_synthetic_light(make_box, m
     wall = make_quad([0.0, 0.0, 0.0], [1.0, 0, 0], [0, 0, 1.0], 3.0, 3.0, texture=tex)
     ctx = _Context(wall, np.zeros((240, 320, 3), np.uint8), intr, RegistrationParams(), lambda: None)
     assert ctx.render(pose, 1.0).shading_share is None
+
+
+def test_bootstrap_re_solves_an_estimated_focal_length():
+    """A focal length solved with the pose (``estimated`` fx, fy) is re-solved
+    in every draw: over many draws of the cells' errors the jointly solved
+    camera errs, at the frame and in fx, by about what one draw's bootstrap
+    says (Monte Carlo known answer), and the estimate reports the focal
+    length's spread for the hint."""
+    from dataclasses import replace
+
+    from napari_imgreg.registration.resection import refine_camera
+    from napari_imgreg.registration.uncertainty import bootstrap_term
+
+    intr, true, _X, _u, _rng = _scene(6)
+    E = _frame(intr, true)
+    errors, focal_errors, boots, focal_boots = [], [], [], []
+    for k in range(12):
+        intr, true, X, photo = _cells_with_shared_errors(100 + k, 1.5)
+        est = estimate_pose(intr, X, photo)
+        pose, (fx, fy), _c, _k1 = refine_camera(
+            X, photo, est.pose, (1.03 * intr.fx, 1.03 * intr.fy), (intr.cx, intr.cy),
+            loss_scale_px=1e6)
+        cam = replace(intr, fx=fx, fy=fy, estimated=("fx", "fy"))
+        errors.append(np.linalg.norm(pose.project(cam, E) - true.project(intr, E), axis=1))
+        focal_errors.append(fx - intr.fx)
+        b = bootstrap_term(cam, pose, X, photo, E, W / 8.0, 40, rng_seed=k)
+        boots.append(b[0])
+        focal_boots.append(b[3])
+    observed = float(np.median(np.sqrt(np.mean(np.square(errors), axis=0))))
+    assert float(np.median(boots)) == pytest.approx(observed, rel=0.4)
+    focal_rms = float(np.sqrt(np.mean(np.square(focal_errors))))
+    assert focal_rms > 0.5  # the focal length is not free of error here
+    assert float(np.median(focal_boots)) == pytest.approx(focal_rms, rel=0.4)
+    # Held fixed, the draws see no focal error at all.
+    fixed = bootstrap_term(replace(cam, estimated=()), pose, X, photo, E, W / 8.0, 40)
+    assert fixed[3] == 0.0
+    unc = estimate_uncertainty(cam, pose, X, photo, E)
+    assert unc.focal_px == pytest.approx(1.7 * bootstrap_term(cam, pose, X, photo, E, W / 8.0,
+                                                              40)[3], rel=1e-9)
+    assert estimate_uncertainty(replace(cam, estimated=()), pose, X, photo, E).focal_px is None

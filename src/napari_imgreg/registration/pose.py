@@ -339,7 +339,7 @@ def _estimate_with_focal(intrinsics: Intrinsics, p3: np.ndarray, p2: np.ndarray,
 
 def with_known_focal(intrinsics: Intrinsics) -> Intrinsics:
     """The camera with its values taken as known (``estimated`` emptied): the
-    focal length held fixed, e.g. by the cross-validated ``uncertainty``."""
+    focal length held fixed, e.g. by the uncertainty's split halves."""
     return replace(intrinsics, estimated=()) if intrinsics.estimated else intrinsics
 
 

@@ -45,7 +45,7 @@ from .features import (
 from .filters import apply_filters, illumination_invariant
 from .lidar_views import lidar_view_matches
 from .params import RegistrationParams
-from .pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement, with_known_focal
+from .pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement
 from .quality import (
     REFERENCE_WIDTH_PX,
     Grade,
@@ -661,8 +661,8 @@ def trial_from_round(
         As in :func:`score_round`.
     intrinsics : Intrinsics, optional
         The photo's camera, full resolution (with an estimated focal length:
-        the estimate, held fixed by the uncertainty, which therefore leaves
-        the focal length's own error out). Given: the pose's ``uncertainty``
+        the estimate, re-solved with the pose in the uncertainty's bootstrap,
+        so the focal length's own error is in it). Given: the pose's ``uncertainty``
         is estimated (:func:`~napari_imgreg.registration.uncertainty.estimate_uncertainty`
         on the round's lifted matches, compared over the render's whole
         frame), and a pose whose estimate reaches
@@ -688,10 +688,10 @@ def trial_from_round(
     uncertainty = None
     if intrinsics is not None and pose is not None:
         use = corr.lifted & corr.feature_inlier
-        # The camera is held fixed (an estimated focal length too): the halves
-        # are solved by EPnP whatever solver found the pose.
+        # The halves are solved by EPnP whatever solver found the pose (the
+        # camera held fixed); the bootstrap re-solves an estimated focal length.
         uncertainty = estimate_uncertainty(
-            with_known_focal(intrinsics), pose, corr.xyz[use], corr.photo_points[use],
+            intrinsics, pose, corr.xyz[use], corr.photo_points[use],
             frame_points(last.rendered.xyz), uncertainty_params or params.uncertainty,
             replace(params.pose, solver="epnp"),
             shading_share=getattr(last.rendered, "shading_share", None) or 0.0,
@@ -720,9 +720,12 @@ def trial_from_round(
             f"{metrics['inliers_3d']} 3D inliers): pose not verified."
         )
     if pose is not None and intrinsics is not None and last.estimate.intrinsics is not None:
+        spread = (f" ± {uncertainty.focal_px:.1f}" if uncertainty is not None
+                  and uncertainty.focal_px is not None and math.isfinite(uncertainty.focal_px)
+                  else "")
         hints.append(
-            f"Focal length estimated with the pose: fx = {intrinsics.fx:.1f} px (a "
-            f"{intrinsics.hfov_deg:.1f}° horizontal view); the uncertainty holds it fixed.")
+            f"Focal length estimated with the pose: fx = {intrinsics.fx:.1f}{spread} px (a "
+            f"{intrinsics.hfov_deg:.1f}° horizontal view); the uncertainty includes its error.")
     if uncertain:
         expected = (f"expected error ≈ {uncertainty.reprojection_px:.1f} px, camera "
                     f"≈ {uncertainty.position_m:.2f} m, {uncertainty.rotation_deg:.2f}°")

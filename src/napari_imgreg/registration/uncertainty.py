@@ -46,6 +46,13 @@ the photo can check it.
 The estimate is what RESULT.json writes as ``uncertainty``; a pose whose
 halves disagree beyond the limit keeps their (larger) figure.
 
+A camera whose focal length (or principal point, or distortion) was
+estimated with the pose is re-solved whole in every draw: the pose and the
+camera trade against each other (a longer lens and a step back look alike at
+the centre of the frame, not at its edges), and an estimate that held the
+estimated focal length fixed would not see that trade. The halves, a test,
+hold it fixed.
+
 What it cannot see still: a bias the same everywhere in the image that a pose
 change absorbs exactly, from anything but the synthetic light (a texture
 whose colours shifted since the survey, a model off by a constant).
@@ -53,7 +60,7 @@ whose colours shifted since the survey, a model off by a constant).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import ClassVar
 
 import cv2
@@ -61,7 +68,8 @@ import numpy as np
 
 from ..camera import Intrinsics, Pose
 from ..validate import StageParams, check_ranges
-from .pose import PoseParams, estimate_pose
+from .pose import PoseParams, estimate_pose, with_known_focal
+from .resection import refine_camera
 
 __all__ = [
     "UNCERTAIN_PX",
@@ -222,6 +230,9 @@ class Uncertainty:
     halves_px: float = float("nan")
     #: The synthetic light's shared part of ``reprojection_px`` (pixels of the photo).
     shared_px: float = 0.0
+    #: Expected error of an estimated focal length (``fx``, pixels): the
+    #: bootstrap's spread × its gain; None when the focal length was known.
+    focal_px: float | None = None
 
     def to_dict(self) -> dict:
         """The three RESULT.json fields (JSON-ready: infinite becomes None)."""
@@ -343,6 +354,9 @@ def estimate_uncertainty(
         The photo's camera, full resolution.
     pose : Pose
         The pose to judge (``cam_from_world``), solved from these correspondences.
+        The fields of ``intrinsics.estimated`` (a focal length estimated with
+        the pose) are re-solved with it in every bootstrap draw; the halves
+        hold them fixed.
     points_3d : (N, 3) array
         The correspondences' 3D points, model frame, metres: all that were
         lifted (``robust``), or the pose's inliers.
@@ -371,6 +385,11 @@ def estimate_uncertainty(
     """
     params = params or UncertaintyParams()
     robust = (pose_params or PoseParams()) if params.robust else None
+    # The halves and the geometry hold the camera fixed; only the bootstrap
+    # re-solves what was estimated.
+    free = tuple(intrinsics.estimated)
+    camera = intrinsics
+    intrinsics = with_known_focal(intrinsics)
     X = np.asarray(points_3d, np.float64).reshape(-1, 3)
     u = np.asarray(points_2d, np.float64).reshape(-1, 2)
     ok = np.isfinite(X).all(axis=1) & np.isfinite(u).all(axis=1)
@@ -437,8 +456,9 @@ def estimate_uncertainty(
     if params.estimate == "halves":
         return Uncertainty(*map(float, halves), splits, halves_px=float(halves[0]))
     # The estimate: the block bootstrap, and the synthetic light's shared error.
-    boot = params.bootstrap_gain * bootstrap_term(intrinsics, pose, X[inl], u[inl], E, cell_px,
+    boot = params.bootstrap_gain * bootstrap_term(camera, pose, X[inl], u[inl], E, cell_px,
                                                   params.bootstrap_samples, rng_seed)
+    focal_px = float(boot[3]) if free else None
     held_px = float(np.median(held_out)) if held_out else float(np.median(fit[inl]))
     shared_px = params.shared_gain * float(np.sqrt(np.clip(shading_share, 0.0, 1.0))) * held_px
     px = float(np.sqrt(boot[0] ** 2 + shared_px**2 + floor**2))
@@ -460,7 +480,7 @@ def estimate_uncertainty(
         # The halves see a bias: the estimate is at least what they say.
         est = np.maximum(est, halves)
     return Uncertainty(*map(float, est), splits, halves_px=float(halves[0]),
-                       shared_px=float(shared_px))
+                       shared_px=float(shared_px), focal_px=focal_px)
 
 
 def bootstrap_term(intrinsics: Intrinsics, pose: Pose, X: np.ndarray, u: np.ndarray,
@@ -472,8 +492,9 @@ def bootstrap_term(intrinsics: Intrinsics, pose: Pose, X: np.ndarray, u: np.ndar
     photo (neighbours share their shading, relief and matching error, so a
     cell is one observation); ``samples`` times, as many cells as there are
     are drawn with replacement and the pose is re-solved from their matches
-    (least squares from ``pose``). The spread of the re-solved poses is the
-    error of a pose built from that many independent cells.
+    (least squares from ``pose``; with the fields of ``intrinsics.estimated``
+    re-solved too). The spread of the re-solved cameras is the error of a
+    pose built from that many independent cells.
 
     Parameters
     ----------
@@ -493,38 +514,70 @@ def bootstrap_term(intrinsics: Intrinsics, pose: Pose, X: np.ndarray, u: np.ndar
 
     Returns
     -------
-    (3,) array
+    (4,) array
         Median over ``E`` of the RMS image distance (px) between the re-solved
-        poses and ``pose``, RMS camera-centre distance (m), RMS rotation
-        (degrees); infinite when fewer than 2 cells or 5 draws can be solved.
+        cameras and the given one, RMS camera-centre distance (m), RMS
+        rotation (degrees), RMS change of ``fx`` (px; 0 when it is not
+        estimated); infinite when fewer than 2 cells or 5 draws can be solved.
     """
     cells = np.unique(np.floor(u / max(cell_px, 1e-6)).astype(np.int64), axis=0,
                       return_inverse=True)[1].ravel()
     n_cells = int(cells.max()) + 1 if len(cells) else 0
     if n_cells < 2 or len(E) == 0:
-        return np.full(3, np.inf)
+        return np.full(4, np.inf)
     members = [np.flatnonzero(cells == c) for c in range(n_cells)]
     rng = np.random.default_rng(rng_seed)
     base = pose.project(intrinsics, E)
-    image, centre, turn = [], [], []
+    fixed = with_known_focal(intrinsics)
+    image, centre, turn, focal = [], [], [], []
     for _ in range(samples):
         idx = np.concatenate([members[c] for c in rng.integers(0, n_cells, n_cells)])
         if len(idx) < 6:
             continue
-        p = _solve(intrinsics, X[idx], u[idx], pose, None)
+        if intrinsics.estimated:
+            p, cam = _solve_camera(intrinsics, X[idx], u[idx], pose)
+        else:
+            p, cam = _solve(fixed, X[idx], u[idx], pose, None), fixed
         if p is None:
             continue
-        image.append(np.linalg.norm(p.project(intrinsics, E) - base, axis=1))
+        image.append(np.linalg.norm(p.project(cam, E) - base, axis=1))
         centre.append(float(np.linalg.norm(p.center - pose.center)))
         turn.append(_rotation_deg(p, pose))
+        focal.append(cam.fx - intrinsics.fx)
     if len(image) < 5:
-        return np.full(3, np.inf)
+        return np.full(4, np.inf)
     rms = np.sqrt(np.mean(np.square(image), axis=0))
     rms = rms[np.isfinite(rms)]
     if len(rms) == 0:
-        return np.full(3, np.inf)
+        return np.full(4, np.inf)
     return np.array([float(np.median(rms)), float(np.sqrt(np.mean(np.square(centre)))),
-                     float(np.sqrt(np.mean(np.square(turn))))])
+                     float(np.sqrt(np.mean(np.square(turn)))),
+                     float(np.sqrt(np.mean(np.square(focal))))])
+
+
+def _solve_camera(intr: Intrinsics, X: np.ndarray, u: np.ndarray,
+                  start: Pose) -> tuple[Pose | None, Intrinsics]:
+    """Pose and the fields of ``intr.estimated`` together, least squares from
+    ``start`` and ``intr`` (a linear loss: every drawn match counts fully, as
+    in :func:`_solve`)."""
+    free = intr.estimated
+    square = "cx" not in free and abs(intr.fx - intr.fy) <= 1e-9 * intr.fx
+    k1 = float(intr.dist_coeffs[0]) if len(intr.dist_coeffs) else 0.0
+    try:
+        pose, (fx, fy), (cx, cy), k1 = refine_camera(
+            X, u, start, (intr.fx, intr.fy), (intr.cx, intr.cy), k1,
+            estimate_k1="dist" in free, free_principal_point="cx" in free,
+            square_pixels=square, loss_scale_px=1e6)
+    except (ValueError, np.linalg.LinAlgError):
+        return None, intr
+    dist = intr.dist
+    if "dist" in free:
+        dist = (k1, *intr.dist_coeffs[1:])
+    try:
+        cam = replace(intr, fx=fx, fy=fy, cx=cx, cy=cy, dist=dist)
+    except ValueError:  # an implausible camera (FieldValueError)
+        return None, intr
+    return pose, cam
 
 
 def _pixel_jacobian(intr: Intrinsics, pose: Pose, X: np.ndarray) -> np.ndarray:
