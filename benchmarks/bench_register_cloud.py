@@ -325,6 +325,46 @@ def mesh_rows(cache: Path, photos: set[tuple[str, int, str]]) -> list[dict]:
     return out
 
 
+
+def _span(values, fmt: str = "{:.1f}") -> str:
+    """``a–b``, or ``a`` when both ends print alike."""
+    lo, hi = fmt.format(min(values)), fmt.format(max(values))
+    return lo if lo == hi else f"{lo}–{hi}"
+
+
+def _false_verdict_reasons(false: list[dict]) -> list[str]:
+    """Why the false verdicts happened, from what their rows record (relit or
+    not, focal length estimated or not)."""
+    relit = [r for r in false if (r.get("trials") or [{}])[-1].get("render_mode") == "sunlit"]
+    unlit = [r for r in false if r not in relit]
+
+    def who(part: list) -> str:
+        if len(part) == len(false):
+            return "It" if len(part) == 1 else "They"
+        return f"{len(part)} of them"
+
+    out = []
+    if unlit:
+        out.append(
+            f"{who(unlit)} had no known sun (the survey's diffuse light, no capture "
+            "time), so the intensity render was not relit; area matching fails on it, and the "
+            "edge and intensity-pattern stages end on a shared bias that the split halves "
+            "cannot see (method §4, *where the estimate is known to be too small*).")
+    if relit:
+        focal = [r for r in relit if r.get("method") == "unknown_focal"]
+        text = (f"{who(relit)} {'was' if len(relit) == 1 else 'were'} matched against the render relit for the photo's "
+                "sun, whose shading is drawn only by the relief the scan resolves: a bias every "
+                "match shares, counted in the estimate only by the shading share "
+                "(method §4)")
+        if focal:
+            errs = [abs(r.get("focal_error") or 0.0) * 100 for r in focal]
+            lead = ("its focal length was" if len(relit) == 1
+                    else f"{len(focal)} of them had the focal length")
+            text += (f"; {lead} estimated too ({_span(errs)} % off), which absorbs part of "
+                     "that bias")
+        out.append(text + ".")
+    return out
+
 def report(rows: list[dict], diag: list[dict], meta: dict, mesh: list[dict]) -> str:
     s = summarize(rows)
 
@@ -481,16 +521,12 @@ def report(rows: list[dict], diag: list[dict], meta: dict, mesh: list[dict]) -> 
         unc = [r["uncertainty_px"] for r in false if r.get("uncertainty_px") is not None]
         tiers_ = sorted({r["tier"] for r in false})
         lines.append(
-            f"- *The false verdicts* ({len(false)}, {', '.join(tiers_)}): poses "
-            f"{min(r['cp_median_px'] for r in false):.1f}–"
-            f"{max(r['cp_median_px'] for r in false):.1f} px off, won by "
-            f"{' and '.join(stages)}, whose error estimates said "
-            + (f"{min(unc):.1f}–{max(unc):.1f} px" if unc else "nothing")
-            + ". These photos have no known sun (the survey's diffuse light, no capture time), "
-            "so the intensity render is not relit; area matching fails on it, and the edge "
-            "and intensity-pattern stages end on a shared bias that the split halves cannot "
-            "see (method §4, *where the estimate is known to be too small*). The same photos "
-            "under a sun (the rough_changed_light rows) gave none.")
+            f"- *The false verdicts* ({len(false)}, {', '.join(tiers_)}): "
+            f"{'poses' if len(false) > 1 else 'a pose'} "
+            f"{_span([r['cp_median_px'] for r in false])} px off, won by "
+            f"{' and '.join(stages)}, whose error {'estimates' if len(false) > 1 else 'estimate'} "
+            "said " + (f"{_span(unc)} px" if unc else "nothing")
+            + ". " + " ".join(_false_verdict_reasons(false)))
     lines += ["", f"Reproduce: `{meta['command']}` ({meta['cpus']} cores shared with other work, "
               f"Python {meta['python']}; load average {meta['load']}; {meta['wall_min']:.0f} min). "
               f"Per-photo rows: `{meta['rows']}`.", MARK_END]
