@@ -62,7 +62,9 @@ class RenderResult:
         (:func:`~napari_imgreg.registration.stages.relight.render_sunlit`):
         the share of its fine contrast that is synthetic shading rather than
         the model's own colours, in [0, 1] (1 for an untextured mesh). None:
-        the colours are the model's as they are.
+        not relit. (The registration also gives 1 to a plain render with no
+        photographed colours, grey shading or a scan's intensity: none of the
+        photo's light is in it.)
     """
 
     rgb: np.ndarray

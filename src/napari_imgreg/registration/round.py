@@ -738,7 +738,8 @@ def trial_from_round(
             hints.append(
                 f"Independent check: the render was matched on its synthetic light ({expected}): "
                 "the model shades only the relief it resolves, an error every match shares and "
-                "no check can see — give the model a texture, or add control points by hand.")
+                "no check can see — give the model its photographed colours (a texture, or the "
+                "scan's RGB) or the photo its capture time, or add control points by hand.")
         else:
             hints.append(
                 f"Independent check: the matches leave the pose loose ({expected}): too few "
