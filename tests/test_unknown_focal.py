@@ -19,6 +19,7 @@ from napari_imgreg.prior import load_camera_and_pose, prior_for_photo, prior_fro
 from napari_imgreg.registration.params import RegistrationParams
 from napari_imgreg.registration.pipeline import register
 from napari_imgreg.registration.pose import PoseParams, estimate_pose
+from napari_imgreg.registration.uncertainty import Uncertainty
 from napari_imgreg.sample import load_truth, sample_scene
 from napari_imgreg.validate import FieldValueError
 
@@ -155,6 +156,13 @@ def test_width_height_only_record_registers_with_the_focal_estimated(sample, tmp
     assert data["camera"]["estimated"] == ["fx", "fy"]
     assert data["camera"]["fx"] == pytest.approx(reg.intrinsics.fx)
     assert data["uncertainty"]["reprojection_px"] < 4.0  # still estimated
+    # The focal length's expected error, from draws that re-solve it: a
+    # fraction of a percent here, and the true error within 3 × of it.
+    focal_px = data["uncertainty"]["focal_px"]
+    assert 0 < focal_px < 0.01 * true_fx
+    assert abs(reg.intrinsics.fx - true_fx) < 3 * focal_px + 0.5
+    assert Uncertainty.from_dict(data["uncertainty"]).focal_px == pytest.approx(focal_px)
+    assert any(f"± {focal_px:.1f} px" in h for h in data["quality"]["hints"])
     assert {"inliers_3d", "reprojection_error_px"} <= set(data["metrics"])
     assert any("estimated" in h for h in data["quality"]["hints"])
     assert any("estimated during registration: fx" in a for a in reg.assumptions)

@@ -235,12 +235,16 @@ class Uncertainty:
     focal_px: float | None = None
 
     def to_dict(self) -> dict:
-        """The three RESULT.json fields (JSON-ready: infinite becomes None)."""
+        """The RESULT.json fields (JSON-ready: infinite becomes None): the three
+        of the contract, and ``focal_px`` when the focal length was estimated."""
         def num(v: float, nd: int):
             return round(float(v), nd) if np.isfinite(v) else None
-        return {"reprojection_px": num(self.reprojection_px, 3),
-                "position_m": num(self.position_m, 4),
-                "rotation_deg": num(self.rotation_deg, 4)}
+        out = {"reprojection_px": num(self.reprojection_px, 3),
+               "position_m": num(self.position_m, 4),
+               "rotation_deg": num(self.rotation_deg, 4)}
+        if self.focal_px is not None:
+            out["focal_px"] = num(self.focal_px, 2)
+        return out
 
     @classmethod
     def from_dict(cls, d: dict | None) -> Uncertainty | None:
@@ -249,7 +253,9 @@ class Uncertainty:
         def val(k):
             v = d.get(k)
             return float("inf") if v is None else float(v)
-        return cls(val("reprojection_px"), val("position_m"), val("rotation_deg"))
+        focal = val("focal_px") if "focal_px" in d else None
+        return cls(val("reprojection_px"), val("position_m"), val("rotation_deg"),
+                   focal_px=focal)
 
     def is_small(self, image_width: int) -> bool:
         """Below :data:`UNCERTAIN_PX` at 1632 px width (scaled to ``image_width``)."""
