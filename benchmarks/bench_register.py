@@ -960,8 +960,9 @@ def stage_table(rows: list[dict]) -> list[str]:
     if not ours:
         return []
     out = ["Seconds per stage of *ours* (median over the photos where the stage ran; "
-           "`render` includes relighting, `area`/`edges`/`dense` run only when keypoints do not "
-           "verify; "
+           "`render` includes relighting; `edges`/`dense` run only when keypoints do not "
+           "verify, `area` also to refine a verified keypoint pose whose error estimate is "
+           "0.5 px or more; "
            "*hard* = photos that needed a stage beyond the first keypoint trial):", "",
            "| tier | photos | " + " | ".join(STAGES) + " |",
            "|---|---|" + "---|" * len(STAGES)]

@@ -258,3 +258,67 @@ def test_when_the_early_blocks_fail_too_the_keypoints_adapt_and_say_both(sample,
     first = reg.trials[0].adaptation
     assert first.startswith("not verified, sun known: area matching on the relit render; rule")
     assert reg.trials[1].matcher == "area" and reg.trials[2].matcher == "keypoints"
+
+
+def _first_estimate(monkeypatch, px: float, later_px: float | None = None):
+    """The first keypoint trial's error estimate set to ``px`` (verified below
+    4 px); every later estimate is the real one, or ``later_px``."""
+    import napari_imgreg.registration.round as round_mod
+    from napari_imgreg.registration.uncertainty import Uncertainty
+
+    real = round_mod.estimate_uncertainty
+    calls = []
+
+    def patched(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            return Uncertainty(px, 0.05, 0.02, 4, halves_px=px)
+        if later_px is not None:
+            return Uncertainty(later_px, 0.05, 0.02, 4, halves_px=later_px)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(round_mod, "estimate_uncertainty", patched)
+
+
+def test_a_loosely_held_keypoint_pose_is_refined_by_area_matching(sample, monkeypatch):
+    """A verified keypoint pose whose expected error is 0.5 px or more gets one
+    area-matching trial from it (on the relit render: the sample's sun is
+    known); kept, as here, when verified with a smaller estimate."""
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    prior = prior_for_photo(photo, scene)
+    _first_estimate(monkeypatch, 2.0)
+    reg = register(scene, photo.image, prior, RegistrationParams())
+    first, refined = reg.trials[0], reg.trials[1]
+    assert first.verified and first.matcher == "keypoints"
+    assert first.adaptation == "verified: refined by area matching"
+    assert refined.matcher == "area" and refined.origin == "trial 1"
+    assert refined.render_mode == "sunlit"
+    assert refined.uncertainty.reprojection_px < 2.0
+    assert reg.registered and reg.best_trial == 1
+    assert _check_point_px(reg, load_truth(folder / "IMG_0001.jpg")) < 1.0
+
+
+def test_a_tightly_held_keypoint_pose_is_not_refined(sample, monkeypatch):
+    """Below 0.5 px (at 1632 px width; 0.31 px at the sample's 1024 px)
+    blocks rarely do better: no area trial, no time spent."""
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    prior = prior_for_photo(photo, scene)
+    _first_estimate(monkeypatch, 0.3)
+    reg = register(scene, photo.image, prior, RegistrationParams())
+    assert len(reg.trials) == 1 and not reg.trials[0].adaptation
+    assert reg.registered
+
+
+def test_area_refinement_is_kept_only_when_its_estimate_is_smaller(sample, monkeypatch):
+    """An area trial whose estimate is not smaller leaves the keypoint pose as the answer."""
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    prior = prior_for_photo(photo, scene)
+    _first_estimate(monkeypatch, 0.5, later_px=1.0)  # the area trial's is larger
+    reg = register(scene, photo.image, prior, RegistrationParams())
+    assert len(reg.trials) == 2 and reg.trials[1].matcher == "area"
+    assert reg.trials[1].verified and reg.trials[1].uncertainty.reprojection_px == 1.0
+    assert reg.best_trial == 0
+    assert reg.trials[0].adaptation == "verified: area matching from it was no better"

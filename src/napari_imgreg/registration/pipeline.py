@@ -422,6 +422,20 @@ def _good(t: Trial) -> bool:
     return t.verified and t.grade in ("excellent", "good")
 
 
+#: A verified keypoint pose whose expected error is this or more (pixels at
+#: 1632 px width) is refined by one area-matching trial (:func:`_refinable`).
+AREA_REFINE_MIN_PX = 0.5
+
+
+def _refinable(t: Trial, width: int) -> bool:
+    """A good keypoint pose with an error estimate of at least
+    :data:`AREA_REFINE_MIN_PX`: worth one area-matching trial from it. Below,
+    blocks rarely do better (the estimate's floor is 0.3 px, and a relit
+    render's shared light adds about as much)."""
+    return bool(_good(t) and t.matcher == "keypoints" and t.uncertainty is not None
+                and t.uncertainty.reprojection_px >= AREA_REFINE_MIN_PX * width / 1632.0)
+
+
 def _is_start(t: Trial) -> bool:
     """The trial's pose is worth starting the next trial from (≥ 12 3D inliers)."""
     return t.pose is not None and t.metrics.get("inliers_3d", 0) >= 12
@@ -751,6 +765,27 @@ def register_photo(
                                   params, progress, rounds_of, n_budget, untextured, biased)
         best = max(trials, key=_trial_rank)
 
+    if robust and params.area_match and _refinable(best, intr.width):
+        # Keypoints verified, but their pose is held by a few hundred matches
+        # (and under another sun sits on shading): blocks correlated over the
+        # whole frame, on the relit render when the sun is known, usually
+        # hold it far better — an estimated focal length above all. Kept only
+        # when verified and its expected error is smaller.
+        refined = yield from rounds_of(
+            _run_trial(ctx, len(trials), best.pose, best.params, f"trial {best.index + 1}",
+                       mode="sunlit" if ctx.sun is not None else first_mode, matcher="area",
+                       far_start=False, intrinsics=_trial_camera(best, start_camera)),
+            "refining by area matching", base=len(trials), span=0.5)
+        trials.append(refined)
+        check()
+        kept = (_good(refined) and refined.uncertainty is not None
+                and refined.uncertainty.reprojection_px < best.uncertainty.reprojection_px)
+        note = ("verified: refined by area matching" if kept
+                else "verified: area matching from it was no better")
+        best.adaptation = f"{best.adaptation}; {note}" if best.adaptation else note
+        if kept:
+            best = refined
+
     if params.verify:
         status = "registered" if best.verified and best.grade != "failed" else "failed"
     else:
@@ -774,10 +809,10 @@ def register_photo(
         # The known blind spot of the error estimate (method §4): the scan's
         # unlit render, edges and MI agree on a pose biased by the photo's light.
         hints.append(
-            "No sun is known for this photo, so the scan's render was not relit: on rough "
-            "rock such registrations were up to 5 px off while their error estimate said "
-            "2-4 px (bench_register_cloud). Give the photo its capture time with a time zone "
-            "(or its sun), or check the pose with a few control points before mapping on it.")
+            "No sun is known for this photo, so the scan's render was not relit, and the error "
+            "estimate counts all of its contrast as light no check can see. Give the photo its "
+            "capture time with a time zone (or its sun), or check the pose with a few control "
+            "points before mapping on it.")
     timings = dict(ctx.timings)
     timings["total"] = time.perf_counter() - t_total
     yield Progress("done", 1.0, f"{status} ({best.grade}, Q = {best.q:.2f})")
