@@ -453,10 +453,13 @@ def estimate_uncertainty(
     g = params.gain
     spread = noise
     cell_px = params.cell_fraction * intrinsics.width
+    # The support term per pixel of keypoint error (it scales with the error):
+    # the halves' spread below, and the estimate's geometry after.
+    per_px = support_term(intrinsics, pose, X[inl], u[inl], E, 1.0, cell_px)
     if params.support and held_out:
         sigma_cv = float(np.median(held_out)) / 1.1774
-        spread = np.maximum(noise, support_term(intrinsics, pose, X[inl], u[inl], E, sigma_cv,
-                                                cell_px))
+        spread = np.maximum(noise, per_px * sigma_cv if np.isfinite(sigma_cv)
+                            else np.full(3, np.inf))
     px, m, deg = np.sqrt(spread**2 + (g * bias) ** 2)
     halves = np.array([np.hypot(px, floor), m, deg])
     if params.estimate == "halves":
@@ -476,7 +479,6 @@ def estimate_uncertainty(
     # bias in the model's depth (relief it lacks lifts every match off the
     # rock) makes it; the halves, each extrapolating, see that freedom: half
     # their figure is a floor of the centre's error.
-    per_px = support_term(intrinsics, pose, X[inl], u[inl], E, 1.0, cell_px)
     geometric = (px * per_px[1:] / per_px[0] if np.isfinite(per_px).all() and per_px[0] > 0
                  else np.full(2, np.inf))
     m = max(boot[1], geometric[0], 0.5 * halves[1])
@@ -526,8 +528,7 @@ def bootstrap_term(intrinsics: Intrinsics, pose: Pose, X: np.ndarray, u: np.ndar
         rotation (degrees), RMS change of ``fx`` (px; 0 when it is not
         estimated); infinite when fewer than 2 cells or 5 draws can be solved.
     """
-    cells = np.unique(np.floor(u / max(cell_px, 1e-6)).astype(np.int64), axis=0,
-                      return_inverse=True)[1].ravel()
+    cells = _cell_labels(u, cell_px)
     n_cells = int(cells.max()) + 1 if len(cells) else 0
     if n_cells < 2 or len(E) == 0:
         return np.full(4, np.inf)
@@ -559,6 +560,13 @@ def bootstrap_term(intrinsics: Intrinsics, pose: Pose, X: np.ndarray, u: np.ndar
     return np.array([float(np.median(rms)), float(np.sqrt(np.mean(np.square(centre)))),
                      float(np.sqrt(np.mean(np.square(turn)))),
                      float(np.sqrt(np.mean(np.square(focal))))])
+
+
+def _cell_labels(u: np.ndarray, cell_px: float) -> np.ndarray:
+    """(N,) int: which ``cell_px`` square of the photo each pixel of ``u`` falls in,
+    numbered 0 … cells − 1."""
+    return np.unique(np.floor(u / max(cell_px, 1e-6)).astype(np.int64), axis=0,
+                     return_inverse=True)[1].ravel()
 
 
 def _solve_camera(intr: Intrinsics, X: np.ndarray, u: np.ndarray,
@@ -637,7 +645,7 @@ def support_term(intrinsics: Intrinsics, pose: Pose, X: np.ndarray, u: np.ndarra
     n = len(X)
     if n < 6 or len(E) == 0 or not np.isfinite(sigma_px):
         return np.full(3, np.inf)
-    cells = len(np.unique(np.floor(u / max(cell_px, 1e-6)).astype(np.int64), axis=0))
+    cells = int(_cell_labels(u, cell_px).max()) + 1
     J = _pixel_jacobian(intrinsics, pose, X).reshape(-1, 6)
     try:
         cov = np.linalg.inv(J.T @ J) * (sigma_px**2 * n / cells)
