@@ -256,7 +256,7 @@ def test_when_the_early_blocks_fail_too_the_keypoints_adapt_and_say_both(sample,
         search_prior=False, edge_align=False, dense_refine=False))
     assert not reg.registered
     first = reg.trials[0].adaptation
-    assert first.startswith("not verified, sun known: area matching on the relit render; rule")
+    assert first.startswith("not verified, sun known: area matching; rule")
     assert reg.trials[1].matcher == "area" and reg.trials[2].matcher == "keypoints"
 
 
@@ -322,3 +322,51 @@ def test_area_refinement_is_kept_only_when_its_estimate_is_smaller(sample, monke
     assert reg.trials[1].verified and reg.trials[1].uncertainty.reprojection_px == 1.0
     assert reg.best_trial == 0
     assert reg.trials[0].adaptation == "verified: area matching from it was no better"
+
+
+def test_area_matching_keeps_the_render_that_resembles_the_photo(sample):
+    """Under a known sun, area matching on a textured model matches and solves
+    both the relit render and the texture as it is, and keeps the round whose
+    pose inliers fit better: a photo under the survey light (the model's own
+    render) gets the texture as it is, a photo under its sun (the sample's,
+    rendered from a surface whose shading the model has) the relit render."""
+    from napari_imgreg.registration import pipeline as P
+    from napari_imgreg.registration.round import lit_as, score_round
+    from napari_imgreg.render import render
+
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    truth = load_truth(folder / "IMG_0001.jpg")
+    prior = prior_for_photo(photo, scene)
+    assert prior.sun is not None
+    params = RegistrationParams()
+    survey_light = render(scene, truth.intrinsics, truth.pose).rgb
+    for image, expected in ((survey_light, "plain"), (photo.image, "sunlit")):
+        ctx = P._Context(scene, image, truth.intrinsics, params, lambda: None)
+        ctx.sun = prior.sun
+        assert P._area_light(ctx, "sunlit") == "auto"
+        rnd = score_round(ctx, truth.pose, params, 1024, matcher="area", search_px=8, mode="auto")
+        m = rnd.metrics
+        assert lit_as("auto", m) == expected, m
+        assert (m["area_residual_unlit_px"] < m["area_residual_sunlit_px"]) == (expected == "plain")
+        # The round solved from the kept render: its synthetic light only when relit.
+        assert (rnd.rendered.shading_share or 0.0) > 0 if expected == "sunlit" else \
+            not rnd.rendered.shading_share
+        err = rnd.estimate.pose.project(truth.intrinsics, truth.check_xyz) - truth.check_pixels
+        assert np.median(np.linalg.norm(err, axis=1)) < 1.0
+
+
+def test_area_light_is_auto_only_for_photographed_colours_under_a_known_sun(sample):
+    from napari_imgreg.registration import pipeline as P
+
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0001.jpg")
+    params = RegistrationParams()
+    ctx = P._Context(scene, photo.image, load_truth(folder / "IMG_0001.jpg").intrinsics, params,
+                     lambda: None)
+    assert P._area_light(ctx, "sunlit") == "sunlit"  # no sun set: nothing to compare
+    ctx.sun = np.array([0.0, -0.5, 0.866])
+    assert P._area_light(ctx, "plain") == "plain"
+    bare = P._Context(_bare(scene), photo.image, ctx.intrinsics, params, lambda: None)
+    bare.sun = ctx.sun
+    assert P._area_light(bare, "sunlit") == "sunlit"  # grey shading is no photo's colours

@@ -175,6 +175,7 @@ class _Context:
         self._photo_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._feature_cache: dict[tuple, Features] = {}
         self._area_cache: dict[tuple, np.ndarray] = {}
+        self._unlit: tuple[tuple, RenderResult] | None = None
         #: The photo's described lidar views (``RegistrationParams.lidar_views``).
         self.lidar_cache: dict = {}
         #: Toward the photo's sun (local frame), when known and usable.
@@ -190,14 +191,28 @@ class _Context:
         ``sunlit`` (relit for the photo's sun with cast shadows)."""
         intr = intrinsics or self.intrinsics
         t0 = time.perf_counter()
+        # A plain render of the view last rendered sun-lit is that render's
+        # unlit twin, from the same ray cast (area matching in "auto" mode
+        # matches both).
+        key = (pose.R.tobytes(), pose.t.tobytes(), round(scale, 9), intr)
+        photographed = self.scene.has_texture or self.scene.vertex_colors is not None
         if mode == "sunlit" and self.sun is not None:
-            from .stages.relight import render_sunlit
+            from .stages.relight import render_sunlit, render_unlit_and_sunlit
 
-            rendered = render_sunlit(self.scene, intr, pose, self.sun, scale=scale,
-                                     survey_sun_dir=self.scene.survey_sun)
+            if photographed:
+                unlit, rendered = render_unlit_and_sunlit(self.scene, intr, pose, self.sun,
+                                                          scale=scale,
+                                                          survey_sun_dir=self.scene.survey_sun)
+                self._unlit = (key, unlit)
+            else:
+                rendered = render_sunlit(self.scene, intr, pose, self.sun, scale=scale,
+                                         survey_sun_dir=self.scene.survey_sun)
         else:
-            rendered = render(self.scene, intr, pose, scale=scale)
-            if not (self.scene.has_texture or self.scene.vertex_colors is not None):
+            if photographed and self._unlit is not None and self._unlit[0] == key:
+                rendered = self._unlit[1]
+            else:
+                rendered = render(self.scene, intr, pose, scale=scale)
+            if not photographed:
                 # Grey shading under a made-up light, or a scan's intensity: none
                 # of the photo's light is in the render, and every match shares
                 # what the photo's shading does to it (the error estimate's
@@ -441,6 +456,19 @@ def _is_start(t: Trial) -> bool:
     return t.pose is not None and t.metrics.get("inliers_3d", 0) >= 12
 
 
+def _area_light(ctx: _Context, mode: str) -> str:
+    """The render mode of an area-matching trial: "auto" for a model with
+    photographed colours whose photo's sun is known — each round matches the
+    relit render and the colours as they are, and keeps the one whose pose
+    fits its blocks better (:func:`~napari_imgreg.registration.round.score_round`)
+    — else ``mode``."""
+    scene = ctx.scene
+    if mode == "sunlit" and ctx.sun is not None and (
+            scene.has_texture or scene.vertex_colors is not None):
+        return "auto"
+    return mode
+
+
 def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: RegistrationParams,
                    trials: list[Trial], first_mode: str, options: RegistrationParams,
                    progress, rounds_of, n_budget: int, untextured: bool = False,
@@ -464,8 +492,9 @@ def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: Regis
     def stage_trial(start: Pose, origin: str, label: str, at: float, matcher: str = "keypoints",
                     far_start: bool = False):
         trial = yield from rounds_of(
-            _run_trial(ctx, len(trials), start, params, origin, mode=mode, matcher=matcher,
-                       far_start=far_start),
+            _run_trial(ctx, len(trials), start, params, origin,
+                       mode=_area_light(ctx, mode) if matcher == "area" else mode,
+                       matcher=matcher, far_start=far_start),
             label, base=at, span=0.5)
         trials.append(trial)
         return trial
@@ -694,23 +723,25 @@ def register_photo(
         if trial.biased and robust and params.area_match:
             # The keypoints agree but their halves do not: a bias they share
             # (shading), which another keypoint trial shares too. Blocks
-            # matched by correlation (on a relit render when the sun is
-            # known) are next, and cheaper than more keypoint trials.
+            # matched by correlation (_area_light) are next, and cheaper than
+            # more keypoint trials.
             trial.adaptation = "biased matches: to area matching"
             break
         if trial_no == 0 and early_area:
             # The sun is known and the keypoints did not verify (under another
             # sun they find next to nothing, and rarely recover by adapting or
             # searching: their descriptors see the survey light): blocks on
-            # the relit render first, from the prior unless this trial found a
-            # start. The adaptations and the search follow if they fail too.
+            # the relit render, or on the texture as it is when its blocks fit
+            # better (_area_light), from the prior unless this trial found a
+            # start. The adaptations and the search follow if they
+            # fail too.
             near = _is_start(trial)
-            trial.adaptation = "not verified, sun known: area matching on the relit render"
+            trial.adaptation = "not verified, sun known: area matching"
             area_trial = yield from rounds_of(
                 _run_trial(ctx, len(trials), trial.pose if near else start_prior, current,
-                           "area matching", mode="sunlit", matcher="area",
+                           "area matching", mode=_area_light(ctx, "sunlit"), matcher="area",
                            far_start=not near, intrinsics=start_camera),
-                "area matching on the relit render")
+                "area matching")
             trials.append(area_trial)
             check()
             if _good(area_trial):
@@ -768,12 +799,13 @@ def register_photo(
     if robust and params.area_match and _refinable(best, intr.width):
         # Keypoints verified, but their pose is held by a few hundred matches
         # (and under another sun sits on shading): blocks correlated over the
-        # whole frame, on the relit render when the sun is known, usually
-        # hold it far better — an estimated focal length above all. Kept only
-        # when verified and its expected error is smaller.
+        # whole frame (_area_light) usually hold it far better — an estimated
+        # focal length above all. Kept only when verified and its expected
+        # error is smaller.
         refined = yield from rounds_of(
             _run_trial(ctx, len(trials), best.pose, best.params, f"trial {best.index + 1}",
-                       mode="sunlit" if ctx.sun is not None else first_mode, matcher="area",
+                       mode=_area_light(ctx, "sunlit" if ctx.sun is not None else first_mode),
+                       matcher="area",
                        far_start=False, intrinsics=_trial_camera(best, start_camera)),
             "refining by area matching", base=len(trials), span=0.5)
         trials.append(refined)

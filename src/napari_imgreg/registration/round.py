@@ -45,7 +45,7 @@ from .features import (
 from .filters import apply_filters, illumination_invariant
 from .lidar_views import lidar_view_matches
 from .params import RegistrationParams
-from .pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement
+from .pose import PoseEstimate, PoseParams, estimate_pose, pose_agreement, reprojection_errors
 from .quality import (
     REFERENCE_WIDTH_PX,
     Grade,
@@ -274,6 +274,29 @@ class RoundSource(Protocol):
         """The photo band-passed for area matching at ``photo_small``'s size."""
 
 
+def lit_as(render_mode: str, metrics: dict) -> str:
+    """The light of the render a round matched: ``render_mode``, or for "auto"
+    the one :func:`score_round` kept ("sunlit" or "plain", from the round's
+    ``area_residual_*_px`` metrics)."""
+    if render_mode != "auto":
+        return render_mode
+    sunlit = metrics.get("area_residual_sunlit_px")
+    unlit = metrics.get("area_residual_unlit_px")
+    return "plain" if unlit is not None and (sunlit is None or unlit < sunlit) else "sunlit"
+
+
+def _median_residual(r: Round, intrinsics: Intrinsics) -> float | None:
+    """Median reprojection error of a round's pose inliers, px at full resolution
+    (None without a pose)."""
+    corr = r.correspondences
+    if not r.estimate.ok or corr.xyz is None or not corr.pose_inlier.any():
+        return None
+    inl = corr.pose_inlier
+    return float(np.median(reprojection_errors(r.estimate.intrinsics or intrinsics,
+                                                r.estimate.pose, corr.xyz[inl],
+                                                corr.photo_points[inl])))
+
+
 def match_round(
     source: RoundSource,
     pose: Pose,
@@ -469,8 +492,18 @@ def score_round(
 
     Parameters
     ----------
-    source, pose, params, width, matcher, near, search_px, mode
+    source, pose, params, width, matcher, near, search_px
         As in :func:`match_round`; ``params.pose`` for the pose.
+    mode : str
+        As in :func:`match_round`; area matching also takes "auto": the
+        render relit for the photo's sun and the model's colours as they are
+        (one ray cast) are both matched and solved, and the round whose pose
+        inliers have the smaller median reprojection error is kept — the
+        render that predicts where the photo's blocks are. Relighting is
+        right where the model has the relief that shades the photo, and paints
+        a biased shading where the photo's light and shade come from relief
+        finer than the model's (method §6). The metrics get both medians
+        (``area_residual_sunlit_px``, ``area_residual_unlit_px``; :func:`lit_as`).
     solve : bool
         Solve the photo's pose from the correspondences (RANSAC EPnP); False:
         test ``pose`` itself against them (a hand-made pose), so that its
@@ -484,6 +517,20 @@ def score_round(
         correlate clearly), the lifted ones and the pose's inliers; area
         rounds add ``area_width_px`` and ``area_search_px``.
     """
+    if mode == "auto":
+        if matcher != "area":
+            raise ValueError('render mode "auto" is for area matching only')
+        lit = score_round(source, pose, params, width, matcher=matcher, search_px=search_px,
+                          mode="sunlit", solve=solve)
+        unlit = score_round(source, pose, params, width, matcher=matcher, search_px=search_px,
+                            mode="plain", solve=solve)
+        res_lit = _median_residual(lit, source.intrinsics)
+        res_unlit = _median_residual(unlit, source.intrinsics)
+        extra = {"area_residual_sunlit_px": None if res_lit is None else round(res_lit, 4),
+                 "area_residual_unlit_px": None if res_unlit is None else round(res_unlit, 4)}
+        kept = unlit if lit_as("auto", extra) == "plain" else lit
+        kept.metrics.update(extra)
+        return kept
     # Reproducible: FLANN's trees and USAC draw from OpenCV's global RNG; each
     # round starts it from the params' seed, whatever ran before.
     cv2.setRNGSeed(int(params.seed))
@@ -658,7 +705,8 @@ def trial_from_round(
     image_width : int
         The photo's width, pixels: pixel limits refer to 1632 px and scale with it.
     render_mode, matcher : str
-        As in :func:`score_round`.
+        As in :func:`score_round` (the trial's ``render_mode`` is the light of
+        the render the last round matched, :func:`lit_as`).
     intrinsics : Intrinsics, optional
         The photo's camera, full resolution (with an estimated focal length:
         the estimate, re-solved with the pose in the uncertainty's bootstrap,
@@ -760,7 +808,7 @@ def trial_from_round(
         origin=origin,
         seconds=seconds,
         correspondences=corr,
-        render_mode=render_mode,
+        render_mode=lit_as(render_mode, last.metrics),
         matcher=matcher,
         uncertainty=uncertainty,
         intrinsics=intrinsics,

@@ -28,7 +28,7 @@ import math
 import time
 import weakref
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
@@ -46,6 +46,7 @@ __all__ = [
     "smooth_normals",
     "relight",
     "render_sunlit",
+    "render_unlit_and_sunlit",
     "shading_share",
     "estimate_sun_from_photo",
     "SunEstimate",
@@ -529,6 +530,41 @@ def render_sunlit(
         relighting's seconds (also added to ``total``).
     """
     rr = render(scene, intrinsics, pose, scale=scale, mode="color", background=background)
+    return _relit(rr, scene, sun_dir, **kw)
+
+
+def render_unlit_and_sunlit(
+    scene: Scene,
+    intrinsics: Intrinsics,
+    pose: Pose,
+    sun_dir: npt.ArrayLike,
+    scale: float = 1.0,
+    background: tuple[int, int, int] = (0, 0, 0),
+    **kw: Any,
+) -> tuple[RenderResult, RenderResult]:
+    """The render as it is and relit for a sun, from one ray cast.
+
+    Area matching matches both and keeps the one whose pose fits its blocks
+    better (:func:`~napari_imgreg.registration.round.score_round`, "auto").
+
+    Parameters
+    ----------
+    scene, intrinsics, pose, sun_dir, scale, background, **kw
+        As for :func:`render_sunlit`.
+
+    Returns
+    -------
+    unlit, sunlit : RenderResult
+        ``unlit`` with the model's own colours (the same geometry arrays as
+        ``sunlit``), ``sunlit`` as :func:`render_sunlit` returns it.
+    """
+    rr = render(scene, intrinsics, pose, scale=scale, mode="color", background=background)
+    unlit = replace(rr, rgb=rr.rgb.copy(), timings_s=dict(rr.timings_s))
+    return unlit, _relit(rr, scene, sun_dir, **kw)
+
+
+def _relit(rr: RenderResult, scene: Scene, sun_dir: npt.ArrayLike, **kw: Any) -> RenderResult:
+    """``rr`` relit in place (:func:`_relight`), its relighting timed."""
     t0 = time.perf_counter()
     rr.rgb, rr.shading_share = _relight(rr, scene, sun_dir, **kw)
     dt = time.perf_counter() - t0
