@@ -101,7 +101,9 @@ class RegistrationParams:
         When keypoints do not verify, match blocks of the (sun-lit) render in
         the photo by correlation (area-based matching) from the best pose so
         far and from each stage's pose: what registers a bare mesh's shading
-        to a photo of coloured rock. Also refines a verified keypoint pose
+        to a photo of coloured rock. A textured model under a known sun has
+        both its relit render and its texture as it is matched, and the one
+        whose pose fits its blocks better kept. Also refines a verified keypoint pose
         whose error estimate is 0.5 px or more (at 1632 px width) by one
         area-matching trial from it, kept when its estimate is smaller.
     area : AreaParams

@@ -967,9 +967,12 @@ class RegisterPanel(QWidget):
             "(area-based matching), then solve the pose from them as from keypoints. It compares "
             "the layout of light and shade of the relief, not keypoint descriptors: what "
             "registers a bare (untextured) mesh lit by the photo's sun to a photo of coloured "
-            "rock. Verified like keypoints (converged, photo and render agree). Also refines a "
-            "verified keypoint pose whose expected error is 0.5 px or more, when the blocks "
-            "hold it tighter.")
+            "rock. With a texture and the photo's sun known, every round matches both the "
+            "render relit for that sun and the texture as it is, and keeps the one the pose "
+            "fits better (relit shading is wrong where the photo shows relief finer than the "
+            "model's). Verified like keypoints (converged, photo and render agree). Also "
+            "refines a verified keypoint pose whose expected error is 0.5 px or more, when the "
+            "blocks hold it tighter.")
         self.edge_align_check = QCheckBox("align the model's edges with the photo's")
         self.edge_align_check.setToolTip(
             "Line up the skyline, ridges, overhangs and bedding contacts of the model with the "
