@@ -370,3 +370,29 @@ def test_area_light_is_auto_only_for_photographed_colours_under_a_known_sun(samp
     bare = P._Context(_bare(scene), photo.image, ctx.intrinsics, params, lambda: None)
     bare.sun = ctx.sun
     assert P._area_light(bare, "sunlit") == "sunlit"  # grey shading is no photo's colours
+
+
+def test_the_unlit_twin_of_a_sunlit_render_is_the_plain_render(sample):
+    """One ray cast serves both renders of an "auto" round: the plain render of the
+    view just rendered sun-lit is its unlit twin, identical to a fresh plain render;
+    another view is rendered afresh."""
+    from napari_imgreg.registration import pipeline as P
+    from napari_imgreg.registration.round import score_round
+    from napari_imgreg.render import render
+
+    folder, scene = sample
+    truth = load_truth(folder / "IMG_0001.jpg")
+    photo = load_photo(folder / "IMG_0001.jpg")
+    ctx = P._Context(scene, photo.image, truth.intrinsics, RegistrationParams(), lambda: None)
+    ctx.sun = prior_for_photo(photo, scene).sun
+    scale = 0.5
+    lit = ctx.render(truth.pose, scale, "sunlit")
+    twin = ctx.render(truth.pose, scale, "plain")
+    fresh = render(scene, truth.intrinsics, truth.pose, scale=scale)
+    assert np.array_equal(twin.rgb, fresh.rgb) and not np.array_equal(twin.rgb, lit.rgb)
+    assert twin.xyz is lit.xyz  # the same geometry, not a second cast
+    other = _off(truth.pose, 1.0, 0.0, (0.0, 0.0, 0.0))
+    assert np.array_equal(ctx.render(other, scale, "plain").rgb,
+                          render(scene, truth.intrinsics, other, scale=scale).rgb)
+    with pytest.raises(ValueError, match="area matching only"):
+        score_round(ctx, truth.pose, RegistrationParams(), 512, mode="auto")
