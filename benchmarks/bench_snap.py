@@ -286,9 +286,9 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
         "(the other side of a thin bed, mottling inside it, a stronger edge beside a weak "
         "contact). The contact's polarity is read along the clicked segment, 8 px inward from "
         "each click (where a visible stretch ends the contact often fades), and where that "
-        "reading is unclear both polarities are traced and the straighter path kept; read at "
-        "the two clicks alone, 21–23 % of the traces strayed (the *(before)* ratios, same "
-        "poses). The model's unshaded colours, where every contact is exactly where the truth "
+        "reading is unclear both polarities are traced and the straighter path kept"
+        + ("; read at the two clicks alone, 21–23 % of the traces strayed (the *(before)* "
+           "ratios, same poses)" if before else "") + ". The model's unshaded colours, where every contact is exactly where the truth "
         "puts it, fail more often still: the limit is the tracer on thin, mottled beds from "
         "two clicks, not the photo's light. The last columns click once more, where each "
         "strayed trace is farthest from its contact (±1.5 px), as a user seeing it stray would.",
