@@ -733,8 +733,7 @@ def register_photo(
             # searching: their descriptors see the survey light): blocks on
             # the relit render, or on the texture as it is when its blocks fit
             # better (_area_light), from the prior unless this trial found a
-            # start. The adaptations and the search follow if they
-            # fail too.
+            # start. The adaptations and the search follow if they fail too.
             near = _is_start(trial)
             trial.adaptation = "not verified, sun known: area matching"
             area_trial = yield from rounds_of(
