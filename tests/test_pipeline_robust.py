@@ -396,3 +396,17 @@ def test_the_unlit_twin_of_a_sunlit_render_is_the_plain_render(sample):
                           render(scene, truth.intrinsics, other, scale=scale).rgb)
     with pytest.raises(ValueError, match="area matching only"):
         score_round(ctx, truth.pose, RegistrationParams(), 512, mode="auto")
+
+
+def test_photographed_colours_and_appearance(sample):
+    """A texture is photographed colours (and an appearance); a bare mesh is
+    neither; a scan's intensity is an appearance but not colours."""
+    from types import SimpleNamespace
+
+    from napari_imgreg.scene import has_appearance, has_colours
+
+    _, scene = sample
+    assert has_colours(scene) and has_appearance(scene)
+    assert not has_colours(_bare(scene)) and not has_appearance(_bare(scene))
+    scan = SimpleNamespace(has_texture=False, vertex_colors=None, intensity=np.ones(3))
+    assert not has_colours(scan) and has_appearance(scan)

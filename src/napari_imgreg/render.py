@@ -19,7 +19,7 @@ import numpy as np
 
 from .camera import Intrinsics, Pose, scaled_size
 from .errors import InputError
-from .scene import Scene, ray_threads
+from .scene import Scene, has_colours, ray_threads
 from .validate import FieldValueError, check_number, check_render_size
 
 __all__ = ["RenderResult", "render", "RENDER_MODES"]
@@ -216,7 +216,7 @@ def render(
                                           light_direction=light_direction, ambient=ambient,
                                           detail=detail))
     if mode == "auto":
-        mode = "color" if (scene.has_texture or scene.vertex_colors is not None) else "shaded"
+        mode = "color" if has_colours(scene) else "shaded"
     # Bounded work: refuse a render too large for memory before allocating it
     # (``render --scale 100`` of a 12 MP photo would need 7 TB).
     try:

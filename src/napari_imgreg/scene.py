@@ -28,7 +28,7 @@ from .solar import sun_from_record
 if TYPE_CHECKING:
     from .geo import DEM, Georef
 
-__all__ = ["Scene", "RayHits", "ray_threads", "has_appearance", "size_text"]
+__all__ = ["Scene", "RayHits", "ray_threads", "has_appearance", "has_colours", "size_text"]
 
 log = logging.getLogger(__name__)
 
@@ -44,11 +44,16 @@ def ray_threads() -> int:
     return max(1, os.cpu_count() or 1)
 
 
+def has_colours(scene) -> bool:
+    """Whether a scene has photographed colours: a texture or vertex (point)
+    colours, not only grey shading or a lidar scan's intensity."""
+    return bool(scene.has_texture or scene.vertex_colors is not None)
+
+
 def has_appearance(scene) -> bool:
     """Whether a scene renders with its own appearance (a texture, vertex
     colours, or a lidar scan's intensity) rather than grey shading only."""
-    return bool(scene.has_texture or scene.vertex_colors is not None
-                or getattr(scene, "intensity", None) is not None)
+    return has_colours(scene) or getattr(scene, "intensity", None) is not None
 
 
 def size_text(scene) -> str:
@@ -206,7 +211,7 @@ class Scene:
         )
         scene.warnings = list(data.warnings)
         survey = mesh_path.parent / "survey.json"
-        if survey.exists() and (scene.has_texture or scene.vertex_colors is not None):
+        if survey.exists() and has_colours(scene):
             scene.survey_sun = read_survey_sun(survey, georef, scene.bounds.mean(axis=0))
         scene.timings_s["load"] = time.perf_counter() - t0
         return scene

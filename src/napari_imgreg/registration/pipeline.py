@@ -60,7 +60,7 @@ from .stages.dense import refine_pose_mi
 from .stages.edges import align_edges
 from .uncertainty import Uncertainty
 from ..render import RenderResult, render
-from ..scene import Scene, has_appearance
+from ..scene import Scene, has_appearance, has_colours
 
 __all__ = [
     "Progress",
@@ -195,7 +195,7 @@ class _Context:
         # unlit twin, from the same ray cast (area matching in "auto" mode
         # matches both).
         key = (pose.R.tobytes(), pose.t.tobytes(), round(scale, 9), intr)
-        photographed = self.scene.has_texture or self.scene.vertex_colors is not None
+        photographed = has_colours(self.scene)
         if mode == "sunlit" and self.sun is not None:
             from .stages.relight import render_sunlit, render_unlit_and_sunlit
 
@@ -462,11 +462,7 @@ def _area_light(ctx: _Context, mode: str) -> str:
     relit render and the colours as they are, and keeps the one whose pose
     fits its blocks better (:func:`~napari_imgreg.registration.round.score_round`)
     — else ``mode``."""
-    scene = ctx.scene
-    if mode == "sunlit" and ctx.sun is not None and (
-            scene.has_texture or scene.vertex_colors is not None):
-        return "auto"
-    return mode
+    return "auto" if mode == "sunlit" and ctx.sun is not None and has_colours(ctx.scene) else mode
 
 
 def _robust_stages(ctx: _Context, prior: Prior, start_prior: Pose, params: RegistrationParams,

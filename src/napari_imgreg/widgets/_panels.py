@@ -55,7 +55,7 @@ from ..registration.filters import FilterParams
 from ..io.photos import PHOTO_SUFFIXES
 from ..registration.manual import MIN_PAIRS, MIN_PAIRS_FOCAL
 from ..registration.params import RegistrationParams
-from ..scene import size_text
+from ..scene import has_colours, size_text
 from ..registration.pose import PoseParams
 from ..registration.features import FeatureParams
 from ..validate import param_range
@@ -1347,8 +1347,7 @@ class SunBox(QGroupBox):
         notes = []
         if ps is not None and scene is not None:
             # A scan's intensity (or colours) hold no sun: clouds are always relit.
-            textured = ((scene.has_texture or scene.vertex_colors is not None)
-                        and not getattr(scene, "is_cloud", False))
+            textured = has_colours(scene) and not getattr(scene, "is_cloud", False)
             if not ws.params.sun_relight:
                 notes.append("Sun-lit matching is off (checkbox above).")
             elif ps.sun is None:
