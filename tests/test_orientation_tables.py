@@ -348,3 +348,18 @@ def test_pairing_by_name_ignores_folder_extension_and_case():
     assert paired.capture_order.tolist() == [0, 1]
     assert any("not in the estimated table" in n for n in paired.notes)
     assert math.isclose(paired.estimated[0][2] @ rotation_from_attitude(4, 0, 0)[2], 1.0)
+
+
+def test_photo_metadata_of_a_heic_phone_photo(tmp_path):
+    from pillow_heif import register_heif_opener
+
+    register_heif_opener()
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    exif = Image.Exif()
+    exif[ExifTags.IFD.GPSInfo] = {ExifTags.GPS.GPSImgDirectionRef: "T",
+                                  ExifTags.GPS.GPSImgDirection: 123.5}
+    Image.new("RGB", (16, 12), (120, 90, 60)).save(folder / "IMG_0007.HEIC", exif=exif.tobytes())
+    table = read_orientation_table(folder)
+    assert table.photos == ["IMG_0007.HEIC"]
+    assert table.attitudes[0, 0] == pytest.approx(123.5) and np.isnan(table.attitudes[0, 1:]).all()

@@ -379,3 +379,55 @@ def test_workbench_ranges_lie_within_the_declared_ones():
     for name, _label, _kind, lo, hi, _dec in FilterEditor.FIELDS:
         low, high = FilterParams.RANGES[name]
         assert low <= lo <= hi <= high, name
+
+
+# ------------------------------------------------- HEIC/HEIF (phone photos)
+def _heic_photo(path, stored: np.ndarray, orientation: int) -> None:
+    """A HEIC as an iPhone writes one: the tag says how to turn the sensor's
+    pixels; pillow-heif stores that turn in the container (libheif applies it)."""
+    from pillow_heif import register_heif_opener
+
+    register_heif_opener()
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    exif[0x010F], exif[0x0110] = "Apple", "iPhone 15"
+    exif[0x8825] = {1: "N", 2: (46.0, 30.0, 0.0), 3: "E", 4: (7.0, 15.0, 0.0)}
+    Image.fromarray(stored).save(path, exif=exif.tobytes(), quality=100)
+
+
+@pytest.mark.parametrize("suffix", [".heic", ".HEIF"])
+def test_heic_photo_is_read_turned_with_its_tags(tmp_path, suffix):
+    stored = np.zeros((30, 40, 3), np.uint8)
+    stored[:4, :4] = 255  # top-left of the stored (sensor) image
+    _heic_photo(tmp_path / f"p{suffix}", stored, 6)
+    photo = load_photo(tmp_path / f"p{suffix}")
+    assert photo.size == (30, 40)  # shown portrait, as the JPEG would be
+    # The tag as written, for the prior to turn the camera with the pixels.
+    assert photo.exif["Orientation"] == 6
+    assert photo.exif["Make"] == "Apple" and photo.exif["GPSInfo"]["GPSLatitudeRef"] == "N"
+    # Turned clockwise once (not twice): the stored top-left is now the top-right.
+    assert photo.image[:3, -3:].min() > 200 and photo.image[:3, :3].max() < 60
+
+
+def test_portrait_heic_with_landscape_record_turns_the_camera(tmp_path):
+    record = _landscape_record(tmp_path)
+    _heic_photo(tmp_path / "IMG_0001.heic", np.full((120, 160, 3), 90, np.uint8), 6)
+    photo = load_photo(tmp_path / "IMG_0001.heic")
+    prior = prior_from_record(record, image_size=photo.size,
+                              exif_orientation=photo.exif["Orientation"])
+    sensor = prior_from_record(record, image_size=(160, 120))
+    assert prior.intrinsics == sensor.intrinsics.rotated(1)
+    assert np.allclose(prior.pose.R, sensor.pose.rotated(1).R)
+
+
+def test_unreadable_heic_is_one_error_line(tmp_path):
+    bad = tmp_path / "broken.heic"
+    bad.write_bytes(b"\x00\x00\x00\x18ftypheic" + b"\x00" * 64)
+    good = tmp_path / "good.heic"
+    _heic_photo(good, np.random.default_rng(0).integers(0, 255, (120, 160, 3), np.uint8), 1)
+    truncated = tmp_path / "truncated.heic"  # libheif's message ends in a newline
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    for path in (bad, truncated):
+        with pytest.raises(InputError) as err:
+            load_photo(path)
+        assert str(path) in str(err.value) and "\n" not in str(err.value)

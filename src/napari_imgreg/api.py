@@ -59,7 +59,7 @@ def register(
         The model (a mesh file: ``georef.json`` and ``dem.tif`` beside it are
         used, see :meth:`Scene.load`).
     photo : Photo or path
-        The photograph (JPEG, PNG or TIFF).
+        The photograph (JPEG, PNG, TIFF or HEIC/HEIF).
     prior : Prior or path, optional
         The sensor prior, or the path of a sensor record; default: the
         ``.json`` sensor record beside the photo, completed from its EXIF.

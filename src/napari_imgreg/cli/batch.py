@@ -345,7 +345,7 @@ def find_scene_files(
         else:
             scene.photos.append(p)
     if not scene.photos:
-        raise input_error(folder, "no photos in the folder (expected JPEG, PNG or TIFF files)")
+        raise input_error(folder, "no photos in the folder (expected JPEG, PNG, TIFF or HEIC files)")
     return scene
 
 

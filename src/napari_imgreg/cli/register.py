@@ -37,7 +37,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "score it, adapt and retry. Exit 0 when registered, 1 when it failed its quality bar.",
     )
     p.add_argument("mesh", metavar="MESH")
-    p.add_argument("photo", metavar="PHOTO", help="JPEG, PNG or TIFF")
+    p.add_argument("photo", metavar="PHOTO", help="JPEG, PNG, TIFF or HEIC/HEIF")
     p.add_argument("--prior", metavar="PHOTO.json",
                    help="sensor record (default: the .json beside the photo, then EXIF/XMP)")
     p.add_argument("--dem", help="DEM GeoTIFF or .asc")

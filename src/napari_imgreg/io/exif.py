@@ -45,6 +45,7 @@ __all__ = [
     "capture_time_from_exif",
     "gps_degrees",
     "exif_of_image",
+    "ensure_heif_opener",
     "read_photo_xmp_and_gps",
     "raw_xmp",
     "dji_gimbal_angles",
@@ -354,6 +355,19 @@ def exif_of_image(im: Any) -> dict[str, Any]:
     return exif
 
 
+def ensure_heif_opener() -> None:
+    """Let Pillow open HEIC/HEIF photos (pillow-heif's plugin; registered once)."""
+    global _HEIF_REGISTERED
+    if not _HEIF_REGISTERED:
+        from pillow_heif import register_heif_opener
+
+        register_heif_opener()
+        _HEIF_REGISTERED = True
+
+
+_HEIF_REGISTERED = False
+
+
 def read_photo_xmp_and_gps(path: str | os.PathLike) -> tuple[str | None, dict[str, Any]]:
     """The XMP packet and the GPS tags of a photo file, without decoding its pixels.
 
@@ -374,6 +388,8 @@ def read_photo_xmp_and_gps(path: str | os.PathLike) -> tuple[str | None, dict[st
     from PIL import ExifTags, Image, UnidentifiedImageError
 
     path = Path(path)
+    if path.suffix.lower() in (".heic", ".heif"):
+        ensure_heif_opener()
     try:
         with Image.open(path) as im:
             xmp = im.info.get("xmp") or im.info.get("XML:com.adobe.xmp")

@@ -1,4 +1,4 @@
-"""Read field photographs (JPEG, PNG, TIFF) with their EXIF tags.
+"""Read field photographs (JPEG, PNG, TIFF, HEIC/HEIF) with their EXIF tags.
 
 The pixels are read here; the tags are read and interpreted by
 :mod:`napari_imgreg.io.exif`.
@@ -16,12 +16,14 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, input_error
-from .exif import exif_of_image
+from .exif import ensure_heif_opener, exif_of_image
 from ..validate import MAX_IMAGE_SIDE_PX, MAX_PHOTO_PIXELS
 
 __all__ = ["Photo", "load_photo", "PHOTO_SUFFIXES", "save_image"]
 
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+#: Photo files read by :func:`load_photo`. HEIC/HEIF is what iPhones (and many
+#: Android phones) save by default; read through pillow-heif (libheif in its wheel).
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".heic", ".heif")
 
 
 @dataclass
@@ -31,7 +33,8 @@ class Photo:
     Attributes
     ----------
     image : (H, W, 3) uint8 array
-        RGB, row 0 at the top, EXIF orientation already applied.
+        RGB, row 0 at the top, EXIF orientation already applied (HEIC/HEIF:
+        the file's rotation, which the decoder applies).
     exif : dict
         EXIF tags by name (``FocalLength``, ``Model``, ...), GPS tags under
         ``"GPSInfo"`` as a dict by name.
@@ -73,6 +76,8 @@ def load_photo(path: str | os.PathLike) -> Photo:
     from PIL import Image, ImageOps, UnidentifiedImageError
 
     path = Path(path)
+    if path.suffix.lower() in (".heic", ".heif"):
+        ensure_heif_opener()
     if not path.exists():
         raise input_error(path, "no such file")
     if path.suffix.lower() not in PHOTO_SUFFIXES:
@@ -90,6 +95,14 @@ def load_photo(path: str | os.PathLike) -> Photo:
                               f"the limit is {MAX_PHOTO_PIXELS / 1e6:g} MP and "
                               f"{MAX_IMAGE_SIDE_PX} px a side")
                 exif = exif_of_image(im)
+                if im.format == "HEIF":
+                    # libheif has already turned the pixels by the file's own
+                    # rotation and pillow-heif reset the tag to 1 so they are
+                    # not turned twice; the tag as written is what the prior
+                    # needs to turn the camera with them.
+                    written = im.info.get("original_orientation")
+                    if written:
+                        exif["Orientation"] = int(written)
                 im = ImageOps.exif_transpose(im)
                 image = _to_rgb8(im)
     except Image.DecompressionBombError as exc:
@@ -101,7 +114,7 @@ def load_photo(path: str | os.PathLike) -> Photo:
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         if isinstance(exc, InputError):
             raise
-        raise input_error(path, f"cannot read image ({exc})") from None
+        raise input_error(path, f"cannot read image ({' '.join(str(exc).split())})") from None
     return Photo(np.ascontiguousarray(image), exif, path)
 
 
