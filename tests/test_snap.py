@@ -185,3 +185,30 @@ def test_repeated_and_dense_clicks_do_not_break_the_trace():
     px = snap_trace(img, clicks)
     assert len(px) >= 2 and np.isfinite(px).all()
     assert _median_offset(px, _contact_row) < 0.5
+
+
+def test_subpixel_refinement_is_exact_on_a_clean_edge():
+    """The sub-pixel peak finder on an ideal step: a slanted edge at a known
+    sub-pixel row, blurred as a lens would, the start on pixel centres."""
+    from scipy import ndimage
+
+    from napari_imgreg.interpret.snap import _luminance_derivatives, _subpixel
+
+    rng = np.random.default_rng(3)
+    errors = []
+    for blur in (0.0, 0.8, 1.3):
+        y0, slope = 40.0 + rng.uniform(0, 1), rng.uniform(-0.05, 0.05)
+        ss = 8  # area-sampled: each pixel integrates its footprint
+        rows = (np.arange(80 * ss) + 0.5) / ss - 0.5
+        cols = (np.arange(120 * ss) + 0.5) / ss - 0.5
+        edge = y0 + slope * (cols - 60.0)
+        img = (0.3 + 0.4 * (rows[:, None] > edge[None, :])).reshape(80, ss, 120, ss).mean(axis=(1, 3))
+        if blur:
+            img = ndimage.gaussian_filter(img, blur)
+        gx, gy = _luminance_derivatives(np.round(img * 255).astype(np.uint8), 0.7)
+        c = np.arange(20.0, 100.0)
+        start = np.stack([c, np.round(y0 + slope * (c - 60.0) + rng.uniform(-0.8, 0.8))], axis=1)
+        errors.append(_subpixel(np.hypot(gx, gy), start)[:, 1] - (y0 + slope * (c - 60.0)))
+    errors = np.concatenate(errors)
+    assert np.median(np.abs(errors)) < 0.03 and np.abs(errors).max() < 0.1
+    assert abs(errors.mean()) < 0.01  # no bias across the edge
