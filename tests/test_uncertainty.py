@@ -334,7 +334,7 @@ def test_candidate_factor_keeps_wrong_matches_out_of_the_halves():
     assert err < 1.0
     kept = estimate_uncertainty(intr, est.pose, X, photo, E, UncertaintyParams(candidate_factor=2.0))
     assert kept.is_small(W) and err <= 2 * kept.reprojection_px
-    assert UncertaintyParams().candidate_factor == 0.0  # not yet the default
+    assert UncertaintyParams().candidate_factor == 2.0  # the default
 
 
 # ---------------------------------------------------------- block bootstrap
