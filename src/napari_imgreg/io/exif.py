@@ -46,6 +46,7 @@ __all__ = [
     "gps_degrees",
     "exif_of_image",
     "ensure_heif_opener",
+    "HEIF_SUFFIXES",
     "read_photo_xmp_and_gps",
     "raw_xmp",
     "dji_gimbal_angles",
@@ -355,6 +356,10 @@ def exif_of_image(im: Any) -> dict[str, Any]:
     return exif
 
 
+#: Suffixes of HEIC/HEIF photos, which Pillow opens through pillow-heif.
+HEIF_SUFFIXES = (".heic", ".heif")
+
+
 def ensure_heif_opener() -> None:
     """Let Pillow open HEIC/HEIF photos (pillow-heif's plugin; registered once)."""
     global _HEIF_REGISTERED
@@ -388,7 +393,7 @@ def read_photo_xmp_and_gps(path: str | os.PathLike) -> tuple[str | None, dict[st
     from PIL import ExifTags, Image, UnidentifiedImageError
 
     path = Path(path)
-    if path.suffix.lower() in (".heic", ".heif"):
+    if path.suffix.lower() in HEIF_SUFFIXES:
         ensure_heif_opener()
     try:
         with Image.open(path) as im:

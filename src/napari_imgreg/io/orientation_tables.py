@@ -51,7 +51,7 @@ __all__ = [
 
 CSV_COLUMNS = ("photo", "trend_deg", "plunge_deg", "roll_deg")
 _POSITION_COLUMNS = ("x", "y", "z")
-_PHOTO_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".dng", ".png", ".heic", ".heif")
+_PHOTO_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".dng", ".png", *exif.HEIF_SUFFIXES)
 # Chunk translations farther than this from the origin are geocentric (ECEF).
 _GEOCENTRIC_M = 1.0e5
 

@@ -16,14 +16,14 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, input_error
-from .exif import ensure_heif_opener, exif_of_image
+from .exif import HEIF_SUFFIXES, ensure_heif_opener, exif_of_image
 from ..validate import MAX_IMAGE_SIDE_PX, MAX_PHOTO_PIXELS
 
 __all__ = ["Photo", "load_photo", "PHOTO_SUFFIXES", "save_image"]
 
 #: Photo files read by :func:`load_photo`. HEIC/HEIF is what iPhones (and many
 #: Android phones) save by default; read through pillow-heif (libheif in its wheel).
-PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".heic", ".heif")
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", *HEIF_SUFFIXES)
 
 
 @dataclass
@@ -76,7 +76,7 @@ def load_photo(path: str | os.PathLike) -> Photo:
     from PIL import Image, ImageOps, UnidentifiedImageError
 
     path = Path(path)
-    if path.suffix.lower() in (".heic", ".heif"):
+    if path.suffix.lower() in HEIF_SUFFIXES:
         ensure_heif_opener()
     if not path.exists():
         raise input_error(path, "no such file")
