@@ -198,7 +198,10 @@ def test_feature_off_the_surface_has_no_parts():
     sky = Interpretation("LineString", np.array([[100.0, 5.0], [1100.0, 5.0]]), {"label": "fault"})
     (f,) = project_interpretations(scene, intr, pose, [sky])
     assert f.parts == [] and f.missed == f.samples
-    assert measure_features([f]) == []
+    # Contract §6: its row is there, every number empty, the note saying why.
+    (m,) = measure_features([f])
+    assert m.n_points == 0 and not np.isfinite(m.centroid).any() and m.note
+    assert m.dip_deg is None and m.plunge_deg is None and m.plunge_sigma_deg is None
 
 
 def test_label_colours():

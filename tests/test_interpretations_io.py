@@ -222,7 +222,11 @@ def test_measurements_csv_has_contract_columns_and_empty_cells(tmp_path, project
         "plunge_deg", "trend_deg", "rms_m", "planarity"]
     assert tuple(lines[0].split(",")) == MEASUREMENT_COLUMNS
     rows = list(csv.DictReader(open(path)))
-    trace, facet = rows  # the feature off the surface has no row
+    # Contract §6: one row per feature, the one off the surface too (empty, with its note).
+    trace, facet, off = rows
+    assert off["n_points"] == "0" and off["note"]
+    assert all(off[k] == "" for k in ("x", "y", "z", "dip_deg", "dip_direction_deg",
+                                      "plunge_deg", "trend_deg", "rms_m", "planarity"))
     assert trace["kind"] == "trace" and trace["plunge_deg"] != "" and trace["dip_deg"] != ""
     assert float(trace["dip_deg"]) == pytest.approx(12.0, abs=0.5)
     assert facet["kind"] == "facet" and facet["plunge_deg"] == "" and facet["trend_deg"] == ""
@@ -265,7 +269,8 @@ def test_project_and_measure_commands(files, capsys):
     csv_path, net = tmp / "MEASUREMENTS.csv", tmp / "net.png"
     assert run_cli(["measure", str(geo), "--out", str(csv_path), "--stereonet", str(net)]) == 0
     printed = capsys.readouterr().out
-    assert "2 feature(s) measured" in printed and "sandstone: 1 plane(s)" in printed
+    assert "3 feature(s) measured" in printed and "sandstone: 1 plane(s)" in printed
+    assert "1 off the surface" in printed
     rows = list(csv.DictReader(open(csv_path)))
     assert float(rows[0]["x"]) > 500000  # centroids in the file's (CRS) frame
     assert float(rows[0]["dip_deg"]) == pytest.approx(12.0, abs=0.5)
@@ -394,6 +399,11 @@ def test_gis_export_keeps_z_crs_and_every_attribute(tmp_path, projected, suffix)
     normal_col = "surface_normal" if suffix == ".gpkg" else "surf_norm"
     np.testing.assert_allclose(json.loads(data[normal_col][bed]), traces[0].surface_normal,
                                atol=1e-6)
+    # The camera centre in the layer's frame, like the geometry (contract §5).
+    cam_col = "camera_position" if suffix == ".gpkg" else "cam_pos"
+    np.testing.assert_allclose(json.loads(data[cam_col][bed]),
+                               np.asarray(traces[0].properties["camera_position"])
+                               + GEOREF.origin, atol=1e-4)
     # facets: a 3D polygon
     geoms, data, _ = layers["facets"]
     (facet,) = [f for f in features if f.kind == "facet"]
@@ -405,8 +415,13 @@ def test_gis_export_keeps_z_crs_and_every_attribute(tmp_path, projected, suffix)
     geoms, data, _ = layers["measurements"]
     assert len(geoms) == len(measurements)
     names = {"dip_direction_deg": "dip_dir", "dip_deg": "dip"} if suffix == ".shp" else {}
+    assert any(m.n_points == 0 for m in measurements)  # the feature off the surface has its row
     for k, m in enumerate(measurements):
-        np.testing.assert_allclose(_wkb_points(geoms[k])[0], m.centroid + GEOREF.origin, atol=1e-6)
+        if m.n_points == 0:
+            assert geoms[k] is None
+        else:
+            np.testing.assert_allclose(_wkb_points(geoms[k])[0], m.centroid + GEOREF.origin,
+                                       atol=1e-6)
         dip = data[names.get("dip_deg", "dip_deg")][k]
         if m.dip_deg is None:
             assert dip is None or np.isnan(dip)
@@ -448,3 +463,26 @@ def test_project_command_writes_geopackage_and_shapefile(files, capsys):
         assert crs == "EPSG:32630" and len(geoms) == 2  # georef.json beside the mesh
         assert _wkb_points(next(g for g in geoms if g is not None))[0, 0] > 500000
     assert (tmp / "lines3d_measurements.shp").exists() and (tmp / "lines3d.prj").exists()
+
+
+def test_a_shapefile_leaves_text_it_cannot_hold_empty_and_says_so(tmp_path, projected):
+    """dBASE text holds 254 characters: a longer value would be cut into
+    broken JSON, so it is left empty with a note; the GeoPackage keeps it."""
+    pytest.importorskip("pyogrio", reason="pyogrio (GDAL) not installed")
+    from dataclasses import replace
+
+    from napari_imgreg.interpret.files import read_gis_layers
+
+    *_, features = projected
+    long_note = "laminated, " * 30  # 330 characters
+    features = [replace(features[0], properties={**features[0].properties,
+                                                 "comment": long_note}), *features[1:]]
+    notes = export_features(tmp_path / "l.shp", features, GEOREF)
+    assert len(notes) == 1 and "traces: comment of 1 feature(s)" in notes[0]
+    _, data, _ = read_gis_layers(tmp_path / "l.shp")["traces"]
+    assert data["comment"][0] is None
+    for text in data["uncertaint"]:
+        assert text is None or json.loads(text)  # never a cut, broken JSON
+    assert export_features(tmp_path / "l.gpkg", features, GEOREF) == []
+    _, data, _ = read_gis_layers(tmp_path / "l.gpkg")["traces"]
+    assert data["comment"][0] == long_note

@@ -529,6 +529,71 @@ def test_an_interpretation_drawn_on_a_photo_and_projected(ws):
     assert saved[0]["geometry"] == "LineString" and saved[0]["properties"]["label"] == "sandstone"
 
 
+def test_what_is_projected_carries_the_error_of_the_pose_it_was_projected_with(ws):
+    """The registration's own estimate (RESULT.json ``uncertainty``) sets the σ
+    of what is drawn on its pose; a pose no solve produced (moved by hand)
+    gets the sensor prior's default, not a registered pose's 1 px."""
+    from dataclasses import replace
+
+    from napari_imgreg.registration.uncertainty import Uncertainty
+
+    ps = ws.current
+    pt, px, _ = _true_bed_on_photo(ws)
+    reg = replace(_recorded_registration(ps),
+                  uncertainty=Uncertainty(reprojection_px=0.4, position_m=0.02,
+                                          rotation_deg=0.01))
+    ws.record_registration(reg, "Auto")
+    assert ps.pose is reg.pose
+    unc = ws.pose_uncertainty(ps)
+    assert (unc.source, unc.reprojection_px, unc.position_m, unc.rotation_deg) == (
+        "result", 0.4, 0.02, 0.01)
+    ws.add_interpretation(Interpretation("LineString", px, {"label": "sandstone"}))
+    bed = ws.project_interpretations()[0]
+    model = bed.properties["uncertainty"]
+    assert model["pose_uncertainty"] == "result" and model["reprojection_px"] == 0.4
+    assert model["position_m"] == 0.02
+    sigma_registered = bed.properties["sigma_m"]
+
+    ws.nudge("turn right 1", d_trend=1.0)  # no longer the registered pose
+    unc = ws.pose_uncertainty(ps)
+    assert unc.source == "default (sensor prior)" and unc.position_m == 5.0
+    bed = ws.project_interpretations()[0]
+    assert bed.properties["uncertainty"]["pose_uncertainty"] == "default (sensor prior)"
+    assert bed.properties["sigma_m"] > 10 * sigma_registered
+    ws.undo()
+    assert ws.pose_uncertainty(ps).source == "result"
+
+
+def test_a_contact_drawn_on_two_photos_gets_its_combined_row(ws):
+    """As ``measure`` writes them: the campaign's measurements add one
+    ``contact:<id>`` row for a contact traced on two photos."""
+    truth = load_truth(ws.photos[0].photo.path.parent)
+    pair = [ws.photos[0], ws.photos[1]]
+
+    def in_frame(name, xyz):
+        pt = truth.photos[name]
+        pix = pt.pose.project(pt.intrinsics, xyz)
+        ok = np.isfinite(pix).all(1) & (pix[:, 0] > 5) & (pix[:, 1] > 5)
+        ok &= (pix[:, 0] < pt.intrinsics.width - 5) & (pix[:, 1] < pt.intrinsics.height - 5)
+        return pix[ok]
+
+    # A bed boundary both photos see (the longest such).
+    seen = [[in_frame(ps.name, np.asarray(f["geometry"]["coordinates"])) for ps in pair]
+            for f in truth.lines["features"] if f["properties"]["label"] == "bed_boundary"]
+    both = max(seen, key=lambda p: min(len(p[0]), len(p[1])))
+    assert min(len(both[0]), len(both[1])) > 20
+    for ps, pix in zip(pair, both):
+        ws.record_registration(_recorded_registration(ps), "Auto", ps=ps,
+                               pose_if_not_current=True)
+        ws.add_interpretation(Interpretation("LineString", pix, {"label": "sandstone",
+                                                                 "id": "c3"}), ps)
+    ws.project_interpretations()
+    ids = [m.id for m in ws.measurements]
+    assert "contact:c3" in ids, ids
+    combined = ws.measurements[ids.index("contact:c3")]
+    assert set(combined.photo.split(";")) == {ws.photos[0].name, ws.photos[1].name}
+
+
 # -------------------------------------------------------------------- saving
 def test_the_state_is_plain_data(ws):
     ps = ws.current

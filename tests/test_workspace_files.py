@@ -7,6 +7,7 @@ field, through the files a crash leaves, and from a version-0 manifest.
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -22,6 +23,7 @@ import numpy as np
 import pytest
 
 from napari_imgreg.errors import InputError
+from napari_imgreg.geo import Georef
 from napari_imgreg.interpret.project import Interpretation
 from napari_imgreg.io import workspace_files as wsfiles
 from napari_imgreg.registration.manual import ManualSolution
@@ -591,6 +593,17 @@ def test_the_command_line_on_a_workspace_is_resumable(sample, tmp_path, capsys):
     assert _cli("workspace", "export", folder, "--out", out3d, "--measurements", meas) == 0
     assert json.loads(out3d.read_text())["features"][0]["properties"]["label"] == "sandstone"
     assert meas.read_text().startswith("id,label,kind")
+    # --georeferenced: the measurements' centroids in the CRS, as the features.
+    geo3d, geomeas = tmp_path / "geo" / "LINES3D.geojson", tmp_path / "geo" / "M.csv"
+    assert _cli("workspace", "export", folder, "--out", geo3d, "--measurements", geomeas,
+                "--georeferenced") == 0
+    origin = Georef.load(scene_dir / "georef.json").origin
+    local_row = next(csv.DictReader(meas.open()))
+    geo_row = next(csv.DictReader(geomeas.open()))
+    for k, axis in enumerate("xyz"):
+        assert float(geo_row[axis]) == pytest.approx(float(local_row[axis]) + origin[k], abs=2e-4)
+    assert geo_row["dip_deg"] == local_row["dip_deg"]
+    assert "(local + origin)" in capsys.readouterr().out
     # One GeoPackage for the campaign: traces, facets, measurements, cameras.
     import pyogrio
 

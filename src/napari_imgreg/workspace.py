@@ -67,6 +67,7 @@ from .interpret.project import (
     Feature3D,
     Interpretation,
     label_color,
+    measure_features,
     merge_interpretations,
     project_interpretations,
 )
@@ -83,6 +84,7 @@ from .registration.pipeline import Registration, Trial
 from .registration.quality import RuleHit, evaluate_rules
 from .registration.round import Correspondences
 from .registration.stages.relight import SunEstimate, estimate_sun_from_photo
+from .interpret.uncertainty import PoseUncertainty
 from .registration.uncertainty import Uncertainty
 from .render import RenderResult, render
 from .scene import Scene
@@ -491,28 +493,32 @@ def read_photos(paths, scene: Scene) -> tuple[list[tuple[Photo, Prior]], list[st
 
 
 def project_interpretation_sets(
-    scene: Scene, jobs: list[tuple[Intrinsics, Pose, list[Interpretation], str]]
+    scene: Scene,
+    jobs: list[tuple[Intrinsics, Pose, list[Interpretation], str]
+               | tuple[Intrinsics, Pose, list[Interpretation], str, PoseUncertainty | None]],
 ) -> tuple[list[Feature3D], list[Measurement]]:
     """Project each photo's interpretations onto the scene; one merged set.
 
     Parameters
     ----------
     scene : Scene
-    jobs : list of (Intrinsics, Pose, list of Interpretation, str)
-        Per photo: its camera, its pose, what was drawn on it, its name.
+    jobs : list of (Intrinsics, Pose, list of Interpretation, str[, PoseUncertainty])
+        Per photo: its camera, its pose, what was drawn on it, its name, and
+        optionally its pose's expected error (the σ of what is projected;
+        default :func:`~napari_imgreg.interpret.project.project_interpretations`'s).
 
     Returns
     -------
     features : list of Feature3D
     measurements : list of Measurement
-        Of the features that reached the surface.
+        As ``measure`` writes them: one per feature that reached the surface,
+        then one per contact drawn on two or more photos (``contact:<id>``).
     """
-    sets = [project_interpretations(scene, intr, pose, items, source=source)
-            for intr, pose, items, source in jobs]
+    sets = [project_interpretations(scene, job[0], job[1], job[2], source=job[3],
+                                    pose_uncertainty=job[4] if len(job) > 4 else None)
+            for job in jobs]
     features = merge_interpretations(*sets)
-    measurements = [f.measure() for f in features if f.n_points or (
-        f.patch_points is not None and len(f.patch_points))]
-    return features, measurements
+    return features, measure_features(features)
 
 
 def _unit(direction) -> np.ndarray:
@@ -1231,12 +1237,52 @@ class Workspace:
             No scene, or nothing drawn.
         """
         scene = self.require_scene()
-        jobs = [(ps.intrinsics, ps.pose, list(ps.interpretations), ps.name)
+        jobs = [(ps.intrinsics, ps.pose, list(ps.interpretations), ps.name,
+                 self.pose_uncertainty(ps))
                 for ps in self.photos if ps.interpretations]
         if not jobs:
             raise WorkbenchError("Nothing to project: draw on a photo first.")
         return Job("projection", lambda: project_interpretation_sets(scene, jobs),
                    lambda value: self.record_projection(*value), "Projecting interpretations")
+
+    def pose_uncertainty(self, ps: PhotoState) -> PoseUncertainty:
+        """The expected error of the photo's current pose, for what is projected from it.
+
+        The estimate of the registration or trial whose pose it is
+        (RESULT.json ``uncertainty``); for a manual solve, or a registration
+        without an estimate, the default derived from its reprojection error;
+        for a pose no solve produced (the prior, or moved by hand since), the
+        sensor prior's default (50 px, 5 m, 3°).
+        """
+        pose, fx = ps.pose, ps.intrinsics.fx
+
+        def same(other: Pose | None) -> bool:
+            return (other is not None and np.allclose(other.R, pose.R, rtol=0, atol=1e-9)
+                    and np.allclose(other.t, pose.t, rtol=0, atol=1e-6))
+
+        def of(unc: Uncertainty | None, status: str, metrics: dict) -> PoseUncertainty:
+            if unc is not None:
+                return PoseUncertainty(unc.reprojection_px, unc.position_m, unc.rotation_deg,
+                                       source="result")
+            return PoseUncertainty.from_result({"pose": {}, "status": status,
+                                                "metrics": metrics}, fx)
+
+        reg = ps.registration
+        if reg is not None and same(reg.pose):
+            return of(reg.uncertainty, reg.status, reg.metrics)
+        order = ([ps.selected_trial] if ps.selected_trial is not None else []) + list(
+            range(len(ps.trials)))
+        for k in order:
+            if 0 <= k < len(ps.trials) and same(ps.trials[k].trial.pose):
+                t = ps.trials[k].trial
+                return of(t.uncertainty, "registered" if t.verified else "failed", t.metrics)
+        sol = ps.manual_solution
+        if sol is not None and sol.ok and same(sol.pose):
+            errors = np.asarray(sol.errors_px, np.float64)
+            errors = errors[np.asarray(sol.inliers, bool) & np.isfinite(errors)]
+            rms = float(np.sqrt(np.mean(errors ** 2))) if errors.size else 2.0
+            return of(None, "registered", {"reprojection_error_px": rms})
+        return PoseUncertainty.from_result(None, fx)
 
     def project_interpretations(self) -> list[Feature3D]:
         """Project the interpretations (blocking); see :meth:`projection_job`."""

@@ -291,3 +291,24 @@ def test_three_point_plane_drawn_by_clicks(widget, sample, qtbot):
     assert m.dip_deg == pytest.approx(12.0, abs=0.5)
     assert m.dip_direction_deg == pytest.approx(200.0, abs=2.0)
     assert m.n_points == 3 and "3-point" in m.note and m.plunge_deg is None
+
+
+def test_a_photo_layer_gives_the_error_of_its_pose():
+    """What is projected from a photo layer carries its RESULT.json's
+    ``uncertainty``; without one, the documented default, never silently 1 px
+    for a sensor record."""
+    from types import SimpleNamespace
+
+    from napari_imgreg.camera import Intrinsics
+    from napari_imgreg.widgets.interpret_widget import pose_uncertainty_of_layer
+
+    intr = Intrinsics(fx=1000.0, fy=1000.0, cx=511.5, cy=383.5, width=1024, height=768)
+    result = {"status": "registered", "pose": {}, "metrics": {"reprojection_error_px": 0.5},
+              "uncertainty": {"reprojection_px": 0.7, "position_m": 0.03, "rotation_deg": 0.02}}
+    unc = pose_uncertainty_of_layer(SimpleNamespace(metadata={"result": result}), intr)
+    assert (unc.source, unc.reprojection_px, unc.position_m) == ("result", 0.7, 0.03)
+    del result["uncertainty"]
+    unc = pose_uncertainty_of_layer(SimpleNamespace(metadata={"result": result}), intr)
+    assert unc.source == "default" and unc.reprojection_px == 1.0
+    unc = pose_uncertainty_of_layer(SimpleNamespace(metadata={}), intr)
+    assert unc.source == "default (sensor prior)" and unc.position_m == 5.0

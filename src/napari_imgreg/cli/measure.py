@@ -127,9 +127,11 @@ def run(args: argparse.Namespace) -> int:
     n_planes = sum(m.has_plane for m in measurements)
     n_traces = sum(m.kind == "trace" for m in measurements)
     n_facets = sum(m.kind == "facet" for m in measurements)
+    n_off = sum(m.n_points == 0 for m in measurements)
     print(
         f"{len(measurements)} feature(s) measured from {args.lines3d}: {n_traces} trace(s), "
         f"{n_facets} facet(s); {n_planes} with a well-posed plane"
+        + (f"; {n_off} off the surface (a row with empty cells)" if n_off else "")
     )
     for label in sorted({m.label for m in measurements}):
         planes = [m for m in measurements if m.label == label and m.has_plane]

@@ -94,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
     from ..interpret.files import (
         EXPORT_SUFFIXES,
         export_features,
+        export_in_crs,
         read_interpretations,
     )
     from ..interpret.project import (
@@ -176,12 +177,15 @@ def run(args: argparse.Namespace) -> int:
         for note in notes:
             print(f"  assumed: {note}")
     merged = merge_interpretations(*sets)
-    export_features(out, merged, scene.georef, args.georeferenced)
+    notes = export_features(out, merged, scene.georef, args.georeferenced)
     labels = Counter(f.label for f in merged)
-    frame = f"{scene.georef.crs} (local + origin)" if args.georeferenced else "local frame"
+    in_crs = export_in_crs(out, scene.georef, args.georeferenced)
+    frame = f"{scene.georef.crs} (local + origin)" if in_crs else "local frame"
     print(
         f"  {len(merged)} feature(s) ("
         + ", ".join(f"{n} {label}" for label, n in sorted(labels.items()))
         + f"), {frame} -> {out}"
     )
+    for note in notes:
+        print(f"  note: {note}")
     return EXIT_OK

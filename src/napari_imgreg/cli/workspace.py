@@ -313,13 +313,22 @@ def _export(args: argparse.Namespace) -> int:
     georef = ws.scene.georef if ws.scene is not None else None
     # The campaign's own measurements (contacts combined across photos) fill
     # a GeoPackage's measurements layer.
-    interpret_files.export_features(args.out, ws.features_3d, georef, args.georeferenced,
-                                    measurements=ws.measurements or None)
+    notes = interpret_files.export_features(args.out, ws.features_3d, georef,
+                                            args.georeferenced,
+                                            measurements=ws.measurements or None)
+    in_crs = interpret_files.export_in_crs(args.out, georef, args.georeferenced)
     if args.measurements:
-        interpret_files.write_measurements_csv(args.measurements, ws.measurements)
-    say(f"{args.out}: {len(ws.features_3d)} feature(s)"
+        # In the frame of the exported features (centroids; angles are the same).
+        interpret_files.write_measurements_csv(
+            args.measurements,
+            interpret_files.measurements_in_frame(ws.measurements, georef.origin)
+            if in_crs else ws.measurements)
+    frame = f"{georef.crs} (local + origin)" if in_crs else "local frame"
+    say(f"{args.out}: {len(ws.features_3d)} feature(s), {frame}"
         + (f"; {args.measurements}: {len(ws.measurements)} measurement(s)"
            if args.measurements else ""))
+    for note in notes:
+        say(f"  note: {note}")
     return EXIT_OK
 
 

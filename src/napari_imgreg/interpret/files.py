@@ -549,13 +549,16 @@ def _columns(rows: list[dict[str, Any]]) -> tuple[list[str], list[np.ndarray]]:
         else:
             from .._json import dumps as strict_dumps
 
+            # Compact JSON: a shapefile's text field holds only 254 characters.
             arrays.append(np.array(
-                [None if v is None else v if isinstance(v, str) else strict_dumps(v)
-                 for v in vals], dtype=object))
+                [None if v is None else v if isinstance(v, str)
+                 else strict_dumps(v, separators=(",", ":")) for v in vals], dtype=object))
     return names, arrays
 
 
-def _feature_row(f: Feature3D) -> dict[str, Any]:
+def _feature_row(f: Feature3D, shift: np.ndarray) -> dict[str, Any]:
+    """A feature's attributes for a GIS layer, positions in the layer's frame
+    (local + ``shift``), as the GeoJSON writer gives them."""
     props = {k: v for k, v in f.properties.items() if k != "patch_points"}
     row = {"id": f.id, "label": f.label, "kind": f.kind, "source": f.source}
     row.update({k: v for k, v in props.items() if k not in row})
@@ -564,8 +567,14 @@ def _feature_row(f: Feature3D) -> dict[str, Any]:
     row["length_m"] = round(float(f.length_m), 4)
     if f.surface_normal is not None:
         row["surface_normal"] = np.round(f.surface_normal, 6).tolist()
+    cam = row.get("camera_position")
+    if isinstance(cam, (list, tuple, np.ndarray)) and len(cam) == 3:
+        # In the frame of the coordinates (contract §5), as in the GeoJSON.
+        row["camera_position"] = _xyz(np.asarray(cam, np.float64).reshape(1, 3), shift)[0]
     if f.kind == "facet":
         row["ring_complete"] = bool(f.ring_complete)
+        if f.patch_faces is not None:
+            row["patch_n_faces"] = int(len(f.patch_faces))
     return row
 
 
@@ -583,7 +592,7 @@ def _gis_layers(
     traces, facets = ([], []), ([], [])
     for f in features:
         parts = [np.asarray(p, np.float64) + shift for p in f.parts if len(p) >= 2]
-        row = _feature_row(f)
+        row = _feature_row(f, shift)
         if f.kind == "facet":
             if f.ring_complete and len(parts) == 1:
                 ring = parts[0]
@@ -626,7 +635,7 @@ def write_features_gis(
     georef: Georef | None = None,
     measurements: Sequence[Measurement] | None = None,
     cameras: dict[str, np.ndarray] | None = None,
-) -> None:
+) -> list[str]:
     """Write a GeoPackage (``.gpkg``) or 3D shapefiles (``.shp``) through pyogrio.
 
     Layers (:data:`GIS_LAYERS`): ``traces`` (``MultiLineString Z``),
@@ -651,6 +660,12 @@ def write_features_gis(
     cameras : dict, optional
         ``{photo: (3,) camera centre}``, local frame.
 
+    Returns
+    -------
+    list of str
+        Notes for the user: the shapefile fields whose text was too long for
+        the format (:data:`DBF_TEXT_MAX`) and was left empty.
+
     Notes
     -----
     Written beside the target and renamed into place: an existing file is
@@ -671,6 +686,7 @@ def write_features_gis(
              "napari_imgreg_crs": georef.crs if georef is not None else "local",
              "napari_imgreg_origin": json.dumps([float(v) for v in shift])}
     layers = _gis_layers(features, shift, measurements, cameras)
+    notes: list[str] = []
     path.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".{path.name}.", dir=path.parent) as tmp:
         tmp_dir = Path(tmp)
@@ -678,6 +694,7 @@ def write_features_gis(
         for k, (layer, (gtype, geoms, rows)) in enumerate(layers.items()):
             names, arrays = _columns(rows)
             if suffix == ".shp":
+                notes += _fit_dbf_text(layer, names, arrays)
                 names = _shapefile_names(names)
                 stem = path.stem if k == 0 else f"{path.stem}_{layer}"
                 out = tmp_dir / f"{stem}.shp"
@@ -698,6 +715,30 @@ def write_features_gis(
             written = [(tmp_dir / path.name, path)]
         for src, dst in written:
             os.replace(src, dst)
+    return notes
+
+
+#: Longest text a shapefile's (dBASE) field holds, characters.
+DBF_TEXT_MAX = 254
+
+
+def _fit_dbf_text(layer: str, names: list[str], arrays: list[np.ndarray]) -> list[str]:
+    """Leave empty (in place) the texts a shapefile cannot hold whole: a cut
+    JSON list is not a shorter list but broken text. Returns one note per
+    field that lost values."""
+    notes = []
+    for name, values in zip(names, arrays):
+        if values.dtype != object:
+            continue
+        long = [k for k, v in enumerate(values)
+                if isinstance(v, str) and len(v.encode("utf-8")) > DBF_TEXT_MAX]
+        for k in long:
+            values[k] = None
+        if long:
+            notes.append(f"{layer}: {name} of {len(long)} feature(s) is longer than a shapefile "
+                         f"field holds ({DBF_TEXT_MAX} characters) and was left empty; "
+                         "the GeoPackage and GeoJSON keep it")
+    return notes
 
 
 def _shapefile_names(names: list[str]) -> list[str]:
@@ -739,19 +780,39 @@ def read_gis_layers(path: str | os.PathLike) -> dict[str, tuple[list, dict[str, 
     return out
 
 
+def export_in_crs(path: str | os.PathLike, georef: Georef | None, georeferenced: bool) -> bool:
+    """Whether :func:`export_features` writes ``path`` in the georeference's
+    CRS: with ``georeferenced``, and a GeoPackage or shapefile whenever the
+    model has a georeference."""
+    return georef is not None and (
+        georeferenced or Path(path).suffix.lower() in (".gpkg", ".shp"))
+
+
+def measurements_in_frame(measurements: Sequence[Measurement],
+                          shift: np.ndarray) -> list[Measurement]:
+    """Copies of ``measurements`` with their centroids moved by ``shift``
+    (local → CRS: ``georef.origin``); the angles do not change."""
+    from dataclasses import replace
+
+    return [replace(m, centroid=np.asarray(m.centroid, np.float64) + shift)
+            for m in measurements]
+
+
 def export_features(
     path: str | os.PathLike,
     features: Sequence[Feature3D],
     georef: Georef | None = None,
     georeferenced: bool = False,
     measurements: Sequence[Measurement] | None = None,
-) -> None:
+) -> list[str]:
     """Write projected interpretations in the format the suffix names.
 
     ``.geojson``/``.json`` (3D GeoJSON), ``.csv`` (vertices), ``.obj`` /
     ``.ply`` (polylines for CloudCompare), ``.gpkg`` / ``.shp`` (GIS layers,
     see :func:`write_features_gis`: in the CRS whenever ``georef`` is given;
     ``measurements`` fill their measurements layer, default: measured here).
+    Returns notes for the user (:func:`write_features_gis`; none for the
+    other formats).
 
     Raises
     ------
@@ -768,9 +829,10 @@ def export_features(
     elif suffix == ".ply":
         write_polylines_ply(path, features, georef, georeferenced)
     elif suffix in (".gpkg", ".shp"):
-        write_features_gis(path, features, georef, measurements=measurements)
+        return write_features_gis(path, features, georef, measurements=measurements)
     else:
         raise input_error(path, f"unknown format; use one of {', '.join(EXPORT_SUFFIXES)}")
+    return []
 
 
 # -------------------------------------------------------------- measurements

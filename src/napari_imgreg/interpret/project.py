@@ -809,10 +809,11 @@ def measure_features(
     Returns
     -------
     list of Measurement
-        One per feature with points, in order, then the combined rows.
+        One per feature, in order (contract §6: a feature that missed the
+        surface gets its row too, empty but for its note), then the
+        combined rows.
     """
-    measured = [f for f in features if f.n_points or (
-        f.patch_points is not None and len(f.patch_points))]
+    measured = list(features)
     out = [f.measure(thresholds, uncertainty) for f in measured]
     if not combine:
         return out

@@ -206,8 +206,8 @@ class ErrorModel:
             "mesh_m": round(float(self.mesh_m), 5),
             "mesh_edge_m": round(float(self.mesh_edge_m), 4),
             "n_vertices": int(self.n_vertices),
-            "rotation_deg": float(self.rotation_deg),
-            "position_m": float(self.position_m),
+            "rotation_deg": round(float(self.rotation_deg), 6),
+            "position_m": round(float(self.position_m), 5),
         }
         if math.isfinite(self.view_m):
             out["view_m"] = round(float(self.view_m), 5)

@@ -58,12 +58,14 @@ from ..camera import Intrinsics, Pose
 from ..errors import InputError
 from ..interpret.files import (
     export_features,
+    measurements_in_frame,
     read_interpretations,
     write_interpretations,
     write_measurements_csv,
 )
 from ..interpret.project import LABEL_COLORS, Feature3D, Interpretation, label_color
 from ..interpret.snap import COSTS, SnapParams, snap_trace
+from ..interpret.uncertainty import PoseUncertainty
 from ..interpret.structural import (  # the three-point plane moved there (issue 14); kept importable
     THREE_POINT_MIN_VIEW_ANGLE_DEG,  # noqa: F401
     Measurement,
@@ -130,6 +132,23 @@ def camera_of_layer(layer) -> tuple[Intrinsics, Pose, str] | None:
         return None
     name = Path(str(meta.get("photo_path", ""))).name or layer.name
     return intr, pose, name
+
+
+def pose_uncertainty_of_layer(layer, intrinsics: Intrinsics) -> PoseUncertainty:
+    """The expected error of a photo layer's pose (:func:`camera_of_layer`'s):
+    its registration's or attached RESULT.json's ``uncertainty``, else the
+    documented default (:meth:`PoseUncertainty.from_result`)."""
+    meta = getattr(layer, "metadata", {}) or {}
+    reg = meta.get("imgreg_registration")
+    if reg is not None and hasattr(reg, "pose"):
+        unc = getattr(reg, "uncertainty", None)
+        if unc is not None:
+            return PoseUncertainty(unc.reprojection_px, unc.position_m, unc.rotation_deg,
+                                   source="result")
+        return PoseUncertainty.from_result(
+            {"pose": {}, "status": getattr(reg, "status", "registered"),
+             "metrics": getattr(reg, "metrics", {})}, intrinsics.fx)
+    return PoseUncertainty.from_result(meta.get("result"), intrinsics.fx)
 
 
 #: Names of the workbench's Image layers that are not photos (renders, their
@@ -300,8 +319,9 @@ class InterpretWidget(QWidget):
 
         self.georef_check = QCheckBox("georeferenced")
         self.georef_check.setToolTip(
-            "Export CRS coordinates (local + georef origin) to GeoJSON, CSV, OBJ and PLY; "
-            "GeoPackage and shapefiles are always in the CRS when the model has one")
+            "Export CRS coordinates (local + georef origin) to GeoJSON, CSV, OBJ and PLY, "
+            "and the measurements' centroids; GeoPackage and shapefiles are always in the "
+            "CRS when the model has one")
         export_button = QPushButton("Export 3D…")
         csv_button = QPushButton("Save measurements…")
         net_button = QPushButton("Save stereonet…")
@@ -742,7 +762,11 @@ class InterpretWidget(QWidget):
             if camera is None or not items:
                 continue
             intr, pose, source = camera
-            jobs.append((intr, pose, items, source))
+            photo_layer = self.viewer.layers[photo_name]
+            ps = self._photo_state(photo_layer)
+            unc = (self.workspace.pose_uncertainty(ps) if ps is not None
+                   else pose_uncertainty_of_layer(photo_layer, intr))
+            jobs.append((intr, pose, items, source, unc))
             self._keep_in_workspace(layer)
         return jobs
 
@@ -894,12 +918,21 @@ class InterpretWidget(QWidget):
         scene = self.scene
         georef = getattr(scene, "georef", None)
         geo = self.georef_check.isChecked() if georeferenced is None else georeferenced
-        export_features(path, self.features, georef, geo, measurements=self.measurements)
-        self.status_label.setText(f"Exported {len(self.features)} feature(s) to {Path(path).name}.")
+        notes = export_features(path, self.features, georef, geo,
+                                measurements=self.measurements)
+        self.status_label.setText(f"Exported {len(self.features)} feature(s) to {Path(path).name}."
+                                  + "".join(f"\nNote: {n}." for n in notes))
 
-    def save_measurements(self, path: str | Path) -> None:
-        write_measurements_csv(path, self.measurements)
-        self.status_label.setText(f"Saved {len(self.measurements)} measurement(s).")
+    def save_measurements(self, path: str | Path, georeferenced: bool | None = None) -> None:
+        """Write MEASUREMENTS.csv; centroids in the CRS when the georeferenced
+        box is ticked (or ``georeferenced``) and the model has a georeference."""
+        georef = getattr(self.scene, "georef", None)
+        geo = self.georef_check.isChecked() if georeferenced is None else georeferenced
+        in_crs = geo and georef is not None
+        write_measurements_csv(path, measurements_in_frame(self.measurements, georef.origin)
+                               if in_crs else self.measurements)
+        self.status_label.setText(f"Saved {len(self.measurements)} measurement(s)"
+                                  + (f" ({georef.crs})." if in_crs else " (local frame)."))
 
     def save_stereonet(self, path: str | Path) -> None:
         with atomic_path(path) as tmp:
