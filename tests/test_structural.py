@@ -252,6 +252,11 @@ def test_pose_uncertainty_from_the_result_or_a_default():
         "reprojection_px": float("nan"), "position_m": 0.05, "rotation_deg": 0.02}}, 1000.0)
     assert bad.source == "default"
     assert PoseUncertainty.from_result({"camera": {}}, 1000.0).position_m == 5.0
+    # A failed registration carries its prior's pose: prior-sized errors, not 2 px.
+    failed = PoseUncertainty.from_result({"status": "failed", "pose": {},
+                                          "metrics": {"reprojection_error_px": 2.0}}, 1000.0)
+    assert (failed.reprojection_px, failed.position_m, failed.rotation_deg) == (50.0, 5.0, 3.0)
+    assert failed.source == "default (not registered)"
 
 
 def test_monte_carlo_sigma_of_a_straight_stroke_matches_the_closed_form():

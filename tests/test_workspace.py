@@ -756,3 +756,19 @@ def test_adopting_an_opened_workspace_keeps_saving_into_its_folder(ws, tmp_path)
     back = Workspace.open(folder, scene=ws.scene, terrain=ws.terrain, autosave=False)
     assert back.current.name == "IMG_0002.jpg"
     assert np.allclose(back.current.pose.R, view.current.pose.R) and not back.current.accepted
+
+
+def test_a_photo_given_by_another_path_is_not_added_twice(sample, tmp_path, monkeypatch):
+    """The same file by a relative path, an absolute one or a link is one photo."""
+    folder, scene, terrain, _ = sample
+    ws = Workspace()
+    ws.load_scene(scene, terrain, {"mesh": folder / "outcrop.obj"})
+    assert ws.add_photo(folder / "IMG_0001.jpg").name == "IMG_0001.jpg"
+    monkeypatch.chdir(folder)
+    ws.add_photo("IMG_0001.jpg")
+    link = tmp_path / "link.jpg"
+    link.symlink_to(folder / "IMG_0001.jpg")
+    (tmp_path / "link.json").symlink_to(folder / "IMG_0001.json")  # its sensor record
+    ws.add_photo(link)
+    assert len(ws.photos) == 1
+    assert ws.photo_at_path("IMG_0001.jpg") is ws.photos[0]

@@ -521,6 +521,11 @@ def project_interpretation_sets(
     return features, measure_features(features)
 
 
+def _resolved(path: Path | None) -> Path | None:
+    """``path`` made absolute with links resolved (None stays None)."""
+    return None if path is None else Path(path).resolve()
+
+
 def _unit(direction) -> np.ndarray:
     d = np.asarray(direction, float).reshape(3)
     return d / np.linalg.norm(d)
@@ -661,17 +666,19 @@ class Workspace:
         list of PhotoState
             The photos added.
         """
-        known = {ps.photo.path for ps in self.photos}
+        # Resolved: the same file given by a relative and an absolute path,
+        # or through a link, is one photo.
+        known = {_resolved(ps.photo.path) for ps in self.photos}
         added = []
         for photo, prior in loaded:
-            if photo.path in known:
+            if _resolved(photo.path) in known:
                 continue
             history = adjust.PoseHistory(prior.pose)
             history._current_label = "prior"
             ps = PhotoState(photo=photo, prior=prior, record_path=photo.sidecar,
                             intrinsics=prior.intrinsics, history=history)
             self.photos.append(ps)
-            known.add(photo.path)
+            known.add(_resolved(photo.path))
             added.append(ps)
         self.photos_changed.emit()
         if self.current is None and self.photos:
@@ -696,7 +703,9 @@ class Workspace:
         if path is None:
             return None
         path = Path(path)
-        return next((ps for ps in self.photos if ps.photo.path == path), None)
+        return (next((ps for ps in self.photos if ps.photo.path == path), None)
+                or next((ps for ps in self.photos
+                         if _resolved(ps.photo.path) == _resolved(path)), None))
 
     def select_photo(self, index: int) -> None:
         """Make photo ``index`` current (out of range: nothing happens)."""
@@ -1251,8 +1260,9 @@ class Workspace:
         The estimate of the registration or trial whose pose it is
         (RESULT.json ``uncertainty``); for a manual solve, or a registration
         without an estimate, the default derived from its reprojection error;
-        for a pose no solve produced (the prior, or moved by hand since), the
-        sensor prior's default (50 px, 5 m, 3°).
+        for a pose no check verified (a failed registration or trial) or no
+        solve produced (the prior, or moved by hand since), the sensor prior's
+        default (50 px, 5 m, 3°).
         """
         pose, fx = ps.pose, ps.intrinsics.fx
 
@@ -1261,7 +1271,7 @@ class Workspace:
                     and np.allclose(other.t, pose.t, rtol=0, atol=1e-6))
 
         def of(unc: Uncertainty | None, status: str, metrics: dict) -> PoseUncertainty:
-            if unc is not None:
+            if unc is not None and status == "registered":
                 return PoseUncertainty(unc.reprojection_px, unc.position_m, unc.rotation_deg,
                                        source="result")
             return PoseUncertainty.from_result({"pose": {}, "status": status,

@@ -129,8 +129,13 @@ class PoseUncertainty:
         seen from the camera (``reprojection_px / focal_px`` radians) and
         ``position_m`` = the same angle at the scene's range (100 m when not
         known). A sensor record (no registered pose) gets GNSS/compass-sized
-        errors: 5 px is not enough, so 50 px, 5 m and 3°.
+        errors: 5 px is not enough, so 50 px, 5 m and 3°; so does a failed
+        registration, whose pose is its prior's (``source``
+        ``"default (not registered)"``).
         """
+        if isinstance(data, dict) and data.get("status") == "failed":
+            # A failed result carries its prior's pose (contract §4).
+            return cls(50.0, 5.0, 3.0, source="default (not registered)")
         block = data.get("uncertainty") if isinstance(data, dict) else None
         if isinstance(block, dict):
             try:
@@ -142,6 +147,7 @@ class PoseUncertainty:
         if not isinstance(data, dict) or "pose" not in data or data.get("status") not in (
                 "registered", "failed"):
             return cls(50.0, 5.0, 3.0, source="default (sensor prior)")
+
         metrics = data.get("metrics") if isinstance(data.get("metrics"), dict) else {}
         e = metrics.get("reprojection_error_px")
         e = float(e) if isinstance(e, (int, float)) and math.isfinite(e) else 2.0
