@@ -174,7 +174,9 @@ def test_intrinsics_from_the_35mm_equivalent(tmp_path):
     assert (cam["width"], cam["height"]) == (W, H)
     assert cam["fx"] == pytest.approx(f) and cam["fy"] == pytest.approx(f)
     assert (cam["cx"], cam["cy"]) == ((W - 1) / 2, (H - 1) / 2)
-    assert "camera from EXIF focal length" in notes
+    # A nominal value: the registration starts from it and refines it.
+    assert cam["estimated"] == ["fx", "fy"]
+    assert "camera from EXIF focal length (nominal: refined by the registration)" in notes
 
 
 def test_intrinsics_from_focal_length_and_known_model(tmp_path):
@@ -213,9 +215,10 @@ def test_prior_from_exif_and_xmp_with_a_georef(tmp_path):
     trend, plunge, roll = prior.pose.attitude
     assert (trend, plunge, roll) == pytest.approx((123.4, 30.5, 1.2))
     f = 24 * math.hypot(W, H) / math.hypot(36, 24)
-    assert prior.intrinsics == Intrinsics(W, H, f, f, (W - 1) / 2, (H - 1) / 2)
+    assert prior.intrinsics == Intrinsics(W, H, f, f, (W - 1) / 2, (H - 1) / 2,
+                                          estimated=("fx", "fy"))  # nominal: refined
     assert prior.assumptions == [
-        "camera from EXIF focal length",
+        "camera from EXIF focal length (nominal: refined by the registration)",
         "position from EXIF GPS",
         "attitude from DJI gimbal angles (XMP)",
     ]
@@ -267,7 +270,8 @@ def test_missing_sidecar_blocks_come_from_exif_and_say_so(tmp_path):
     f = 24 * math.hypot(W, H) / math.hypot(36, 24)
     assert prior.intrinsics.fx == pytest.approx(f)
     assert prior.sigma.position_m == 3.0
-    assert "camera from EXIF focal length" in prior.assumptions
+    assert "camera from EXIF focal length (nominal: refined by the registration)" in \
+        prior.assumptions
     assert "position from EXIF GPS" in prior.assumptions
     assert not any("attitude" in a or "trend" in a for a in prior.assumptions)
 

@@ -569,7 +569,8 @@ def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
     Camera: EXIF focal length (see :meth:`Intrinsics.from_exif`; for a photo
     turned by its EXIF orientation the focal-plane resolution is the stored
     image's, so the camera is made at the stored size and turned with the
-    pixels). Position: EXIF GPS latitude/longitude/altitude. Orientation: DJI
+    pixels), marked ``estimated``: a nominal value the registration starts
+    from and refines. Position: EXIF GPS latitude/longitude/altitude. Orientation: DJI
     XMP gimbal angles (drone photos), else EXIF ``GPSImgDirection`` for the
     trend only.
 
@@ -609,8 +610,12 @@ def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
         turns = EXIF_QUARTER_TURNS.get(exif_orientation(exif) or 1, 0)
         stored = (h, w) if turns % 2 else (w, h)
         try:
-            record.camera = Intrinsics.from_exif(exif, *stored).rotated(turns).to_dict()
-            notes.append("camera from EXIF focal length")
+            # EXIF focal lengths are nominal (a lens's marked value, the 35 mm
+            # equivalent rounded to a millimetre: 1–3 % off, several pixels at
+            # the frame's edge): the registration refines it from there.
+            record.camera = {**Intrinsics.from_exif(exif, *stored).rotated(turns).to_dict(),
+                             "estimated": ["fx", "fy"]}
+            notes.append("camera from EXIF focal length (nominal: refined by the registration)")
         except ValueError:
             pass
     gps = exif.get("GPSInfo")
