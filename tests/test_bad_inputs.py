@@ -218,6 +218,15 @@ def test_orient_declination(tmp_path, run_cli, value, needle):
     assert run.code == 2 and needle in run.line
 
 
+def test_orient_about_cameras_without_centres_names_the_option(tmp_path, run_cli):
+    table = tmp_path / "cams.csv"
+    table.write_text("photo,trend_deg,plunge_deg,roll_deg\na,10,5,0\nb,100,3,1\nc,200,8,-1\n")
+    run = run_cli(["orient", table, table, "--out", tmp_path / "o.json", "--about", "cameras"])
+    line = run.line
+    assert run.code == 2 and str(table) in line and "use --about origin" in line, line
+    assert not (tmp_path / "o.json").exists()
+
+
 # ------------------------------------------------------------- output paths
 def _bad_outputs(tmp_path):
     """name -> (file output, folder output) that cannot be written."""
@@ -299,6 +308,28 @@ def test_sample_seed_range(tmp_path, run_cli):
     assert run.code == 2 and "--seed must be within [0, 4294967295], got -1" in run.line
 
 
+@pytest.mark.parametrize("command", ["register", "batch"])
+def test_record_of_another_aspect_ratio_is_one_line_quoting_its_size(wall, tmp_path, run_cli,
+                                                                     command):
+    """A 320×120 camera block for a 160×120 photo is not a resized photo: one
+    line naming the record and quoting its own size (not 160×60, the block
+    scaled to the photo's width), before the registration."""
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    photo = scene / "IMG_0001.png"
+    Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
+    record = _write_record(scene, _record(width=320, height=120))
+    if command == "register":
+        argv = ["register", wall, photo, "--prior", record, "--out", tmp_path / "R.json"]
+    else:
+        argv = ["batch", scene, "--mesh", wall, "--out", tmp_path / "results", "--workers", 0]
+    run = run_cli(argv)
+    line = run.line
+    assert run.code == 2 and str(record) in line, line
+    assert "the camera is 320×120 px but the photo is 160×120 px" in line, line
+    assert "160×60" not in line
+
+
 def test_register_missing_prior_is_not_replaced_by_exif(wall, tmp_path, run_cli):
     photo = tmp_path / "IMG_0001.png"
     Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
@@ -378,8 +409,58 @@ def test_workspace_photos_not_added_are_one_error_line(wall, tmp_path, run_cli):
     (scene / "IMG_0001.jpg").write_bytes(b"not a jpeg")
     run = run_cli(["workspace", "create", tmp_path / "w.imgreg", scene])
     assert run.code == 2 and "IMG_0001.jpg" in run.line and "not added" in run.line, run.err
+    assert run.line.startswith("napari-imgreg workspace create: error: ")
     assert len(run.err.strip().splitlines()) == 1, run.err
     assert "1 could not be read" in run.out
+
+
+def test_workspace_create_names_the_folder_as_the_workbench_does(wall, tmp_path, run_cli):
+    """``workspace create w5`` makes ``w5.imgreg`` (napari opens only ``*.imgreg``
+    folders as workspaces), and later actions' errors name their action."""
+    import shutil
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for f in wall.parent.iterdir():
+        if f.is_file():
+            shutil.copy(f, scene / f.name)
+    Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(scene / "IMG_0001.png")
+    run = run_cli(["workspace", "create", tmp_path / "w5", scene, "--no-photos"])
+    assert run.code == 0, run.err
+    assert (tmp_path / "w5.imgreg" / "workspace.json").is_file()
+    assert not (tmp_path / "w5").exists() and f"{tmp_path / 'w5.imgreg'}:" in run.out
+    run = run_cli(["workspace", "add", tmp_path / "w5.imgreg", tmp_path / "nope.jpg"])
+    assert run.code == 2
+    assert run.line.startswith("napari-imgreg workspace add: error: "), run.line
+
+
+@pytest.mark.parametrize("measurements, needle", [
+    ("m.txt", "m.txt: output must be a .csv file"),
+    ("l3d.csv", "refusing to write --out and --measurements to one file"),
+])
+def test_workspace_export_measurements_must_be_another_csv(tmp_path, run_cli, measurements,
+                                                          needle):
+    """Refused as ``measure`` refuses it, before the workspace (here: none) is read."""
+    run = run_cli(["workspace", "export", tmp_path / "campaign.imgreg", "--out",
+                   tmp_path / "l3d.csv", "--measurements", tmp_path / measurements])
+    line = run.line
+    assert run.code == 2 and needle in line, line
+    assert line.startswith("napari-imgreg workspace export: error: "), line
+
+
+def test_unknown_option_shows_the_usage_of_its_command(capsys):
+    from napari_imgreg.cli import main
+
+    for argv, usage in ((["measure", "x.geojson", "--out", "m.csv", "--colour", "red"],
+                         "usage: napari-imgreg measure "),
+                        (["workspace", "add", "w.imgreg", "a.jpg", "--force"],
+                         "usage: napari-imgreg workspace add ")):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and err.startswith(usage), err
+        unknown = argv[-2:] if argv[0] == "measure" else argv[-1:]
+        assert f"error: unrecognized arguments: {' '.join(unknown)}" in err
 
 
 # ------------------------------------------------- EXIF orientation, attitude
@@ -852,3 +933,87 @@ def test_render_of_a_tiny_point_cloud_is_one_line(tmp_path, run_cli):
     cloud.write_text("0 10 0\n1 10 0\n0 10 1\n")
     run = run_cli(["render", cloud, _write_record(tmp_path, _record()), "--out", tmp_path / "r.png"])
     assert run.code == 2 and str(cloud) in run.line and "16 points" in run.line
+
+
+# ------------------------------------------------ outputs that are the inputs
+def _lines_file(tmp_path):
+    lines = tmp_path / "L.geojson"
+    lines.write_text(json.dumps({"type": "FeatureCollection", "features": [{
+        "type": "Feature", "properties": {"label": "bed"},
+        "geometry": {"type": "LineString", "coordinates": [[10, 10], [100, 50]]}}]}))
+    return lines
+
+
+@pytest.mark.parametrize("spelling", ["same path", "symlink"])
+@pytest.mark.parametrize("case", ["project --out LINES", "register --out PRIOR",
+                                  "render --depth = --xyz", "orient --mesh-out APPLY"])
+def test_an_output_that_is_an_input_is_refused_before_any_work(wall, tmp_path, run_cli, case,
+                                                                spelling):
+    """A command never writes over its own input (the hand-drawn lines, the
+    sensor record), nor two outputs into one file: one line, exit 2, every
+    file as it was, whether the output names the input or a link to it."""
+    record = _write_record(tmp_path, _record())
+
+    def alias(path):
+        if spelling == "same path":
+            return path
+        link = tmp_path / f"link{path.suffix}"
+        link.symlink_to(path)
+        return link
+
+    if case == "project --out LINES":
+        kept = _lines_file(tmp_path)
+        argv = ["project", record, wall, kept, "--out", alias(kept)]
+        needle = "refusing to overwrite the input lines; choose another name"
+    elif case == "register --out PRIOR":
+        photo = tmp_path / "IMG_0001.png"
+        Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
+        kept = record
+        argv = ["register", wall, photo, "--prior", record, "--out", alias(record)]
+        needle = "refusing to overwrite the input sensor record; choose another name"
+    elif case == "render --depth = --xyz":
+        kept = tmp_path / "a.npy"
+        np.save(kept, np.zeros(3))
+        argv = ["render", wall, record, "--out", tmp_path / "r.png", "--depth", kept,
+                "--xyz", alias(kept)]
+        needle = "refusing to write --depth and --xyz to one file; choose another name"
+    else:
+        table = tmp_path / "cams.csv"
+        table.write_text("photo,trend_deg,plunge_deg,roll_deg\na,10,5,0\nb,100,3,1\nc,200,8,-1\n")
+        kept = wall
+        argv = ["orient", table, table, "--out", tmp_path / "o.json", "--apply", wall,
+                "--mesh-out", alias(wall)]
+        needle = "refusing to overwrite the input mesh; choose another name"
+    before = kept.read_bytes()
+    run = run_cli(argv)
+    line = run.line
+    assert run.code == 2 and needle in line, line
+    assert kept.read_bytes() == before
+    assert not (tmp_path / "r.png").exists() and not (tmp_path / "o.json").exists()
+
+
+def test_orient_reads_the_mesh_to_apply_before_writing_anything(wall, tmp_path, run_cli):
+    """A bad --apply mesh leaves an earlier ORIENTATION.json as it was."""
+    table = tmp_path / "cams.csv"
+    table.write_text("photo,trend_deg,plunge_deg,roll_deg\na,10,5,0\nb,100,3,1\nc,200,8,-1\n")
+    out = tmp_path / "o.json"
+    out.write_text('{"earlier": "orientation"}\n')
+    bad = tmp_path / "bad.obj"
+    bad.write_text("not a mesh\n")
+    run = run_cli(["orient", table, table, "--out", out, "--apply", bad,
+                   "--mesh-out", tmp_path / "om.obj"])
+    line = run.line
+    assert run.code == 2 and str(bad) in line, line
+    assert out.read_text() == '{"earlier": "orientation"}\n'
+    assert not (tmp_path / "om.obj").exists()
+
+
+def test_project_of_lines_without_features_is_bad_input(wall, tmp_path, run_cli):
+    """An empty drawing gives no empty output file (``0 feature(s) ()``): one line, exit 2."""
+    lines = tmp_path / "L.geojson"
+    lines.write_text('{"type": "FeatureCollection", "features": []}')
+    out = tmp_path / "L3D.geojson"
+    run = run_cli(["project", _write_record(tmp_path, _record()), wall, lines, "--out", out])
+    line = run.line
+    assert run.code == 2 and str(lines) in line and "no features to project" in line, line
+    assert not out.exists()

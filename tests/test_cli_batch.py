@@ -237,6 +237,49 @@ def test_interrupted_batch_keeps_finished_results(tmp_path, monkeypatch):
     assert "--skip-existing" in stdout
 
 
+def test_interrupted_rerun_lists_every_result_in_the_folder(tmp_path, monkeypatch):
+    """Run again into a complete results folder and interrupted: the summary
+    lists the result a worker wrote before this process heard of it, and the
+    earlier run's result not yet replaced; the run said at its start that the
+    earlier results would be replaced."""
+    from napari_imgreg.cli._common import write_json
+
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002", "IMG_0003"])
+    out = tmp_path / "results"
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--workers", 0])
+    assert code == 0 and "earlier run" not in stdout
+    assert "registering 3 photo(s) in this process" in stdout  # --workers 0
+    earlier_third = (out / "IMG_0003.result.json").read_bytes()
+
+    def interrupted_at_the_second(scene_, image, prior, params=None, photo_name="",
+                                  on_progress=None):
+        reg = _fake_registration(prior, photo_name, status="registered")
+        if photo_name == "IMG_0002.jpg":
+            # As a worker does: its result written, the interrupt before it is collected.
+            write_json(out / "IMG_0002.result.json", reg.to_dict())
+            raise KeyboardInterrupt
+        return reg
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register",
+                        interrupted_at_the_second)
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--workers", 0])
+    assert code == 130
+    (start,) = [line for line in stdout.splitlines() if "of an earlier run" in line]
+    assert "holds 3 result(s) of an earlier run: they will be replaced" in start
+    assert "--skip-existing" in start
+    rows, summary = _summary(out)
+    assert [r["photo"] for r in rows] == ["IMG_0001.jpg", "IMG_0002.jpg", "IMG_0003.jpg"]
+    assert [r["skipped"] for r in summary["photos"]] == [False, False, True]
+    assert summary["n_done"] == 3 and summary["interrupted"] and not summary["complete"]
+    assert (out / "IMG_0003.result.json").read_bytes() == earlier_third
+    assert "interrupted after 3 of 3 photos (1 of them an earlier run's result" in stdout
+
+
 def test_batch_help(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["batch", "--help"])

@@ -284,6 +284,51 @@ def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in,
     assert "--skip-existing" in stdout
 
 
+def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(scene, tmp_path):
+    """A terminal's Ctrl-C reaches every process of the group: the workers of
+    the local cluster must not print their KeyboardInterrupt tracebacks."""
+    out = tmp_path / "results"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(SIGTERM_RUNNER), "batch", str(scene), "--out",
+         str(out), "--workers", "1"],
+        env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, start_new_session=True)
+    for line in proc.stdout:  # the cluster is up when it says where the photos go
+        if line.startswith("registering"):
+            break
+    time.sleep(1.0)  # into the first photo
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
+    assert stderr.splitlines()[-1] == "interrupted", stderr
+    assert strict_load((out / "summary.json").read_text())["interrupted"] is True
+
+
+def test_local_workers_ignore_sigint_also_when_restarted():
+    """The workers of a local cluster leave Ctrl-C to this process, the first
+    ones and one started in place of a dead worker; this process keeps it."""
+    with backend.PhotoRunner(backend.ClusterParams(workers=1), 2) as run:
+        (first,) = run.worker_pids().values()
+        os.kill(first, signal.SIGINT)
+        time.sleep(0.5)
+        assert list(run.worker_pids().values()) == [first]  # still there
+        os.kill(first, signal.SIGKILL)
+        t0 = time.monotonic()
+        while True:  # the nanny starts another
+            with contextlib.suppress(Exception):
+                pids = list(run.worker_pids().values())
+                if pids and pids != [first]:
+                    break
+            assert time.monotonic() - t0 < 60, "no worker came back"
+            time.sleep(0.2)
+        os.kill(pids[0], signal.SIGINT)
+        time.sleep(0.5)
+        assert list(run.worker_pids().values()) == pids
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_the_scene_is_loaded_once_per_process_and_again_when_it_changes(tmp_path, monkeypatch):
     mesh = tmp_path / "wall.obj"
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 0 1\nf 1 2 3\n")

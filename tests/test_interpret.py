@@ -392,7 +392,8 @@ def test_cli_project_refuses_bad_drawings_and_steps(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("option", [["--samples", "5"], ["--min-view-spread", "nan"],
-                                    ["--max-dip-sigma", "-1"], ["--min-ray-angle", "95"]])
+                                    ["--max-dip-sigma", "-1"], ["--min-ray-angle", "95"],
+                                    ["--seed", "-1"], ["--seed", str(2**32)]])
 def test_cli_measure_refuses_out_of_range_options(tmp_path, capsys, option):
     from napari_imgreg.cli import main
 

@@ -100,6 +100,12 @@ def test_invalid_json_and_missing_file(tmp_path):
         load_sensor_record(bad)
     with pytest.raises(InputError, match="nope.json: no such file"):
         load_sensor_record(tmp_path / "nope.json")
+    # A message json ends in "at": the place follows in full, not cut off.
+    bad.write_text('{"camera": "a\nb"}')
+    with pytest.raises(InputError) as err:
+        load_sensor_record(bad)
+    assert str(err.value).endswith("bad.json: invalid JSON at line 1 column 14: "
+                                   "Invalid control character"), str(err.value)
 
 
 def test_defaults_are_stated():

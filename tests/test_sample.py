@@ -359,6 +359,69 @@ def test_sample_scene_leaves_nothing_when_generation_fails(tmp_path, monkeypatch
     assert list(tmp_path.iterdir()) == []
 
 
+# ------------------------------------------------------- napari-imgreg sample
+def _fake_outcrop(calls, interrupt=False):
+    """A stand-in for generate_outcrop: a scene.json and a mesh, in no time."""
+
+    def generate(out_dir, size="small", seed=0, spec=None):
+        calls.append(Path(out_dir))
+        (Path(out_dir) / "outcrop.obj").write_text("v 0 0 0\n")
+        if interrupt:
+            raise KeyboardInterrupt
+        (Path(out_dir) / "scene.json").write_text(json.dumps(
+            {"generator": "napari_imgreg.sample", "size": size, "seed": seed}))
+        return Path(out_dir)
+
+    return generate
+
+
+def test_cli_sample_refuses_a_folder_of_other_files(tmp_path, monkeypatch, run_cli):
+    import napari_imgreg.sample as sample
+
+    calls = []
+    monkeypatch.setattr(sample, "generate_outcrop", _fake_outcrop(calls))
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / "outcrop.obj").write_text("my edited mesh")
+    run = run_cli(["sample", "--out", folder])
+    line = run.line
+    assert run.code == 2 and str(folder) in line and "is not empty" in line, line
+    assert run.out == "" and calls == []  # refused before the progress line and the work
+    assert (folder / "outcrop.obj").read_text() == "my edited mesh"
+    # Another seed's scene is not this one either.
+    (folder / "outcrop.obj").unlink()
+    (folder / "scene.json").write_text(json.dumps(
+        {"generator": "napari_imgreg.sample", "size": "small", "seed": 1}))
+    assert run_cli(["sample", "--out", folder]).code == 2 and calls == []
+
+
+def test_cli_sample_writes_the_scene_into_place_whole(tmp_path, monkeypatch, run_cli):
+    import napari_imgreg.sample as sample
+
+    calls = []
+    monkeypatch.setattr(sample, "generate_outcrop", _fake_outcrop(calls))
+    out = tmp_path / "scene"
+    run = run_cli(["sample", "--out", out, "--seed", "7"])
+    assert run.code == 0, run.err
+    assert run.out.startswith("generating the small sample outcrop (seed 7)")
+    assert calls[0].parent == tmp_path and calls[0] != out  # a sibling, renamed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+    # Again into its own earlier scene: replaced, and a file put beside it stays.
+    (out / "results.csv").write_text("mine")
+    assert run_cli(["sample", "--out", out, "--seed", "7"]).code == 0
+    assert (out / "results.csv").read_text() == "mine" and (out / "scene.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+
+
+def test_cli_sample_interrupted_leaves_no_half_scene(tmp_path, monkeypatch, run_cli):
+    import napari_imgreg.sample as sample
+
+    monkeypatch.setattr(sample, "generate_outcrop", _fake_outcrop([], interrupt=True))
+    run = run_cli(["sample", "--out", tmp_path / "scene"])
+    assert run.code == 130
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_survey_json_gives_the_scene_the_texture_sun(small):
     from napari_imgreg import Scene
     from napari_imgreg.sample.photo import sun_vector

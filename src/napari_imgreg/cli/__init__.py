@@ -58,7 +58,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        # argparse reports these from the top parser, with its usage; the
+        # command's own usage is the one that helps.
+        _parser_of_command(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
     tune_allocator()  # image buffers reused, not re-faulted (see _allocator)
     # A reader that closed our stdout (``| head``) must not turn a command
     # that did its work into a traceback: its lines are dropped instead.
@@ -68,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, FieldValueError) as exc:
         # FieldValueError: a value checked where no file is known (an API
         # object built from an option); still bad input, still one line.
-        print_error(args.command, exc)
+        print_error(_command_name(args), exc)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
@@ -76,6 +80,23 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if isinstance(sys.stdout, _QuietWhenClosed):
             sys.stdout = sys.stdout.stream
+
+
+def _parser_of_command(parser: argparse.ArgumentParser,
+                       args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The innermost sub-parser of the command as typed (``workspace add``'s)."""
+    while True:
+        subparsers = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        chosen = getattr(args, subparsers[0].dest, None) if subparsers else None
+        if chosen not in (subparsers[0].choices if subparsers else {}):
+            return parser
+        parser = subparsers[0].choices[chosen]
+
+
+def _command_name(args: argparse.Namespace) -> str:
+    """The command as typed, with its action: ``workspace add``, ``render``."""
+    action = getattr(args, "action", None)
+    return f"{args.command} {action}" if action else args.command
 
 
 class _QuietWhenClosed:

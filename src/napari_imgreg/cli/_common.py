@@ -11,12 +11,15 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterable
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from .._atomic import atomic_path, atomic_write
 from .._json import dumps as strict_dumps
+from ..errors import input_error
 from ..scene import Scene
 
 if TYPE_CHECKING:  # the commands import their backend when run: a fast --help
@@ -36,6 +39,8 @@ __all__ = [
     "read_params",
     "load_scene",
     "progress_printer",
+    "same_file",
+    "refuse_overwriting_inputs",
 ]
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
@@ -128,3 +133,39 @@ def progress_printer(verbose: bool, indent: str) -> Callable[[Any], None]:
             print(f"{indent}[{progress.fraction:4.0%}] {progress.message}", flush=True)
 
     return show
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """True when ``a`` and ``b`` name one file: :func:`os.path.samefile` where
+    both exist (a link, another spelling of the path), else equal resolved paths."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist (yet)
+        return Path(a).resolve() == Path(b).resolve()
+
+
+def refuse_overwriting_inputs(
+    output: str | os.PathLike | None,
+    inputs: Iterable[tuple[str, str | os.PathLike | None]],
+) -> None:
+    """Refuse, before any work, an output that is one of the command's inputs.
+
+    Parameters
+    ----------
+    output : path-like or None
+        A file the command writes (None: not asked for, nothing to check).
+    inputs : iterable of (str, path-like or None)
+        What each input is (``"lines"``, ``"sensor record"``) and its path
+        (None: not given).
+
+    Raises
+    ------
+    InputError
+        ``"<output>: refusing to overwrite the input <what>; choose another name"``.
+    """
+    if not output:
+        return
+    for what, path in inputs:
+        if path and same_file(output, path):
+            raise input_error(output, f"refusing to overwrite the input {what}; "
+                                      "choose another name")

@@ -503,6 +503,10 @@ def run(args: argparse.Namespace) -> int:
 
     out.mkdir(parents=True, exist_ok=True)
     names = _result_names(files.photos)
+    earlier = _result_stamps(out, names)
+    if earlier and not args.skip_existing:
+        say(f"  {out}/ holds {len(earlier)} result(s) of an earlier run: they will be replaced "
+            "(--skip-existing keeps them and registers only the other photos)")
     header: dict[str, Any] = {
         "scene": str(files.folder),
         "mesh": str(files.mesh),
@@ -522,7 +526,7 @@ def run(args: argparse.Namespace) -> int:
         previous_sigterm = None
     try:
         return _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
-                           t_start)
+                           t_start, earlier)
     except _Terminated:
         return EXIT_TERMINATED
     finally:
@@ -531,13 +535,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
-                t_start) -> int:
+                t_start, earlier) -> int:
     """The photo loop of :func:`run`; the summary is current after every photo.
 
     Results kept from an earlier run (``--skip-existing``) come first; the
     others are tasks of a :class:`~napari_imgreg.registration.batch.PhotoRunner`,
     which writes each RESULT.json where it ran; this process writes the
-    summary (its rows in the photos' name order) after each photo.
+    summary (its rows in the photos' name order) after each photo. After an
+    interrupt the summary lists every result in RESULTS_DIR (``earlier``: the
+    stamps of those there at the start, see :func:`_rows_left_in_folder`).
     """
     from ..registration import batch as backend
 
@@ -579,16 +585,24 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
         with backend.PhotoRunner(cluster, len(todo)) as runner:
             if todo:
                 header["cluster"] = runner.description
-                say(f"registering {len(todo)} photo(s) on the {runner.description}", flush=True)
+                where = "in this process" if cluster.in_process else f"on the {runner.description}"
+                say(f"registering {len(todo)} photo(s) {where}", flush=True)
             for name, outcome in runner.run(tasks):
                 _record_outcome(name, outcome, out, names[files.photos[order[name]]], record,
                                 f"[{done + 1:>{width}}/{n}] {name}")
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (_Terminated)
         header["interrupted"] = True
         header["signal"] = "SIGTERM" if isinstance(exc, _Terminated) else "SIGINT"
+        left = _rows_left_in_folder(files.photos, out, names, rows, earlier)
+        rows.extend(left)
+        rows.sort(key=lambda r: order[r["photo"]])
         _write_summary(out, header, rows)
-        say(f"interrupted after {len(rows)} of {n} photos; finished results and the summary "
-              f"are in {out}/ (run again with --skip-existing to carry on)", flush=True)
+        n_earlier = sum(1 for r in left if r["skipped"])
+        say(f"interrupted after {len(rows)} of {n} photos"
+            + (f" ({n_earlier} of them an earlier run's result, not replaced)" if n_earlier
+               else "")
+            + f"; finished results and the summary are in {out}/ (run again with "
+            "--skip-existing to carry on)", flush=True)
         raise
 
     header["complete"] = True
@@ -607,6 +621,48 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
         + f" in {time.perf_counter() - t_start:.1f} s -> {out / 'summary.csv'}"
     )
     return exit_code_of(rows)
+
+
+def _result_stamps(out: Path, names: dict[Path, str]) -> dict[str, tuple[int, int, int]]:
+    """Result file name -> (inode, size, mtime) of the photos' results already in ``out``."""
+    stamps = {}
+    for name in names.values():
+        try:
+            st = (out / name).stat()
+        except OSError:  # none yet (or unreadable: registered again, as if none)
+            continue
+        stamps[name] = (st.st_ino, st.st_size, st.st_mtime_ns)
+    return stamps
+
+
+def _rows_left_in_folder(photos: list[Path], out: Path, names: dict[Path, str],
+                         rows: list[dict[str, Any]], earlier: dict[str, tuple[int, int, int]]
+                         ) -> list[dict[str, Any]]:
+    """Summary rows of the results in ``out`` that no row of this run lists.
+
+    At an interrupt a worker may have written a photo's result before this
+    process heard of it, and an earlier run's results not yet replaced are
+    still there: the summary is to describe the folder as it is. A result
+    whose file is the one found at the start (same inode, size and
+    modification time) is the earlier run's (``skipped``); another was
+    written by this run.
+    """
+    listed = {r["photo"] for r in rows}
+    left = []
+    for photo in photos:
+        name = names[photo]
+        path = out / name
+        if photo.name in listed or not path.is_file():
+            continue
+        try:
+            row = _existing_row(photo.name, path)
+            st = path.stat()
+        except (InputError, OSError):  # not a whole result of ours: not listed
+            continue
+        row.update(skipped=earlier.get(name) == (st.st_ino, st.st_size, st.st_mtime_ns),
+                   result=name)
+        left.append(row)
+    return left
 
 
 def _record_outcome(name: str, outcome: Any, out: Path, result_name: str, record,

@@ -16,7 +16,7 @@ from pathlib import Path
 from ._common import EXIT_OK
 from ..errors import input_error
 from ..interpret.structural import DEFAULT_THRESHOLDS
-from ..validate import check_writable
+from ..validate import check_option, check_writable
 
 __all__ = ["add_parser", "run"]
 
@@ -47,8 +47,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "(planarity, surface effect) and a relief test; rejected ones leave the cells empty "
         "and say why in 'note'. Every angle gets a σ column (pose uncertainty, drawing "
         "noise, mesh resolution). Traces of one contact (same drawn id) on several photos "
-        "also get one combined row. Writes MEASUREMENTS.csv (contract §6) and optionally a "
-        "stereonet with confidence cones and Kamb contours.",
+        "also get one combined row. Writes MEASUREMENTS.csv (docs/formats.md §8) and "
+        "optionally a stereonet with confidence cones and Kamb contours.",
     )
     p.add_argument("lines3d", metavar="LINES3D.geojson", help="output of `project`")
     p.add_argument("--out", required=True, metavar="MEASUREMENTS.csv")
@@ -67,15 +67,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "this many times their expected error to define a plane (default "
                    f"{DEFAULT_THRESHOLDS.min_view_spread:g})")
     p.add_argument("--max-dip-sigma", type=float, default=5.0, metavar="DEG",
-                   help="withhold a trace's plane whose Monte Carlo dip σ exceeds this "
-                   "(default 5°, FitThresholds.max_dip_sigma_deg)")
+                   help="withhold a trace's plane whose Monte Carlo dip σ (the spread of "
+                   "its dip over the samples) exceeds this many degrees (default 5°)")
     p.add_argument("--min-ray-angle", type=float, default=DEFAULT_THRESHOLDS.min_ray_angle_deg,
                    metavar="DEG", help="a trace's plane must make this angle with the viewing "
                    f"rays (default {DEFAULT_THRESHOLDS.min_ray_angle_deg:g}°)")
     p.add_argument("--samples", type=int, default=200,
                    help="Monte Carlo samples per feature for the σ columns (default 200, "
                    "20–5000)")
-    p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="Monte Carlo seed, 0 to 2**32 - 1 (default 0)")
     p.set_defaults(func=run)
     return p
 
@@ -115,6 +116,7 @@ def run(args: argparse.Namespace) -> int:
                                 ("--samples", args.samples, 20, 5000)):
         if not (math.isfinite(value) and lo <= value <= hi):
             raise input_error(None, f"{name} must be in [{lo:g}, {hi:g}] (got {value:g})")
+    check_option(args.seed, "--seed", 0, 2**32 - 1)  # NumPy's seed range, as for `sample`
     features, frame = read_features_geojson(args.lines3d)
     thresholds = FitThresholds(
         min_planarity=args.min_planarity, surface_effect_deg=args.surface_effect,

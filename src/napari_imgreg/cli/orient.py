@@ -12,7 +12,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..errors import input_error
+import numpy as np
+
+from ._common import refuse_overwriting_inputs
+from ..errors import InputError, input_error
 from ..validate import check_option, check_writable
 
 __all__ = ["add_parser", "cmd_orient"]
@@ -83,6 +86,9 @@ def cmd_orient(args: argparse.Namespace) -> int:
             raise input_error(
                 args.mesh_out, f"output must be one of {', '.join(MESH_OUT_SUFFIXES)}"
             )
+    tables = [("ESTIMATED table", args.estimated), ("MEASURED table", args.measured)]
+    refuse_overwriting_inputs(out, [*tables, ("mesh", args.apply)])
+    refuse_overwriting_inputs(args.mesh_out, [("mesh", args.apply), *tables])
     check_writable(out)
     if args.mesh_out:
         check_writable(args.mesh_out)
@@ -91,11 +97,24 @@ def cmd_orient(args: argparse.Namespace) -> int:
 
     estimated = read_orientation_table(args.estimated)
     measured = read_orientation_table(args.measured)
-    result = orient(
-        estimated, measured, method=args.method,
-        center=None if args.about == "auto" else args.about,
-        declination_deg=args.declination,
-    )
+    if args.about == "cameras" and (estimated.positions is None
+                                    or not np.isfinite(estimated.positions).all(axis=1).any()):
+        raise input_error(args.estimated, "no camera centres (x, y, z) to rotate about: "
+                                          "use --about origin")
+    try:
+        result = orient(
+            estimated, measured, method=args.method,
+            center=None if args.about == "auto" else args.about,
+            declination_deg=args.declination,
+        )
+    except InputError as exc:
+        # A paired photo without a centre: orient() words the fix for the API,
+        # here it is an option.
+        raise InputError(str(exc).replace("(use the origin)", "(use --about origin)")) from None
+    # The mesh first: it is read before anything is written, so a bad mesh
+    # leaves an earlier ORIENTATION.json as it was.
+    written = (apply_to_mesh_file(args.apply, args.mesh_out, result.rotation, result.center)
+               if args.apply else None)
     save_orientation(result, out)
 
     for line in result.summary_lines():
@@ -103,7 +122,6 @@ def cmd_orient(args: argparse.Namespace) -> int:
     for note in result.notes:
         print(f"  note: {note}")
     if args.apply:
-        written = apply_to_mesh_file(args.apply, args.mesh_out, result.rotation, result.center)
         print(f"rotated {args.apply} ({written}) -> {args.mesh_out}")
     if args.plots:
         print(f"plots -> {save_residual_plots(result, args.plots)}")

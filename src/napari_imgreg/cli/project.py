@@ -14,7 +14,7 @@ import math
 from collections import Counter
 from pathlib import Path
 
-from ._common import EXIT_OK, load_scene
+from ._common import EXIT_OK, load_scene, refuse_overwriting_inputs
 from ..errors import InputError, input_error
 from ..geo import Georef
 from ..io.records import read_json
@@ -106,6 +106,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in EXPORT_SUFFIXES:
         raise input_error(out, f"output must be one of {', '.join(EXPORT_SUFFIXES)}")
+    pairs = [(args.result, args.lines)] + [tuple(p) for p in args.also]
+    refuse_overwriting_inputs(out, [
+        *((what, path) for pair in pairs for what, path in zip(("result", "lines"), pair)),
+        ("mesh", args.mesh), ("georeference", args.georef), ("DEM", args.dem),
+    ])
     check_writable(out)  # before the mesh loads and the rays are cast
     from ..interpret.project import MIN_STEP_PX, check_drawing
     from ..interpret.uncertainty import PoseUncertainty, UncertaintyParams
@@ -128,13 +133,15 @@ def run(args: argparse.Namespace) -> int:
     else:
         cloud_params = CloudProjectionParams(gap_spacings=args.gap_spacings)
     unc_params = UncertaintyParams(drawing_px=args.pixel_noise)
-    pairs = [(args.result, args.lines)] + [tuple(p) for p in args.also]
     for result, lines in pairs:
         for f in (result, lines):
             if not Path(f).exists():
                 raise input_error(f, "no such file")
     # Read every input before the (slower) mesh, so bad input fails fast.
     drawn = [read_interpretations(lines) for _, lines in pairs]
+    for (_, lines), items in zip(pairs, drawn):
+        if not items:  # an empty output would look like a projection that lost everything
+            raise input_error(lines, "no features to project (no lines or polygons in it)")
     scene = _load_surface(args.mesh, args.georef, args.dem)
     if args.georeferenced and scene.georef is None:
         raise input_error(

@@ -18,6 +18,7 @@ from ._common import (
     load_scene,
     progress_printer,
     read_params,
+    refuse_overwriting_inputs,
     write_json,
 )
 from ..errors import input_error
@@ -52,11 +53,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     """Run ``register``: register the photo, write RESULT.json, print a summary."""
     from ..registration import pipeline
+    from ..registration.batch import check_photo_size
 
     photo_path = Path(args.photo)
     if not photo_path.name:
         raise input_error(args.photo or "PHOTO", "no photo file named")
     out = Path(args.out) if args.out else photo_path.with_suffix(".result.json")
+    refuse_overwriting_inputs(out, [
+        ("sensor record", args.prior), ("photo", photo_path), ("mesh", args.mesh),
+        ("georeference", args.georef), ("DEM", args.dem), ("parameters", args.params),
+    ])
     # Checked before the registration, not found out after it.
     check_writable(out)
     if args.prior and not Path(args.prior).exists():
@@ -67,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     params = read_params(args.params, scene)  # a point cloud's defaults under the file's
     photo = load_photo(photo_path)
     prior = prior_for_photo(photo, scene, record_path=args.prior)
+    check_photo_size(photo, prior, args.prior)  # as batch does: one line, not a traceback
     reg = pipeline.register(scene, photo.image, prior, params, photo_path.name,
                             on_progress=progress_printer(args.verbose, "  "))
     write_json(out, reg.to_dict())

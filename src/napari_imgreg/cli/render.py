@@ -11,7 +11,13 @@ import argparse
 import time
 from pathlib import Path
 
-from ._common import EXIT_OK, load_scene, write_npy
+from ._common import (
+    EXIT_OK,
+    load_scene,
+    refuse_overwriting_inputs,
+    same_file,
+    write_npy,
+)
 from ..errors import input_error
 from ..io.photos import save_image
 from ..prior import load_camera_and_pose
@@ -31,7 +37,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "render",
         help="render a mesh from a prior (sensor record) or a RESULT.json pose",
         description="Render colour (and optionally depth / xyz) of MESH from the pose in "
-        "PRIOR_OR_RESULT.json: a sensor record (contract §3) or a registration result (§4).",
+        "PRIOR_OR_RESULT.json: a sensor record (docs/formats.md §3) or a registration result "
+        "(§4).",
     )
     p.add_argument("mesh", metavar="MESH", help="OBJ+MTL+image, PLY or GLB/GLTF")
     p.add_argument("pose_file", metavar="PRIOR_OR_RESULT.json")
@@ -61,6 +68,12 @@ def run(args: argparse.Namespace) -> int:
     if args.xyz and Path(args.xyz).suffix.lower() != ".npy":
         raise input_error(args.xyz, "xyz output must be a .npy file")
     check_option(args.scale, "--scale", 0.0, MAX_SCALE, low_open=True)
+    if args.depth and args.xyz and same_file(args.depth, args.xyz):
+        raise input_error(args.xyz, "refusing to write --depth and --xyz to one file; "
+                                    "choose another name")
+    for output in (out, args.depth, args.xyz):
+        refuse_overwriting_inputs(output, [("mesh", args.mesh), ("pose file", args.pose_file),
+                                           ("georeference", args.georef), ("DEM", args.dem)])
     # Before loading the model: a path that cannot be written fails now.
     for path in (out, args.depth, args.xyz):
         if path:
@@ -94,5 +107,6 @@ def run(args: argparse.Namespace) -> int:
         f"  {w}×{h} px in {elapsed:.2f} s, surface covers {result.coverage:.0%} "
         f"of the image -> {out}"
         + (f", depth -> {args.depth}" if args.depth else "")
+        + (f", xyz -> {args.xyz}" if args.xyz else "")
     )
     return EXIT_OK

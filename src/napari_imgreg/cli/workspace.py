@@ -36,6 +36,7 @@ from ._common import (
     print_error,
     progress_printer,
     read_params,
+    same_file,
     say,
 )
 from .batch import add_cluster_arguments, cluster_params, find_scene_files
@@ -60,7 +61,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     sub = p.add_subparsers(dest="action", required=True, metavar="ACTION")
 
     c = sub.add_parser("create", help="a new workspace from a scene folder (mesh, DEM, photos)")
-    c.add_argument("folder", metavar="WORKSPACE", help="the new folder, e.g. campaign.imgreg")
+    c.add_argument("folder", metavar="WORKSPACE",
+                   help="the new folder, e.g. campaign.imgreg (.imgreg is added to a name "
+                   "without it, as the workbench does)")
     c.add_argument("scene", metavar="SCENE_DIR",
                    help="a folder with one mesh, optionally georef.json and a DEM, and the photos")
     c.add_argument("--mesh", help="the mesh, when the folder has several")
@@ -110,6 +113,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Run ``workspace ACTION``."""
+    if args.action == "create":
+        args.folder = str(workspace_folder_name(args.folder))
     _check_outputs(args)
     try:
         return _ACTIONS[args.action](args)
@@ -118,6 +123,17 @@ def run(args: argparse.Namespace) -> int:
         # (a script, the tests) may open the same folder again right away.
         while _OPENED:
             _OPENED.pop().detach()
+
+
+def workspace_folder_name(folder: str | Path) -> Path:
+    """The folder a new workspace is saved as: ``.imgreg`` added to a name
+    without it, as the workbench's "Save workspace as" does (napari opens
+    only ``*.imgreg`` folders as workspaces); an existing workspace keeps its name."""
+    folder = Path(folder)
+    if folder.name in ("", ".", "..") or folder.suffix == ".imgreg" \
+            or (folder / "workspace.json").exists():
+        return folder  # "." or "..": not a name to extend (refused as not empty)
+    return folder.with_name(folder.name + ".imgreg")
 
 
 #: The workspaces the running sub-command saves into.
@@ -131,10 +147,18 @@ _WRITE_INTO_FOLDER = ("create", "add", "register", "lines", "project")
 def _check_outputs(args: argparse.Namespace) -> None:
     """Refuse, before any work, an output that cannot be written: the
     workspace folder of a sub-command that saves into it (read-only, under
-    /proc, inside a file), ``export``'s ``--out`` and ``--measurements``."""
+    /proc, inside a file), ``export``'s ``--out`` and ``--measurements`` (which
+    must be a .csv file, and not the ``--out`` file)."""
     if args.action in _WRITE_INTO_FOLDER:
         check_writable(args.folder, folder=True)
     elif args.action == "export":
+        if args.measurements:
+            if Path(args.measurements).suffix.lower() != ".csv":
+                raise input_error(args.measurements, "output must be a .csv file")  # as `measure`
+            if same_file(args.out, args.measurements):
+                raise input_error(args.measurements, "refusing to write --out and "
+                                                      "--measurements to one file; choose "
+                                                      "another name")
         check_writable(args.out)
         if args.measurements:
             check_writable(args.measurements)
@@ -173,7 +197,7 @@ def _create(args: argparse.Namespace) -> int:
         say(f"  not added: {line}")
     say(f"{folder}: workspace with {files.mesh.name} and {len(ws.photos)} photo(s)"
         + (f"; {len(errors)} could not be read" if errors else ""))
-    return _not_added(errors) if errors else EXIT_OK
+    return _not_added(errors, "create") if errors else EXIT_OK
 
 
 def _add(args: argparse.Namespace) -> int:
@@ -183,14 +207,15 @@ def _add(args: argparse.Namespace) -> int:
     for line in errors:
         say(f"  not added: {line}")
     say(f"{args.folder}: {len(ws.photos) - before} photo(s) added, {len(ws.photos)} in all")
-    return _not_added(errors) if errors else EXIT_OK
+    return _not_added(errors, "add") if errors else EXIT_OK
 
 
-def _not_added(errors: list[str]) -> int:
+def _not_added(errors: list[str], action: str) -> int:
     """Exit code 2 with one error line on stderr for the photos that could
-    not be read (each is listed on stdout): the first, and how many more."""
+    not be read (each is listed on stdout): the first, and how many more;
+    ``action`` (``create``, ``add``) names the sub-command in it."""
     more = f" (and {len(errors) - 1} more photo(s), listed above)" if len(errors) > 1 else ""
-    print_error("workspace", " ".join(f"not added: {errors[0]}{more}".split()))
+    print_error(f"workspace {action}", " ".join(f"not added: {errors[0]}{more}".split()))
     return EXIT_BAD_INPUT
 
 

@@ -149,7 +149,10 @@ def read_json(path: str | os.PathLike) -> Any:
         with open(path, encoding="utf-8") as fh:
             return json.load(fh)
     except json.JSONDecodeError as exc:
-        raise input_error(path, f"invalid JSON at line {exc.lineno}: {exc.msg}") from None
+        # Some of json's messages end in "at", meant to be followed by the place.
+        problem = exc.msg.removesuffix(" at")
+        raise input_error(path, f"invalid JSON at line {exc.lineno} column {exc.colno}: "
+                                f"{problem}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise input_error(path, f"cannot read ({exc})") from None
 

@@ -36,8 +36,10 @@ or where worker processes cannot start.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -61,6 +63,7 @@ except ImportError:  # pragma: no cover - distributed is a dependency
 
 __all__ = [
     "ClusterParams", "SceneSpec", "PhotoRunner", "cached_scene", "register_photo_file",
+    "check_photo_size",
     "register_prior", "default_workers", "worker_environment", "available_cores", "THREAD_ENV_VARS",
 ]
 
@@ -265,13 +268,7 @@ def register_photo_file(
         scene_s, t0 = time.perf_counter() - t0, time.perf_counter()
         photo = load_photo(photo_path_)
         prior = prior_for_photo(photo, scene)
-        w, h = photo.size
-        if (w, h) != (prior.intrinsics.width, prior.intrinsics.height):
-            raise input_error(
-                photo.sidecar if photo.sidecar and photo.sidecar.exists() else photo_path_,
-                f"the camera is {prior.intrinsics.width}×{prior.intrinsics.height} px "
-                f"but the photo is {w}×{h} px",
-            )
+        check_photo_size(photo, prior)
         # Looked up at call time: a test may stand in for the pipeline.
         reg = pipeline.register(scene, photo.image, prior, params, name, on_progress=on_progress)
     except InputError as exc:
@@ -286,6 +283,47 @@ def register_photo_file(
     return {"photo": name, "status": reg.status, "error": "", "result": result,
             "hints": list(reg.hints), "assumptions": list(reg.assumptions),
             "seconds": time.perf_counter() - t0, "scene_load_s": scene_s, "pid": os.getpid()}
+
+
+def check_photo_size(photo: Any, prior: Any, record_path: str | os.PathLike | None = None
+                     ) -> None:
+    """Refuse a photo that the prior's camera does not fit.
+
+    A camera block of another size but the photo's aspect ratio is scaled to
+    the photo (a resized photo) when the prior is made; one of another aspect
+    ratio is left as it is and refused here, before the registration.
+
+    Parameters
+    ----------
+    photo : Photo
+    prior : Prior
+        Made from ``photo`` (:func:`~napari_imgreg.prior.prior_for_photo`).
+    record_path : path-like, optional
+        The sensor record the prior was made from; default: the photo's sidecar.
+
+    Raises
+    ------
+    InputError
+        Naming the record (the photo without one) and quoting the record's own
+        camera size, not the one scaled to the photo's width.
+    """
+    w, h = photo.size
+    camera = (prior.intrinsics.width, prior.intrinsics.height)
+    if (w, h) == camera:
+        return
+    record = Path(record_path) if record_path is not None else photo.sidecar
+    if record is None or not Path(record).exists():
+        raise input_error(photo.path, f"the camera is {camera[0]}×{camera[1]} px but the "
+                                      f"photo is {w}×{h} px")
+    from ..io.records import read_json
+
+    block = read_json(record).get("camera") or {}
+    stated = (block.get("width"), block.get("height"))
+    if None not in stated:
+        camera = stated
+    raise input_error(record, f"the camera is {camera[0]}×{camera[1]} px but the photo is "
+                              f"{w}×{h} px, another aspect ratio (the record of another "
+                              "photo, or a cropped photo?)")
 
 
 def register_prior(scene_spec: SceneSpec, image: Any, prior: Any, params: Any,
@@ -317,6 +355,22 @@ class _PinThreads(WorkerPlugin):
     def setup(self, worker) -> None:
         n = int(self.threads or worker.state.nthreads or 1)
         pin_threads(n)
+
+
+class _IgnoreInterrupt(WorkerPlugin):
+    """A Dask worker plugin for the worker processes of our local cluster:
+    ignore SIGINT, which a terminal's Ctrl-C sends to them too (this process
+    handles it). They are started with SIGINT blocked
+    (:func:`_interrupt_kept_from_workers`); this also covers one whose
+    spawning thread had it unblocked."""
+
+    name = "napari-imgreg-ignore-interrupt"
+
+    def setup(self, worker) -> None:  # noqa: ARG002 - the plugin interface
+        # A worker process runs its event loop, and this, in its main thread; a
+        # worker thread of this process (processes=False) is left alone.
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def worker_environment(threads: int, dask_environment: dict | None = None) -> dict:
@@ -395,6 +449,17 @@ class PhotoRunner:
     def __enter__(self) -> PhotoRunner:
         if self.cluster.in_process or self.n_tasks == 0:
             return self
+        try:
+            self._start()
+        except BaseException:
+            # __exit__ is not called when __enter__ raises: a cluster half set
+            # up (a Ctrl-C, a plugin that failed) is closed here.
+            self.close()
+            raise
+        return self
+
+    def _start(self) -> None:
+        """Connect to the scheduler or start the local cluster, and pin threads."""
         import dask
         from distributed import Client
 
@@ -448,7 +513,7 @@ class PhotoRunner:
                 "distributed.admin.system-monitor.disk": False,
                 "distributed.worker.memory.monitor-interval": "1s",
                 "distributed.admin.tick.interval": "500ms",
-            }):
+            }), _interrupt_kept_from_workers():
                 self._local = LocalCluster(
                     n_workers=n_workers, threads_per_worker=threads,
                     processes=self.cluster.processes,
@@ -463,7 +528,8 @@ class PhotoRunner:
             self.description = (f"local cluster: {n_workers} worker {kind}, "
                                 f"{threads} thread(s) each")
         self.client.register_plugin(_PinThreads(None), name=_PinThreads.name)
-        return self
+        if self._local is not None and self.cluster.processes:
+            self.client.register_plugin(_IgnoreInterrupt(), name=_IgnoreInterrupt.name)
 
     def __exit__(self, *exc_info) -> None:
         self.close()
@@ -650,6 +716,36 @@ def _lost_message(exc: BaseException, allowed_failures: int, solo: bool = False)
         return (f"the worker registering it died {deaths} (a crash in a native library "
                 f"or out of memory?); not retried")
     return f"lost by the cluster ({type(exc).__name__}: {_one_line(exc)})"
+
+
+@contextlib.contextmanager
+def _interrupt_kept_from_workers() -> Iterator[None]:
+    """Block SIGINT in this thread while a local cluster starts its workers.
+
+    A terminal's Ctrl-C goes to the whole process group: each worker process
+    would print a ``KeyboardInterrupt`` traceback on its way down (Dask has no
+    option against it: dask/distributed issue 1925). A blocked signal stays
+    blocked in the threads started here (the cluster's event loop, and the
+    threads it starts to spawn and respawn the workers) and across fork and
+    exec, so the workers never receive SIGINT and this process, which handles
+    it, shuts the cluster down. A Ctrl-C pressed meanwhile is held, not lost:
+    it arrives when the mask is restored. (Ignoring the signal instead would
+    lose it: POSIX discards an ignored signal.) :class:`_IgnoreInterrupt`
+    covers a worker that is spawned unblocked anyway.
+    """
+    if not hasattr(signal, "pthread_sigmask"):  # Windows: no signal masks
+        yield
+        return
+    # Started now, if not already: multiprocessing's resource tracker, when it
+    # starts, unblocks SIGINT in the thread that starts it (the event loop's).
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _quiet_distributed() -> None:

@@ -81,6 +81,8 @@ __all__ = [
     "CONDITION_PRESETS",
     "SceneTruth",
     "generate_outcrop",
+    "write_outcrop_folder",
+    "check_outcrop_folder",
     "sample_scene",
     "cache_dir",
     "verify_sample_scene",
@@ -414,6 +416,96 @@ def _sensor_record(spec: OutcropSpec, intr: Intrinsics, pose: Pose, dem, georef,
     return record, prior
 
 
+def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: int = 0) -> Path:
+    """Write the sample outcrop into a folder of the user's (``napari-imgreg sample``).
+
+    The scene is generated into a hidden temporary folder beside ``out_dir``
+    and moved into place when complete, so an interrupted run leaves no half
+    scene. A folder holding anything but this size and seed's scene is
+    refused before the generation, so no file of the user's is overwritten;
+    an earlier run's scene is replaced by the same files, and files the user
+    put beside it stay.
+
+    Parameters
+    ----------
+    out_dir : path-like
+        The folder: new, empty, or holding this size and seed's scene.
+    size : {"small", "large"}
+    seed : int
+
+    Returns
+    -------
+    Path
+        ``out_dir``.
+
+    Raises
+    ------
+    InputError
+        ``out_dir`` is not a folder, or holds other files.
+    """
+    out = Path(out_dir)
+    target = out.resolve()  # a link to a folder: the folder it points to is written
+    earlier = check_outcrop_folder(out, size, seed)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+    try:
+        generate_outcrop(tmp, size=size, seed=seed)
+        if earlier:
+            # File by file: whatever else the user keeps in the folder stays.
+            for path in sorted(tmp.iterdir()):
+                os.replace(path, target / path.name)
+        else:
+            _share(tmp)  # the permissions mkdir would give it
+            os.replace(tmp, target)  # a new name, or over the empty folder
+    finally:
+        with contextlib.suppress(OSError):
+            shutil.rmtree(tmp)
+    return out
+
+
+def check_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: int = 0) -> bool:
+    """Check that :func:`write_outcrop_folder` may write into a folder.
+
+    Parameters
+    ----------
+    out_dir : path-like
+    size : {"small", "large"}
+    seed : int
+
+    Returns
+    -------
+    bool
+        True when the folder holds the scene of an earlier run (same size and
+        seed), False when it is new or empty.
+
+    Raises
+    ------
+    InputError
+        ``out_dir`` is not a folder, or holds other files.
+    """
+    from ..errors import input_error
+
+    out = Path(out_dir)
+    target = out.resolve()
+    if target.exists() and not target.is_dir():
+        raise input_error(out, "exists and is not a folder")
+    earlier = target.is_dir() and any(target.iterdir())
+    if earlier and not _is_sample_scene_of(target, size, seed):
+        raise input_error(out, f"is not empty and does not hold the {size} sample scene of "
+                               f"seed {seed}: choose a new or empty folder")
+    return earlier
+
+
+def _is_sample_scene_of(folder: Path, size: str, seed: int) -> bool:
+    """True when ``folder/scene.json`` is that of the sample scene of ``size`` and ``seed``."""
+    try:
+        manifest = json.loads((folder / "scene.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return (isinstance(manifest, dict) and manifest.get("generator") == "napari_imgreg.sample"
+            and manifest.get("size") == size and manifest.get("seed") == int(seed))
+
+
 # ------------------------------------------------------------------ cache
 def cache_dir() -> Path:
     """Where generated sample scenes are kept: ``$NAPARI_IMGREG_CACHE`` or
@@ -601,7 +693,7 @@ def _check_structure(folder: Path, manifest: dict[str, Any]) -> str | None:
 
 
 def _share(folder: Path) -> None:
-    """Give the cache folder the permissions ``mkdir`` would (mkdtemp: 0700)."""
+    """Give a folder the permissions ``mkdir`` would (mkdtemp: 0700)."""
     folder.chmod(0o777 & ~umask())
 
 
