@@ -312,3 +312,88 @@ def test_a_photo_layer_gives_the_error_of_its_pose():
     assert unc.source == "default" and unc.reprojection_px == 1.0
     unc = pose_uncertainty_of_layer(SimpleNamespace(metadata={}), intr)
     assert unc.source == "default (sensor prior)" and unc.position_m == 5.0
+
+
+# ------------------------------------------------------------ audit fixes
+def _notifications(monkeypatch):
+    """napari notifications raised (severity, message), as the user sees them."""
+    from napari.utils import notifications
+
+    seen = []
+    monkeypatch.setattr(notifications, "show_error", lambda m: seen.append(("error", m)))
+    monkeypatch.setattr(notifications, "show_warning", lambda m: seen.append(("warning", m)))
+    return seen
+
+
+def test_attach_a_sensor_record_projects_with_the_prior_pose_and_warns(
+        widget, sample, qtbot, monkeypatch):
+    folder, _, _ = sample
+    seen = _notifications(monkeypatch)
+    widget.photo_layer.metadata.pop("result")
+    # As `napari-imgreg project` does: a sensor record gives the prior pose.
+    assert widget.attach_result(folder / "IMG_0001.json") == "prior"
+    assert "PRIOR pose" in widget.status_label.text()
+    assert any(sev == "warning" and "PRIOR pose" in msg for sev, msg in seen)
+    intr, pose, name = camera_of_layer(widget.photo_layer)
+    assert intr.width == 1024 and name == "IMG_0001"  # a record names no photo: the layer's
+    # Its lines carry the sensor prior's error, not a registration's.
+    from napari_imgreg.widgets.interpret_widget import pose_uncertainty_of_layer
+
+    assert pose_uncertainty_of_layer(widget.photo_layer, intr).reprojection_px == 50.0
+    shapes = widget.new_interpretation_layer()
+    shapes.add(napari_from_pixels(np.array([[300.0, 100.0], [320.0, 700.0]])), shape_type="path")
+    with qtbot.waitSignal(widget.projection_done, timeout=30000) as done:
+        widget.project()
+    assert done.args[0][0].source == "IMG_0001" and done.args[0][0].parts
+
+
+def test_errors_are_notified_and_saving_the_stereonet_says_so(
+        widget, tmp_path, monkeypatch):
+    seen = _notifications(monkeypatch)
+    (tmp_path / "bad.json").write_text('{"camera": 1}')
+    widget._guarded(widget.attach_result, tmp_path / "bad.json")
+    assert seen and seen[-1][0] == "error" and "bad.json" in seen[-1][1]
+    assert seen[-1][1] in widget.status_label.text()
+    assert widget.project() is None  # nothing drawn
+    assert seen[-1] == ("error", widget.status_label.text())
+    widget.save_stereonet(tmp_path / "net.png")
+    assert widget.status_label.text() == "Saved stereonet to net.png."
+    assert (tmp_path / "net.png").stat().st_size > 1000
+
+
+def test_new_interpretation_layer_on_a_photo_that_has_one_keeps_its_lines(widget):
+    shapes = widget.new_interpretation_layer()
+    shapes.add(napari_from_pixels(np.array([[100.0, 100.0], [200.0, 120.0]])), shape_type="path")
+    again = widget.new_interpretation_layer()
+    assert again is shapes and len(again.data) == 1 and again.mode == "add_polyline"
+    assert [lay for lay in widget.viewer.layers if INTERP_KEY in lay.metadata] == [shapes]
+
+
+def test_only_a_line_drawn_by_mouse_counts_as_drawn(widget, qtbot):
+    """Drawing is told apart through napari's public API (mouse callbacks, the
+    data event), not its private ``_is_creating``; a line added by code (or
+    loaded, or pasted) is never taken for a fresh drawing."""
+    import warnings
+
+    widget.three_point_check.setChecked(True)
+    shapes = widget.new_interpretation_layer()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)  # napari's private-access warning
+        shapes.add(napari_from_pixels(np.array([[300.0, 100.0], [310.0, 300.0], [305.0, 500.0]])),
+                   shape_type="path")
+        qtbot.wait(50)
+        assert "measure" not in shapes.features  # added by code: not a 3-point plane
+        _draw_by_clicks(shapes, np.array([[400.0, 100.0], [410.0, 300.0], [405.0, 500.0]]))
+        qtbot.waitUntil(lambda: "measure" in shapes.features, timeout=5000)
+    assert list(shapes.features["measure"]) == ["", "three_point"]
+
+
+def test_the_interpret_tab_fits_a_narrow_dock(widget):
+    """Rows of at most two widgets: nothing is cut off in a 380 px dock."""
+    from pathlib import Path
+
+    assert widget.minimumSizeHint().width() <= 360
+    widget.resize(360, 900)
+    out = Path("/tmp/gui_fix")
+    out.mkdir(exist_ok=True)
+    widget.grab().save(str(out / "test_interpret_360.png"))

@@ -477,3 +477,114 @@ def test_the_gui_autosave_survives_sigkill(tmp_path):
     # way when killed is lost, or it is there too).
     label = back.current.history.label
     assert label.startswith("nudge ") and int(label.split()[1]) in (last, last + 1)
+
+
+# ------------------------------------------------------------- audit fixes
+def test_a_reopened_workspace_shows_its_interpretations_and_keeps_them(
+        workbench, qtbot, tmp_path):
+    """A photo's saved lines come back as its interpretation layer, with the
+    saved projection in the table; drawing one more keeps all (none replaced
+    by an empty layer), in the window and in the folder."""
+    from napari_imgreg.interpret.project import Interpretation
+    from napari_imgreg.widgets._layers import napari_from_pixels
+    from napari_imgreg.widgets.interpret_widget import INTERP_KEY, interpretations_from_shapes
+
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    ctrl.select_photo(1)
+    _idle(wb, qtbot)
+    ws = ctrl.workspace
+    lines = [Interpretation("LineString", [[250.0 + 120 * k, 300.0], [300.0 + 120 * k, 500.0]],
+                            {"label": ("sandstone", "fault")[k % 2], "comment": f"line {k}"})
+             for k in range(4)]
+    ws.set_interpretations(lines, ws.current)
+    ws.project_interpretations()
+    n_measured = len(ws.measurements)
+    assert n_measured == 4
+    ctrl.save_workspace(tmp_path / "drawn")
+    folder = tmp_path / "drawn.imgreg"
+    _idle(wb, qtbot)
+
+    # Opened again in this window (the workspace adopted, its photos replaced).
+    ws.detach()
+    ctrl.open_workspace(folder)
+    qtbot.waitUntil(lambda: ctrl.workspace_folder is not None and ctrl.current is not None,
+                    timeout=LOAD_S)
+    _idle(wb, qtbot)
+    iw = wb.interpret_widget
+    ps = ctrl.current
+    assert ps.name == "IMG_0002.jpg" and len(ps.interpretations) == 4
+    layer = iw.interpretation_layer()
+    assert layer is not None and len(layer.data) == 4 and layer.visible
+    shown = interpretations_from_shapes(layer)
+    assert [i.label for i in shown] == ["sandstone", "fault", "sandstone", "fault"]
+    assert [i.properties["comment"] for i in shown] == [f"line {k}" for k in range(4)]
+    # The saved projection: table, stereonet and the result buttons.
+    assert iw.table.rowCount() == n_measured and iw.view3d_button.isEnabled()
+    assert iw.figure.axes
+    iw.show_3d()  # the workspace's features, drawn in 3D on demand
+    assert any(lay.metadata.get("imgreg_projected_from") == "IMG_0002.jpg"
+               for lay in wb.viewer.layers)
+    wb.viewer.dims.ndisplay = 2
+
+    # "New interpretation layer" selects the photo's layer; one more line: five.
+    again = iw.new_interpretation_layer()
+    assert again is layer and len(layer.data) == 4
+    assert [lay for lay in wb.viewer.layers if INTERP_KEY in lay.metadata] == [layer]
+    layer.add(napari_from_pixels(np.array([[300.0, 100.0], [320.0, 400.0]])), shape_type="path")
+    assert len(ps.interpretations) == 5
+    _idle(wb, qtbot)
+    ctrl.workspace.detach()
+    back = Workspace.open(folder, scene=ctrl.workspace.scene, terrain=ctrl.workspace.terrain,
+                          autosave=False)
+    assert len(back.photos[1].interpretations) == 5
+    assert [i.properties.get("comment") for i in back.photos[1].interpretations[:4]] == [
+        f"line {k}" for k in range(4)]
+
+
+def test_a_failed_registration_says_why_and_a_cancelled_one_says_cancelled(
+        workbench, qtbot, monkeypatch):
+    from napari.utils import notifications
+
+    notified = []
+    monkeypatch.setattr(notifications, "show_error", notified.append)
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the matcher broke")
+        yield  # a generator, as the pipeline's
+
+    monkeypatch.setattr(pipeline, "register_photo", broken)
+    with qtbot.waitSignal(ctrl.registration_finished, timeout=30_000):
+        wb.register_panel.run_button.click()
+    text = wb.register_panel.status_label.text()
+    assert text.startswith("Failed:") and "the matcher broke" in text
+    assert any("the matcher broke" in m for m in notified)
+
+    _stand_in_pipeline(monkeypatch, ctrl.workspace, delay_s=5.0)
+    with qtbot.waitSignal(ctrl.registration_finished, timeout=30_000):
+        wb.register_panel.run_button.click()
+        qtbot.waitUntil(lambda: ctrl.is_running("registration"), timeout=5000)
+        wb.register_panel.cancel_button.click()
+    assert wb.register_panel.status_label.text() == "Cancelled."
+    _idle(wb, qtbot)
+
+
+def test_the_preset_box_shows_the_default_and_a_preset_changes_nothing_hidden(workbench):
+    from dataclasses import replace
+
+    panel = workbench.register_panel
+    ws = workbench.controller.workspace
+    default = replace(ws.params.features)
+    assert default.upright and default.root_sift and default.invariant_channel
+    assert panel.preset_combo.currentData() == "SIFT"
+    assert panel.preset_combo.currentText() == "SIFT (default)"
+    panel.preset_combo.setCurrentIndex(panel.preset_combo.findData("ORB"))
+    f = ws.params.features
+    assert (f.detector, f.descriptor, f.ratio) == ("ORB", "ORB", 0.8)
+    assert f.upright and f.root_sift and f.invariant_channel  # kept, not switched off
+    panel.preset_combo.setCurrentIndex(panel.preset_combo.findData("SIFT"))
+    assert ws.params.features == default  # back to the default, nothing hidden changed
+    panel.ratio_spin.setValue(0.7)
+    assert panel.preset_combo.currentData() == ""  # (custom)

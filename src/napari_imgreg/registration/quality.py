@@ -243,7 +243,7 @@ def evaluate_rules(
     if r2 < 0.1:
         hits.append(RuleHit(
             4,
-            f"Feature inlier ratio {r2:.2f} < 0.1: many false correspondences, likely from "
+            f"Feature inlier ratio {_num(r2, '<', 0.1)} < 0.1: many false correspondences, likely from "
             "illumination differences; filter the images.",
             _filter_step_text(params),
             _filter_step,
@@ -251,8 +251,8 @@ def evaluate_rules(
     if r2 > 0.1 and r3 < 0.1:
         hits.append(RuleHit(
             5,
-            f"2D correspondences are good (ratio {r2:.2f}) but few survive the pose "
-            f"(3D ratio {r3:.2f} < 0.1): features are badly localised; relax the "
+            f"2D correspondences are good (ratio {_num(r2, '>', 0.1)}) but few survive the "
+            f"pose (3D ratio {_num(r3, '<', 0.1)} < 0.1): features are badly localised; relax the "
             "epipolar constraint slightly.",
             f"epipolar threshold {min(12.0, f.geometric_threshold_px * 1.5):.1f} px",
             _relax_epipolar,
@@ -260,13 +260,34 @@ def evaluate_rules(
     if r2 > 0.1 and r3 > 0.1 and err is not None and err > err_limit:
         hits.append(RuleHit(
             6,
-            f"The pose is probably right but imprecise (reprojection error {err:.2f} px "
-            f"> {err_limit:.1f}): impose stricter correspondence constraints.",
+            f"The pose is probably right but imprecise (reprojection error "
+            f"{_num(err, '>', err_limit)} px > {_num(err_limit, '<', err)} px): impose stricter correspondence constraints.",
             f"epipolar threshold {max(0.5, f.geometric_threshold_px * 0.6):.1f} px, "
             f"ratio {max(0.6, f.ratio - 0.05):.2f}",
             _stricter,
         ))
     return hits
+
+
+def _num(value: float, op: str, other: float, decimals: int = 2) -> str:
+    """``value`` with the fewest decimals (from ``decimals``, at most 6) that
+    keep ``value op other`` true once both are printed so.
+
+    A hint must not read "1.27 px > 1.3": the rounded numbers would say the
+    opposite of the comparison that fired the rule.
+
+    >>> _num(1.2849, ">", 1.2806), _num(1.2806, "<", 1.2849)
+    ('1.285', '1.281')
+    >>> _num(0.0996, "<", 0.1)
+    '0.0996'
+    >>> _num(2.5, ">", 1.28)
+    '2.50'
+    """
+    for d in range(decimals, 7):
+        a, b = round(value, d), round(other, d)
+        if (a > b) if op == ">" else (a < b):
+            return f"{value:.{d}f}"
+    return f"{value:.6g}"
 
 
 def adapt(

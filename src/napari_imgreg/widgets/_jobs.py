@@ -7,7 +7,8 @@ a model) through a :class:`JobRunner`: the job runs in a napari thread worker
 (with a progress bar in napari's activity dock when asked), its result comes
 back in the GUI thread, a cancelled job returns None, and an error becomes a
 one-line message (:func:`~napari_imgreg.workspace.one_line`) for the dock to
-show — never a traceback thrown at the user.
+show — never a traceback thrown at the user — and a napari notification, so
+that a failure is seen even when the status line is out of sight.
 
 Workers run functions, or generator functions that yield progress (as
 :func:`~napari_imgreg.registration.pipeline.register_photo` does): napari
@@ -121,7 +122,9 @@ class JobRunner(QObject):
     status(str)
         "job: cancelled", "job failed: message".
     failed(str, str)
-        A job failed: its name and the one-line message.
+        A job failed: its name and the one-line message (also raised as a
+        napari error notification, unless the job was started with
+        ``notify=False``).
     """
 
     busy_changed = Signal()
@@ -134,6 +137,7 @@ class JobRunner(QObject):
         self._pending: dict[str, Callable[[], None]] = {}
         self._cancel: dict[str, threading.Event] = {}
         self._closed = False
+        self._notified: dict[str, str] = {}  # per job: the failure last notified
         enough_worker_threads()
 
     # -------------------------------------------------------------- state
@@ -182,7 +186,7 @@ class JobRunner(QObject):
               on_yielded: Callable[[Any], None] | None = None,
               on_failed: Callable[[str], None] | None = None,
               on_finished: Callable[[], None] | None = None,
-              progress: dict | None = None, **kwargs):
+              progress: dict | None = None, notify: bool = True, **kwargs):
         """Run ``fn(*args, **kwargs)`` in a napari thread worker named ``job``.
 
         Parameters
@@ -203,6 +207,9 @@ class JobRunner(QObject):
         progress : dict, optional
             napari's ``_progress`` (``{"desc": ..., "total": ...}``): a
             progress bar in the activity dock.
+        notify : bool
+            Raise a napari notification when it fails (False: ``on_failed``
+            notifies itself).
 
         Returns
         -------
@@ -224,6 +231,7 @@ class JobRunner(QObject):
             release()
             if self._closed:
                 return
+            self._notified.pop(job, None)
             if value is CANCELLED:
                 self.status.emit(f"{job}: cancelled")
                 on_returned(None)
@@ -236,6 +244,8 @@ class JobRunner(QObject):
             _log_failure(job, msg, exc)
             if not self._closed:
                 self.status.emit(f"{job} failed: {msg}")
+                if notify:
+                    self._notify_failure(job, f"{job} failed: {msg}")
                 self.failed.emit(job, msg)
                 if on_failed is not None:
                     on_failed(msg)
@@ -277,6 +287,17 @@ class JobRunner(QObject):
         self.busy_changed.emit()
         worker.start()
         return worker
+
+    def _notify_failure(self, job: str, message: str) -> None:
+        """An error notification, once while a job repeats the same failure
+        (a render asked for at each nudge must not pile them up)."""
+        if self._notified.get(job) == message:
+            return
+        self._notified[job] = message
+        # napari is imported when needed: its import is slow and warns (pydantic).
+        from napari.utils.notifications import show_error
+
+        show_error(message)
 
     def shutdown(self) -> None:
         """Cancel and quit every job; later results are ignored."""

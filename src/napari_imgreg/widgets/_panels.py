@@ -9,6 +9,7 @@ controller, which runs the jobs, draws the layers and words the errors.
 
 from __future__ import annotations
 
+import html
 import math
 import re
 from dataclasses import replace
@@ -118,6 +119,25 @@ def _declared_range(box, settings, name: str) -> None:
         box.setRange(int(math.ceil(lo)), int(min(math.floor(hi), 2**31 - 1)))
     else:
         box.setRange(float(lo), float(hi))
+
+
+#: What a preset of the Register tab sets: the feature settings the tab shows.
+#: The others (upright, root_sift, invariant_channel, grid, guided matching)
+#: are the registration's defaults for every detector: a preset keeps them.
+PRESET_FIELDS = ("detector", "descriptor", "max_features", "threshold_scale", "ratio",
+                 "symmetric", "geometric_model", "geometric_threshold_px")
+
+
+def preset_features(name: str, current: FeatureParams) -> FeatureParams:
+    """``current`` with the shown settings of preset ``name`` (the others kept)."""
+    chosen = PRESETS[name]
+    return replace(current, **{field: getattr(chosen, field) for field in PRESET_FIELDS})
+
+
+def preset_name(features: FeatureParams) -> str:
+    """The preset whose shown settings ``features`` has ("" for none: custom)."""
+    return next((name for name, p in PRESETS.items()
+                 if all(getattr(p, f) == getattr(features, f) for f in PRESET_FIELDS)), "")
 
 
 def _set_quietly(widget, value) -> None:
@@ -295,7 +315,14 @@ class ScenePanel(QWidget):
         if scene is None:
             self.scene_label.setText("No model yet: open one, or try the sample outcrop.")
             return
-        files = self.ws.scene_files
+        files = dict(self.ws.scene_files)
+        mesh = Path(files.get("mesh") or "")
+        if (scene.georef is not None and not files.get("georef") and mesh.name
+                and mesh.suffix.lower() not in (".tif", ".tiff", ".asc")):
+            # Not given: the mesh reader took the georef.json beside the mesh.
+            beside = mesh.parent / "georef.json"
+            if beside.exists():
+                files["georef"] = str(beside)
         for edit, key in ((self.mesh_edit, "mesh"), (self.dem_edit, "dem"),
                           (self.georef_edit, "georef")):
             if files.get(key):
@@ -898,8 +925,14 @@ class RegisterPanel(QWidget):
         self.ws = controller.workspace  # the state shown here
         self.preset_combo = QComboBox()
         self.preset_combo.addItem("(custom)", "")
+        default = FeatureParams()
         for name in PRESETS:
-            self.preset_combo.addItem(name, name)
+            shown = f"{name} (default)" if preset_name(default) == name else name
+            self.preset_combo.addItem(shown, name)
+        self.preset_combo.setToolTip(
+            "Sets the detector, descriptor and matching settings below; the registration's "
+            "other feature settings (upright and RootSIFT descriptors, the "
+            "illumination-invariant channel) are kept")
         self.detector_combo = QComboBox()
         for name in DETECTORS:
             self.detector_combo.addItem(name, name)
@@ -1118,8 +1151,10 @@ class RegisterPanel(QWidget):
         controller.registration_started.connect(self._started)
         controller.registration_progress.connect(self._progress)
         controller.registration_finished.connect(self._finished)
+        controller.failed.connect(self._job_failed)
         controller.pose_changed.connect(self._sync_blend)
         controller.busy_changed.connect(self._busy)
+        self._failure: str | None = None  # why the running registration failed
         self.refresh()
 
     def _set(self, group: str | None, name: str, value) -> None:
@@ -1137,14 +1172,12 @@ class RegisterPanel(QWidget):
         name = self.preset_combo.currentData()
         if not name:
             return
-        self.ws.params.features = replace(PRESETS[name])
+        self.ws.params.features = preset_features(name, self.ws.params.features)
         self.ctrl.params_edited()
         self.refresh()
 
     def _match_preset(self) -> None:
-        f = self.ws.params.features
-        name = next((k for k, p in PRESETS.items() if p == f), "")
-        _set_quietly(self.preset_combo, name)
+        _set_quietly(self.preset_combo, preset_name(self.ws.params.features))
 
     def refresh(self) -> None:
         p = self.ws.params
@@ -1173,6 +1206,8 @@ class RegisterPanel(QWidget):
         self.sun_box.refresh_notes()
 
     def _started(self, kind: str) -> None:
+        self._failure = None
+        self.status_label.setStyleSheet("")
         self.progress.setValue(0)
         self.progress.setFormat(f"{kind}: %p%")
         self.status_label.setText(f"{kind}: starting…")
@@ -1181,9 +1216,19 @@ class RegisterPanel(QWidget):
         self.progress.setValue(int(round(100 * fraction)))
         self.status_label.setText(message)
 
+    def _job_failed(self, job: str, message: str) -> None:
+        # Reported before registration_finished(None), which cannot say why.
+        if job == "registration":
+            self._failure = message
+
     def _finished(self, reg) -> None:
         if reg is None:
-            self.status_label.setText("Stopped (cancelled or failed: see the message).")
+            if self._failure:
+                self.status_label.setText(f"Failed: {html.escape(self._failure)}")
+                self.status_label.setStyleSheet("color: #e65100;")
+            else:
+                self.status_label.setText("Cancelled.")
+            self._failure = None
             return
         self.progress.setValue(100)
         t = reg.timings_s.get("total", 0.0)

@@ -387,7 +387,8 @@ class QualityPanel(QWidget):
             s = width / REFERENCE_WIDTH_PX if m.scales_with_width else 1.0
             lo, hi = m.inferior * s, m.superior * s
             if m.lower_is_better:
-                limits = f"> {lo:.1f} | ≤ {hi:.1f}"
+                # As many decimals as the value (.2f): "1.27 px" against "> 1.3" misreads.
+                limits = f"> {lo:.2f} | ≤ {hi:.2f}"
             elif m.key.startswith("inlier_ratio"):
                 limits = f"< {lo:g} | ≥ {hi:g}"
             else:

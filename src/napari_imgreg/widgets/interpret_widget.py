@@ -73,7 +73,8 @@ from ..interpret.structural import (  # the three-point plane moved there (issue
     plane_from_three_points,
 )
 from ..io.records import read_json
-from ..workspace import PhotoState, Workspace, project_interpretation_sets
+from ..prior import load_camera_and_pose
+from ..workspace import PhotoState, Workspace, one_line, project_interpretation_sets
 from ._jobs import JobRunner
 from ._layers import (
     INTERPRETATION_OF,
@@ -104,6 +105,8 @@ _SNAP_HINT = ("click the start, any waypoints and the end of the contact, double
               "Enter) on the end: the line snaps to the contact")
 _LINE_TYPES = ("path", "line")
 _POLYGON_TYPES = ("polygon", "rectangle", "ellipse")
+#: Status text colour of errors and warnings.
+_WARNING_COLOR = "#e65100"
 _TABLE_COLUMNS = ("id", "label", "kind", "dip", "dip dir.", "plunge", "trend", "rms (m)",
                   "planarity", "source", "note")
 
@@ -161,6 +164,8 @@ _COVERING_NAMES = ("correspondences", "overlay render", "photo · filtered")
 _NOT_DRAWING_MODES = ("pan_zoom", "transform")
 #: Metadata key: a layer this widget hid while drawing (shown again afterwards).
 _HIDDEN_WHILE_DRAWING = "imgreg_hidden_while_drawing"
+#: Metadata key: an interpretation layer whose photo was closed (its photo's name).
+_DETACHED_KEY = "imgreg_interpretation_of_closed_photo"
 
 
 def is_photo_layer(layer) -> bool:
@@ -233,6 +238,8 @@ class InterpretWidget(QWidget):
         self.jobs = JobRunner(self)
         self._labels: dict[str, str] = dict(LABEL_COLORS)
         self._count_before: dict[int, int] = {}  # shapes before the one being drawn
+        self._drawing_started: set[int] = set()  # layers pressed on in a drawing mode
+        self._recording = False  # this widget is recording its projection in the workspace
 
         # ---- inputs
         self.photo_combo = QComboBox()
@@ -276,29 +283,18 @@ class InterpretWidget(QWidget):
         self.project_button.setToolTip("Cast every interpretation layer onto the model "
                                        "(runs in the background)")
 
+        # At most two widgets side by side: the tab must fit a 380 px dock.
         form = QFormLayout()
-        photo_row = QHBoxLayout()
-        photo_row.addWidget(self.photo_combo, 1)
-        photo_row.addWidget(attach)
-        form.addRow("Photo", photo_row)
+        form.addRow("Photo", self.photo_combo)
+        form.addRow("", attach)
         form.addRow("Model", self.surface_combo)
-        label_row = QHBoxLayout()
-        label_row.addWidget(self.label_combo, 1)
-        label_row.addWidget(self.new_label_edit, 1)
-        label_row.addWidget(add_label)
-        form.addRow("Label", label_row)
-        snap_row = QHBoxLayout()
-        snap_row.addWidget(self.snap_check)
-        snap_row.addWidget(QLabel("cost"))
-        snap_row.addWidget(self.cost_combo, 1)
-        snap_row.addWidget(self.three_point_check)
-        form.addRow("Lines", snap_row)
-        text_row = QHBoxLayout()
-        text_row.addWidget(self.comment_edit, 2)
-        text_row.addWidget(self.above_edit, 1)
-        text_row.addWidget(self.below_edit, 1)
-        text_row.addWidget(apply_text)
-        form.addRow("Feature", text_row)
+        form.addRow("Label", self.label_combo)
+        form.addRow("", _row(self.new_label_edit, add_label, stretch=(1, 0)))
+        form.addRow("Lines", _row(self.snap_check, self.three_point_check))
+        form.addRow("Snap cost", self.cost_combo)
+        form.addRow("Note", self.comment_edit)
+        form.addRow("Units", _row(self.above_edit, self.below_edit))
+        form.addRow("", apply_text)
         io_row = QHBoxLayout()
         io_row.addWidget(load_button)
         io_row.addWidget(save_button)
@@ -367,6 +363,11 @@ class InterpretWidget(QWidget):
         self.viewer.layers.selection.events.active.connect(self._update_drawing)
         self.viewer.dims.events.ndisplay.connect(self._update_drawing)
         self._refresh_layers()
+        if self.workspace is not None:
+            self._follow_workspace()
+            self._current_photo_shown()
+            if self.workspace.features_3d or self.workspace.measurements:
+                self.show_workspace_projection()
 
     # ----------------------------------------------------------- layers
     def _photo_layers(self) -> list:
@@ -416,15 +417,33 @@ class InterpretWidget(QWidget):
         return self.new_interpretation_layer(photo_layer) if create else None
 
     def new_interpretation_layer(self, photo_layer=None):
-        """Add a Shapes layer over the photo for drawing, in path mode.
+        """The photo's interpretation layer, selected for drawing in line mode.
 
-        Its data coordinates are the photo's pixels as napari (row, col): the
-        layer takes the photo layer's scale and translation.
+        A photo has one: if it has a layer already, or a workspace photo has
+        saved interpretations, that is the layer (its lines kept); otherwise
+        an empty Shapes layer is added over the photo. Its data coordinates
+        are the photo's pixels as napari (row, col): the layer takes the photo
+        layer's scale and translation.
         """
         photo_layer = photo_layer or self.photo_layer
         if photo_layer is None:
             self._fail("Choose a photo layer first.")
             return None
+        layer = self.interpretation_layer(photo_layer) or self.show_workspace_interpretations(
+            photo_layer)
+        if layer is None:
+            layer = self._add_interpretation_layer(photo_layer)
+        self.viewer.layers.selection.active = layer
+        self._draw_mode(layer)
+        layer.mode = _LINE_MODE
+        self.status_label.setText(
+            f"Drawing {self.current_label!r} on {photo_layer.name}: "
+            + (_SNAP_HINT if self.snap_check.isChecked() else _DRAW_HINT) + ".")
+        self.status_label.setStyleSheet("")
+        return layer
+
+    def _add_interpretation_layer(self, photo_layer, items: list[Interpretation] = ()):
+        """A Shapes layer over the photo holding ``items``, wired to this widget."""
         label = self.current_label
         layer = self.viewer.add_shapes(
             ndim=2,
@@ -440,15 +459,126 @@ class InterpretWidget(QWidget):
         )
         layer.current_edge_color = self._labels[label]
         layer.current_face_color = "transparent"
+        # Filled before the handlers are connected: restoring is not an edit.
+        self._add_items(layer, list(items))
         layer.events.data.connect(lambda event, layer=layer: self._shapes_edited(event, layer))
         layer.events.mode.connect(self._update_drawing)
         layer.events.visible.connect(self._update_drawing)
-        self._draw_mode(layer)
-        layer.mode = _LINE_MODE
-        self.status_label.setText(
-            f"Drawing {label!r} on {photo_layer.name}: "
-            + (_SNAP_HINT if self.snap_check.isChecked() else _DRAW_HINT) + ".")
+        # napari calls it with the layer itself, not the proxy a plugin holds:
+        # the flag is keyed by the object the data handler above sees.
+        layer.mouse_drag_callbacks.append(
+            lambda _layer, event, layer=layer: self._pressed_on(layer))
         return layer
+
+    def _add_items(self, layer, items: list[Interpretation]) -> None:
+        """Append pixel interpretations to an interpretation layer as shapes
+        (label, colour, note, units and the 3-point mark kept)."""
+        if not items:
+            return
+        data, types, colors = [], [], []
+        columns: dict[str, list] = {"label": [], "measure": [],
+                                    **{col: [] for col in _TEXT_FEATURES}}
+        for item in items:
+            data.append(napari_from_pixels(item.pixels))
+            types.append("path" if item.geometry == "LineString" else "polygon")
+            colors.append(item.color)
+            columns["label"].append(item.label)
+            columns["measure"].append(str(item.properties.get("measure") or ""))
+            for col, prop in _TEXT_FEATURES.items():
+                columns[col].append(str(item.properties.get(prop) or ""))
+            if item.label not in self._labels:
+                self.add_label(item.label, item.color)
+        n0 = len(layer.data)
+        layer.add(data, shape_type=types, edge_color=colors, face_color="transparent",
+                  edge_width=3)
+        features = layer.features.copy()
+        for col, values in columns.items():
+            if col == "measure" and not any(values) and col not in features:
+                continue  # no 3-point planes: no column
+            if col not in features:
+                features[col] = ""
+            features.loc[n0:, col] = values
+        layer.features = features
+        self._reset_defaults(layer)
+
+    def _pressed_on(self, layer) -> None:
+        """A mouse press on the canvas in a drawing mode: the next shape that
+        napari reports ADDED is one the user drew (not loaded or pasted)."""
+        if str(layer.mode).startswith("add_"):
+            self._drawing_started.add(id(layer))
+
+    # ------------------------------------------------------- workspace
+    def _follow_workspace(self) -> None:
+        """Show the workspace's drawings and projection as it changes (the
+        handlers are released with the widget: the workspace may outlive it)."""
+        ws = self.workspace
+        followed = [(ws.photo_changed, self._current_photo_shown),
+                    (ws.scene_changed, self._photos_closed),
+                    (ws.projection_changed, self.show_workspace_projection)]
+        for signal, handler in followed:
+            signal.connect(handler)
+
+        def release(*_args) -> None:
+            for signal, handler in followed:
+                signal.disconnect(handler)
+
+        self.destroyed.connect(release)
+
+    def _current_photo_shown(self) -> None:
+        current = self.workspace.current if self.workspace is not None else None
+        if current is None:
+            return
+        for layer in self._photo_layers():
+            if self._photo_state(layer) is current:
+                self.show_workspace_interpretations(layer)
+
+    def show_workspace_interpretations(self, photo_layer=None):
+        """The interpretation layer of a workspace photo, built from what the
+        workspace keeps for it (``PhotoState.interpretations``) when it has
+        none yet. Returns it (None: not a workspace photo, or nothing drawn)."""
+        photo_layer = photo_layer or self.photo_layer
+        ps = self._photo_state(photo_layer)
+        if ps is None:
+            return None
+        layer = self.interpretation_layer(photo_layer)
+        if layer is not None or not ps.interpretations:
+            return layer
+        active = self.viewer.layers.selection.active
+        layer = self._add_interpretation_layer(photo_layer, ps.interpretations)
+        # Shown with its photo, but not made the active layer (not drawing yet).
+        layer.mode = "pan_zoom"
+        layer.visible = bool(photo_layer.visible)
+        if active is not None and active in self.viewer.layers:
+            self.viewer.layers.selection.active = active
+        return layer
+
+    def _photos_closed(self) -> None:
+        """The workspace's photos were replaced (a model or workspace opened):
+        interpretation layers of photo layers that are gone no longer belong
+        to a photo, so that a new photo of the same name is not given them."""
+        for layer in list(self.viewer.layers):
+            photo_name = layer.metadata.get(INTERP_KEY)
+            if photo_name is not None and photo_name not in self.viewer.layers:
+                layer.metadata[_DETACHED_KEY] = layer.metadata.pop(INTERP_KEY)
+                layer.name = f"{layer.name} (closed)"
+                layer.visible = False
+
+    def show_workspace_projection(self) -> None:
+        """Show the workspace's projected features and measurements (table,
+        stereonet, result buttons), e.g. those of a workspace just opened."""
+        ws = self.workspace
+        if ws is None or self._recording:
+            return
+        self.features, self.measurements = list(ws.features_3d), list(ws.measurements)
+        self._show_table(self.measurements)
+        self.draw_stereonet()
+        for b in self._result_buttons:
+            b.setEnabled(bool(self.features or self.measurements))
+        if self.features or self.measurements:
+            self.status_label.setText(
+                f"The workspace's last projection: {len(self.features)} feature(s), "
+                f"{len(self.measurements)} measurement(s). Project again after editing.")
+            self.status_label.setStyleSheet("")
 
     def _photo_state(self, photo_layer) -> PhotoState | None:
         """The workspace's photo a photo layer shows (None: not one of its photos)."""
@@ -462,11 +592,14 @@ class InterpretWidget(QWidget):
         from napari.layers.base._base_constants import ActionType
 
         action = getattr(event, "action", None)
-        # Only a shape the user has just finished drawing (napari is still
-        # "creating" it) is snapped or made a 3-point plane; not added/loaded ones.
+        # Only a shape the user has just finished drawing (a mouse press in a
+        # drawing mode started it) is snapped or made a 3-point plane; shapes
+        # added by code, loaded or pasted are not.
         if action == ActionType.ADDING:
             self._count_before[id(layer)] = len(layer.data)
-        drawn = action == ActionType.ADDED and getattr(layer, "_is_creating", True)
+        drawn = action == ActionType.ADDED and id(layer) in self._drawing_started
+        if action == ActionType.ADDED:
+            self._drawing_started.discard(id(layer))
         # napari drops a line of fewer than two vertices but still reports ADDED.
         drawn = drawn and len(layer.data) > self._count_before.get(id(layer), -1)
         if (drawn and self.three_point_check.isChecked()
@@ -699,16 +832,35 @@ class InterpretWidget(QWidget):
             layer.features = features
 
     # ------------------------------------------------------------- I/O
-    def attach_result(self, path: str | Path, layer=None) -> None:
-        """Attach a RESULT.json's camera and pose to an Image layer."""
+    def attach_result(self, path: str | Path, layer=None) -> str:
+        """Attach a RESULT.json's camera and pose to an Image layer.
+
+        A sensor record (``PHOTO.json``) works too, as for ``napari-imgreg
+        project``: its prior pose is attached, with a warning. Returns
+        ``"result"`` or ``"prior"``.
+        """
         layer = layer or self.photo_layer
+        scene = self.scene
+        intr, pose, kind, notes = load_camera_and_pose(
+            path, getattr(scene, "georef", None), getattr(scene, "dem", None),
+            getattr(scene, "terrain_height", None))
         data = read_json(path)
-        if not isinstance(data, dict) or "camera" not in data or "pose" not in data:
-            raise InputError(f"{path}: not a registration result (no camera and pose)")
-        layer.metadata["result"] = data
-        if camera_of_layer(layer) is None:
-            raise InputError(f"{path}: bad 'camera' or 'pose'")
-        self.status_label.setText(f"{layer.name}: registration from {Path(path).name}.")
+        photo = data.get("photo") if isinstance(data, dict) else None
+        if kind == "result":
+            layer.metadata["result"] = data
+            self.status_label.setText(f"{layer.name}: registration from {Path(path).name}.")
+            self.status_label.setStyleSheet("")
+            return kind
+        # Not "registered": the pose's expected error is the sensor prior's (50 px, 5 m, 3°).
+        layer.metadata["result"] = {"status": "prior", "photo": photo or layer.name,
+                                    "camera": intr.to_dict(), "pose": pose.to_dict()}
+        warning = (f"{layer.name}: {Path(path).name} is a sensor record, not a registration: "
+                   "its lines will be projected with the PRIOR pose (metres off)"
+                   + "".join(f"; {n}" for n in notes) + ".")
+        self.status_label.setText(warning)
+        self.status_label.setStyleSheet(f"color: {_WARNING_COLOR};")
+        _notify(warning, "warning")
+        return kind
 
     def load_geojson(self, path: str | Path, photo_layer=None):
         """Add the interpretations of a pixel GeoJSON to the photo's interpretation layer."""
@@ -717,28 +869,8 @@ class InterpretWidget(QWidget):
         if layer is None:
             return None
         self._draw_mode(layer)
-        data, types, colors, labels = [], [], [], []
-        texts: dict[str, list] = {col: [] for col in _TEXT_FEATURES}
-        for item in items:
-            data.append(napari_from_pixels(item.pixels))
-            types.append("path" if item.geometry == "LineString" else "polygon")
-            colors.append(item.color)
-            labels.append(item.label)
-            for col, prop in _TEXT_FEATURES.items():
-                texts[col].append(str(item.properties.get(prop) or ""))
-            if item.label not in self._labels:
-                self.add_label(item.label, item.color)
-        if data:
-            n0 = len(layer.data)
-            layer.add(data, shape_type=types, edge_color=colors, face_color="transparent",
-                      edge_width=3)
-            features = layer.features.copy()
-            features.loc[n0:, "label"] = labels
-            for col, values in texts.items():
-                if col not in features:
-                    features[col] = ""
-                features.loc[n0:, col] = values
-            layer.features = features
+        self._add_items(layer, items)
+        self._keep_in_workspace(layer)  # with their labels and notes, set after the add
         self.status_label.setText(f"Loaded {len(items)} interpretation(s) from {Path(path).name}.")
         return layer
 
@@ -788,14 +920,16 @@ class InterpretWidget(QWidget):
         # Errors come back as one line (bugs are logged with their traceback).
         return self.jobs.start("projection", project_interpretation_sets, scene, jobs,
                                on_returned=self._on_result, on_failed=self._fail,
-                               on_finished=self._on_finished)
+                               on_finished=self._on_finished, notify=False)
 
     def _on_finished(self) -> None:
         self.project_button.setEnabled(True)
 
     def _fail(self, message: str) -> None:
+        """An error: in the status line and as a napari notification (as the workbench's)."""
         self.status_label.setText(message)
-        self.status_label.setStyleSheet("color: #e65100;")
+        self.status_label.setStyleSheet(f"color: {_WARNING_COLOR};")
+        _notify(message, "error")
         self.projection_failed.emit(message)
 
     def _on_result(self, result: tuple[list[Feature3D], list[Measurement]] | None) -> None:
@@ -804,7 +938,11 @@ class InterpretWidget(QWidget):
         self.features, self.measurements = result
         self._three_point_measurements(self.features, self.measurements)
         if self.workspace is not None:
-            self.workspace.record_projection(self.features, self.measurements)
+            self._recording = True  # shown below, not again by the workspace's event
+            try:
+                self.workspace.record_projection(self.features, self.measurements)
+            finally:
+                self._recording = False
         self._show_layers(self.features)
         self._show_table(self.measurements)
         self.draw_stereonet()
@@ -864,6 +1002,11 @@ class InterpretWidget(QWidget):
         feats = [f for f in self.features if f.parts and (source is None or f.source == source)]
         if not feats:
             return
+        shown = {lay.metadata[PROJECTED_KEY] for lay in self.viewer.layers
+                 if PROJECTED_KEY in lay.metadata}
+        missing = [f for f in self.features if f.source not in shown]
+        if missing and self.surface_combo.currentText() in self.viewer.layers:
+            self._show_layers(missing)  # a projection kept by the workspace, not made here
         pts = np.concatenate([f.points for f in feats])
         for layer in self.viewer.layers:
             if INTERP_KEY in layer.metadata or layer in self._photo_layers():
@@ -935,8 +1078,11 @@ class InterpretWidget(QWidget):
                                   + (f" ({georef.crs})." if in_crs else " (local frame)."))
 
     def save_stereonet(self, path: str | Path) -> None:
+        """Write the stereonet as PNG, SVG or PDF (by the suffix)."""
         with atomic_path(path) as tmp:
             self.figure.savefig(tmp, dpi=120)
+        self.status_label.setText(f"Saved stereonet to {Path(path).name}.")
+        self.status_label.setStyleSheet("")
 
     # ---------------------------------------------------------- dialogs
     def _guarded(self, fn, *args) -> None:
@@ -944,6 +1090,8 @@ class InterpretWidget(QWidget):
             fn(*args)
         except InputError as exc:
             self._fail(str(exc))
+        except OSError as exc:  # a file that cannot be written: the user's to fix
+            self._fail(one_line(exc))
 
     def _attach_dialog(self) -> None:
         path, _ = QFileDialog.getOpenFileName(self, "Registration result", "", "JSON (*.json)")
@@ -978,6 +1126,22 @@ class InterpretWidget(QWidget):
                                               "PNG (*.png);;SVG (*.svg);;PDF (*.pdf)")
         if path:
             self._guarded(self.save_stereonet, path)
+
+
+def _notify(message: str, severity: str) -> None:
+    """A napari notification ("error" or "warning"), as the workbench raises."""
+    # napari is imported when needed: its import is slow and warns (pydantic).
+    from napari.utils.notifications import show_error, show_warning
+
+    (show_error if severity == "error" else show_warning)(message)
+
+
+def _row(*widgets: QWidget, stretch: tuple[int, ...] | None = None) -> QHBoxLayout:
+    """Widgets side by side (equal shares unless ``stretch`` says otherwise)."""
+    row = QHBoxLayout()
+    for k, widget in enumerate(widgets):
+        row.addWidget(widget, 1 if stretch is None else stretch[k])
+    return row
 
 
 def _qcolor(color: str) -> Any:
