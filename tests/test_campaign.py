@@ -184,3 +184,22 @@ def test_the_dock_is_in_the_manifest():
     cmd = next(c for c in manifest.contributions.commands if c.id == "napari-imgreg.campaign_view")
     assert cmd.python_name == "napari_imgreg.widgets.campaign:CampaignView"
     assert CAMPAIGN_LAYER_KEY == "imgreg_campaign"
+
+
+def test_the_campaign_view_from_the_plugins_menu_shows_the_workbench_campaign(
+        make_napari_viewer, qtbot, sample):
+    """Opened through napari's plugin API (a proxy of the viewer), the view shows
+    the workspace the workbench holds, not an empty one of its own."""
+    folder, scene, terrain, loaded = sample
+    viewer = make_napari_viewer()
+    _, wb = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration workbench")
+    ws = wb.controller.workspace
+    ws.load_scene(scene, terrain, {"mesh": folder / "outcrop.obj", "dem": folder / "dem.tif"})
+    ws.add_loaded_photos(loaded)
+    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
+    _, view = viewer.window.add_plugin_dock_widget("napari-imgreg", "Campaign view")
+    assert view.workspace is ws
+    assert "3 photo(s)" in view.summary_label.text()
+    assert len(view.layers()["cameras"].data) == 3
+    # The view keeps the workspace's controller alive while it is docked.
+    assert view.controller is wb.controller

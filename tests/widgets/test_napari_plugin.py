@@ -107,3 +107,108 @@ def test_sample_data_open_in_napari(make_napari_viewer):
     assert photo.data.shape == render.data.shape
     # The render from the prior shows the outcrop: most of it is surface, not sky.
     assert (np.asarray(render.data).sum(axis=2) > 0).mean() > 0.3
+
+
+# ------------------------------------------- plugin docks share one workbench
+def _pump(qtbot, ms=50):
+    qtbot.wait(ms)
+
+
+def test_the_manifest_names_agree_with_the_dock_names():
+    """The docks are named as napari's Plugins menu names them (its display name)."""
+    from npe2 import PluginManifest
+
+    from napari_imgreg.widgets import workbench as wbmod
+
+    manifest = PluginManifest.from_distribution("napari-imgreg")
+    assert manifest.name == wbmod.PLUGIN_NAME
+    assert manifest.display_name == wbmod.PLUGIN_DISPLAY_NAME
+    names = {w.display_name for w in manifest.contributions.widgets}
+    assert {"Registration workbench", "Registration quality", "Campaign view"} <= names
+    from napari.plugins import menu_item_template
+
+    assert wbmod.WORKBENCH_NAME == menu_item_template.format(manifest.display_name,
+                                                             "Registration workbench")
+    assert menu_item_template.format(manifest.name, "Registration quality") in \
+        wbmod.plugin_dock_names("Registration quality")
+
+
+def test_docks_opened_through_the_plugin_api_share_one_controller(make_napari_viewer, qtbot,
+                                                                   tmp_path, monkeypatch):
+    """napari hands every plugin dock a new proxy of the viewer: the workbench,
+    the quality dock, the campaign view, the File menu and a dropped workspace
+    folder must all reach the same controller and workspace anyway."""
+    from napari.utils._proxies import PublicOnlyProxy
+
+    from napari_imgreg.widgets import workbench as wbmod
+    from napari_imgreg.widgets._controller import controller_for, real_viewer
+    from napari_imgreg.widgets.campaign import CampaignView
+    from napari_imgreg.widgets.workbench import QualityDock, Workbench, workbench_for
+
+    viewer = make_napari_viewer()
+    _, wb = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration workbench")
+    assert isinstance(wb, Workbench)
+    assert isinstance(wb.viewer, PublicOnlyProxy)  # the proxy is involved
+    qtbot.waitUntil(lambda: wb.quality is not None, timeout=5000)
+    ctrl = wb.controller
+    assert real_viewer(wb.viewer) is viewer and ctrl.viewer is viewer
+    assert controller_for(viewer) is ctrl
+    assert controller_for(PublicOnlyProxy(viewer)) is ctrl
+
+    _, campaign = viewer.window.add_plugin_dock_widget("napari-imgreg", "Campaign view")
+    assert isinstance(campaign, CampaignView)
+    assert campaign.workspace is ctrl.workspace
+    _, quality = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration quality")
+    assert isinstance(quality, QualityDock) and quality.controller is ctrl
+
+    # The File menu and the workspace reader find the docked workbench, under
+    # whichever name napari gave it, through the viewer or a proxy of it.
+    docks = set(viewer.window.dock_widgets)
+    assert workbench_for(viewer) is wb
+    assert workbench_for(PublicOnlyProxy(viewer)) is wb
+    monkeypatch.setattr(wbmod, "_current_viewer", lambda: viewer)
+    monkeypatch.setattr(wbmod.QFileDialog, "getExistingDirectory", lambda *a, **k: "")
+    wbmod.menu_open_workspace()
+    opened = []
+    monkeypatch.setattr(ctrl, "open_workspace", opened.append)
+    folder = tmp_path / "campaign.imgreg"
+    folder.mkdir()
+    (folder / "workspace.json").write_text("{}")
+    reader = wbmod.get_workspace_reader(str(folder))
+    assert reader is not None and reader(str(folder)) == [(None,)]
+    assert opened == [folder]
+    assert set(viewer.window.dock_widgets) == docks  # no second workbench
+
+
+def test_the_plugins_menu_toggles_the_docked_quality_panel(make_napari_viewer, qtbot):
+    """The workbench docks its quality panel under the Plugins menu's name: the
+    menu's Registration quality toggles that dock instead of adding a second one;
+    a campaign view from the menu shows the workbench's workspace."""
+    from napari._app_model import get_app_model
+
+    from napari_imgreg.widgets.workbench import QUALITY_NAME, WORKBENCH_NAME, Workbench
+
+    viewer = make_napari_viewer(show=True)
+    app = get_app_model()
+    app.commands.execute_command("napari-imgreg.workbench").result()
+    qtbot.waitUntil(lambda: QUALITY_NAME in viewer.window.dock_widgets, timeout=5000)
+    wb = viewer.window.dock_widgets[WORKBENCH_NAME]
+    assert isinstance(wb, Workbench)
+    quality = viewer.window.dock_widgets[QUALITY_NAME]
+    assert wb.quality is quality.panel
+    qtbot.waitUntil(quality.isVisible, timeout=5000)
+    docks = list(viewer.window.dock_widgets)
+    app.commands.execute_command("napari-imgreg.quality").result()
+    _pump(qtbot)
+    assert list(viewer.window.dock_widgets) == docks
+    assert not quality.isVisible()
+    app.commands.execute_command("napari-imgreg.quality").result()
+    _pump(qtbot)
+    assert quality.isVisible()
+    app.commands.execute_command("napari-imgreg.campaign_view").result()
+    _pump(qtbot)
+    campaign = [w for name, w in viewer.window.dock_widgets.items()
+                if name.startswith("Campaign view")]
+    assert len(campaign) == 1 and campaign[0].workspace is wb.controller.workspace
+    # Workbench.add_to_viewer (scripts, the demo) gives the docked one back.
+    assert Workbench.add_to_viewer(viewer) is wb

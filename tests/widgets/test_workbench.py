@@ -25,7 +25,7 @@ from napari_imgreg.registration.quality import GRADES, METRICS
 from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._controller import GAP, controller_for
 from napari_imgreg.widgets._quality import CLASS_COLORS
-from napari_imgreg.widgets.workbench import INTERPRET_TAB, QUALITY_NAME, Workbench
+from napari_imgreg.widgets.workbench import INTERPRET_TAB, QUALITY_NAME, WORKBENCH_NAME, Workbench
 
 LOAD_S = 90_000  # ms: the first run on a fresh machine generates the sample scene
 
@@ -66,6 +66,9 @@ def test_sample_shows_photo_beside_render_and_model_with_cameras_in_3d(workbench
     assert wb.scene_panel.photo_list.count() == 3
     assert "IMG_0001.jpg" in wb.scene_panel.prior_label.text()
     assert "DEM" in wb.scene_panel.scene_label.text()
+    # The georef.json the reader found beside the mesh is the one shown.
+    assert "georeferenced" in wb.scene_panel.scene_label.text()
+    assert wb.scene_panel.georef_edit.text().endswith("georef.json")
     photo, render = ctrl.layers.get("photo"), ctrl.layers.get("render")
     assert photo.data.shape == (768, 1024, 3) and render.data.shape == (768, 1024, 3)
     assert render.translate[1] == pytest.approx(1024 * (1 + GAP))  # side by side
@@ -81,6 +84,30 @@ def test_sample_shows_photo_beside_render_and_model_with_cameras_in_3d(workbench
     surface, cameras = ctrl.layers.get("surface"), ctrl.layers.get("cameras")
     assert surface.visible and cameras.visible and not photo.visible
     assert len(cameras.data) == 3 and len(ctrl.layers.get("frusta").data) == 3 * 8
+    # Cameras in colours no interpretation label has (not taken for mapped lines).
+    from matplotlib.colors import to_rgba
+
+    from napari_imgreg.interpret.project import LABEL_COLORS, label_color
+    from napari_imgreg.widgets._layers import world_from_napari
+
+    labels = [to_rgba(c) for c in LABEL_COLORS.values()]
+    labels += [to_rgba(label_color(f"label {k}")) for k in range(40)]
+    shown = [tuple(c) for c in cameras.face_color] + [tuple(ctrl.layers.get("frusta").edge_color[0])]
+    for c in shown:
+        assert min(np.abs(np.subtract(c[:3], lab[:3])).max() for lab in labels) > 0.15, c
+    # Oblique, facing the outcrop as the cameras do (not straight down).
+    view = world_from_napari(np.asarray(ctrl.camera.view_direction, float))
+    heading = np.mean([ps.pose.view_direction for ps in ctrl.photos], axis=0)
+    heading[2] = 0
+    assert view[2] == pytest.approx(-np.sin(np.radians(30)), abs=0.05)
+    assert np.dot(view[:2], heading[:2] / np.linalg.norm(heading[:2])) > 0.8
+    # Seen from the pose, the cameras about the viewpoint are left out.
+    wb.scene_panel.view_pose_button.click()
+    eye = ctrl.current.pose.center
+    drawn = world_from_napari(np.asarray(ctrl.layers.get("cameras").data, float))
+    assert len(drawn) < 3 and all(np.linalg.norm(d - eye) > 1.0 for d in drawn)
+    wb.scene_panel.view_3d_button.click()
+    assert len(ctrl.layers.get("cameras").data) == 3
     wb.scene_panel.view_2d_button.click()
     assert viewer.dims.ndisplay == 2 and photo.visible and not surface.visible
 
@@ -391,12 +418,17 @@ def test_cancel_stops_a_registration(workbench, qtbot):
         qtbot.waitUntil(lambda: ctrl.is_running("registration"), timeout=5000)
         wb.register_panel.cancel_button.click()
     assert finished.args[0] is None
+    assert wb.register_panel.status_label.text() == "Cancelled."
     assert ctrl.current.trials == []
     _idle(wb, qtbot)
     assert wb.register_panel.run_button.isEnabled()
 
 
-def test_errors_become_one_line_messages(workbench, qtbot, tmp_path):
+def test_errors_become_one_line_messages(workbench, qtbot, tmp_path, monkeypatch):
+    from napari.utils import notifications
+
+    notified = []
+    monkeypatch.setattr(notifications, "show_error", notified.append)
     wb = workbench
     ctrl = wb.controller
     with qtbot.waitSignal(ctrl.status, timeout=2000) as status:
@@ -407,6 +439,8 @@ def test_errors_become_one_line_messages(workbench, qtbot, tmp_path):
     job, message = failed.args
     assert job == "open scene" and "missing.obj" in message and "\n" not in message
     assert message in wb.status_label.text()
+    # Seen as a napari notification too, as the validation errors are.
+    assert notified[-1] == f"open scene failed: {message}"
 
 
 # --------------------------------------------------------- another light
@@ -716,7 +750,7 @@ def test_demo_gui_opens_the_sample_in_the_workbench(make_napari_viewer, qtbot, m
     monkeypatch.setattr(napari, "Viewer", viewer_factory)
     monkeypatch.setattr(napari, "run", lambda: None)
     assert _demo_gui(sample_scene("small")) == 0
-    wb = viewers[0].window.dock_widgets["Registration workbench"]
+    wb = viewers[0].window.dock_widgets[WORKBENCH_NAME]
     qtbot.waitUntil(lambda: wb.controller.current is not None, timeout=LOAD_S)
     _idle(wb, qtbot)
     assert len(wb.controller.photos) == 3 and wb.controller.scene.dem is not None
@@ -739,3 +773,59 @@ def test_closing_the_docks_and_opening_the_workbench_again(workbench, qtbot):
     assert viewer.window.dock_widgets[QUALITY_NAME].panel is again.quality
     ctrl = _load_sample(again, qtbot)
     assert ctrl.current is not None and ctrl.layers.get("render") is not None
+
+
+def test_quality_hint_numbers_read_as_the_comparison_that_fired(workbench, qtbot):
+    """An excellent pose 0.02 px over the limit: the hint's numbers say so
+    ("1.27 px > 1.25 px", not "1.27 px > 1.3"), and so does the limits column."""
+    from napari_imgreg.registration.quality import evaluate_rules
+    from napari_imgreg.registration.round import Trial
+
+    wb = workbench
+    ctrl = _load_sample(wb, qtbot)
+    ws = ctrl.workspace
+    metrics = {"points_photo": 6000, "points_render": 6000, "feature_inliers": 400,
+               "inliers_3d": 300, "inlier_ratio_2d": 0.6, "inlier_ratio_3d": 0.5,
+               "reprojection_error_px": 1.27}
+    hints = [h.hint for h in evaluate_rules(metrics, ws.params, 1024)]
+    assert hints == ["The pose is probably right but imprecise (reprojection error 1.27 px "
+                     "> 1.25 px): impose stricter correspondence constraints."]
+    trial = Trial(index=0, params=ws.params, metrics=metrics, q=1.7, grade="excellent",
+                  hints=hints, pose=ws.current.pose, start_pose=ws.current.pose, rounds=1,
+                  converged=True, verified=True, residual_flow_px=0.3)
+    ws.add_trial(trial)
+    ws.select_trial(0)
+    assert "1.27 px &gt; 1.25 px" in wb.quality.hint_label.text()
+    import re
+
+    # Limits with the value's two decimals (".1f" rounded them past the value).
+    limits = wb.quality.metric_cell("reprojection_error_px", 3).text()
+    assert re.fullmatch(r"> \d+\.\d\d \| ≤ \d+\.\d\d", limits), limits
+
+
+def test_a_laptop_screen_keeps_the_layer_list_and_run_in_view(make_napari_viewer, qtbot):
+    """At 1366 × 740 the quality panel sits under the canvas only (the layer
+    list keeps the left column's height) and Run / Auto stay in view under
+    the Register tab's parameters."""
+    viewer = make_napari_viewer(show=True)
+    viewer.window._qt_window.resize(1366, 740)
+    for k in range(10):
+        viewer.add_image(np.zeros((4, 4)), name=f"layer {k}")
+    _, wb = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration workbench")
+    qtbot.waitUntil(lambda: wb.quality is not None and wb.quality.isVisible(), timeout=5000)
+    qtbot.wait(300)
+    layer_list = viewer.window._qt_viewer.layers
+    rows = layer_list.viewport().height() / layer_list.sizeHintForRow(0)
+    assert rows >= 5, rows
+    quality = viewer.window.dock_widgets[QUALITY_NAME]
+    canvas = viewer.window._qt_viewer
+    left = quality.mapToGlobal(quality.rect().topLeft()).x()
+    assert left >= canvas.mapToGlobal(canvas.rect().topLeft()).x() - 20  # not under the left column
+    wb.show_tab("Register")
+    qtbot.wait(200)
+    rp = wb.register_panel
+    for button in (rp.run_button, rp.auto_button, rp.cancel_button):
+        assert not button.visibleRegion().isEmpty(), button.text()
+    page = wb.tabs.currentWidget()
+    assert page.widget() is rp  # still a scrolling page of the panel
+    page.ensureWidgetVisible(rp.sun_box)

@@ -84,6 +84,9 @@ __all__ = [
     "PhotoState",
     "WorkbenchError",
     "controller_for",
+    "real_viewer",
+    "warm_napari",
+    "overview_direction",
     "one_line",
     "PREVIEW_WIDTH",
     "RENDER_NAMES",
@@ -103,6 +106,18 @@ __getattr__ = forward_moved_names(__name__, _MOVED)
 
 #: Camera markers and view frusta in the 3D view, as fractions of the model's diagonal.
 CAMERA_MARKER, CAMERA_FRUSTUM = 0.012, 0.035
+#: Cameras in the 3D view: the photos' (and their frusta), and the current photo's.
+#: Cyan and magenta: no interpretation label's colour
+#: (:data:`~napari_imgreg.interpret.project.LABEL_COLORS` and the picks after
+#: them), so cameras are not taken for mapped lines.
+CAMERA_COLOR, CURRENT_CAMERA_COLOR = "#00e5ff", "#ff40ff"
+#: "3D, seen from the photo's pose": cameras nearer the viewpoint than this
+#: fraction of the distance to the outcrop are left out (up close their
+#: frusta fill the view as thick bars).
+NEAR_CAMERA_HIDE = 0.5
+#: "3D: model and cameras": looking this far down (degrees) toward the outcrop,
+#: along the cameras' mean heading.
+OVERVIEW_DIP_DEG = 30.0
 #: Width (pixels) of the reduced render shown while the pose is being edited.
 PREVIEW_WIDTH = 400
 #: Idle time after the last pose edit before the full-resolution render, ms.
@@ -130,17 +145,101 @@ CORRESPONDENCE_COLORS = {
 _CONTROLLERS: weakref.WeakValueDictionary[int, WorkbenchController] = weakref.WeakValueDictionary()
 
 
+def real_viewer(viewer: napari.viewer.Viewer) -> napari.viewer.Viewer:
+    """The viewer itself behind napari's proxies.
+
+    napari hands each plugin widget (Plugins menu, ``add_plugin_dock_widget``,
+    app-model providers) a new ``PublicOnlyProxy`` of the viewer — a
+    ``wrapt.ObjectProxy`` whose ``__wrapped__`` is the viewer — so two docks of
+    one viewer hold two different objects. Anything keyed by the viewer (the
+    controller below) keys the object behind them.
+    """
+    try:
+        from wrapt import ObjectProxy  # napari's own dependency (its proxies are wrapt's)
+    except ImportError:  # pragma: no cover - napari without wrapt has no proxies
+        return viewer
+    seen = 0
+    while isinstance(viewer, ObjectProxy) and seen < 8:
+        viewer = viewer.__wrapped__
+        seen += 1
+    return viewer
+
+
 def controller_for(viewer: napari.viewer.Viewer) -> WorkbenchController:
     """The viewer's workbench controller (created on first use).
 
     Every workbench dock of a viewer, and any dock that wants the current
-    photo, pose or registration (e.g. an interpretation widget), shares it.
+    photo, pose or registration (e.g. an interpretation widget), shares it —
+    whichever proxy of the viewer napari handed the dock (see :func:`real_viewer`).
     """
+    viewer = real_viewer(viewer)
     ctrl = _CONTROLLERS.get(id(viewer))
     if ctrl is None or ctrl.viewer is not viewer or ctrl.closed:
         ctrl = WorkbenchController(viewer)
         _CONTROLLERS[id(viewer)] = ctrl
     return ctrl
+
+
+def warm_napari() -> None:
+    """Do napari's one-time lazy set-ups in the calling (worker) thread.
+
+    The first layer napari makes builds pint's unit registry (~0.5 s), the
+    first Points or Shapes layer imports pandas (~0.2 s) and the first Shapes
+    layer (the interpretation tools make one per photo) compiles numba's
+    triangulation (~0.5 s); left to the GUI thread they freeze the
+    window when a workspace, a model or the sample is opened. Each is done
+    once per process and is skipped when done already; a failure only costs
+    the time back in the GUI thread.
+    """
+    try:  # imported by the first Points/Shapes layer's features (~0.2 s)
+        import pandas  # noqa: F401
+        import napari.components.histogram  # noqa: F401
+    except Exception as exc:  # pragma: no cover - napari internals moved
+        log.debug("pandas not imported ahead: %s", exc)
+    try:
+        from napari.utils._units import get_unit_registry
+
+        registry = get_unit_registry()  # pint's ApplicationRegistry
+        inner = registry.get() if hasattr(registry, "get") else registry
+        if type(inner).__name__ == "LazyRegistry":  # not built yet: built by its first use
+            registry.Unit("pixel")
+    except Exception as exc:  # pragma: no cover - napari internals moved
+        log.debug("pint registry not warmed: %s", exc)
+    try:
+        from napari.layers.shapes import _accelerated_triangulate_dispatch as tri
+
+        tri.warmup_numba_cache()
+    except Exception as exc:  # pragma: no cover - napari internals moved; no numba
+        log.debug("numba triangulation not warmed: %s", exc)
+
+
+def _open_workspace_warm(folder: Path) -> Workspace:
+    """Open a workspace folder, then warm napari for showing it (worker thread)."""
+    opened = Workspace.open(folder)
+    warm_napari()
+    return opened
+
+
+def _read_scene_warm(*args):
+    value = read_scene(*args)
+    warm_napari()
+    return value
+
+
+def overview_direction(poses, dip_deg: float = OVERVIEW_DIP_DEG) -> np.ndarray | None:
+    """A 3D view direction (model frame, unit) facing what the cameras face:
+    their mean horizontal heading, ``dip_deg`` down. An outcrop is mostly a
+    steep face, edge-on from straight above. None without poses."""
+    if not poses:
+        return None
+    heading = np.mean([np.asarray(p.view_direction, float) for p in poses], axis=0)
+    heading[2] = 0.0
+    norm = float(np.linalg.norm(heading))
+    if norm < 1e-6:  # cameras looking down, or every way: from the south
+        heading, norm = np.array([0.0, 1.0, 0.0]), 1.0
+    dip = np.radians(dip_deg)
+    view = heading / norm * np.cos(dip) + np.array([0.0, 0.0, -np.sin(dip)])
+    return view / np.linalg.norm(view)
 
 
 # ------------------------------------------------------------------ layers
@@ -379,13 +478,13 @@ class _Layers:
                      marker_m: float = 5.0) -> None:
         visible = self.viewer.dims.ndisplay == 3
         pts = napari_from_world(centers) if len(centers) else np.zeros((0, 3))
-        colors = np.array([_rgba("#ff1744") if k == current else _rgba("#ffd600")
+        colors = np.array([_rgba(CURRENT_CAMERA_COLOR) if k == current else _rgba(CAMERA_COLOR)
                            for k in range(len(pts))]).reshape(-1, 4)
         layer = self.get("cameras")
         if layer is None:
             layer = self._put("cameras", self._add(
                 "add_points", pts, name="cameras", ndim=3, size=marker_m,
-                face_color=colors if len(pts) else "red",
+                face_color=colors if len(pts) else CAMERA_COLOR,
                 visible=visible))
         else:
             layer.data = pts
@@ -402,7 +501,7 @@ class _Layers:
         vectors = np.stack([seg[:, 0], seg[:, 1] - seg[:, 0]], axis=1)
         if frusta is None:
             self._put("frusta", self._add(
-                "add_vectors", vectors, name="view frusta", ndim=3, edge_color="#ffd600",
+                "add_vectors", vectors, name="view frusta", ndim=3, edge_color=CAMERA_COLOR,
                 edge_width=0.6,
                 vector_style="line", visible=visible))
         else:
@@ -488,6 +587,9 @@ class WorkbenchController(QObject):
         # napari's process registers here too: keep its image buffers (see
         # _allocator; NAPARI_IMGREG_MALLOC=default opts out).
         tune_allocator()
+        # The viewer itself, not a plugin proxy of it: the docks find this
+        # controller by it, and its layers are added and looked up unproxied.
+        viewer = real_viewer(viewer)
         self.viewer = viewer
         #: The state the docks show and edit (Qt-free).
         self.workspace = workspace if workspace is not None else Workspace()
@@ -514,6 +616,9 @@ class WorkbenchController(QObject):
         self._pairs_from_layers = False  # the workspace takes an edit of the pair layers
         self.latency: dict[str, float] = {}
         self._cameras_dirty = True
+        self._surface_pending = False  # the model's layer is to be made (see _on_scene_changed)
+        #: Seen from a pose: (viewpoint, radius) of the cameras left out (see fly_to_pose).
+        self._hide_near: tuple[np.ndarray, float] | None = None
         self._reduced: dict[str, tuple] = {}  # filter preview: images at the match width
         self._asked: dict[str, float] = {}  # time of the latest request per job
         self._full_timer = QTimer(self)
@@ -579,8 +684,23 @@ class WorkbenchController(QObject):
     # Workspace events: bring the layers up to date, then tell the docks.
     def _on_scene_changed(self) -> None:
         self.layers.clear_photos()
-        self.layers.show_surface(self.scene)
+        if self.viewer.dims.ndisplay == 3:
+            self.layers.show_surface(self.scene)
+        else:
+            # Hidden in 2D: made on the event loop's next turn, after the
+            # photo is shown — a workspace opening then freezes the window
+            # twice briefly instead of once for both (busy until it is made).
+            if not self._surface_pending:
+                QTimer.singleShot(0, self._show_pending_surface)
+            self._surface_pending = True
         self.scene_changed.emit()
+
+    def _show_pending_surface(self) -> None:
+        if not self._surface_pending:
+            return
+        self._surface_pending = False
+        if not self._closed and self.scene is not None:
+            self.layers.show_surface(self.scene)
 
     def _on_photos_changed(self) -> None:
         self.photos_changed.emit()
@@ -644,7 +764,7 @@ class WorkbenchController(QObject):
     @property
     def busy(self) -> bool:
         """True while any job runs or waits (a render, a filter, a registration...)."""
-        return self.jobs.busy or self._full_timer.isActive()
+        return self.jobs.busy or self._full_timer.isActive() or self._surface_pending
 
     def is_running(self, job: str) -> bool:
         return self.jobs.is_running(job)
@@ -735,7 +855,7 @@ class WorkbenchController(QObject):
         self.status.emit(message)
         self.loading.emit(message)
         # pyproj is touched (georeference, DEM): in a thread Python owns.
-        self._start("open scene", in_python_thread, read_scene, mesh, dem, georef,
+        self._start("open scene", in_python_thread, _read_scene_warm, mesh, dem, georef,
                     on_returned=done, on_failed=lambda msg: self.loading.emit(""),
                     progress={"desc": f"Opening {Path(mesh).name}", "total": 0})
 
@@ -821,7 +941,7 @@ class WorkbenchController(QObject):
         self.status.emit(message)
         self.loading.emit(message)
         # pyproj is touched (georeference, DEM): in a thread Python owns.
-        self._start("open workspace", in_python_thread, Workspace.open, folder,
+        self._start("open workspace", in_python_thread, _open_workspace_warm, folder,
                     on_returned=done, on_failed=lambda msg: self.loading.emit(""),
                     progress={"desc": f"Opening {folder.name}", "total": 0})
 
@@ -1472,19 +1592,45 @@ class WorkbenchController(QObject):
 
     def _on_ndisplay(self, event=None) -> None:
         three_d = self.viewer.dims.ndisplay == 3
+        if three_d:
+            self._show_pending_surface()
+        elif self._hide_near is not None:  # back in 2D: every camera next time
+            self._hide_near = None
+            self._cameras_dirty = True
         if three_d and self._cameras_dirty:
             self._update_cameras()
         self.layers.set_mode_3d(three_d)
 
     def show_3d(self, from_pose: bool = False) -> None:
-        """The model and the cameras in 3D (optionally seen from the current pose)."""
-        self.viewer.dims.ndisplay = 3
+        """The model and the cameras in 3D: seen obliquely, facing the outcrop
+        as the cameras do (:meth:`overview_direction`), or from the current pose."""
+        if not (from_pose and self.current is not None) and self._hide_near is not None:
+            self._hide_near = None  # every camera again
+            self._cameras_dirty = True
         if from_pose and self.current is not None:
             self.fly_to_pose()
-        elif self.layers.layers_3d():
+            return
+        self.viewer.dims.ndisplay = 3
+        if self.layers.layers_3d():
+            if self._cameras_dirty:
+                self._update_cameras()
+            view = self.overview_direction()
+            if view is not None:
+                self.camera.set_view_direction(tuple(napari_from_world(view)),
+                                               tuple(napari_from_world(np.array([0., 0., 1.]))))
             self.viewer.fit_to_view(layers=self.layers.layers_3d())
 
+    def overview_direction(self) -> np.ndarray | None:
+        """The direction (model frame, unit) "3D: model and cameras" looks in:
+        the cameras' mean heading, :data:`OVERVIEW_DIP_DEG` down — facing the
+        outcrop obliquely, where straight down sees a cliff edge-on. None
+        without photos."""
+        return overview_direction([ps.pose for ps in self.photos])
+
     def show_2d(self) -> None:
+        if self._hide_near is not None:
+            self._hide_near = None
+            self._cameras_dirty = True
         self.viewer.dims.ndisplay = 2
         self.fit_2d()
 
@@ -1506,13 +1652,18 @@ class WorkbenchController(QObject):
         ps = self.current
         if ps is None:
             return
-        if self.viewer.dims.ndisplay != 3:
-            self.viewer.dims.ndisplay = 3
         depth = 50.0
         if self.last_render is not None:
             d = self.last_render.depth
             if np.isfinite(d).any():
                 depth = float(np.nanmedian(d))
+        # Cameras about the viewpoint (its own among them) would fill the view.
+        self._hide_near = (np.asarray(ps.pose.center, float), NEAR_CAMERA_HIDE * depth)
+        self._cameras_dirty = True
+        if self.viewer.dims.ndisplay != 3:
+            self.viewer.dims.ndisplay = 3  # the cameras are drawn as it switches
+        else:
+            self._update_cameras()
         view = view_from_camera(ps.intrinsics, ps.pose, depth, self.canvas_px())
         cam = self.camera
         cam.perspective = view["fov_deg"]
@@ -1524,13 +1675,23 @@ class WorkbenchController(QObject):
     def _update_cameras(self) -> None:
         if self.scene is None or not self.photos:
             return
-        centers = np.array([ps.pose.center for ps in self.photos])
+        if self.viewer.dims.ndisplay != 3:
+            # 3D-only layers: made or brought up to date when the 3D view is
+            # shown (_on_ndisplay), not while a workspace opens in 2D.
+            self._cameras_dirty = True
+            return
+        photos = list(self.photos)
+        if self._hide_near is not None:  # seen from a pose: not those about it
+            eye, radius = self._hide_near
+            photos = [ps for ps in photos
+                      if np.linalg.norm(np.asarray(ps.pose.center, float) - eye) > radius]
+        centers = np.array([ps.pose.center for ps in photos]).reshape(-1, 3)
         size = float(np.linalg.norm(np.diff(self.scene.bounds, axis=0)))
         # Small beside the outcrop: the cameras say where the photos were
         # taken, the model stays what the 3D view shows.
-        segs = np.concatenate([frustum_segments(ps.intrinsics, ps.pose, CAMERA_FRUSTUM * size)
-                               for ps in self.photos])
-        current = self.photos.index(self.current) if self.current in self.photos else -1
+        segs = (np.concatenate([frustum_segments(ps.intrinsics, ps.pose, CAMERA_FRUSTUM * size)
+                                for ps in photos]) if photos else np.zeros((0, 2, 3)))
+        current = photos.index(self.current) if self.current in photos else -1
         self.layers.show_cameras(centers, segs, current, marker_m=CAMERA_MARKER * size)
         self._cameras_dirty = False
 

@@ -41,7 +41,7 @@ from qtpy.QtWidgets import (
 from ..interpret.project import label_color
 from ..interpret.structural import FisherMean, draw_stereonet
 from ..workspace import Workspace
-from ._controller import CAMERA_FRUSTUM, CAMERA_MARKER, controller_for
+from ._controller import CAMERA_FRUSTUM, CAMERA_MARKER, controller_for, overview_direction
 from ._layers import NAPARI_AXIS_LABELS, frustum_segments, napari_from_world
 
 if TYPE_CHECKING:
@@ -95,8 +95,16 @@ class CampaignView(QWidget):
                  workspace: Workspace | None = None) -> None:
         super().__init__(parent)
         self.viewer = napari_viewer
-        self.workspace = workspace if workspace is not None else (
-            controller_for(napari_viewer).workspace)
+        #: The workbench controller whose workspace this shows (None: a workspace
+        #: given here). Found by the viewer behind napari's proxy, so the view
+        #: opened from the Plugins menu shows the workbench's campaign; held and
+        #: attached, so the workspace outlives a closed workbench while shown here.
+        self.controller = None
+        if workspace is None:
+            self.controller = controller_for(napari_viewer)
+            self.controller.attach(self)
+            workspace = self.controller.workspace
+        self.workspace = workspace
         #: Fisher mean pole per label of the last redraw.
         self.fisher_means: dict[str, FisherMean] = {}
         # What the lines layer and the stereonet show (the workspace replaces
@@ -343,8 +351,11 @@ class CampaignView(QWidget):
         cam = (scene.camera if scene is not None and hasattr(scene, "camera")
                else self.viewer.camera)
         cam.center = tuple(napari_from_world((lo + hi) / 2.0))
-        # From above and the south, the cameras in front of the outcrop.
-        cam.set_view_direction(tuple(napari_from_world(np.array([0.0, 1.0, -0.8]))),
-                               up_direction=(1.0, 0.0, 0.0))
+        # Obliquely from above, facing the outcrop as the cameras do (from the
+        # south without cameras), the cameras in front of it.
+        view = overview_direction([ps.pose for ps in ws.photos])
+        if view is None:
+            view = np.array([0.0, 1.0, -0.8])
+        cam.set_view_direction(tuple(napari_from_world(view)), up_direction=(1.0, 0.0, 0.0))
         px = min(getattr(getattr(self.viewer, "canvas", None), "size", (600, 600)))
         cam.zoom = 0.8 * px / max(float(np.max(hi - lo)), 1e-6)

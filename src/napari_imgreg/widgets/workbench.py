@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 
 from pathlib import Path
 
-from qtpy.QtCore import Qt, QTimer
+from qtpy.QtCore import QEvent, Qt, QTimer
 from qtpy.QtWidgets import (
     QFileDialog,
     QHBoxLayout,
@@ -54,7 +54,7 @@ from qtpy.QtWidgets import (
 from ._reader_preferences import prefer_imgreg_reader, prefer_workspace_reader
 from ..io import workspace_files as wsfiles
 from . import _shortcuts
-from ._controller import WorkbenchController, controller_for
+from ._controller import WorkbenchController, controller_for, real_viewer
 from ._panels import FiltersPanel, ManualPanel, PosePanel, RegisterPanel, ScenePanel
 from ._photos_table import PhotosTable
 from ._quality import QualityPanel
@@ -63,12 +63,34 @@ from .interpret_widget import InterpretWidget
 if TYPE_CHECKING:
     import napari
 
-__all__ = ["Workbench", "QualityDock", "WORKBENCH_NAME", "QUALITY_NAME", "INTERPRET_TAB",
+__all__ = ["Workbench", "QualityDock", "WORKBENCH_NAME", "QUALITY_NAME", "PLUGIN_NAME",
+           "PLUGIN_DISPLAY_NAME", "plugin_dock_names", "INTERPRET_TAB",
            "PHOTOS_TAB", "workbench_for", "get_workspace_reader", "open_workspace_dialog",
            "save_workspace_dialog"]
 
-WORKBENCH_NAME = "Registration workbench"
-QUALITY_NAME = "Registration quality"
+#: The plugin's name and display name in napari (napari.yaml's ``name`` and
+#: ``display_name``; a test checks they agree).
+PLUGIN_NAME = "napari-imgreg"
+PLUGIN_DISPLAY_NAME = "Outcrop registration: napari-imgreg"
+
+
+def plugin_dock_names(display_name: str) -> tuple[str, str, str]:
+    """The names a dock of the widget ``display_name`` goes by, most likely first.
+
+    napari names a dock opened from the Plugins menu "<widget> (<plugin's
+    display name>)", one opened by ``viewer.window.add_plugin_dock_widget``
+    "<widget> (<plugin name>)" (``napari.plugins.menu_item_template`` either
+    way), and 0.2 docked ours under the bare name.
+    """
+    return (f"{display_name} ({PLUGIN_DISPLAY_NAME})", f"{display_name} ({PLUGIN_NAME})",
+            display_name)
+
+
+#: Dock names: the Plugins menu's, so the menu shows our docks as open (and
+#: toggles them) instead of docking second ones. :func:`_find_dock` finds a
+#: dock under any of its :func:`plugin_dock_names`.
+WORKBENCH_NAME = plugin_dock_names("Registration workbench")[0]
+QUALITY_NAME = plugin_dock_names("Registration quality")[0]
 INTERPRET_TAB = "Interpret"
 PHOTOS_TAB = "Photos"
 
@@ -80,6 +102,85 @@ def _scrolled(widget: QWidget) -> QScrollArea:
     area.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
     area.setWidget(widget)
     return area
+
+
+#: The Register tab's widgets pinned under its scrolling page (always in view).
+REGISTER_PINNED = ("run_button", "auto_button", "cancel_button", "progress", "status_label")
+
+
+class _PinnedFooterScroll(QScrollArea):
+    """A scrolling page (as :func:`_scrolled`) with a footer that does not
+    scroll: on a short screen the Register tab's Run / Auto / Cancel and its
+    progress stay in view under the parameters. Still a QScrollArea (its
+    ``widget()`` is the panel; ``ensureWidgetVisible`` works)."""
+
+    def __init__(self, widget: QWidget, footer: QWidget) -> None:
+        super().__init__()
+        self.setWidgetResizable(True)
+        self.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.setWidget(widget)
+        self.footer = footer
+        footer.setParent(self)
+        footer.setAutoFillBackground(True)
+        footer.installEventFilter(self)
+        self._placing = False
+
+    def eventFilter(self, obj, event) -> bool:
+        # (QScrollArea filters its page's events too, from setWidget on.)
+        if obj is getattr(self, "footer", None) and event.type() == QEvent.Type.LayoutRequest:
+            QTimer.singleShot(0, self._place)  # the status text grew or shrank
+        return super().eventFilter(obj, event)
+
+    def resizeEvent(self, event) -> None:
+        super().resizeEvent(event)
+        self._place()
+
+    def showEvent(self, event) -> None:
+        super().showEvent(event)
+        self._place()
+
+    def _place(self) -> None:
+        if self._placing:
+            return
+        self._placing = True
+        try:
+            width = self.width() - 2 * self.frameWidth()
+            layout = self.footer.layout()
+            height = (layout.totalHeightForWidth(width)
+                      if layout is not None and layout.hasHeightForWidth()
+                      else self.footer.sizeHint().height())
+            height = max(height, self.footer.minimumSizeHint().height())
+            self.setViewportMargins(0, 0, 0, height)
+            # Under the page, beside the scroll bar (which runs the full height).
+            page = self.viewport().geometry()
+            self.footer.setGeometry(page.left(), page.bottom() + 1, page.width(), height)
+            self.footer.raise_()
+        except RuntimeError:  # pragma: no cover - being deleted
+            pass
+        finally:
+            self._placing = False
+
+
+def _pinned(panel: QWidget, names: tuple[str, ...]) -> QScrollArea:
+    """The panel's page with its widgets ``names`` moved to a footer that stays
+    in view (buttons side by side, the rest under them); a plain scrolling
+    page when the panel has none of them."""
+    widgets = [w for name in names if isinstance(w := getattr(panel, name, None), QWidget)]
+    if not widgets:
+        return _scrolled(panel)
+    footer = QWidget()
+    layout = QVBoxLayout(footer)
+    layout.setContentsMargins(6, 4, 6, 4)
+    layout.setSpacing(3)
+    row = QHBoxLayout()
+    for w in widgets:  # adding a widget to this layout takes it out of the panel's
+        if isinstance(w, QPushButton):
+            row.addWidget(w)
+    layout.addLayout(row)
+    for w in widgets:
+        if not isinstance(w, QPushButton):
+            layout.addWidget(w)
+    return _PinnedFooterScroll(panel, footer)
 
 
 class Workbench(QWidget):
@@ -114,7 +215,10 @@ class Workbench(QWidget):
                             (self.filters_panel, "Filters"), (self.register_panel, "Register"),
                             (self.manual_panel, "Manual"),
                             (self.interpret_placeholder, INTERPRET_TAB)):
-            self.tabs.addTab(_scrolled(panel), name)
+            # Run / Auto stay in view under the Register tab's long parameters.
+            page = (_pinned(panel, REGISTER_PINNED) if panel is self.register_panel
+                    else _scrolled(panel))
+            self.tabs.addTab(page, name)
         self.status_label = QLabel("")
         self.status_label.setWordWrap(True)
         self.status_label.setStyleSheet("color: #bdbdbd; font-size: 11px;")
@@ -167,9 +271,18 @@ class Workbench(QWidget):
     # ----------------------------------------------------------- docking
     @classmethod
     def add_to_viewer(cls, viewer: napari.viewer.Viewer) -> Workbench:
-        """Dock the workbench (right) and the quality panel (under the canvas)."""
+        """Dock the workbench (right) and the quality panel (under the canvas).
+
+        Named as the Plugins menu names them, so the menu shows them docked
+        (and toggles them) rather than docking second ones. A viewer with a
+        workbench docked already gets that one back.
+        """
+        existing = _find_dock(viewer, WORKBENCH_NAME, Workbench)
+        if isinstance(existing, Workbench):
+            existing._dock_quality()
+            return existing
         workbench = cls(viewer, dock_quality=False)
-        viewer.window.add_dock_widget(workbench, name=WORKBENCH_NAME, area="right")
+        real_viewer(viewer).window.add_dock_widget(workbench, name=WORKBENCH_NAME, area="right")
         workbench._dock_quality()
         return workbench
 
@@ -177,7 +290,7 @@ class Workbench(QWidget):
         """Dock the quality panel under the canvas; returns its dock (None if it was there)."""
         if self.quality is not None:
             return None
-        existing = _find_dock(self.viewer, QUALITY_NAME)
+        existing = _find_dock(self.viewer, QUALITY_NAME, QualityDock)
         if existing is not None:
             self.quality = existing.panel if isinstance(existing, QualityDock) else existing
             return None
@@ -185,8 +298,9 @@ class Workbench(QWidget):
         self.quality = dock.panel
         # Under the canvas, where the side-by-side photo and render leave room; the
         # workbench keeps the right column's full height.
-        qdock = self.viewer.window.add_dock_widget(dock, name=QUALITY_NAME, area="bottom")
-        _right_column_full_height(qdock)
+        qdock = real_viewer(self.viewer).window.add_dock_widget(dock, name=QUALITY_NAME,
+                                                                 area="bottom")
+        _side_columns_full_height(qdock)
         QTimer.singleShot(0, lambda: _grow(qdock, 0.4))
         return qdock
 
@@ -265,7 +379,7 @@ def _uninstall_quietly(viewer) -> None:
 # ---------------------------------------------- opening and saving workspaces
 def workbench_for(viewer: napari.viewer.Viewer) -> Workbench:
     """The viewer's workbench dock (docked, with its quality panel, when there is none)."""
-    existing = _find_dock(viewer, WORKBENCH_NAME)
+    existing = _find_dock(viewer, WORKBENCH_NAME, Workbench)
     if isinstance(existing, Workbench):
         return existing
     return Workbench.add_to_viewer(viewer)
@@ -353,11 +467,18 @@ def _main_window(dock):
     return window if isinstance(window, QMainWindow) else None
 
 
-def _right_column_full_height(dock) -> None:
-    """Let the right dock column (the workbench) run down past the bottom docks."""
+def _side_columns_full_height(dock) -> None:
+    """Let both side dock columns run down past the bottom docks: the right one
+    (the workbench) and the left one (napari's layer controls and layer list),
+    so a bottom dock (the quality panel) sits under the canvas only. Spanning
+    the left column too, it left a laptop screen's layer list one row high."""
     window = _main_window(dock)
     if window is not None:
         window.setCorner(Qt.Corner.BottomRightCorner, Qt.DockWidgetArea.RightDockWidgetArea)
+        window.setCorner(Qt.Corner.BottomLeftCorner, Qt.DockWidgetArea.LeftDockWidgetArea)
+
+
+_right_column_full_height = _side_columns_full_height  # the 0.2 name
 
 
 def _grow(dock, fraction: float) -> None:
@@ -372,11 +493,28 @@ def _grow(dock, fraction: float) -> None:
         pass
 
 
-def _find_dock(viewer: napari.viewer.Viewer, name: str):
-    docks = getattr(viewer.window, "dock_widgets", None)
-    if docks is None:
+def _find_dock(viewer: napari.viewer.Viewer, name: str, kind: type | None = None):
+    """The viewer's dock widget called ``name`` under any of the names napari
+    gives it (:func:`plugin_dock_names`), else any docked widget of type
+    ``kind``; None when there is none."""
+    # Through the viewer itself: a plugin's proxy of it would hand back our
+    # own widgets proxied too (their module's name starts with "napari").
+    docks = getattr(real_viewer(viewer).window, "dock_widgets", None)
+    if docks is None or not hasattr(docks, "get"):
         return None
+    bare = name
+    for suffix in (f" ({PLUGIN_DISPLAY_NAME})", f" ({PLUGIN_NAME})"):
+        if bare.endswith(suffix):
+            bare = bare[: -len(suffix)]
     try:
-        return docks.get(name) if hasattr(docks, "get") else None
-    except Exception:  # pragma: no cover
+        for candidate in plugin_dock_names(bare):
+            widget = docks.get(candidate)
+            if widget is not None and (kind is None or isinstance(widget, kind)):
+                return widget
+        if kind is not None:
+            for widget in docks.values():
+                if isinstance(widget, kind):
+                    return widget
+    except Exception:  # pragma: no cover - a window being torn down
         return None
+    return None
