@@ -60,7 +60,7 @@ from napari_imgreg.registration.pipeline import register  # noqa: E402
 from napari_imgreg.sample import load_truth  # noqa: E402
 
 NAME = "bench_unknown_focal"
-MODES = ("known", "unknown", "unknown_dlt")
+MODES = ("known", "unknown", "unknown_dlt", "exif", "exif_fixed")
 DEFAULT_MODES = ("known", "unknown")
 TIERS = ("same_light", "changed_light")
 #: EXIF tags from which a focal length in pixels can be had.
@@ -74,9 +74,25 @@ START_HFOV_DEG: float | None = None
 
 
 def prior_of(photo, scene, mode: str, tmp: Path):
-    """The photo's prior: as recorded (``known``), or without any focal length."""
+    """The photo's prior: as recorded (``known``), without any focal length
+    (``unknown``, ``unknown_dlt``), or with the EXIF's nominal one only (a
+    record of width and height; the generator writes ``FocalLengthIn35mmFilm``
+    26 mm, 1.0 % short of its lens): ``exif`` as the package reads it (the
+    start of an estimated focal length), ``exif_fixed`` taken as known (the
+    package before it refined EXIF focal lengths)."""
     if mode == "known":
         return prior_for_photo(photo, scene)
+    if mode in ("exif", "exif_fixed"):
+        record = json.loads(photo.sidecar.read_text())
+        cam = record["camera"]
+        record["camera"] = {"width": cam["width"], "height": cam["height"]}
+        path = tmp / photo.sidecar.name
+        path.write_text(json.dumps(record))
+        prior = prior_for_photo(photo, scene, record_path=path)
+        assert "focal length from EXIF" in prior.assumptions, prior.assumptions
+        if mode == "exif_fixed":
+            prior.intrinsics = replace(prior.intrinsics, estimated=())
+        return prior
     record = json.loads(photo.sidecar.read_text())
     cam = record.get("camera") or {}
     record["camera"] = {"width": cam["width"], "height": cam["height"]} if "width" in cam else None
