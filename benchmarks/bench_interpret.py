@@ -64,6 +64,14 @@ from napari_imgreg.io.photos import load_photo
 from napari_imgreg.prior import prior_for_photo
 from napari_imgreg.registration.pipeline import register
 from napari_imgreg.sample import load_truth, sample_scene
+from napari_imgreg.sample.drawing import (
+    JITTER_PX,
+    MIN_DRAWN_PX,
+    SIMPLIFY_PX,
+    densify_polyline,
+    hand_drawn,
+    visible_stretches,
+)
 from napari_imgreg.camera import Pose
 from napari_imgreg.interpret.structural import (
     FitThresholds,
@@ -74,7 +82,6 @@ from napari_imgreg.interpret.structural import (
     vector_from_plunge_trend,
 )
 from napari_imgreg.interpret.uncertainty import PoseUncertainty, viewing_plane
-from skimage.measure import approximate_polygon
 
 from _report import markers, write_section  # noqa: E402  (benchmarks/ is on sys.path)
 
@@ -86,9 +93,10 @@ CACHE = Path(__file__).parent / "_cache"
 CLOUD_SCENES = ("large-seed1-n4-g3-b2", "large-seed2-n4-g3-b2")
 CLOUD_TIER = "same_light"
 TARGET_MEDIAN_M, TARGET_DIP_DEG, PAPER_MEDIAN_DEG = 0.10, 2.0, 3.65
-MIN_DRAWN_PX = 30.0  # shorter visible stretches are not drawn
-JITTER_PX = 1.5  # a hand-drawn line: each vertex off by this much (σ, pixels)
-SIMPLIFY_PX = 2.0  # a geologist's line: straight where the contact deviates less than this
+# The drawing (napari_imgreg.sample.drawing, shared with the sample's example
+# drawings): MIN_DRAWN_PX, shorter visible stretches are not drawn; JITTER_PX, a
+# hand-drawn line's wobble at each vertex (σ, pixels); SIMPLIFY_PX, a geologist's
+# line is straight where the contact deviates less than this.
 #: The drawing's error the geologist declares (``project --pixel-noise``;
 #: the benchmark's ``--pixel-noise``): the default 1.5 px.
 DECLARED_PX = (JITTER_PX,)
@@ -102,46 +110,23 @@ BEFORE = FitThresholds(min_view_spread=0.0, min_ray_angle_deg=0.0, require_camer
 
 def _dense(line: np.ndarray, per_m: float = 50.0) -> np.ndarray:
     """A polyline resampled every 2 cm (for point-to-line distances)."""
-    out = [line[:1]]
-    for a, b in zip(line[:-1], line[1:]):
-        n = max(1, int(math.ceil(np.linalg.norm(b - a) * per_m)))
-        out.append(a + (b - a) * (np.arange(1, n + 1) / n)[:, None])
-    return np.concatenate(out)
+    return densify_polyline(line, per_m)
 
 
 def drawn_lines(scene: Scene, intr, pose, truth_lines: dict) -> list[tuple[Interpretation, int]]:
-    """What a geologist draws: visible stretches of the true traces, in pixels.
+    """What a geologist draws: visible stretches of the true traces, in pixels
+    (:func:`napari_imgreg.sample.drawing.visible_stretches`).
 
     Returns (interpretation, index of the true line) pairs; each
     interpretation's ``truth_xyz`` attribute holds its true 3D stretch.
     """
     out = []
-    for k, feat in enumerate(truth_lines["features"]):
-        xyz = _dense(np.asarray(feat["geometry"]["coordinates"], np.float64), per_m=2.0)
-        px = pose.project(intr, xyz)
-        inside = np.isfinite(px).all(axis=1)
-        inside &= (px[:, 0] >= 0) & (px[:, 1] >= 0)
-        inside &= (px[:, 0] <= intr.width - 1) & (px[:, 1] <= intr.height - 1)
-        if inside.sum() < 2:
-            continue
-        # Visible: the true camera's ray through the point first meets the surface there.
-        origin, dirs = pose.rays(intr, px[inside])
-        hits = scene.cast_rays(origin, dirs)
-        rng = np.linalg.norm(xyz[inside] - origin, axis=1)
-        vis = np.zeros(len(xyz), bool)
-        vis[np.where(inside)[0]] = hits.hit & (np.abs(hits.distance - rng) < 0.02 + 0.002 * rng)
-        # Runs of visible points are drawn as separate lines.
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], vis.astype(int), [0]])))
-        for a, b in zip(edges[::2], edges[1::2]):
-            seg = px[a:b]
-            if len(seg) >= 2 and np.linalg.norm(np.diff(seg, axis=0), axis=1).sum() >= MIN_DRAWN_PX:
-                props = feat["properties"]
-                # A bed boundary is drawn as the base of the bed above it.
-                label = "fault" if props["label"] == "fault" else props.get("above", "sandstone")
-                item = Interpretation("LineString", seg, {"label": label, "truth": k,
-                                                            "id": f"contact{k}"})
-                item.truth_xyz = xyz[a:b]
-                out.append((item, k))
+    for stretch in visible_stretches(scene, intr, pose, truth_lines, MIN_DRAWN_PX):
+        k = stretch.truth_index
+        item = Interpretation("LineString", stretch.pixels,
+                              {"label": stretch.label, "truth": k, "id": f"contact{k}"})
+        item.truth_xyz = stretch.xyz
+        out.append((item, k))
     return out
 
 
@@ -153,9 +138,7 @@ def geologist(drawn, rng) -> list:
     """The lines simplified as a hand draws them, with a ±JITTER_PX wobble per vertex."""
     out = []
     for d, k in drawn:
-        simple = approximate_polygon(d.pixels, SIMPLIFY_PX)
-        item = Interpretation("LineString", simple + rng.normal(0, JITTER_PX, simple.shape),
-                              d.properties)
+        item = Interpretation("LineString", hand_drawn(d.pixels, rng), d.properties)
         item.truth_xyz = d.truth_xyz
         out.append((item, k))
     return out

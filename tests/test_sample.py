@@ -68,6 +68,9 @@ def test_same_seed_same_geometry_and_records(cheap_pair, small):
                  "truth_lines.geojson", "scene.json"):
         assert (a / name).read_text() == (b / name).read_text(), name
     assert (a / "IMG_0001.jpg").read_bytes() == (b / "IMG_0001.jpg").read_bytes()
+    for name in ("IMG_0001.lines.geojson", "IMG_0002.lines.geojson", "orient/cameras.xml",
+                 "orient/phone.csv", "orient/model.obj", "orient/truth.json"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
 
 
 def test_other_seed_other_geometry(tmp_path):
@@ -91,6 +94,12 @@ def test_manifest_lists_the_files(small):
     for ph in m["photos"]:
         for name in ph.values():
             assert (small / name).is_file(), name
+        assert ph["drawing"] == ph["image"].replace(".jpg", ".lines.geojson")
+    assert m["examples"]["orient"] == {"estimated": "orient/cameras.xml",
+                                       "measured": "orient/phone.csv",
+                                       "model": "orient/model.obj", "truth": "orient/truth.json"}
+    for name in m["examples"]["orient"].values():
+        assert (small / name).is_file(), name
     assert m["survey_sun"]["azimuth_deg"] == SMALL.survey_sun_azimuth_deg
     assert not list(small.glob(".*")), "temporary files left behind"
 
@@ -301,6 +310,147 @@ def test_load_truth_of_a_folder(small):
     assert truth.mesh.is_file()
     assert truth.geology["bedding"]["dip_deg"] == SMALL.bedding_dip_deg
     assert isinstance(load_truth(small / "IMG_0002.truth.json"), PhotoTruth)
+
+
+# ------------------------------------------------------- example drawings
+def _true_trace_pixels(truth_feature: dict, photo: PhotoTruth) -> np.ndarray:
+    """A true 3D trace projected into a photo with its true pose, every 5 cm."""
+    from napari_imgreg.sample.drawing import densify_polyline
+
+    xyz = densify_polyline(np.asarray(truth_feature["geometry"]["coordinates"]), 20.0)
+    return photo.pose.project(photo.intrinsics, xyz)
+
+
+def test_each_photo_has_a_drawing_of_the_contacts_it_sees(small):
+    """IMG_xxxx.lines.geojson is pixel GeoJSON the interpretation tools read:
+    the true bed boundaries (labelled by the bed above) and the fault, as a
+    geologist draws them: simplified, within a hand's wobble of the truth."""
+    from napari_imgreg.interpret.files import read_interpretations
+
+    truth = load_truth(small)
+    for name, photo in truth.photos.items():
+        drawn = read_interpretations(small / name.replace(".jpg", ".lines.geojson"))
+        assert len(drawn) >= 20, name
+        assert {d.label for d in drawn} == {"sandstone", "mudstone", "fault"}, name
+        ids = [d.properties["id"] for d in drawn]
+        assert len(set(ids)) == len(ids)
+        n_vertices = []
+        for d in drawn:
+            assert d.geometry == "LineString"
+            feature = truth.lines["features"][d.properties["truth"]]
+            true_label = feature["properties"]["label"]
+            assert (d.label == "fault") == (true_label == "fault")
+            if d.label != "fault":
+                assert d.label == feature["properties"]["above"] == d.properties["above"]
+                assert d.properties["below"] == feature["properties"]["below"]
+            # Every drawn vertex lies near the true trace's projection: the
+            # 2 px simplification plus the ±1.5 px wobble (5 σ).
+            true_px = _true_trace_pixels(feature, photo)
+            gap = np.linalg.norm(d.pixels[:, None] - true_px[None], axis=2).min(axis=1)
+            assert gap.max() < 2.0 + 5 * 1.5 * math.sqrt(2), (name, d.properties["id"])
+            inside = (d.pixels > -8).all() and (d.pixels[:, 0] < photo.intrinsics.width + 8).all()
+            assert inside and (d.pixels[:, 1] < photo.intrinsics.height + 8).all()
+            n_vertices.append(len(d.pixels))
+        # Simplified: many contacts look straight (2 vertices), some are bent.
+        assert sum(n == 2 for n in n_vertices) >= len(drawn) // 4
+        assert max(n_vertices) >= 4
+
+
+def test_the_example_drawing_maps_onto_the_true_traces(small):
+    """Projected with the photo's true pose, IMG_0002's drawing lies on the
+    true traces (within the hand's wobble at ~90 m) and gives the bedding."""
+    from scipy.spatial import cKDTree
+
+    from napari_imgreg.interpret.files import read_interpretations
+    from napari_imgreg.interpret.project import project_interpretations
+    from napari_imgreg.sample.drawing import densify_polyline
+
+    truth = load_truth(small)
+    photo = truth.photos["IMG_0002.jpg"]
+    scene = Scene.load(small / "outcrop.obj", cache=False)
+    drawn = read_interpretations(small / "IMG_0002.lines.geojson")
+    features = project_interpretations(scene, photo.intrinsics, photo.pose, drawn,
+                                       source="IMG_0002.jpg")
+    assert len(features) == len(drawn)
+    distances = []
+    for item, feature in zip(drawn, features):
+        true_xyz = densify_polyline(
+            np.asarray(truth.lines["features"][item.properties["truth"]]["geometry"]
+                       ["coordinates"]), 50.0)
+        for part in feature.parts:
+            distances.append(cKDTree(true_xyz).query(part)[0])
+    distances = np.concatenate(distances)
+    assert np.median(distances) < 0.15 and np.percentile(distances, 95) < 0.6
+
+
+def test_cli_sample_writes_the_drawings_and_the_orientation_example(tmp_path, monkeypatch,
+                                                                     run_cli):
+    """`napari-imgreg sample` writes what the docs run: the drawings beside
+    the photos and orient/; written again, the user's files in orient/ stay."""
+    import napari_imgreg.sample as sample
+
+    def generate(out_dir, size="small", seed=0, spec=None):
+        out = Path(out_dir)
+        (out / "scene.json").write_text(json.dumps(
+            {"generator": "napari_imgreg.sample", "size": size, "seed": seed}))
+        (out / "IMG_0001.lines.geojson").write_text('{"type": "FeatureCollection"}')
+        (out / "orient").mkdir()
+        (out / "orient" / "cameras.xml").write_text(f"<document seed='{seed}'/>")
+        return out
+
+    monkeypatch.setattr(sample, "generate_outcrop", generate)
+    out = tmp_path / "scene"
+    assert run_cli(["sample", "--out", out]).code == 0
+    assert (out / "IMG_0001.lines.geojson").is_file()
+    assert (out / "orient" / "cameras.xml").is_file()
+    (out / "orient" / "cameras.xml").write_text("edited")
+    (out / "orient" / "ORIENTATION.json").write_text("mine")
+    assert run_cli(["sample", "--out", out]).code == 0
+    assert (out / "orient" / "cameras.xml").read_text() == "<document seed='0'/>"
+    assert (out / "orient" / "ORIENTATION.json").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+
+
+def test_the_cache_manifest_covers_the_files_of_sub_folders(tmp_path):
+    """A cached scene's orient/ files are hashed too: a changed or missing one
+    makes the cache entry fail its check (and be generated again)."""
+    from napari_imgreg.sample import CACHE_MANIFEST, verify_sample_scene, write_cache_manifest
+
+    (tmp_path / "scene.json").write_text(json.dumps(
+        {"files": {"mesh": "m.obj"}, "photos": [{"drawing": "IMG_0001.lines.geojson"}],
+         "examples": {"orient": {"estimated": "orient/cameras.xml"}}}))
+    (tmp_path / "m.obj").write_text("v 0 0 0\n")
+    (tmp_path / "IMG_0001.lines.geojson").write_text("{}")
+    (tmp_path / "orient").mkdir()
+    (tmp_path / "orient" / "cameras.xml").write_text("<document/>")
+    manifest = write_cache_manifest(tmp_path)
+    assert "orient/cameras.xml" in manifest["files"] and CACHE_MANIFEST not in manifest["files"]
+    assert verify_sample_scene(tmp_path) is None
+    (tmp_path / "orient" / "cameras.xml").write_text("<documenT/>")  # same size
+    assert "orient/cameras.xml changed" in verify_sample_scene(tmp_path)
+    (tmp_path / "orient" / "cameras.xml").unlink()
+    assert "orient/cameras.xml is missing" in verify_sample_scene(tmp_path)
+
+
+def test_the_orientation_example_is_oriented_by_orient(small):
+    """orient/ holds the paper's 51-photo survey: orient recovers the rotation
+    of truth.json, and model.obj is the wall in the model's frame."""
+    from napari_imgreg.io.orientation_tables import read_orientation_table
+    from napari_imgreg.orient import orient, rotation_error_deg
+
+    folder = small / "orient"
+    truth = json.loads((folder / "truth.json").read_text())
+    estimated = read_orientation_table(folder / "cameras.xml")
+    measured = read_orientation_table(folder / "phone.csv")
+    assert len(estimated) == len(measured) == truth["n_photos"] == 51
+    result = orient(estimated, measured)
+    true_rotation = np.array(truth["world_from_model"])
+    assert rotation_error_deg(result.rotation, true_rotation) < 1.0
+    # The model: in world axes it is a wall ~27 m high (times the model's scale).
+    wall = Scene.load(folder / "model.obj", cache=False).vertices.astype(np.float64)
+    world = (wall - truth["model_offset"]) @ true_rotation.T / truth["model_scale"]
+    assert np.ptp(world[:, 2]) == pytest.approx(27.0, abs=0.5)
+    assert np.ptp(wall[:, 2]) / truth["model_scale"] > 40.0  # tilted in the model frame
 
 
 # ------------------------------------------------------------- conditions

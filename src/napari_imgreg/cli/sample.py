@@ -22,7 +22,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "sample",
         help="write the generated sample outcrop scene to a folder",
         description="Write a generated outcrop (OBJ+MTL+JPEG, georef.json, dem.tif, photos with "
-        "sensor records and ground truth).",
+        "sensor records and ground truth, an example drawing per photo "
+        "(IMG_xxxx.lines.geojson) and an orientation example in orient/).",
     )
     p.add_argument("--out", required=True,
                    help="folder to write: new, empty, or an earlier run's of the same size and "

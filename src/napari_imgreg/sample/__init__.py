@@ -12,7 +12,7 @@ and their traces on the surface).
 
 Folder layout (see :func:`generate_outcrop`)::
 
-    scene.json                 manifest: size, seed, files, photos, survey sun
+    scene.json                 manifest: size, seed, files, photos, examples, survey sun
     survey.json                the sun the texture was photographed under (true azimuth, time)
     outcrop.obj/.mtl           the model (local ENU metres)
     outcrop_texture.jpg        its texture: albedo x survey-day shading
@@ -23,6 +23,10 @@ Folder layout (see :func:`generate_outcrop`)::
     IMG_0001.jpg               photo (EXIF: camera, focal length, time, GPS)
     IMG_0001.json              phone sensor record (contract §3): the prior
     IMG_0001.truth.json        true camera and pose, conditions, check points
+    IMG_0001.lines.geojson     an example drawing: the visible true contacts and
+                               fault as a geologist draws them (pixel GeoJSON, :mod:`.drawing`)
+    orient/                    an example survey for ``napari-imgreg orient``
+                               (cameras.xml, phone.csv, model.obj, truth.json; :mod:`.survey`)
     scan.laz, scan.json        optional (``generate_outcrop(..., scan=ScanSpec())``):
                                a terrestrial laser scan of the surface (:mod:`.scan`)
 """
@@ -60,6 +64,7 @@ from .outcrop import (
     quantize_vertices,
     write_model,
 )
+from .drawing import drawing_geojson, visible_stretches
 from .photo import (
     CONDITION_PRESETS,
     PhotoConditions,
@@ -98,13 +103,17 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 #: Bump when the generated content changes: cached scenes are keyed by it.
-GENERATOR_VERSION = "5"
+#: 6: an example drawing per photo and the orientation example (``orient/``).
+GENERATOR_VERSION = "6"
 #: Version of the model (mesh, texture, cameras, priors, check points) alone:
 #: the benchmark, which re-makes the photos, keys its cache on it.
 MODEL_VERSION = "3"
 
 # Random stream ids (see noise.rng_for).
 _S_POSES, _S_PHOTO = 4, 100
+_S_DRAWING, _S_ORIENT_SURVEY = 300, 301
+#: Sub-folder of the orientation example (see :func:`.survey.write_orientation_example`).
+ORIENT_EXAMPLE_DIR = "orient"
 
 
 # ----------------------------------------------------------------- truth
@@ -237,6 +246,8 @@ def generate_outcrop(
     from ..geo import Georef
     from PIL import Image
 
+    from .survey import write_orientation_example
+
     t_start = time.perf_counter()
     spec = spec if spec is not None else OutcropSpec.for_size(size)
     out = Path(out_dir)
@@ -258,7 +269,8 @@ def generate_outcrop(
     dem = _make_dem(scene, spec, georef)
     dem.save_geotiff(out / "dem.tif")
     _write_json(out / "geology.json", oc.geology.to_dict())
-    _write_json(out / "truth_lines.geojson", truth_lines(oc), indent=None)
+    true_lines = truth_lines(oc)
+    _write_json(out / "truth_lines.geojson", true_lines, indent=None)
     timings["write_model"] = time.perf_counter() - t0
     files.update({"georef": "georef.json", "dem": "dem.tif", "geology": "geology.json",
                   "truth_lines": "truth_lines.geojson"})
@@ -342,13 +354,22 @@ def generate_outcrop(
             "view": fractions,
         }
         _write_json(out / f"{name}.truth.json", truth)
-        return {"image": f"{name}.jpg", "sensor": f"{name}.json", "truth": f"{name}.truth.json"}
+        # What a geologist would draw on it: the contacts it sees, by hand.
+        drawing = drawing_geojson(visible_stretches(scene, intr, pose, true_lines),
+                                  rng_for(seed, _S_DRAWING, k))
+        _write_json(out / f"{name}.lines.geojson", drawing, indent=None)
+        return {"image": f"{name}.jpg", "sensor": f"{name}.json", "truth": f"{name}.truth.json",
+                "drawing": f"{name}.lines.geojson"}
 
     # Two photos at a time keep both cores busy through the numpy stages
     # (the ray casts are threaded already).
     with ThreadPoolExecutor(max(1, min(2, ray_threads(), len(poses)))) as pool:
         photos = list(pool.map(make_photo, range(len(poses))))
     timings["photos"] = time.perf_counter() - t0
+    orient_files = write_orientation_example(out / ORIENT_EXAMPLE_DIR,
+                                             rng_for(seed, _S_ORIENT_SURVEY))
+    examples = {"orient": {key: f"{ORIENT_EXAMPLE_DIR}/{name}"
+                           for key, name in orient_files.items()}}
 
     manifest = {
         "generator": "napari_imgreg.sample",
@@ -361,6 +382,7 @@ def generate_outcrop(
         "texture_size": spec.texture_size,
         "files": files,
         "photos": photos,
+        "examples": examples,
         "survey_sun": {"azimuth_deg": spec.survey_sun_azimuth_deg,
                        "elevation_deg": spec.survey_sun_elevation_deg,
                        "ambient": spec.survey_ambient},
@@ -452,8 +474,7 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
         generate_outcrop(tmp, size=size, seed=seed)
         if earlier:
             # File by file: whatever else the user keeps in the folder stays.
-            for path in sorted(tmp.iterdir()):
-                os.replace(path, target / path.name)
+            _move_files_into(tmp, target)
         else:
             _share(tmp)  # the permissions mkdir would give it
             os.replace(tmp, target)  # a new name, or over the empty folder
@@ -461,6 +482,18 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
         with contextlib.suppress(OSError):
             shutil.rmtree(tmp)
     return out
+
+
+def _move_files_into(source: Path, target: Path) -> None:
+    """Move every file of ``source`` to the same place under ``target``, each
+    replacing the file of its name; sub-folders are merged the same way, so
+    files ``target`` holds besides (the user's) stay."""
+    for path in sorted(source.iterdir()):
+        into = target / path.name
+        if path.is_dir() and into.is_dir():
+            _move_files_into(path, into)
+        else:
+            os.replace(path, into)
 
 
 def check_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: int = 0) -> bool:
@@ -601,8 +634,20 @@ def _file_hash(path: Path) -> str:
     return h.hexdigest()
 
 
+def _scene_files(folder: Path) -> list[Path]:
+    """The files of a scene folder and its sub-folders, hidden ones (and those
+    in hidden folders) left out, in name order."""
+    return sorted(
+        p for p in folder.rglob("*")
+        if p.is_file() and not any(part.startswith(".") for part in p.relative_to(folder).parts)
+    )
+
+
 def write_cache_manifest(folder: str | os.PathLike) -> dict[str, Any]:
     """Write ``folder/.cache-manifest.json``: size and BLAKE2 hash of each file.
+
+    Files of sub-folders (``orient/cameras.xml``) are listed by their path
+    relative to ``folder``, with ``/`` separators.
 
     Returns
     -------
@@ -611,8 +656,8 @@ def write_cache_manifest(folder: str | os.PathLike) -> dict[str, Any]:
     """
     folder = Path(folder)
     files = {
-        p.name: {"size": p.stat().st_size, "blake2b": _file_hash(p)}
-        for p in sorted(folder.iterdir()) if p.is_file() and not p.name.startswith(".")
+        p.relative_to(folder).as_posix(): {"size": p.stat().st_size, "blake2b": _file_hash(p)}
+        for p in _scene_files(folder)
     }
     manifest = {"generator_version": GENERATOR_VERSION, "files": files}
     _write_json(folder / CACHE_MANIFEST, manifest)
@@ -623,7 +668,8 @@ def verify_sample_scene(folder: str | os.PathLike) -> str | None:
     """What is wrong with a cached sample scene folder, or None when it is whole.
 
     Every file that ``scene.json`` names (mesh, material, texture, DEM,
-    photos and their records and truths) must exist, and every file of the
+    photos and their records, truths and example drawings, the orientation
+    example) must exist, and every file of the
     cache manifest must have its recorded size and hash. A folder cached by
     an older version (no manifest) is checked by its structure instead (the
     OBJ holds the vertex and triangle counts ``scene.json`` states) and, if
@@ -645,6 +691,9 @@ def verify_sample_scene(folder: str | os.PathLike) -> str | None:
     for photo in manifest.get("photos") or []:
         if isinstance(photo, dict):
             named += [v for v in photo.values() if isinstance(v, str)]
+    for example in (manifest.get("examples") or {}).values():
+        if isinstance(example, dict):
+            named += [v for v in example.values() if isinstance(v, str)]
     for name in named:
         if not (folder / name).is_file():
             return f"{name} is missing"

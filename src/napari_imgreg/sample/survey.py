@@ -10,7 +10,7 @@ estimate (its own frame), with the true rotation between the two
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -18,7 +18,8 @@ from scipy.spatial.transform import Rotation
 
 from ..io.orientation_tables import OrientationTable
 
-__all__ = ["SimulatedSurvey", "simulate_survey"]
+__all__ = ["SimulatedSurvey", "simulate_survey", "wall_model", "write_metashape_xml",
+           "write_orientation_example"]
 
 _UP = np.array([0.0, 0.0, 1.0])
 
@@ -48,12 +49,24 @@ class SimulatedSurvey:
         The true ``world_from_model``.
     outliers : (N,) bool array
         Photos given a gross compass error.
+    strike_deg : float
+        The wall's strike, degrees from north (it runs through the world origin).
+    path_length_m, distance_m : float
+        The walk's length along the wall and the cameras' distance from it.
+    model_scale : float
+    model_offset : (3,) array
+        The model frame: ``model = model_scale · rotationᵀ · world + model_offset``.
     """
 
     estimated: OrientationTable
     measured: OrientationTable
     rotation: np.ndarray
     outliers: np.ndarray
+    strike_deg: float = 0.0
+    path_length_m: float = 200.0
+    distance_m: float = 30.0
+    model_scale: float = 1.0
+    model_offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 def simulate_survey(
@@ -142,6 +155,194 @@ def simulate_survey(
     # cam_from_model = cam_from_world · (turned by doming)ᵀ · Q
     estimated_R = true_R @ np.transpose(doming, (0, 2, 1)) @ rotation
     scale = rng.uniform(0.2, 5.0)  # an SfM model has an arbitrary scale and origin too
-    model_centres = scale * (centres @ rotation) + rng.normal(scale=100.0, size=3)
+    model_offset = rng.normal(scale=100.0, size=3)
+    model_centres = scale * (centres @ rotation) + model_offset
     estimated = OrientationTable.from_rotations(photos, estimated_R, model_centres, kind="memory")
-    return SimulatedSurvey(estimated, measured, rotation, outliers)
+    return SimulatedSurvey(estimated, measured, rotation, outliers, strike_deg=float(strike),
+                           path_length_m=float(path_length_m), distance_m=float(distance_m),
+                           model_scale=float(scale), model_offset=model_offset)
+
+
+#: Colours of the wall's beds (sandstone, mudstone), RGB 0–1.
+_BED_COLORS = np.array([[0.80, 0.70, 0.50], [0.55, 0.54, 0.52]])
+
+
+def wall_model(survey: SimulatedSurvey, height_m: float = 25.0, spacing_m: float = 4.0,
+               bed_thickness_m: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The wall the survey photographed, as a mesh in the model's frame.
+
+    A steep wall along the survey's strike, a little longer than the walk,
+    with a few metres of smooth relief (bays and buttresses) and a slight
+    lean away from the cameras, expressed in the model frame the estimated
+    table is in (``model_scale · rotationᵀ · world + model_offset``): what
+    a structure-from-motion model of it would hold before it is oriented.
+    Its vertices are coloured by horizontal beds of sandstone and mudstone,
+    so an oriented model shows them level.
+
+    Parameters
+    ----------
+    survey : SimulatedSurvey
+    height_m : float
+        Height of the wall above the cameras' ground, metres.
+    spacing_m : float
+        Grid spacing, metres.
+    bed_thickness_m : float
+        Thickness of the coloured beds, metres.
+
+    Returns
+    -------
+    vertices : (N, 3) array
+        Model frame.
+    faces : (M, 3) int array
+        Triangles, turned towards the cameras.
+    colors : (N, 3) array
+        Vertex colours, RGB 0–1.
+    """
+    strike = math.radians(survey.strike_deg)
+    along = np.array([math.sin(strike), math.cos(strike), 0.0])
+    towards = np.array([math.cos(strike), -math.sin(strike), 0.0])  # strike + 90°
+    half = 0.6 * survey.path_length_m
+    u = np.linspace(-half, half, int(round(2 * half / spacing_m)) + 1)
+    h = np.linspace(-2.0, height_m, int(round((height_m + 2.0) / spacing_m)) + 1)
+    U, H = np.meshgrid(u, h)
+    relief = (2.0 * np.sin(2 * np.pi * U / 70.0) + 1.0 * np.sin(2 * np.pi * U / 23.0 + 1.0)
+              + 0.15 * H)
+    world = U[..., None] * along + relief[..., None] * towards + H[..., None] * _UP
+    vertices = survey.model_scale * (world.reshape(-1, 3) @ survey.rotation) + survey.model_offset
+    n_u = len(u)
+    corner = (np.arange(len(h) - 1)[:, None] * n_u + np.arange(n_u - 1)[None, :]).ravel()
+    faces = np.concatenate([
+        np.stack([corner, corner + n_u + 1, corner + 1], axis=1),
+        np.stack([corner, corner + n_u, corner + n_u + 1], axis=1),
+    ])
+    bed = (np.floor(H.ravel() / bed_thickness_m).astype(int)) % 2
+    return vertices, faces, _BED_COLORS[bed]
+
+
+def write_metashape_xml(path, table: OrientationTable) -> None:
+    """Write camera orientations as Agisoft Metashape camera XML (atomically).
+
+    What *File → Export → Export Cameras… → Agisoft XML* writes for an
+    unreferenced chunk: one aligned ``<camera>`` per photo, labelled by the
+    photo's name without its extension, with its camera-to-model transform
+    (a row-major 4 × 4 matrix, OpenCV camera axes); no chunk transform.
+
+    Parameters
+    ----------
+    path : path-like
+    table : OrientationTable
+        Rotations (``cam_from_world`` in the model frame) and positions.
+    """
+    from .._atomic import atomic_write
+
+    cameras = []
+    for i, (photo, cam_from_model) in enumerate(zip(table.photos, table.cam_from_world)):
+        transform = np.eye(4)
+        transform[:3, :3] = cam_from_model.T
+        if table.positions is not None:
+            transform[:3, 3] = table.positions[i]
+        numbers = " ".join(f"{v:.12g}" for v in transform.ravel())
+        label = photo.rsplit(".", 1)[0]
+        cameras.append(f'    <camera id="{i}" sensor_id="0" label="{label}">\n'
+                       f"     <transform>{numbers}</transform>\n    </camera>")
+    text = ('<?xml version="1.0" encoding="UTF-8"?>\n'
+            '<document version="1.5.0">\n'
+            ' <chunk label="Chunk 1" enabled="true">\n'
+            '  <sensors next_id="1">\n'
+            '   <sensor id="0" label="phone" type="frame"/>\n'
+            '  </sensors>\n'
+            f'  <cameras next_id="{len(cameras)}" next_group_id="0">\n'
+            + "\n".join(cameras)
+            + "\n  </cameras>\n </chunk>\n</document>\n")
+    with atomic_write(path, encoding="utf-8") as fh:
+        fh.write(text)
+
+
+def _write_obj(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray,
+               comment: str) -> None:
+    """Write a vertex-coloured OBJ (``v x y z r g b`` lines), atomically."""
+    from .._atomic import atomic_write
+
+    with atomic_write(path, encoding="utf-8") as fh:
+        fh.write(f"# {comment}\n")
+        fh.writelines(f"v {x:.4f} {y:.4f} {z:.4f} {r:.3f} {g:.3f} {b:.3f}\n"
+                      for (x, y, z), (r, g, b) in zip(vertices, colors))
+        fh.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces)
+
+
+#: The files of the orientation example (:func:`write_orientation_example`).
+ORIENTATION_EXAMPLE_FILES = {
+    "estimated": "cameras.xml",
+    "measured": "phone.csv",
+    "model": "model.obj",
+    "truth": "truth.json",
+}
+
+
+def write_orientation_example(folder, rng: np.random.Generator,
+                              noise_deg: float = 1.0) -> dict[str, str]:
+    """Write an example survey for ``napari-imgreg orient`` into a folder.
+
+    The paper's test survey (:func:`simulate_survey`: 51 photos along a
+    200 m wall) with phone errors of ``noise_deg`` on trend, plunge and roll:
+
+    * ``cameras.xml`` — the model's camera orientations, as Metashape exports them;
+    * ``phone.csv`` — the phone's attitudes (the contract's CSV);
+    * ``model.obj`` — the wall in the model's frame (:func:`wall_model`);
+    * ``truth.json`` — the true rotation ``world_from_model`` (matrix, axis
+      and angle; and as ``orient`` reports it: the axis pointing down, the
+      angle positive clockwise looking down it) and the model frame's scale
+      and offset.
+
+    Parameters
+    ----------
+    folder : path-like
+        Created if missing.
+    rng : numpy.random.Generator
+    noise_deg : float
+
+    Returns
+    -------
+    dict of str to str
+        :data:`ORIENTATION_EXAMPLE_FILES`.
+    """
+    import json
+    from pathlib import Path
+
+    from .._atomic import atomic_write
+    from ..io.orientation_tables import write_orientation_csv
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    survey = simulate_survey(rng, noise_deg=noise_deg)
+    files = ORIENTATION_EXAMPLE_FILES
+    write_metashape_xml(folder / files["estimated"], survey.estimated)
+    write_orientation_csv(folder / files["measured"], survey.measured)
+    vertices, faces, colors = wall_model(survey)
+    _write_obj(folder / files["model"], vertices, faces, colors,
+               "the surveyed wall, in the model frame of cameras.xml (not yet oriented)")
+    rotvec = Rotation.from_matrix(survey.rotation).as_rotvec()
+    angle = float(np.linalg.norm(rotvec))
+    axis = rotvec / angle
+    # As orient reports it: the axis pointing down, the angle positive
+    # clockwise looking down it.
+    down_axis, signed_angle = (-axis, -angle) if axis[2] > 0 else (axis, angle)
+    truth = {
+        "world_from_model": np.round(survey.rotation, 12).tolist(),
+        "axis": np.round(axis, 9).tolist(),
+        "angle_deg": round(math.degrees(angle), 6),
+        "lower_hemisphere": {
+            "axis_trend_deg": round(math.degrees(math.atan2(down_axis[0], down_axis[1])) % 360, 3),
+            "axis_plunge_deg": round(math.degrees(math.asin(-down_axis[2])), 3),
+            "angle_deg": round(math.degrees(signed_angle), 3),
+        },
+        "model_scale": round(survey.model_scale, 9),
+        "model_offset": np.round(survey.model_offset, 6).tolist(),
+        "phone_noise_deg": noise_deg,
+        "n_photos": len(survey.measured),
+    }
+    with atomic_write(folder / files["truth"], encoding="utf-8") as fh:
+        # One line per entry: the matrix's rows stay readable.
+        fh.write("{\n" + ",\n".join(f" {json.dumps(key)}: {json.dumps(value)}"
+                                      for key, value in truth.items()) + "\n}\n")
+    return dict(files)
