@@ -212,3 +212,62 @@ def test_the_plugins_menu_toggles_the_docked_quality_panel(make_napari_viewer, q
     assert len(campaign) == 1 and campaign[0].workspace is wb.controller.workspace
     # Workbench.add_to_viewer (scripts, the demo) gives the docked one back.
     assert Workbench.add_to_viewer(viewer) is wb
+
+
+def test_the_interpret_dock_from_the_plugins_menu_stands_alone_without_a_workbench(
+        make_napari_viewer):
+    """Opened from the Plugins menu in a window without the workbench, the
+    Interpret dock has no workspace, and no workbench controller is made for it."""
+    from napari_imgreg.widgets._controller import _CONTROLLERS
+    from napari_imgreg.widgets.interpret_widget import InterpretWidget
+
+    viewer = make_napari_viewer()
+    _, widget = viewer.window.add_plugin_dock_widget("napari-imgreg", "Interpret")
+    assert isinstance(widget, InterpretWidget)
+    assert widget.workspace is None
+    assert _CONTROLLERS.get(id(viewer)) is None
+
+
+def test_the_interpret_dock_from_the_plugins_menu_works_on_the_workbench_workspace(
+        make_napari_viewer, qtbot):
+    """Opened from the Plugins menu beside the workbench (through napari's
+    plugin API, with its proxy of the viewer), the Interpret dock works on the
+    workbench's workspace: it shows the drawings kept for the workspace's
+    photos (the sample's example drawings here), as the photo changes."""
+    from napari_imgreg.interpret.files import read_interpretations
+    from napari_imgreg.widgets.interpret_widget import (
+        InterpretWidget,
+        interpretations_from_shapes,
+    )
+
+    viewer = make_napari_viewer()
+    _, wb = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration workbench")
+    ctrl = wb.controller
+    try:
+        wb.scene_panel.sample_button.click()
+        qtbot.waitUntil(lambda: ctrl.current is not None, timeout=90_000)
+        qtbot.waitUntil(lambda: not ctrl.busy, timeout=30_000)
+        ws = ctrl.workspace
+        drawings = {}
+        for ps in ws.photos:
+            path = ps.photo.path.with_name(ps.photo.path.stem + ".lines.geojson")
+            drawings[ps.name] = read_interpretations(path)
+            ws.set_interpretations(drawings[ps.name], ps)
+
+        _, widget = viewer.window.add_plugin_dock_widget("napari-imgreg", "Interpret")
+        assert isinstance(widget, InterpretWidget) and widget is not wb.interpret_widget
+        assert widget.workspace is ws
+
+        def shown_labels() -> list[str]:
+            layer = widget.interpretation_layer(ctrl.photo_layer())
+            assert layer is not None
+            return [item.label for item in interpretations_from_shapes(layer)]
+
+        for index in (0, 2):
+            ctrl.select_photo(index)
+            qtbot.waitUntil(lambda: not ctrl.busy, timeout=30_000)
+            name = ws.current.name
+            assert widget._photo_state(ctrl.photo_layer()) is ws.current
+            assert shown_labels() == [item.label for item in drawings[name]], name
+    finally:
+        ctrl.workspace.detach()

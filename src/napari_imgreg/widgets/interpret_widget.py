@@ -23,7 +23,10 @@ by label, with the measurements table and the stereonet.
 
 Docked in the registration workbench, the widget also keeps what is drawn on
 the workbench's photos, and the last projection, in its
-:class:`~napari_imgreg.workspace.Workspace`.
+:class:`~napari_imgreg.workspace.Workspace`. Opened on its own (napari's
+Plugins menu) in a window where the workbench is open, it works on that
+workbench's workspace too (:func:`workbench_workspace`); without one it
+stands alone.
 """
 
 from __future__ import annotations
@@ -87,7 +90,7 @@ if TYPE_CHECKING:
     import napari
 
 __all__ = ["InterpretWidget", "camera_of_layer", "interpretations_from_shapes",
-           "is_photo_layer", "plane_from_three_points"]
+           "is_photo_layer", "plane_from_three_points", "workbench_workspace"]
 
 #: Metadata keys on the layers this widget makes.
 INTERP_KEY = INTERPRETATION_OF  # Shapes layer: name of its photo layer
@@ -214,6 +217,33 @@ def interpretations_from_shapes(layer) -> list[Interpretation]:
     return out
 
 
+def workbench_workspace(viewer: napari.viewer.Viewer) -> Workspace | None:
+    """The workspace of the registration workbench open in a viewer, if any.
+
+    Looks the viewer's workbench controller up (whichever proxy of the viewer
+    napari handed the caller, see
+    :func:`~napari_imgreg.widgets._controller.real_viewer`) without making
+    one: a viewer without a workbench gets None, and no controller.
+
+    Parameters
+    ----------
+    viewer : napari.viewer.Viewer
+        The viewer, or a plugin proxy of it.
+
+    Returns
+    -------
+    Workspace or None
+        ``controller.workspace`` of the viewer's open workbench controller.
+    """
+    from ._controller import _CONTROLLERS, real_viewer
+
+    real = real_viewer(viewer)
+    controller = _CONTROLLERS.get(id(real))
+    if controller is None or controller.viewer is not real or controller.closed:
+        return None
+    return controller.workspace
+
+
 class InterpretWidget(QWidget):
     """Draw interpretations on registered photos, project them in 3D, measure them.
 
@@ -222,7 +252,10 @@ class InterpretWidget(QWidget):
     napari_viewer : napari.viewer.Viewer
     workspace : Workspace, optional
         The workbench's: what is drawn on its photos, and the projection, are
-        kept there too.
+        kept there too. Default: the workspace of the workbench open in
+        ``napari_viewer`` (:func:`workbench_workspace`), if there is one —
+        as when the widget is opened from napari's Plugins menu beside the
+        workbench; else none (the widget stands alone).
     """
 
     projection_done = Signal(object)  # list of Feature3D
@@ -232,7 +265,7 @@ class InterpretWidget(QWidget):
                  workspace: Workspace | None = None) -> None:
         super().__init__(parent)
         self.viewer = napari_viewer
-        self.workspace = workspace
+        self.workspace = workspace if workspace is not None else workbench_workspace(napari_viewer)
         self.features: list[Feature3D] = []
         self.measurements: list[Measurement] = []
         self.jobs = JobRunner(self)
