@@ -238,9 +238,10 @@ class QualityPanel(QWidget):
         hl.addWidget(self.restore_button)
         rl.addWidget(hist_box, 1)
         self._columns = QBoxLayout(QBoxLayout.Direction.TopToBottom, self)
-        # The metrics need less room than the trial history.
-        self._columns.addWidget(left, 2)
-        self._columns.addWidget(right, 3)
+        # Equal halves: between napari's layer list and the workbench the dock
+        # is ~700 px wide, and the metrics' names need ~330 px to be read.
+        self._columns.addWidget(left, 1)
+        self._columns.addWidget(right, 1)
         self.hint_label.hide()
         self.adapt_label.hide()
 
