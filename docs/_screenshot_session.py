@@ -46,3 +46,22 @@ def open_workbench(wait_timeout_s: float = 120.0):
     viewer.window._qt_window.resize(1600, 1000)
     pump(0.5)
     return app, viewer, Workbench.add_to_viewer(viewer), pump, wait
+
+
+def quality_height(viewer, height: int) -> None:
+    """Give the Registration quality dock (under the canvas) ``height`` pixels.
+
+    Its default share of the window's height shows the banner, the legend and
+    only the first metric rows; a screenshot about the quality panel wants
+    them all. The photo and the render, side by side, keep their size (the
+    canvas is wider than it is tall).
+    """
+    from qtpy.QtCore import Qt
+    from qtpy.QtWidgets import QDockWidget
+
+    window = viewer.window._qt_window
+    for dock in window.findChildren(QDockWidget):
+        if dock.windowTitle().startswith("Registration quality"):
+            window.resizeDocks([dock], [height], Qt.Orientation.Vertical)
+            return
+    raise LookupError("no Registration quality dock")

@@ -25,13 +25,18 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="names of the shots to take (default: all)")
     args = parser.parse_args()
 
-    from _screenshot_session import open_workbench
+    from _screenshot_session import open_workbench, quality_height
 
     from napari_imgreg.sample import load_truth
     from napari_imgreg.widgets._layers import napari_from_pixels
 
     _app, viewer, wb, pump, wait = open_workbench(wait_timeout_s=120.0)
     ctrl = wb.controller
+    # The quality panel tall enough for its banner, legend and all eight metric
+    # rows; the photo and the render, side by side, keep their size.
+    pump(0.5)  # (after the workbench's own sizing of it)
+    quality_height(viewer, 520)
+    pump(0.5)
 
     def idle() -> None:
         wait(lambda: not ctrl.busy)
@@ -52,12 +57,9 @@ def main() -> None:
     shot("scene")
 
     # 2. 3D: the model, the cameras and their view frusta.
+    # (the button's own overview: facing the outcrop as the cameras do, 30° down)
     wb.scene_panel.view_3d_button.click()
-    pump(0.5)
-    cam = ctrl.camera
-    cam.set_view_direction((-0.55, 0.35, 0.75), (1.0, 0.0, 0.0))
-    viewer.fit_to_view(layers=ctrl.layers.layers_3d())
-    cam.zoom *= 1.3
+    pump(1.5)
     shot("3d")
     wb.scene_panel.view_2d_button.click()
     idle()
@@ -115,10 +117,13 @@ def main() -> None:
     rp.corr_check.setChecked(False)
     ctrl.set_blend(opacity=0.5, visible=True)
     rp.blend_slider.setValue(0.5)
+    # The photo as large as the canvas holds it (fit_to_view fails on a 2D
+    # layer while the viewer has three dimensions).
+    extent = np.asarray(ctrl.photo_layer().extent.world, float)[:, -2:]
     cam = ctrl.camera
-    h, w = ctrl.layers.height, ctrl.layers.width
-    cam.center = (cam.center[0], 0.5 * h, 0.5 * w)
-    cam.zoom *= 1.6
+    cam.center = (cam.center[0],) * (len(cam.center) - 2) + tuple(extent.mean(axis=0))
+    canvas_h, canvas_w = viewer.canvas.size
+    cam.zoom = 0.98 * min(canvas_h / np.ptp(extent[:, 0]), canvas_w / np.ptp(extent[:, 1]))
     shot("blend")
     rp.corr_check.setChecked(True)
     ctrl.fit_2d()
@@ -302,7 +307,9 @@ def views_main(out: Path) -> None:
     iw = wb.interpret_widget
     pump(1.0)
     shapes = iw.new_interpretation_layer()
-    px = ws.current.interpretations[0].pixels  # a true bed boundary on the photo
+    # a true bed boundary on the photo: the longest, so the drawn line shows
+    px = max((it.pixels for it in ws.current.interpretations),
+             key=lambda p: float(np.ptp(np.asarray(p)[:, 0])))
     shapes.add(napari_from_pixels(px[:: max(1, len(px) // 6)]), shape_type="path",
                edge_width=12)
     shapes.mode = "add_polyline"
@@ -320,6 +327,17 @@ def views_main(out: Path) -> None:
     viewer.window.add_dock_widget(view, name="Campaign view", area="right", tabify=True)
     view.show_3d()
     pump(1.5)
+    # Only the campaign's own layers over the model. The workbench's cameras
+    # (cyan, the current one magenta) sit on the campaign's markers and hide
+    # their status colours, and the photo's interpretation layer (pixels, 2D)
+    # would show as stray strokes beside the model: stepped back here.
+    from napari.layers import Shapes
+
+    for layer in viewer.layers:
+        if layer.name in ("cameras", "view frusta") or (
+                isinstance(layer, Shapes) and layer.name.endswith(" interpretation")):
+            layer.visible = False
+    pump(1.0)
     viewer.screenshot(str(out / "workbench_campaign.png"), canvas_only=False)
     print("wrote", out / "workbench_campaign.png")
     viewer.close()
@@ -329,6 +347,9 @@ if __name__ == "__main__":
     import sys
 
     if "--views" in sys.argv:
-        views_main(OUT)
+        views = argparse.ArgumentParser(description=views_main.__doc__.splitlines()[0])
+        views.add_argument("--views", action="store_true")
+        views.add_argument("--out", type=Path, default=OUT)
+        views_main(views.parse_args().out)
     else:
         main()
