@@ -10,6 +10,28 @@ from __future__ import annotations
 import time
 
 
+def event_pumps(app, wait_timeout_s: float = 120.0):
+    """``pump(seconds)`` and ``wait(cond, timeout=wait_timeout_s)`` on ``app``
+    (see :func:`open_workbench`)."""
+
+    def pump(seconds: float = 0.3) -> None:
+        end = time.time() + seconds
+        while time.time() < end:
+            app.processEvents()
+            time.sleep(0.01)
+
+    def wait(cond, timeout: float = wait_timeout_s) -> None:
+        end = time.time() + timeout
+        while not cond():
+            app.processEvents()
+            time.sleep(0.01)
+            if time.time() > end:
+                raise TimeoutError
+        pump(0.5)
+
+    return pump, wait
+
+
 def open_workbench(wait_timeout_s: float = 120.0):
     """A 1600×1000 napari window with the workbench docked.
 
@@ -26,21 +48,7 @@ def open_workbench(wait_timeout_s: float = 120.0):
     from napari_imgreg.widgets.workbench import Workbench
 
     app = QApplication.instance() or QApplication([])
-
-    def pump(seconds: float = 0.3) -> None:
-        end = time.time() + seconds
-        while time.time() < end:
-            app.processEvents()
-            time.sleep(0.01)
-
-    def wait(cond, timeout: float = wait_timeout_s) -> None:
-        end = time.time() + timeout
-        while not cond():
-            app.processEvents()
-            time.sleep(0.01)
-            if time.time() > end:
-                raise TimeoutError
-        pump(0.5)
+    pump, wait = event_pumps(app, wait_timeout_s)
 
     viewer = napari.Viewer(title="napari-imgreg", show=True)
     viewer.window._qt_window.resize(1600, 1000)

@@ -23,7 +23,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -67,22 +66,10 @@ def main() -> None:
         lines = tmp / lines.name
         lines.write_text(json.dumps(drawing))
 
+    from _screenshot_session import event_pumps
+
     app = QApplication.instance() or QApplication([])
-
-    def pump(seconds: float = 0.3) -> None:
-        end = time.time() + seconds
-        while time.time() < end:
-            app.processEvents()
-            time.sleep(0.01)
-
-    def wait(cond, timeout: float = 300.0) -> None:
-        end = time.time() + timeout
-        while not cond():
-            app.processEvents()
-            time.sleep(0.01)
-            if time.time() > end:
-                raise TimeoutError
-        pump(0.5)
+    pump, wait = event_pumps(app, 300.0)
 
     def shot(name: str) -> None:
         pump(0.8)
