@@ -203,3 +203,31 @@ def test_the_campaign_view_from_the_plugins_menu_shows_the_workbench_campaign(
     assert len(view.layers()["cameras"].data) == 3
     # The view keeps the workspace's controller alive while it is docked.
     assert view.controller is wb.controller
+
+
+def test_show_campaign_in_3d_shows_its_own_cameras_and_no_photo_drawings(
+        make_napari_viewer, qtbot, sample):
+    """In 3D the campaign's status-coloured cameras are not covered by the
+    workbench's, and a photo's drawing (in pixels) is not left floating
+    beside the model; back in 2D the drawing is shown again."""
+    folder, scene, terrain, loaded = sample
+    viewer = make_napari_viewer()
+    _, wb = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration workbench")
+    ws = wb.controller.workspace
+    ws.load_scene(scene, terrain, {"mesh": folder / "outcrop.obj", "dem": folder / "dem.tif"})
+    ws.add_loaded_photos(loaded)
+    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
+    ws.add_interpretation(Interpretation("LineString", [[100.0, 100.0], [400.0, 150.0]],
+                                         {"label": "sandstone"}), ws.photos[0])
+    drawing = wb.interpret_widget.new_interpretation_layer()
+    assert drawing is not None and drawing.visible
+    _, view = viewer.window.add_plugin_dock_widget("napari-imgreg", "Campaign view")
+    view.show_3d()
+    qtbot.waitUntil(lambda: viewer.dims.ndisplay == 3, timeout=10_000)
+    assert view.layers()["cameras"].visible
+    for key in ("cameras", "frusta"):
+        layer = wb.controller.layers.get(key)
+        assert layer is None or not layer.visible
+    assert not drawing.visible
+    wb.controller.show_2d()
+    assert drawing.visible

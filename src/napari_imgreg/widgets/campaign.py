@@ -339,6 +339,12 @@ class CampaignView(QWidget):
             if layer.metadata.get("imgreg_scene") is not None:
                 layer.visible = True
         self._follow_ndisplay()
+        if self.controller is not None:
+            # The workbench's own cameras (one colour) would cover these,
+            # coloured by each photo's status; its 3D view shows them again.
+            for key in ("cameras", "frusta"):
+                if (layer := self.controller.layers.get(key)) is not None:
+                    layer.visible = False
         ws = self.workspace
         if ws.scene is None:
             return

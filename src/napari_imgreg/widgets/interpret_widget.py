@@ -395,6 +395,7 @@ class InterpretWidget(QWidget):
             event.connect(self._update_drawing)
         self.viewer.layers.selection.events.active.connect(self._update_drawing)
         self.viewer.dims.events.ndisplay.connect(self._update_drawing)
+        self.viewer.dims.events.ndisplay.connect(self._interpretations_follow_ndisplay)
         self._refresh_layers()
         if self.workspace is not None:
             self._follow_workspace()
@@ -813,6 +814,20 @@ class InterpretWidget(QWidget):
             if other is not layer and other.name in _COVERING_NAMES and other.visible:
                 other.metadata[_HIDDEN_WHILE_DRAWING] = True
                 other.visible = False
+
+    def _interpretations_follow_ndisplay(self, event=None) -> None:
+        """Drawings are in the photo's pixels: hidden on the 3D canvas (where
+        they would float as stray strokes beside the model), shown again as
+        they were on returning to 2D. Their 3D projections are other layers."""
+        three_d = self.viewer.dims.ndisplay == 3
+        for layer in list(self.viewer.layers):
+            if INTERP_KEY not in layer.metadata:
+                continue
+            if three_d:
+                layer.metadata.setdefault("imgreg_visible_2d", layer.visible)
+                layer.visible = False
+            elif "imgreg_visible_2d" in layer.metadata:
+                layer.visible = layer.metadata.pop("imgreg_visible_2d")
 
     def _show_covering_layers(self) -> None:
         for other in list(self.viewer.layers):
