@@ -373,9 +373,11 @@ class InterpretWidget(QWidget):
         layout.addWidget(self.project_button)
         layout.addWidget(self.status_label)
         layout.addWidget(self.view3d_button)
-        layout.addWidget(self.tabs, 1)
+        # The exports above the results: the stereonet is tall, and buttons
+        # below it were out of view in a 1000 px window.
         layout.addLayout(out_row)
         layout.addLayout(out_row2)
+        layout.addWidget(self.tabs, 1)
 
         attach.clicked.connect(self._attach_dialog)
         self.new_button.clicked.connect(lambda: self.new_interpretation_layer())
