@@ -186,10 +186,9 @@ def test_the_dock_is_in_the_manifest():
     assert CAMPAIGN_LAYER_KEY == "imgreg_campaign"
 
 
-def test_the_campaign_view_from_the_plugins_menu_shows_the_workbench_campaign(
-        make_napari_viewer, qtbot, sample):
-    """Opened through napari's plugin API (a proxy of the viewer), the view shows
-    the workspace the workbench holds, not an empty one of its own."""
+def _workbench_with_sample(make_napari_viewer, qtbot, sample):
+    """A viewer with the workbench docked through napari's plugin API (a proxy
+    of the viewer), the sample's model and photos loaded in its workspace."""
     folder, scene, terrain, loaded = sample
     viewer = make_napari_viewer()
     _, wb = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration workbench")
@@ -197,6 +196,15 @@ def test_the_campaign_view_from_the_plugins_menu_shows_the_workbench_campaign(
     ws.load_scene(scene, terrain, {"mesh": folder / "outcrop.obj", "dem": folder / "dem.tif"})
     ws.add_loaded_photos(loaded)
     qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
+    return viewer, wb
+
+
+def test_the_campaign_view_from_the_plugins_menu_shows_the_workbench_campaign(
+        make_napari_viewer, qtbot, sample):
+    """Opened through napari's plugin API (a proxy of the viewer), the view shows
+    the workspace the workbench holds, not an empty one of its own."""
+    viewer, wb = _workbench_with_sample(make_napari_viewer, qtbot, sample)
+    ws = wb.controller.workspace
     _, view = viewer.window.add_plugin_dock_widget("napari-imgreg", "Campaign view")
     assert view.workspace is ws
     assert "3 photo(s)" in view.summary_label.text()
@@ -210,13 +218,8 @@ def test_show_campaign_in_3d_shows_its_own_cameras_and_no_photo_drawings(
     """In 3D the campaign's status-coloured cameras are not covered by the
     workbench's, and a photo's drawing (in pixels) is not left floating
     beside the model; back in 2D the drawing is shown again."""
-    folder, scene, terrain, loaded = sample
-    viewer = make_napari_viewer()
-    _, wb = viewer.window.add_plugin_dock_widget("napari-imgreg", "Registration workbench")
+    viewer, wb = _workbench_with_sample(make_napari_viewer, qtbot, sample)
     ws = wb.controller.workspace
-    ws.load_scene(scene, terrain, {"mesh": folder / "outcrop.obj", "dem": folder / "dem.tif"})
-    ws.add_loaded_photos(loaded)
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
     ws.add_interpretation(Interpretation("LineString", [[100.0, 100.0], [400.0, 150.0]],
                                          {"label": "sandstone"}), ws.photos[0])
     drawing = wb.interpret_widget.new_interpretation_layer()
