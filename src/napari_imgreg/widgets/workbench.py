@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 
 from pathlib import Path
 
-from qtpy.QtCore import QEvent, Qt, QTimer
+from qtpy.QtCore import Qt, QTimer
 from qtpy.QtWidgets import (
     QFileDialog,
     QHBoxLayout,
@@ -108,60 +108,31 @@ def _scrolled(widget: QWidget) -> QScrollArea:
 REGISTER_PINNED = ("run_button", "auto_button", "cancel_button", "progress", "status_label")
 
 
-class _PinnedFooterScroll(QScrollArea):
-    """A scrolling page (as :func:`_scrolled`) with a footer that does not
+class _PageWithFooter(QWidget):
+    """A scrolling page (:func:`_scrolled`) above a footer that does not
     scroll: on a short screen the Register tab's Run / Auto / Cancel and its
-    progress stay in view under the parameters. Still a QScrollArea (its
-    ``widget()`` is the panel; ``ensureWidgetVisible`` works)."""
+    progress stay in view under the parameters. Answers ``widget()`` (the
+    panel) and ``ensureWidgetVisible`` as the plain page does."""
 
     def __init__(self, widget: QWidget, footer: QWidget) -> None:
         super().__init__()
-        self.setWidgetResizable(True)
-        self.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        self.setWidget(widget)
+        self.scroll = _scrolled(widget)
         self.footer = footer
-        footer.setParent(self)
-        footer.setAutoFillBackground(True)
-        footer.installEventFilter(self)
-        self._placing = False
+        layout = QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        layout.setSpacing(0)
+        layout.addWidget(self.scroll, 1)
+        layout.addWidget(footer)
 
-    def eventFilter(self, obj, event) -> bool:
-        # (QScrollArea filters its page's events too, from setWidget on.)
-        if obj is getattr(self, "footer", None) and event.type() == QEvent.Type.LayoutRequest:
-            QTimer.singleShot(0, self._place)  # the status text grew or shrank
-        return super().eventFilter(obj, event)
+    def widget(self) -> QWidget:
+        return self.scroll.widget()
 
-    def resizeEvent(self, event) -> None:
-        super().resizeEvent(event)
-        self._place()
-
-    def showEvent(self, event) -> None:
-        super().showEvent(event)
-        self._place()
-
-    def _place(self) -> None:
-        if self._placing:
-            return
-        self._placing = True
-        try:
-            width = self.width() - 2 * self.frameWidth()
-            layout = self.footer.layout()
-            height = (layout.totalHeightForWidth(width)
-                      if layout is not None and layout.hasHeightForWidth()
-                      else self.footer.sizeHint().height())
-            height = max(height, self.footer.minimumSizeHint().height())
-            self.setViewportMargins(0, 0, 0, height)
-            # Under the page, beside the scroll bar (which runs the full height).
-            page = self.viewport().geometry()
-            self.footer.setGeometry(page.left(), page.bottom() + 1, page.width(), height)
-            self.footer.raise_()
-        except RuntimeError:  # pragma: no cover - being deleted
-            pass
-        finally:
-            self._placing = False
+    def ensureWidgetVisible(self, child: QWidget, xmargin: int = 50,  # noqa: N802 (Qt)
+                            ymargin: int = 50) -> None:
+        self.scroll.ensureWidgetVisible(child, xmargin, ymargin)
 
 
-def _pinned(panel: QWidget, names: tuple[str, ...]) -> QScrollArea:
+def _pinned(panel: QWidget, names: tuple[str, ...]) -> QWidget:
     """The panel's page with its widgets ``names`` moved to a footer that stays
     in view (buttons side by side, the rest under them); a plain scrolling
     page when the panel has none of them."""
@@ -180,7 +151,7 @@ def _pinned(panel: QWidget, names: tuple[str, ...]) -> QScrollArea:
     for w in widgets:
         if not isinstance(w, QPushButton):
             layout.addWidget(w)
-    return _PinnedFooterScroll(panel, footer)
+    return _PageWithFooter(panel, footer)
 
 
 class Workbench(QWidget):
