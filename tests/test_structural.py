@@ -414,3 +414,19 @@ def test_a_plane_near_the_viewing_rays_is_refused(angle_deg, kept):
     assert m.has_plane is kept
     if not kept:
         assert "viewing rays" in m.note
+
+
+def test_pose_uncertainty_of_a_registration_in_memory_reads_as_its_result():
+    """The workspace and the workbench read a Registration object as
+    ``project`` reads its RESULT.json: its estimate when registered; a failed
+    one, whose pose is its prior's, prior-sized errors even with an estimate."""
+    from types import SimpleNamespace
+
+    from napari_imgreg.interpret.uncertainty import PoseUncertainty
+
+    est = SimpleNamespace(reprojection_px=0.4, position_m=0.02, rotation_deg=0.01)
+    u = PoseUncertainty.from_estimate(est, "registered", {}, 1000.0)
+    assert (u.reprojection_px, u.position_m, u.rotation_deg, u.source) == (0.4, 0.02, 0.01, "result")
+    assert PoseUncertainty.from_estimate(est, "failed", {}, 1000.0).position_m == 5.0
+    d = PoseUncertainty.from_estimate(None, "registered", {"reprojection_error_px": 2.0}, 1000.0)
+    assert d.source == "default" and d.reprojection_px == 2.0

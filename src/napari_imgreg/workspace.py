@@ -1271,11 +1271,7 @@ class Workspace:
                     and np.allclose(other.t, pose.t, rtol=0, atol=1e-6))
 
         def of(unc: Uncertainty | None, status: str, metrics: dict) -> PoseUncertainty:
-            if unc is not None and status == "registered":
-                return PoseUncertainty(unc.reprojection_px, unc.position_m, unc.rotation_deg,
-                                       source="result")
-            return PoseUncertainty.from_result({"pose": {}, "status": status,
-                                                "metrics": metrics}, fx)
+            return PoseUncertainty.from_estimate(unc, status, metrics, fx)
 
         reg = ps.registration
         if reg is not None and same(reg.pose):

@@ -119,6 +119,18 @@ class PoseUncertainty:
     source: str = "default"
 
     @classmethod
+    def from_estimate(cls, estimate: Any, status: str, metrics: dict | None,
+                      focal_px: float) -> PoseUncertainty:
+        """As :meth:`from_result`, of a registration held in memory: its
+        ``uncertainty`` (an object with ``reprojection_px``, ``position_m``,
+        ``rotation_deg``; None when not estimated), ``status`` and ``metrics``."""
+        data: dict[str, Any] = {"pose": {}, "status": status, "metrics": metrics or {}}
+        if estimate is not None:
+            data["uncertainty"] = {k: getattr(estimate, k)
+                                   for k in ("reprojection_px", "position_m", "rotation_deg")}
+        return cls.from_result(data, focal_px)
+
+    @classmethod
     def from_result(cls, data: Any, focal_px: float, range_m: float | None = None) -> PoseUncertainty:
         """The result's ``uncertainty`` block, or a documented default.
 

@@ -147,13 +147,9 @@ def pose_uncertainty_of_layer(layer, intrinsics: Intrinsics) -> PoseUncertainty:
     meta = getattr(layer, "metadata", {}) or {}
     reg = meta.get("imgreg_registration")
     if reg is not None and hasattr(reg, "pose"):
-        unc = getattr(reg, "uncertainty", None)
-        if unc is not None:
-            return PoseUncertainty(unc.reprojection_px, unc.position_m, unc.rotation_deg,
-                                   source="result")
-        return PoseUncertainty.from_result(
-            {"pose": {}, "status": getattr(reg, "status", "registered"),
-             "metrics": getattr(reg, "metrics", {})}, intrinsics.fx)
+        return PoseUncertainty.from_estimate(getattr(reg, "uncertainty", None),
+                                             getattr(reg, "status", "registered"),
+                                             getattr(reg, "metrics", {}), intrinsics.fx)
     return PoseUncertainty.from_result(meta.get("result"), intrinsics.fx)
 
 
