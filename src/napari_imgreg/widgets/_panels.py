@@ -439,10 +439,26 @@ class TerrainMapCanvas(FigureCanvasQTAgg):
             xs.append(ps.pose.center[0])
             ys.append(ps.pose.center[1])
         pad = 0.03 * max(max(xs) - min(xs), max(ys) - min(ys))
-        self.ax.set_xlim(min(xs) - pad, max(xs) + pad)
-        self.ax.set_ylim(min(ys) - pad, max(ys) + pad)
-        self._background = None
+        xlim, ylim = (min(xs) - pad, max(xs) + pad), (min(ys) - pad, max(ys) + pad)
+        if not (np.allclose(self.ax.get_xlim(), xlim) and np.allclose(self.ax.get_ylim(), ylim)):
+            # A full redraw costs ~0.1 s: only when the view moves, not on every photo switch.
+            self.ax.set_xlim(*xlim)
+            self.ax.set_ylim(*ylim)
+            self._background = None
         self.update_cameras()
+
+    def draw_idle(self) -> None:
+        """Redraw soon; a hidden map (another tab) redraws when it is shown."""
+        if not self.isVisible():
+            self._stale = True
+            return
+        super().draw_idle()
+
+    def showEvent(self, event) -> None:  # noqa: N802 (Qt)
+        super().showEvent(event)
+        if getattr(self, "_stale", False):
+            self._stale = False
+            super().draw_idle()
 
     def _make_camera_artists(self) -> None:
         ax = self.ax

@@ -44,9 +44,9 @@ from ._shortcuts import key_of
 __all__ = ["PhotosTable", "COLUMNS", "THUMBNAIL_WIDTH", "STATUS_COLORS"]
 
 #: The table's columns, left to right.
-COLUMNS = ("", "photo", "status", "grade", "Q", "± px", "time (s)")
+COLUMNS = ("", "photo", "status", "grade", "Q", "± px", "time")
 #: Thumbnail width, pixels.
-THUMBNAIL_WIDTH = 60
+THUMBNAIL_WIDTH = 52  # with the six columns, fits the workbench's ~480 px
 #: Text colour of each status.
 STATUS_COLORS = {"not registered": "#bdbdbd", "failed": "#ff6e6e", "registered": "#91cf60",
                  "accepted": "#4fc3f7"}
@@ -218,7 +218,7 @@ class PhotosTable(QWidget):
         name = _Item(("● " if s.attention else "") + s.name)
         name.setData(SORT_ROLE, s.name)
         name.setData(PHOTO_ROLE, index)
-        name.setToolTip("needs attention" if s.attention else "")
+        name.setToolTip(s.name + (" — needs attention" if s.attention else ""))
         status = _Item(s.status)
         status.setData(SORT_ROLE, _STATUS_ORDER.get(s.status, 0))
         status.setForeground(QColor(STATUS_COLORS.get(s.status, "#ffffff")))

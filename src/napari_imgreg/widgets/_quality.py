@@ -50,7 +50,9 @@ SHORT_LABELS = {
 #: Arrow and colour of a metric's trend against the previous trial.
 TREND_ARROWS = {1: ("▲", "#00e676"), -1: ("▼", "#ff5252"), 0: ("=", "#bdbdbd")}
 #: Trial history columns.
-HISTORY_COLUMNS = ("#", "trial", "from", "Q", "grade", "3D inl.", "error", "✓")
+#: The trial's run number is in its name and its grade is the colour of its Q cell
+#: (the legend's colours, the grade in the tooltip): the name keeps the width.
+HISTORY_COLUMNS = ("trial", "from", "Q", "3D", "error", "✓")
 #: Marks, in the "from" column, a trial matched against a render relit for the photo's sun.
 SUNLIT_MARK = "☀"
 #: Marks, in the "from" column, a trial that matched render blocks by correlation.
@@ -201,15 +203,24 @@ class QualityPanel(QWidget):
 
         self.history = QTableWidget(0, len(HISTORY_COLUMNS))
         self.history.setHorizontalHeaderLabels(list(HISTORY_COLUMNS))
-        self.history.horizontalHeaderItem(HISTORY_COLUMNS.index("from")).setToolTip(
-            "Where the trial's pose came from: the start pose, a search, a sun-lit render, "
-            f"edge alignment or mutual information; {SUNLIT_MARK}: matched against the model "
-            "relit for the photo's sun")
+        for column, tip in (
+                ("from", "Where the trial's pose came from: the start pose, a search, a sun-lit "
+                         "render, edge alignment or mutual information; "
+                         f"{SUNLIT_MARK}: matched against the model relit for the photo's sun"),
+                ("Q", "quality Q of the trial, coloured by its grade (the legend's colours)"),
+                ("3D", "3D inliers: correspondences on the model that agree with the pose"),
+                ("error", "reprojection error of the inliers, pixels"),
+                ("✓", "verified: an independent check agrees with the pose")):
+            self.history.horizontalHeaderItem(HISTORY_COLUMNS.index(column)).setToolTip(tip)
         self.history.verticalHeader().setVisible(False)
         self.history.setEditTriggers(QAbstractItemView.NoEditTriggers)
         self.history.setSelectionBehavior(QAbstractItemView.SelectRows)
         self.history.setSelectionMode(QAbstractItemView.SingleSelection)
-        self.history.horizontalHeader().setSectionResizeMode(1, QHeaderView.Stretch)
+        # The name and the origin share what the numbers leave and wrap onto a
+        # second line in a narrow dock ("Auto 1:" / "SIFT–SIFT"), never cut.
+        self.history.setWordWrap(True)
+        self.history.horizontalHeader().sectionResized.connect(
+            lambda *_: self.history.resizeRowsToContents())
         self.history.setMinimumHeight(120)
         self.restore_button = QPushButton("Restore trial (pose and parameters)")
         self.restore_button.setEnabled(False)
@@ -266,7 +277,7 @@ class QualityPanel(QWidget):
         records = ps.trials if ps is not None else []
         self.history.blockSignals(True)
         self.history.setRowCount(len(records))
-        grade_col = HISTORY_COLUMNS.index("grade")
+        q_col = HISTORY_COLUMNS.index("Q")
         for r, rec in enumerate(records):
             t = rec.trial
             err = t.metrics.get("reprojection_error_px")
@@ -274,14 +285,14 @@ class QualityPanel(QWidget):
             what = ("blocks" if getattr(t, "matcher", "keypoints") == "area"
                     else t.params.features.name)
             name = rec.label if rec.kind == "Manual" else f"{rec.kind} {rec.run}: {what}"
-            cells = [str(r + 1), name, origin, f"{t.q:.2f}", t.grade,
+            cells = [name, origin, f"{t.q:.2f}",
                      str(t.metrics.get("inliers_3d", 0)),
                      f"{err:.2f}" if err is not None else "—",
                      "✓" if t.verified else ""]
-            tips = {1: rec.label, 2: origin_tip}
+            tips = {0: f"trial {r + 1}: {rec.label}", 1: origin_tip, q_col: f"{t.grade} (Q = {t.q:.2f})"}
             for c, text in enumerate(cells):
                 item = QTableWidgetItem(text)
-                if c == grade_col:
+                if c == q_col:
                     g = next(g for g in GRADES if g.name == t.grade)
                     item.setBackground(QColor(g.color))
                     item.setForeground(QColor("#111111"))
@@ -289,7 +300,9 @@ class QualityPanel(QWidget):
                     item.setToolTip(tips[c])
                 self.history.setItem(r, c, item)
         self.history.resizeColumnsToContents()
-        self.history.horizontalHeader().setSectionResizeMode(1, QHeaderView.Stretch)
+        for column in (0, 1):
+            self.history.horizontalHeader().setSectionResizeMode(column, QHeaderView.Stretch)
+        self.history.resizeRowsToContents()
         if ps is not None and ps.selected_trial is not None and ps.selected_trial < len(records):
             self.history.selectRow(ps.selected_trial)
         self.history.blockSignals(False)
