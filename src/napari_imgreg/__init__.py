@@ -42,6 +42,21 @@ _LAZY = {
     "Interpretation": "napari_imgreg.interpret.project",
     "Measurement": "napari_imgreg.interpret.structural",
     "OrientationResult": "napari_imgreg.orient",
+    # What a script needs beside the five functions: a campaign, a photo in
+    # memory or its prior, the projection's settings and error model, and the
+    # files of drawings and measurements.
+    "Workspace": "napari_imgreg.workspace",
+    "load_registration": "napari_imgreg.registration.result_file",
+    "Photo": "napari_imgreg.io.photos",
+    "load_photo": "napari_imgreg.io.photos",
+    "prior_for_photo": "napari_imgreg.prior",
+    "ProjectionParams": "napari_imgreg.interpret.project",
+    "FitThresholds": "napari_imgreg.interpret.structural",
+    "PoseUncertainty": "napari_imgreg.interpret.uncertainty",
+    "UncertaintyParams": "napari_imgreg.interpret.uncertainty",
+    "read_interpretations": "napari_imgreg.interpret.files",
+    "export_features": "napari_imgreg.interpret.files",
+    "write_measurements_csv": "napari_imgreg.interpret.files",
 }
 
 
@@ -63,22 +78,34 @@ def __dir__() -> list[str]:
 
 __all__ = [
     "Feature3D",
+    "FitThresholds",
     "InputError",
     "Interpretation",
     "Intrinsics",
     "Measurement",
     "OrientationResult",
+    "Photo",
     "Pose",
+    "PoseUncertainty",
     "Prior",
+    "ProjectionParams",
     "Registration",
     "RegistrationParams",
     "RenderResult",
     "Scene",
+    "UncertaintyParams",
+    "Workspace",
     "attitude_from_rotation",
+    "export_features",
+    "load_photo",
+    "load_registration",
     "measure",
     "orient",
+    "prior_for_photo",
     "project",
+    "read_interpretations",
     "register",
     "render",
     "rotation_from_attitude",
+    "write_measurements_csv",
 ]

@@ -64,6 +64,40 @@ SENSOR_WIDTHS_MM: dict[str, float] = {
 }
 
 
+
+def as_points(values, k: int, name: str = "points") -> np.ndarray:
+    """``values`` as an (N, k) float array: one point (k,), N points (N, k), or a
+    grid (..., k) flattened; anything else (a transposed (k, N) array, points
+    of another dimension) is refused, not silently reshaped into other points.
+
+    Raises
+    ------
+    ValueError
+        The last axis is not of length ``k``.
+    """
+    a = np.asarray(values, dtype=np.float64)
+    if a.size == 0:
+        return a.reshape(0, k)
+    if a.ndim == 0 or a.shape[-1] != k:
+        raise ValueError(f"{name} must be ({k},) or (N, {k}), got shape {a.shape}")
+    return a.reshape(-1, k)
+
+
+def check_pose(pose: "Pose", what: str = "pose") -> None:
+    """Refuse a pose that is not a camera: non-finite values, or an ``R`` that is
+    not a rotation (a NaN pose makes the ray engine search for minutes and
+    render nothing).
+
+    Raises
+    ------
+    FieldValueError
+    """
+    if not (np.all(np.isfinite(pose.R)) and np.all(np.isfinite(pose.t))):
+        raise FieldValueError(what, "has non-finite values (NaN or infinity)")
+    R = pose.R
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) <= 0:
+        raise FieldValueError(f"{what}.R", "is not a rotation matrix (orthonormal, det +1)")
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Pinhole intrinsics with optional OpenCV distortion.
@@ -394,7 +428,7 @@ class Intrinsics:
         (N, 2) array
             Pixel coordinates (x = column, y = row); NaN for points with z <= 0.
         """
-        p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        p = as_points(points_cam, 3, "points_cam")
         z = p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xn = p[:, 0] / z
@@ -418,7 +452,7 @@ class Intrinsics:
         (N, 3) array
             Directions with z = 1 (not unit length).
         """
-        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        px = as_points(pixels, 2, "pixels")
         if self.has_distortion:
             import cv2
 
@@ -785,12 +819,12 @@ class Pose:
 
     def transform(self, points_world: np.ndarray) -> np.ndarray:
         """World points (N, 3) to camera coordinates (N, 3)."""
-        p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        p = as_points(points_world, 3, "points_world")
         return p @ self.R.T + self.t
 
     def inverse_transform(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera points (N, 3) to world coordinates (N, 3)."""
-        p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        p = as_points(points_cam, 3, "points_cam")
         return (p - self.t) @ self.R
 
     def project(self, intrinsics: Intrinsics, points_world: np.ndarray) -> np.ndarray:

@@ -468,10 +468,16 @@ def prior_for_photo(
         orientation mirrors it (2, 4, 5, 7: no camera pose exists for a
         mirror image); or the record is refused by :func:`prior_from_record`.
     """
-    record_path = Path(record_path) if record_path is not None else photo.sidecar
+    given = record_path is not None
+    record_path = Path(record_path) if given else photo.sidecar
+    if given and not record_path.exists():
+        # A misspelt record must not quietly give way to the EXIF (another prior).
+        raise input_error(record_path, "no such file (the sensor record given for the photo)")
     orientation = _exif_orientation(photo)
     if orientation in EXIF_MIRRORED:
         raise _mirrored_error(photo.path, orientation)
+    if given and _is_result(read_json(record_path)):
+        return _prior_from_result(record_path, photo, scene)
     notes: list[str] = []
     if record_path is not None and record_path.exists():
         record = load_sensor_record(record_path)
@@ -510,6 +516,27 @@ def prior_for_photo(
     )
     prior.assumptions = notes + prior.assumptions
     _attach_sun(prior, record, photo, getattr(scene, "georef", None))
+    return prior
+
+
+def _is_result(data) -> bool:
+    """A RESULT.json (a solved ``pose.R``), not a sensor record."""
+    return isinstance(data, dict) and isinstance(data.get("pose"), dict) and "R" in data["pose"]
+
+
+def _prior_from_result(path: Path, photo, scene) -> Prior:
+    """A registration's RESULT.json as the start of another registration of its photo.
+
+    Its camera and pose are the start; its focal length stays an estimate
+    where the result says it estimated it. The prior's sigma is the default
+    one (the search covers a sensor-sized error, whatever the result says).
+    """
+    intrinsics, pose, _, _ = load_camera_and_pose(path)
+    if photo.size != (intrinsics.width, intrinsics.height):
+        raise input_error(path, f"the result is of a {intrinsics.width}×{intrinsics.height} "
+                          f"image; the photo is {photo.size[0]}×{photo.size[1]}")
+    prior = Prior(intrinsics, pose, assumptions=[f"start pose from the result {path.name}"])
+    _attach_sun(prior, SensorRecord(), photo, getattr(scene, "georef", None))
     return prior
 
 

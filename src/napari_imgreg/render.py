@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
-from .camera import Intrinsics, Pose, scaled_size
+from .camera import Intrinsics, Pose, check_pose, scaled_size
 from .errors import InputError
 from .scene import Scene, has_colours, ray_threads
 from .validate import FieldValueError, check_number, check_render_size
@@ -166,13 +166,13 @@ def render(
 
     Parameters
     ----------
-    scene : Scene or CloudScene
-        The textured surface; its ray engine is built on first use. A point
-        cloud is drawn by :func:`napari_imgreg.render_points.splat_cloud`.
+    scene : Scene or CloudScene, or path
+        The textured surface (a path is loaded by :meth:`Scene.load`); its
+        ray engine is built on first use. A point cloud is drawn by :func:`napari_imgreg.render_points.splat_cloud`.
     intrinsics : Intrinsics
         The camera (its distortion is honoured: the render matches the photo).
     cam_from_world : Pose
-        World-to-camera pose.
+        World-to-camera pose (finite, ``R`` a rotation).
     scale : float
         Render at ``scale`` times the camera's resolution (e.g. 0.25 for a
         quick preview); the result's ``intrinsics`` is the scaled camera.
@@ -203,11 +203,26 @@ def render(
     Raises
     ------
     InputError
-        A scale that is not a positive number, or a render larger than
-        :data:`~napari_imgreg.validate.MAX_RENDER_PIXELS`.
+        A scale that is not a positive number, a render larger than
+        :data:`~napari_imgreg.validate.MAX_RENDER_PIXELS`, an unknown mode, a
+        pose that is not finite or not a rotation, ``ambient`` outside [0, 1]
+        or a light direction that is not a non-zero 3-vector.
     """
     if mode not in RENDER_MODES:
-        raise ValueError(f"mode must be one of {RENDER_MODES}, not {mode!r}")
+        raise InputError(f"render mode must be one of {', '.join(RENDER_MODES)}, not {mode!r}")
+    if isinstance(scene, (str, os.PathLike)):
+        scene = Scene.load(scene)
+    check_pose(cam_from_world, "cam_from_world")
+    try:
+        ambient = check_number(ambient, "ambient", 0.0, 1.0)
+    except FieldValueError as exc:
+        raise InputError(f"render {exc}") from None
+    if light_direction is not None:
+        light_direction = np.asarray(light_direction, np.float64)
+        if (light_direction.shape != (3,) or not np.all(np.isfinite(light_direction))
+                or np.linalg.norm(light_direction) == 0):
+            raise InputError("render light_direction must be a finite, non-zero (3,) vector, "
+                             f"got {light_direction.tolist()}")
     if getattr(scene, "is_cloud", False):  # a lidar scan: splats, same result
         from .render_points import splat_cloud
 
@@ -325,6 +340,8 @@ def render(
     mask = (face_id >= 0).reshape(h, w)
     rgb = rgb.reshape(h, w, 3)
     if use_texture:
+        import cv2  # here: ``import napari_imgreg`` does not load OpenCV
+
         border = cv2.BORDER_WRAP if wraps else cv2.BORDER_REPLICATE
         # One bilinear look-up for all pixels (OpenCV runs it multi-threaded).
         rgb = cv2.remap(

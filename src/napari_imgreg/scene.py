@@ -220,7 +220,7 @@ class Scene:
     def from_dem(
         cls,
         dem: DEM | str | os.PathLike,
-        georef: Georef | None = None,
+        georef: Georef | str | os.PathLike | None = None,
         orthophoto: str | os.PathLike | None = None,
         stride: int = 1,
     ) -> Scene:
@@ -233,10 +233,12 @@ class Scene:
         ----------
         dem : DEM or path-like
             The height raster (GeoTIFF or ``.asc``).
-        georef : Georef, optional
-            Local frame; when not given, one is made from the DEM's CRS with
-            the origin at the DEM's centre (a DEM without a CRS is used as the
-            local frame itself).
+        georef : Georef or path-like, optional
+            Local frame (a ``georef.json`` path is read). When not given, the
+            ``georef.json`` beside a DEM file is used, as for a mesh (the frame
+            of the results and records made beside it); without one, a frame
+            is made from the DEM's CRS with the origin at the DEM's centre (a
+            DEM without a CRS is used as the local frame itself).
         orthophoto : path-like, optional
             A north-up RGB GeoTIFF in the same CRS; each vertex gets the
             orthophoto's texture coordinate at its (E, N).
@@ -245,6 +247,11 @@ class Scene:
         """
         from .geo import DEM, Georef
 
+        if georef is None and not isinstance(dem, DEM):
+            beside = Path(dem).parent / "georef.json"
+            georef = beside if beside.exists() else None
+        if georef is not None and not isinstance(georef, Georef):
+            georef = Georef.load(georef)
         if not isinstance(dem, DEM):
             dem = DEM.load(dem)
         h = dem.heights[::stride, ::stride]

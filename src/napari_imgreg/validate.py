@@ -57,7 +57,7 @@ MAX_PHOTO_PIXELS = 160_000_000
 MAX_RENDER_PIXELS = 64_000_000
 
 
-class FieldValueError(ValueError):
+class FieldValueError(InputError):
     """A field's value is out of its range or not a number.
 
     The message is ``field 'NAME' PROBLEM``; :meth:`within` names the field

@@ -82,6 +82,12 @@ from .registration.features import FeatureParams
 from .registration.params import RegistrationParams
 from .registration.pipeline import Registration, Trial
 from .registration.quality import RuleHit, evaluate_rules
+from .registration.result_file import (
+    pose_or_none,
+    registration_from_dict,
+    stored_number,
+    trial_from_dict,
+)
 from .registration.round import Correspondences
 from .registration.stages.relight import SunEstimate, estimate_sun_from_photo
 from .interpret.uncertainty import PoseUncertainty
@@ -460,7 +466,7 @@ def read_scene(mesh: str | Path, dem: str | Path | None = None,
     """
     path = Path(mesh)
     if path.suffix.lower() in (".tif", ".tiff", ".asc"):
-        scene = Scene.from_dem(path, georef=Georef.load(georef) if georef else None)
+        scene = Scene.from_dem(path, georef=georef or None)
         if dem:
             scene.dem = DEM.load(dem)
     else:
@@ -480,6 +486,8 @@ def read_photos(paths, scene: Scene) -> tuple[list[tuple[Photo, Prior]], list[st
     errors : list of str
         One line per photo that could not be read.
     """
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]  # one photo, not a photo per character of its name
     loaded, errors = [], []
     for p in paths:
         try:
@@ -686,7 +694,8 @@ class Workspace:
         return added
 
     def add_photos(self, paths) -> list[str]:
-        """Read and add photos (blocking); returns the errors, one line each."""
+        """Read and add photos (a path or a list of paths; blocking); returns the
+        errors, one line each."""
         loaded, errors = read_photos(paths, self.require_scene())
         self.add_loaded_photos(loaded)
         return errors
@@ -1645,15 +1654,6 @@ _CORRESPONDENCE_ARRAYS = ("photo_points", "render_points", "feature_inlier", "li
                           "pose_inlier", "xyz")
 
 
-def _num(value, default: float = math.nan) -> float:
-    """A stored number; ``null`` (a non-finite number in strict JSON) is ``default``."""
-    return default if value is None else float(value)
-
-
-def _pose_or_none(d) -> Pose | None:
-    return None if d is None else Pose.from_dict(d)
-
-
 def _history_to_dict(history: adjust.PoseHistory) -> dict:
     # adjust.PoseHistory has no accessor for its stacks: read them here, and
     # rebuild them through its public edits (_history_from_dict).
@@ -1674,7 +1674,7 @@ def _history_from_dict(d: dict, default: Pose) -> adjust.PoseHistory:
     entry is the next redo)."""
     undo = [(Pose.from_dict(e["pose"]), str(e.get("label", ""))) for e in d.get("undo") or []]
     redo = [(Pose.from_dict(e["pose"]), str(e.get("label", ""))) for e in d.get("redo") or []]
-    current = _pose_or_none(d.get("current")) or default
+    current = pose_or_none(d.get("current")) or default
     limit = int(d.get("limit", 200))
     # Push the undo stack, the current pose and the redo stack (next redo
     # first), then undo back to the current pose: the stacks come out as saved.
@@ -1712,29 +1712,6 @@ def _trial_to_dict(trial: Trial) -> dict:
     return d
 
 
-_TRIAL_CONVERTED = {"params", "q", "pose", "start_pose", "residual_flow_px", "seconds",
-                    "correspondences", "uncertainty"}
-
-
-def _trial_from_dict(d: dict, source, start: Pose,
-                     correspondences: Correspondences | None = None) -> Trial:
-    """A trial back from its dict (a trial of RESULT.json, or of trials.json
-    with its start pose; without one, ``start``)."""
-    names = {f.name for f in fields(Trial)}
-    kwargs = {k: v for k, v in d.items() if k in names and k not in _TRIAL_CONVERTED}
-    pose = _pose_or_none(d.get("pose"))
-    kwargs.update(
-        params=RegistrationParams.from_dict(d.get("params") or {}, source),
-        q=_num(d.get("Q")), pose=pose,
-        start_pose=_pose_or_none(d.get("start_pose")) or start,
-        residual_flow_px=_num(d.get("residual_flow_px"), math.inf),
-        seconds=float(d.get("seconds") or 0.0), correspondences=correspondences)
-    kwargs.setdefault("hints", [])
-    if "uncertainty" in names:
-        kwargs["uncertainty"] = Uncertainty.from_dict(d.get("uncertainty"))
-    return Trial(**kwargs)
-
-
 def _correspondence_arrays(trials: list[TrialRecord]) -> dict[str, np.ndarray]:
     out = {}
     for k, rec in enumerate(trials):
@@ -1765,9 +1742,9 @@ def _manual_to_dict(sol: manual.ManualSolution) -> dict:
 
 def _manual_from_dict(d: dict) -> manual.ManualSolution:
     return manual.ManualSolution(
-        ok=bool(d["ok"]), pose=_pose_or_none(d.get("pose")),
+        ok=bool(d["ok"]), pose=pose_or_none(d.get("pose")),
         intrinsics=Intrinsics.from_dict(d["camera"]),
-        errors_px=np.array([_num(v) for v in d.get("errors_px") or []], float),
+        errors_px=np.array([stored_number(v) for v in d.get("errors_px") or []], float),
         inliers=np.array(d.get("inliers") or [], bool),
         threshold_px=float(d.get("threshold_px", 0.0)),
         focal_solved=bool(d.get("focal_solved", False)),
@@ -1781,7 +1758,7 @@ def _sun_estimate_to_dict(est: SunEstimate) -> dict:
 
 def _sun_estimate_from_dict(d: dict) -> SunEstimate:
     return SunEstimate(**{f.name: (np.asarray(d[f.name], float) if f.name == "direction"
-                                   else _num(d.get(f.name))) for f in fields(SunEstimate)})
+                                   else stored_number(d.get(f.name))) for f in fields(SunEstimate)})
 
 
 def _measurement_to_dict(m: Measurement) -> dict:
@@ -1802,30 +1779,16 @@ def _registration_from_dict(result: dict, extra: dict, ps: PhotoState,
     """The photo's last registration from its RESULT.json; its trials are the
     same objects as the photo's trial records when ``extra`` says which."""
     links = extra.get("trials")
+    trials = None
     if (isinstance(links, list) and len(links) == len(result.get("trials") or [])
             and all(isinstance(i, int) and 0 <= i < len(ps.trials) for i in links)):
         trials = [ps.trials[i].trial for i in links]
-    else:
-        trials = [_trial_from_dict(t, source, ps.prior.pose) for t in result.get("trials") or []]
-    prior_d = result.get("prior") or {}
-    prior = replace(ps.prior, intrinsics=Intrinsics.from_dict(result["camera"]),
-                    pose=_pose_or_none(prior_d.get("pose")) or ps.prior.pose,
-                    sigma=Sigma(**{k: float(v) for k, v in (prior_d.get("sigma") or {}).items()}),
-                    assumptions=[str(a) for a in prior_d.get("assumptions") or []])
-    quality = result.get("quality") or {}
-    kwargs = {
-        "status": str(result["status"]), "photo": str(result.get("photo", ps.name)),
-        "intrinsics": Intrinsics.from_dict(result["camera"]),
-        "pose": Pose.from_dict(result["pose"]), "prior": prior,
-        "metrics": dict(result.get("metrics") or {}), "q": _num(quality.get("Q")),
-        "grade": str(quality.get("grade", "failed")),
-        "hints": list(quality.get("hints") or []), "trials": trials,
-        "timings_s": dict(extra.get("timings_s") or result.get("timings_s") or {}),
-        "best_trial": result.get("best_trial"),
-        "assumptions": [str(a) for a in extra.get("assumptions") or []]}
-    if "uncertainty" in {f.name for f in fields(Registration)}:
-        kwargs["uncertainty"] = Uncertainty.from_dict(result.get("uncertainty"))
-    return Registration(**kwargs)
+    reg = registration_from_dict(result, ps.prior, source, trials=trials,
+                                 assumptions=extra.get("assumptions") or [],
+                                 timings_s=extra.get("timings_s"))
+    if not reg.photo:
+        reg.photo = ps.name
+    return reg
 
 
 def _photo_doc(ps: PhotoState, folder: Path, has_matches: bool) -> dict:
@@ -2144,7 +2107,7 @@ def _read_photo(folder: Path, entry: dict, inline: dict | None,
     history = _history_from_dict(state.get("history") or {}, prior.pose)
     trials = []
     for k, rec in enumerate(trial_dicts):
-        trial = _trial_from_dict(rec["trial"], source, prior.pose, _correspondences_of(matches, k))
+        trial = trial_from_dict(rec["trial"], source, prior.pose, _correspondences_of(matches, k))
         trials.append(TrialRecord(trial, int(rec.get("run", 0)), str(rec.get("kind", "Run"))))
     ps = PhotoState(photo=photo, prior=prior, record_path=record, intrinsics=intrinsics,
                     history=history, trials=trials, runs=int(state.get("runs", 0)))

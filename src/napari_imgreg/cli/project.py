@@ -16,7 +16,6 @@ from pathlib import Path
 
 from ._common import EXIT_OK, load_scene, refuse_overwriting_inputs
 from ..errors import InputError, input_error
-from ..geo import Georef
 from ..io.records import read_json
 from ..prior import load_camera_and_pose
 from ..scene import Scene
@@ -82,10 +81,7 @@ def _load_surface(mesh: str, georef: str | None, dem: str | None) -> Scene:
     if not path.exists():
         raise input_error(path, "no such file")
     if path.suffix.lower() in _DEM_SUFFIXES:
-        g = Georef.load(georef) if georef else None
-        if g is None and (path.parent / "georef.json").exists():
-            g = Georef.load(path.parent / "georef.json")
-        return Scene.from_dem(path, georef=g)
+        return Scene.from_dem(path, georef=georef or None)  # else the georef.json beside it
     return load_scene(path, georef, dem)
 
 

@@ -37,10 +37,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="Register PHOTO to MESH from its sensor prior: render, match, solve the pose, "
         "score it, adapt and retry. Exit 0 when registered, 1 when it failed its quality bar.",
     )
-    p.add_argument("mesh", metavar="MESH")
+    p.add_argument("mesh", metavar="MESH", help="the model: a mesh (OBJ+MTL+image, PLY, "
+                   "GLB/GLTF) or a lidar point cloud (LAS/LAZ, E57, PTS/XYZ, PLY)")
     p.add_argument("photo", metavar="PHOTO", help="JPEG, PNG, TIFF or HEIC/HEIF")
     p.add_argument("--prior", metavar="PHOTO.json",
-                   help="sensor record (default: the .json beside the photo, then EXIF/XMP)")
+                   help="sensor record (default: the .json beside the photo, then EXIF/XMP), "
+                        "or an earlier RESULT.json of the photo to start from its pose")
     p.add_argument("--dem", help="DEM GeoTIFF or .asc")
     p.add_argument("--georef", help="georef.json (default: the one beside MESH, if any)")
     p.add_argument("--params", metavar="PARAMS.json", help="registration parameters (any subset)")

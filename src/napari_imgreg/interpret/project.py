@@ -42,7 +42,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from ..camera import Intrinsics, Pose
+from ..camera import Intrinsics, Pose, as_points
 from ..scene import Scene
 from ..errors import InputError
 from .on_cloud import (
@@ -181,7 +181,7 @@ class Interpretation:
     def __post_init__(self) -> None:
         if self.geometry not in ("LineString", "Polygon"):
             raise ValueError(f"geometry must be LineString or Polygon, not {self.geometry!r}")
-        px = np.asarray(self.pixels, np.float64).reshape(-1, 2)
+        px = as_points(self.pixels, 2, "pixels of a drawing")
         if self.geometry == "Polygon" and len(px) > 1 and np.array_equal(px[0], px[-1]):
             px = px[:-1]
         self.pixels = px

@@ -26,15 +26,20 @@ __all__ = ["Photo", "load_photo", "PHOTO_SUFFIXES", "save_image"]
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", *HEIF_SUFFIXES)
 
 
-@dataclass
+@dataclass(repr=False)
 class Photo:
     """A photograph as an RGB array with its metadata.
+
+    ``Photo(image)`` wraps an image already in memory (no EXIF, no sensor
+    record beside it: pass the prior).
 
     Attributes
     ----------
     image : (H, W, 3) uint8 array
         RGB, row 0 at the top, EXIF orientation already applied (HEIC/HEIF:
-        the file's rotation, which the decoder applies).
+        the file's rotation, which the decoder applies). A grey (H, W) or an
+        RGBA (H, W, 4) uint8 array is taken as RGB; any other shape or type
+        is refused (:class:`~napari_imgreg.errors.InputError`).
     exif : dict
         EXIF tags by name (``FocalLength``, ``Model``, ...), GPS tags under
         ``"GPSInfo"`` as a dict by name.
@@ -44,6 +49,30 @@ class Photo:
     image: np.ndarray
     exif: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None
+
+    def __post_init__(self) -> None:
+        image = self.image
+        where = self.path if self.path is not None else "photo"
+        if not isinstance(image, np.ndarray):
+            raise input_error(where, f"the image must be a numpy array, not "
+                              f"{type(image).__name__}")
+        if image.dtype != np.uint8:
+            raise input_error(where, f"the image must be 8-bit (uint8, 0–255), not {image.dtype}"
+                              " (e.g. (image * 255).round().astype(np.uint8) for 0–1 floats)")
+        if image.ndim == 2:
+            image = np.repeat(image[..., None], 3, axis=2)
+        elif image.ndim == 3 and image.shape[2] == 4:
+            image = image[..., :3]
+        if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) < 1:
+            raise input_error(where, f"the image must be (H, W, 3) RGB, got shape "
+                              f"{self.image.shape}")
+        self.image = np.ascontiguousarray(image)
+        if self.path is not None:
+            self.path = Path(self.path)
+
+    def __repr__(self) -> str:
+        name = self.path.name if self.path is not None else "in memory"
+        return f"Photo({name!r}, {self.size[0]}×{self.size[1]}, {len(self.exif)} EXIF tags)"
 
     @property
     def size(self) -> tuple[int, int]:

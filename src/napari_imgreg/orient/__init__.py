@@ -53,6 +53,7 @@ works, with a DeprecationWarning).
 
 from __future__ import annotations
 
+import inspect
 import sys
 import types
 
@@ -158,4 +159,11 @@ class _OrientPackage(types.ModuleType):
         return orient(*args, **kwargs)
 
 
+# help(napari_imgreg.orient) and a notebook's ``?`` show the function's parameters.
+_signature = inspect.signature(orient)
+_OrientPackage.__call__.__signature__ = _signature.replace(parameters=[
+    inspect.Parameter("self", inspect.Parameter.POSITIONAL_ONLY),
+    *_signature.parameters.values()])
+__doc__ = __doc__ + "\n\nCalled as a function, this package is :func:`orient`:\n\n" + (
+    inspect.cleandoc(orient.__doc__ or ""))
 sys.modules[__name__].__class__ = _OrientPackage

@@ -284,8 +284,8 @@ class OrientationResult:
 
 # -------------------------------------------------------------- pipeline
 def orient(
-    estimated: OrientationTable | PairedOrientations,
-    measured: OrientationTable | None = None,
+    estimated: OrientationTable | PairedOrientations | str | os.PathLike,
+    measured: OrientationTable | str | os.PathLike | None = None,
     method: str = "robust",
     weights: Mapping[str, float] | None = None,
     center: np.ndarray | str | None = None,
@@ -296,10 +296,11 @@ def orient(
 
     Parameters
     ----------
-    estimated : OrientationTable or PairedOrientations
+    estimated : OrientationTable, PairedOrientations or path
         The model's camera orientations (its frame), or tables already
-        paired by :func:`~napari_imgreg.io.orientation_tables.pair_tables`.
-    measured : OrientationTable
+        paired by :func:`~napari_imgreg.io.orientation_tables.pair_tables`;
+        a path is read by ``read_orientation_table`` (any supported format).
+    measured : OrientationTable or path
         The phone's (true north); omit when ``estimated`` is paired.
     method : {"robust", "lsq", "paper"}
         Estimator whose rotation is the result (all three are reported).
@@ -327,6 +328,10 @@ def orient(
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if isinstance(estimated, (str, os.PathLike)):
+        estimated = read_orientation_table(estimated)
+    if isinstance(measured, (str, os.PathLike)):
+        measured = read_orientation_table(measured)
     if isinstance(estimated, PairedOrientations):
         paired = estimated
         inputs: dict[str, Any] = {}

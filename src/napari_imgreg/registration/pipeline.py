@@ -106,7 +106,12 @@ class Progress:
 
 @dataclass
 class Registration:
-    """The outcome of registering one photo (RESULT.json, contract §4)."""
+    """The outcome of registering one photo (RESULT.json, contract §4).
+
+    :meth:`to_dict` is its RESULT.json;
+    :func:`~napari_imgreg.registration.result_file.load_registration` (also
+    ``napari_imgreg.load_registration``) reads one back.
+    """
 
     status: str
     photo: str
@@ -123,6 +128,13 @@ class Registration:
     assumptions: list[str] = field(default_factory=list)
     #: The best trial's expected error (RESULT.json ``uncertainty``), None when not estimated.
     uncertainty: Uncertainty | None = None
+
+    def __repr__(self) -> str:
+        # Short: a notebook prints it (every trial's parameters would be ~20 000 characters).
+        error = ("" if self.uncertainty is None
+                 else f", ±{self.uncertainty.reprojection_px:.2f} px")
+        return (f"Registration({self.photo!r}, {self.status}, {self.grade}, Q={self.q:+.2f}"
+                f"{error}, {len(self.trials)} trial(s))")
 
     @property
     def registered(self) -> bool:
