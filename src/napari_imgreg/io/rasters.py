@@ -211,6 +211,13 @@ def read_geotiff(path: str | os.PathLike[str]) -> GeoRaster:
             if cells > MAX_RASTER_CELLS:
                 raise _TooLarge(f"{page.imagewidth}×{page.imagelength} cells is more than "
                                 f"{MAX_RASTER_CELLS:,} (a corrupt header, or a DEM to tile)")
+            # tifffile allocates what the strips or tiles declare: a corrupt
+            # byte count asked for gigabytes of a file of a few hundred bytes.
+            size = p.stat().st_size
+            if any(int(o) + int(n) > size
+                   for o, n in zip(page.dataoffsets, page.databytecounts)):
+                raise _TooLarge("its image data runs past the end of the file "
+                                "(truncated or corrupt)")
             tags = {t.code: t.value for t in page.tags}
             data = np.asarray(page.asarray())
             spp = int(page.samplesperpixel)
