@@ -65,6 +65,9 @@ def stand_in_register(scene, image, prior, params=None, photo_name="", on_progre
         stall.write_text(str(os.getpid()))
         while True:
             time.sleep(0.05)
+    if photo_name == os.environ.get("NAPARI_IMGREG_TEST_SLOW"):
+        stall.write_text(str(os.getpid()))
+        time.sleep(4.0)  # still running when the command is interrupted
     time.sleep(0.2)
     return pipeline.Registration(
         status="registered", photo=photo_name, intrinsics=prior.intrinsics, pose=prior.pose,
@@ -282,6 +285,99 @@ def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in,
         if row["result"]:
             strict_load((out / row["result"]).read_text())
     assert "--skip-existing" in stdout
+
+
+def _fresh_workers(cluster) -> None:
+    """New worker processes: a photo stalled forever by an earlier test holds its
+    worker's thread, and the scheduler would queue the next photos behind it."""
+    _, client = cluster
+    client.restart()
+
+
+def test_a_photo_running_on_a_scheduler_at_an_interrupt_writes_no_result_after_it(
+        scene, cluster, stand_in, tmp_path):
+    """Cancelling does not stop a photo already running on an existing
+    scheduler's worker: it must not write its result after the summary."""
+    _fresh_workers(cluster)
+    address, marks, _ = stand_in(slow="IMG_0002.jpg")
+    out = tmp_path / "results"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(SIGTERM_RUNNER), "batch", str(scene), "--out",
+         str(out), "--scheduler", address],
+        env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    marker = marks / "started-IMG_0002.jpg"
+    t0 = time.monotonic()
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() - t0 < 90, "the batch never reached the slow photo"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 143, stderr
+    time.sleep(5.0)  # the slow photo has finished on its worker by now
+    summary = strict_load((out / "summary.json").read_text())
+    listed = {r["result"] for r in summary["photos"] if r["result"]}
+    on_disk = {p.name for p in out.glob("*.result.json")}
+    assert "IMG_0002.result.json" not in on_disk
+    assert on_disk == listed
+
+
+def test_relative_paths_reach_the_workers_of_a_scheduler_as_absolute(
+        scene, cluster, stand_in, tmp_path, monkeypatch):
+    """The workers of an existing scheduler run in their own working folder:
+    the command's relative scene folder and results folder must not reach
+    them as they were typed."""
+    _fresh_workers(cluster)
+    address, _, _ = stand_in()
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    shutil.copytree(scene, work / "scene")
+    monkeypatch.chdir(work)  # the workers stay in the folder pytest started in
+    code, stdout, stderr = _run(["batch", "scene", "--out", "results", "--scheduler", address])
+    assert code == 2, stdout + stderr  # the two corrupt photos
+    summary = strict_load((work / "results" / "summary.json").read_text())
+    assert summary["counts"]["registered"] == 5
+    assert len(list((work / "results").glob("*.result.json"))) == 5
+    assert Path(summary["scene"]).is_absolute()
+
+
+def test_a_server_that_is_not_a_scheduler_is_one_line_not_a_hang(tmp_path):
+    """The dashboard's web port (silent until asked) and an SSH port (its banner
+    first) are easy mistakes for the scheduler's address."""
+    import socket
+
+    from napari_imgreg.errors import InputError
+
+    def serve(banner: bytes | None):
+        server = socket.socket()
+        server.bind(("127.0.0.1", 0))
+        server.listen(4)
+
+        def loop():
+            kept = []
+            while True:
+                try:
+                    conn, _ = server.accept()
+                except OSError:
+                    return
+                if banner is not None:
+                    conn.sendall(banner)
+                kept.append(conn)  # open and silent, as a web server waiting for a request
+
+        threading.Thread(target=loop, daemon=True).start()
+        return server, f"tcp://127.0.0.1:{server.getsockname()[1]}"
+
+    for banner, words in ((None, "not as a Dask scheduler within 2 s"),
+                          (b"SSH-2.0-OpenSSH_9.6\r\n" * 4, "speaks another protocol")):
+        server, address = serve(banner)
+        cluster = backend.ClusterParams(scheduler=address, connect_timeout_s=1)
+        t0 = time.monotonic()
+        with pytest.raises(InputError) as exc, backend.PhotoRunner(cluster, 3):
+            pass
+        server.close()
+        assert time.monotonic() - t0 < 15
+        assert words in str(exc.value) and "\n" not in str(exc.value)
 
 
 def test_ctrl_c_to_the_process_group_is_one_line_not_worker_tracebacks(scene, tmp_path):

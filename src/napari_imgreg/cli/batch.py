@@ -198,7 +198,7 @@ def _resolve(path: str, folder: Path) -> Path:
     p = Path(path)
     if not p.exists() and not p.is_absolute() and (folder / p).exists():
         return folder / p
-    return p
+    return p.absolute()  # as the scene folder: the workers may run elsewhere
 
 
 def _textures_named_by(mesh_files: list[Path], folder: Path) -> dict[str, str]:
@@ -285,7 +285,7 @@ def find_scene_files(
         No such folder, no mesh or several (without ``mesh``), several DEMs
         (without ``dem``), a given file missing, or no photos.
     """
-    folder = Path(folder)
+    folder = Path(folder).absolute()  # the workers' own working folder may differ
     if not folder.exists():
         raise input_error(folder, "no such folder")
     if not folder.is_dir():
@@ -471,11 +471,17 @@ def run(args: argparse.Namespace) -> int:
     from ..registration.batch import SceneSpec
 
     t_start = time.perf_counter()
-    out = Path(args.out)
+    # Absolute: the workers of an existing scheduler resolve a relative path
+    # in their own working folder, not the one this command was run in.
+    out = Path(args.out).absolute()
     if out.exists() and not out.is_dir():
         raise input_error(out, "exists and is not a folder")
     check_writable(out, folder=True)  # before the scene loads: read-only, /proc, inside a file
     cluster = cluster_params(args)
+    if cluster.scheduler:
+        from ..registration.batch import _scheduler_address
+
+        _scheduler_address(cluster.scheduler)  # a missing or bad scheduler file: before the scene
     # Everything about the scene is checked here, before anything is written
     # (and the mesh cache the workers load from is made once).
     files = find_scene_files(args.scene_dir, args.mesh, args.dem, args.georef)
@@ -501,6 +507,7 @@ def run(args: argparse.Namespace) -> int:
     if not cluster.in_process:
         scene = None  # each worker loads its own; this process only collects
 
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     names = _result_names(files.photos)
     earlier = _result_stamps(out, names)
@@ -527,6 +534,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         return _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
                            t_start, earlier)
+    except InputError:
+        # No scheduler answers (nothing was registered): no empty results folder left behind.
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
     except _Terminated:
         return EXIT_TERMINATED
     finally:
@@ -584,6 +596,7 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
                   (spec, str(p), str(out / names[p]), params, show)) for p in todo]
         with backend.PhotoRunner(cluster, len(todo)) as runner:
             if todo:
+                runner.wait_for_workers(lambda message: say(message, flush=True))
                 header["cluster"] = runner.description
                 where = "in this process" if cluster.in_process else f"on the {runner.description}"
                 say(f"registering {len(todo)} photo(s) {where}", flush=True)

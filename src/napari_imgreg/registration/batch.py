@@ -228,6 +228,35 @@ def _write_json(path: Path, data: Any) -> None:
         fh.write(text)
 
 
+#: The stop event of the batch run whose task runs in this thread (see :func:`_run_task`).
+_RUN_STOP = threading.local()
+
+
+def _run_task(stop_name: str, fn: Callable, *args: Any) -> Any:
+    """Run a batch task on a worker, where :func:`stop_requested` can see its run's
+    stop event (set when the command is interrupted: a remote cluster does not
+    stop the photos it is running)."""
+    _RUN_STOP.name = stop_name
+    try:
+        return fn(*args)
+    finally:
+        _RUN_STOP.name = None
+
+
+def stop_requested() -> bool:
+    """Whether the batch run of the task in this thread was interrupted (False
+    outside a Dask task, or when the scheduler cannot be asked)."""
+    name = getattr(_RUN_STOP, "name", None)
+    if not name:
+        return False
+    try:
+        from distributed import Event
+
+        return bool(Event(name).is_set())
+    except Exception:  # noqa: BLE001 - no scheduler to ask: write, as without the check
+        return False
+
+
 def register_photo_file(
     scene_spec: SceneSpec,
     photo_path: str,
@@ -279,6 +308,11 @@ def register_photo_file(
                 "error": f"{photo_path_}: {type(exc).__name__}: {_one_line(exc)}",
                 "seconds": time.perf_counter() - t0}
     result = reg.to_dict()
+    if stop_requested():
+        # The batch was interrupted while this photo ran on a cluster that goes
+        # on: the summary has been written without it, so the folder must be too.
+        return {"photo": name, "status": "error", "error": "interrupted: result not written",
+                "seconds": time.perf_counter() - t0}
     _write_json(Path(result_path), result)
     return {"photo": name, "status": reg.status, "error": "", "result": result,
             "hints": list(reg.hints), "assumptions": list(reg.assumptions),
@@ -444,6 +478,7 @@ class PhotoRunner:
         self._local = None
         self._saved_env: dict[str, str | None] = {}
         self.description = "in this process"
+        self.scheduler_address: str | None = None
 
     # -- lifetime
     def __enter__(self) -> PhotoRunner:
@@ -468,16 +503,9 @@ class PhotoRunner:
             address = self.cluster.scheduler
             timeout = f"{self.cluster.connect_timeout_s}s"
             target = _scheduler_address(address)
-            try:
-                self.client = Client(target, timeout=timeout)
-            except (OSError, ValueError, TypeError, KeyError) as exc:  # refused, timed out, bad
-                raise input_error(address, f"no Dask scheduler answers there "
-                                           f"({type(exc).__name__}: {_one_line(exc)})") from None
-            info = self.client.scheduler_info()
-            workers = info.get("workers", {})
-            threads = sum(w.get("nthreads", 0) for w in workers.values())
-            self.description = (f"scheduler {address}: {len(workers)} worker(s), "
-                                f"{threads} thread(s)")
+            self.client = _connect(Client, target, address, self.cluster.connect_timeout_s)
+            self.scheduler_address = target
+            self.description = self.describe_scheduler()
         else:
             from distributed import LocalCluster
 
@@ -521,7 +549,7 @@ class PhotoRunner:
                     dashboard_address=":0",
                     # The workers' own log lines (a task cancelled at Ctrl-C, a
                     # restart): the command reports each photo in its own words.
-                    silence_logs=logging.ERROR,
+                    silence_logs=logging.CRITICAL,
                 )
             self.client = Client(self._local)
             kind = "process(es)" if self.cluster.processes else "thread(s) of this process"
@@ -555,6 +583,29 @@ class PhotoRunner:
                 os.environ[name] = value
         self._saved_env = {}
 
+    def describe_scheduler(self) -> str:
+        """The existing scheduler's address (read from its file) and its workers now."""
+        info = self.client.scheduler_info()
+        workers = info.get("workers", {})
+        threads = sum(w.get("nthreads", 0) for w in workers.values())
+        given = self.cluster.scheduler
+        source = "" if given == self.scheduler_address else f" (from {given})"
+        return (f"scheduler {self.scheduler_address}{source}: {len(workers)} worker(s), "
+                f"{threads} thread(s)")
+
+    def wait_for_workers(self, report: Callable[[str], None] | None = None) -> None:
+        """On an existing scheduler with no workers yet (a cluster job still
+        queued), say so and wait for the first to join; then describe it anew."""
+        if self.client is None or self._local is not None:
+            return
+        if sum(self.client.nthreads().values()) > 0:
+            return
+        if report is not None:
+            report("the scheduler has no workers yet: waiting for the first to join "
+                   "(Ctrl-C stops)")
+        self.client.wait_for_workers(1)
+        self.description = self.describe_scheduler()
+
     def worker_pids(self) -> dict[str, int]:
         """Worker address -> process id (local clusters and benchmarks)."""
         if self.client is None:
@@ -585,6 +636,7 @@ class PhotoRunner:
         # (workers join, leave). The photos of a dead worker go to a busy one,
         # though, which then holds two: hence the solo retry below.
         run_id = f"{os.getpid()}-{time.time_ns()}"
+        stop_name = f"napari-imgreg-stop-{run_id}"
         pending = iter(enumerate(tasks))
         futures: dict[Any, tuple[str, tuple[str, Callable, tuple]]] = {}
         beside: dict[Any, set[Any]] = {}  # the futures each one was ever in flight with
@@ -594,7 +646,11 @@ class PhotoRunner:
             tag, fn, args = task
             # The key names the photo for the dashboard and the scheduler's log.
             key = f"napari-imgreg-photo-{Path(tag).name}-{number}-{run_id}"
-            future = self.client.submit(fn, *args, key=key, pure=False, retries=0)
+            if self._local is None:  # an existing scheduler's workers go on after us
+                future = self.client.submit(_run_task, stop_name, fn, *args, key=key,
+                                            pure=False, retries=0)
+            else:  # a local cluster is closed (its photos stopped) before the folder is read
+                future = self.client.submit(fn, *args, key=key, pure=False, retries=0)
             beside[future] = set(futures)
             for other in futures:
                 beside[other].add(future)
@@ -641,6 +697,12 @@ class PhotoRunner:
         finally:
             if futures and self.client is not None:
                 try:
+                    # Cancelling does not stop a photo already running: tell it
+                    # not to write its result after the summary.
+                    if self._local is None:
+                        from distributed import Event
+
+                        Event(stop_name, client=self.client).set()
                     self.client.cancel(list(futures))
                 except Exception:  # noqa: BLE001 - the cluster may be going down
                     pass
@@ -748,9 +810,49 @@ def _interrupt_kept_from_workers() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+def _connect(client_class, target: str, given: str, timeout_s: float):
+    """A Client of the scheduler at ``target``, or one line naming what answers there.
+
+    Dask's own timeout covers the connection, not its handshake: a server that
+    is not a scheduler (the dashboard's web port, an SSH port) kept the command
+    waiting forever or failed deep in Dask's framing (a 2.8 EiB allocation).
+    The connection runs in a thread with a deadline instead.
+    """
+    outcome: dict = {}
+
+    def connect() -> None:
+        try:
+            outcome["client"] = client_class(target, timeout=f"{timeout_s}s")
+        except BaseException as exc:  # noqa: BLE001 (reported below, in one line)
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=connect, name="imgreg-connect", daemon=True)
+    thread.start()
+    deadline_s = timeout_s + min(10.0, timeout_s)  # a scheduler's handshake takes milliseconds
+    thread.join(deadline_s)
+    if thread.is_alive():
+        raise input_error(given, f"something answers there but not as a Dask scheduler within "
+                                 f"{deadline_s:g} s (a web server? the dashboard is usually "
+                                 "port 8787, the scheduler 8786)")
+    error = outcome.get("error")
+    if isinstance(error, (OSError, TimeoutError)):  # refused, unreachable, timed out
+        raise input_error(given, f"no Dask scheduler answers there "
+                                 f"({type(error).__name__}: {_one_line(error)})") from None
+    if isinstance(error, MemoryError):  # Dask read another protocol's bytes as a frame size
+        raise input_error(given, "not a Dask scheduler: what answers there speaks another "
+                                 "protocol (an SSH or web port?)") from None
+    if error is not None:  # a bad address, or a server speaking another protocol
+        raise input_error(given, f"not a Dask scheduler address, or not a Dask scheduler "
+                                 f"answering there ({type(error).__name__}: "
+                                 f"{_one_line(error)})") from None
+    return outcome["client"]
+
+
 def _quiet_distributed() -> None:
     """Dask's own warnings (a worker restarted, a slow event loop) are not the
     user's business: the command reports what happened to each photo."""
     for name in ("distributed", "distributed.nanny", "distributed.scheduler",
                  "distributed.worker", "distributed.core", "distributed.comm"):
-        logging.getLogger(name).setLevel(logging.ERROR)
+        # CRITICAL: Dask logs a task given up after workers died at ERROR, beside
+        # the command's own line for that photo.
+        logging.getLogger(name).setLevel(logging.CRITICAL)
