@@ -47,7 +47,8 @@ __all__ = ["RENDER_DETAILS", "CloudLevelOfDetail", "CloudParams", "CloudRayHits"
 
 log = logging.getLogger(__name__)
 
-_CACHE_VERSION = 1
+#: Bumped when a cache's contents change (2: normals stored as float32, not float16).
+_CACHE_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -645,10 +646,12 @@ class CloudScene:
 
         try:
             with atomic_path(path) as tmp:
-                # float16 normals: 0.03° is far below the PCA's own noise.
+                # As computed (float32): float16 normals (0.03° off) once moved a
+                # registration by 0.5 m, so a run with the cache differed from the
+                # first run without it. A cache must cost only time.
                 np.savez(tmp, fingerprint=np.array(self._fingerprint()),
-                         normals=self._normals.astype(np.float16), spacing=self._spacing,
-                         surface_variation=self._surface_variation.astype(np.float16))
+                         normals=self._normals.astype(np.float32), spacing=self._spacing,
+                         surface_variation=self._surface_variation.astype(np.float32))
         except OSError as exc:  # a read-only folder: compute again next time
             log.info("%s: normals cache not written (%s)", path, exc)
 

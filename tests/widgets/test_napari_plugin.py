@@ -63,6 +63,21 @@ def test_reader_only_claims_meshes(tmp_path):
     assert kwargs["texcoords"].shape == (4, 2)
 
 
+@pytest.mark.parametrize("suffix", [".laz", ".e57", ".xyz"])
+def test_reader_opens_a_lidar_scan_as_points(tmp_path, suffix):
+    """napari.yaml lists the point-cloud formats: the reader must claim them."""
+    from napari_imgreg.io.pointclouds import PointCloud, write_point_cloud
+
+    rng = np.random.default_rng(2)
+    xyz = np.column_stack([rng.uniform(0, 20, 5000), np.zeros(5000), rng.uniform(0, 10, 5000)])
+    path = write_point_cloud(tmp_path / f"scan{suffix}",
+                             PointCloud(xyz, intensity=rng.random(5000).astype(np.float32)))
+    reader = get_reader(str(path))
+    assert callable(reader)
+    (data, kwargs, kind), = reader(str(path))
+    assert kind == "points" and len(data) == 5000
+
+
 def test_opened_mesh_is_displayed_unmirrored(make_napari_viewer, tmp_path):
     """Seen from the south, looking north with z up, the red quadrant must be at
     the top left, exactly where our own renderer puts it."""

@@ -42,7 +42,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("result", metavar="RESULT.json",
                    help="registration result (a sensor record works too: its prior pose)")
     p.add_argument("mesh", metavar="MESH",
-                   help="OBJ+MTL+image, PLY, GLB/GLTF, or a DEM (.tif/.asc) as the surface")
+                   help="the model: a mesh (OBJ+MTL+image, PLY, GLB/GLTF), a lidar point "
+                   "cloud (LAS/LAZ, E57, PTS/XYZ) or a DEM (.tif/.asc) as the surface")
     p.add_argument("lines", metavar="LINES.geojson", help="interpretations drawn on the photo")
     p.add_argument("--also", nargs=2, action="append", default=[],
                    metavar=("RESULT.json", "LINES.geojson"),

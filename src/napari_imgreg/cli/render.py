@@ -40,7 +40,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "PRIOR_OR_RESULT.json: a sensor record (docs/formats.md §3) or a registration result "
         "(§4).",
     )
-    p.add_argument("mesh", metavar="MESH", help="OBJ+MTL+image, PLY or GLB/GLTF")
+    p.add_argument("mesh", metavar="MESH", help="the model: a mesh (OBJ+MTL+image, PLY, "
+                   "GLB/GLTF) or a lidar point cloud (LAS/LAZ, E57, PTS/XYZ, PLY)")
     p.add_argument("pose_file", metavar="PRIOR_OR_RESULT.json")
     p.add_argument("--out", required=True, metavar="RENDER.png", help="colour image to write")
     p.add_argument("--depth", metavar="DEPTH.npy", help="also write z-depth (metres, NaN = no hit)")
@@ -109,4 +110,7 @@ def run(args: argparse.Namespace) -> int:
         + (f", depth -> {args.depth}" if args.depth else "")
         + (f", xyz -> {args.xyz}" if args.xyz else "")
     )
+    if result.coverage == 0:
+        print("  warning: nothing of the model is in view: is the pose in the model's frame "
+              "(the georef.json beside the model) and facing it?")
     return EXIT_OK

@@ -127,8 +127,12 @@ def load_mesh(path: str | os.PathLike, cache: bool = True) -> MeshData:
     if path.is_dir():
         raise input_error(path, "is a folder, not a mesh file")
     if path.suffix.lower() not in MESH_SUFFIXES:
+        from .pointclouds import POINT_CLOUD_SUFFIXES
+
+        clouds = [s for s in POINT_CLOUD_SUFFIXES if s not in MESH_SUFFIXES]
         raise input_error(
-            path, f"not a mesh format (expected one of {', '.join(MESH_SUFFIXES)})"
+            path, f"not a model format (a mesh: {', '.join(MESH_SUFFIXES)}; a point cloud: "
+                  f"{', '.join(clouds)})"
         )
     use_cache = cache and path.stat().st_size >= _CACHE_MIN_BYTES and mesh_cache_limit_bytes() > 0
     key = _cache_key(path) if use_cache else None

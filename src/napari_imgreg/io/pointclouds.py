@@ -299,12 +299,45 @@ def read_point_cloud(
     }[suffix]
     try:
         cloud = reader(path, p, georef)
+        if (p.voxel_m is None and p.max_points is not None and cloud.voxel_m is not None
+                and len(cloud) < _REREAD_BELOW * p.max_points):
+            # The voxel measured on the first points kept far fewer than the cap
+            # (points not in scan order: the first ones are a thin sample of the
+            # whole surface): read again on the voxel the kept count calls for,
+            # still capped. The count saturates at the file's points as the voxel
+            # shrinks, as N (1 - exp(-a / voxel²)) does: a (the surface's area per
+            # point) from the kept count, then the voxel for 97 % of the cap.
+            n_file, first = cloud.n_points_file, len(cloud)
+            voxel = _finer_voxel(cloud.voxel_m, first, n_file, p.max_points)
+            if voxel is not None:
+                cloud = reader(path, replace(p, voxel_m=voxel), georef)
+                cloud.notes.append(f"read twice: the first voxel kept only {_count(first)} "
+                                   "points (the file's points are not in scan order)")
     except OSError as exc:  # permissions, a disk error, a file vanishing mid-read
         raise input_error(path, f"cannot read ({exc.strerror or _why(exc)})") from None
     except MemoryError:
         raise input_error(path, "does not fit in memory: lower max_points or give voxel_m") from None
     cloud.source = path
     return cloud
+
+
+#: A decimated cloud keeping fewer than this share of the cap is read again on a finer voxel.
+_REREAD_BELOW = 0.75
+
+
+def _finer_voxel(voxel: float, kept: int, n_file: int, cap: int) -> float | None:
+    """The voxel that keeps about 97 % of ``cap`` of a file's ``n_file`` points,
+    given that ``voxel`` kept ``kept``; None when there is none to find (a
+    degenerate cloud: everything kept already, or a voxel out of range)."""
+    wanted = min(0.97 * cap, 0.99 * n_file)
+    if not (0 < kept < wanted < n_file) or not (math.isfinite(voxel) and voxel > 0):
+        return None
+    try:
+        area = -math.log(1.0 - kept / n_file) * voxel**2
+        finer = math.sqrt(area / -math.log(1.0 - wanted / n_file))
+    except (OverflowError, ValueError, ZeroDivisionError):
+        return None
+    return finer if math.isfinite(finer) and 0 < finer < voxel else None
 
 
 # -- intensity, colour, CRS --------------------------------------------------
@@ -411,12 +444,21 @@ def _apply_crs_rule(
     return origin
 
 
-def _map_like_note(lo: np.ndarray, hi: np.ndarray, notes: list[str]) -> None:
+def _map_like_note(lo: np.ndarray, hi: np.ndarray, notes: list[str], crs=None) -> None:
     reach = float(np.maximum(np.abs(lo), np.abs(hi)).max())
     if reach > 100_000:
+        centre = np.round((np.asarray(lo) + np.asarray(hi)) / 2.0, -2)
+        if crs is not None and getattr(crs, "is_projected", False):
+            # The file says everything a georef.json needs: say what to write.
+            code = crs.to_epsg()
+            name = f"EPSG:{code}" if code else "<its CRS>"
+            fix = (f"write a georef.json beside it, e.g. {{\"crs\": \"{name}\", \"origin\": "
+                   f"[{centre[0]:.0f}, {centre[1]:.0f}, 0]}}")
+        else:
+            fix = "subtract georef.json's origin, or give the file a matching CRS record"
         notes.append(
             f"coordinates reach {reach:,.0f} m from 0: they look like map coordinates but are used as the "
-            "model frame (subtract georef.json's origin, or give the file a matching CRS record)"
+            f"model frame, where a camera is unlikely to see them ({fix})"
         )
 
 
@@ -446,7 +488,8 @@ class _Accumulator:
         self.cap = p.max_points
         self.has_i, self.has_rgb = has_intensity, has_rgb
         self.lo = np.asarray(lo, dtype=np.float64)
-        extent = np.maximum(np.asarray(hi, dtype=np.float64) - self.lo, 0.0)
+        self.hi = np.asarray(hi, dtype=np.float64)
+        extent = np.maximum(self.hi - self.lo, 0.0)
         self.min_voxel = max(float(extent.max()) / _KEY_SPAN, 1e-6)
         self.voxel: float | None = None
         self.decimating = p.voxel_m is not None or (self.cap is not None and self.n_total > self.cap)
@@ -472,6 +515,8 @@ class _Accumulator:
         step scales the voxel by ``sqrt(share / target)``."""
         target = self.cap / self.n_total
         sample = xyz[:300_000]
+        if len(sample) < self.n_total and self._spans_the_file(sample):
+            return self._estimate_voxel_from_spread(sample)
         origin = sample.min(axis=0)
 
         def share(voxel: float) -> float:
@@ -490,6 +535,46 @@ class _Accumulator:
                 break
             voxel = max(voxel * min(4.0, max(0.25, math.sqrt(got / aim))), self.min_voxel)
         return voxel
+
+    def _spans_the_file(self, sample: np.ndarray) -> bool:
+        """Whether the first points are spread over the whole file (a shuffled,
+        thinned or merged export), not a contiguous patch of a scan: their box
+        covers at least 80 % of the header's along every axis the file spans."""
+        extent = self.hi - self.lo
+        spread = sample.max(axis=0) - sample.min(axis=0)
+        axes = extent > 1e-6
+        return bool(axes.any() and (spread[axes] >= 0.8 * extent[axes]).all())
+
+    def _estimate_voxel_from_spread(self, sample: np.ndarray) -> float:
+        """The voxel that keeps about ``0.97 cap`` voxels of the whole file, from
+        first points spread over it (a sample of every part at a lower density).
+
+        The sample's occupied voxels are counted where it is dense enough to
+        fill them (about 8 and 32 points per voxel); their ratio gives the
+        surface's dimension D (2 for a plane, more for rough rock), and the
+        whole file's count at a finer voxel follows ``count ∝ voxel^-D``.
+        (The patch estimate would take the sample's low density for the file's
+        and keep ~14× too few points of a shuffled 12 M scan.)
+        """
+        origin = sample.min(axis=0)
+
+        def count(voxel: float) -> int:
+            cells = np.floor((sample - origin) / voxel).astype(np.int64)
+            span = cells.max(axis=0) + 1
+            return len(np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]))
+
+        ex = np.sort(np.maximum(sample.max(axis=0) - origin, 1e-3))
+        v1 = math.sqrt(ex[1] * ex[2] * 8.0 / len(sample))  # ~8 sample points per voxel
+        for _ in range(8):  # coarser until the voxels hold ~8 points each
+            c1 = count(v1)
+            if len(sample) / c1 >= 8.0:
+                break
+            v1 *= 1.4
+        c2 = count(2.0 * v1)
+        dim = min(3.0, max(1.5, math.log2(c1 / max(c2, 1))))
+        aim = 0.97 * self.cap
+        voxel = v1 * (c1 / aim) ** (1.0 / dim) if c1 < aim else v1
+        return max(voxel, self.min_voxel)
 
     def add(self, xyz: np.ndarray, inten: np.ndarray | None, rgb: np.ndarray | None) -> None:
         n = len(xyz)
@@ -605,7 +690,7 @@ def _finish_cloud(
     if origin is not None:
         xyz -= origin
     else:
-        _map_like_note(lo, hi, notes)
+        _map_like_note(lo, hi, notes, crs)
     return PointCloud(
         xyz=xyz, intensity=intensity, rgb=rgb,
         crs_wkt=None if crs is None else crs.to_wkt(),
@@ -891,6 +976,11 @@ def _read_e57_scans(path: Path, p: PointCloudParams, georef, notes: list[str], p
         if 0 < with_rgb < n_scans:
             notes.append(f"colour in {with_rgb} of {n_scans} scans only: no colour used")
         for index in range(n_scans):
+            if e57.get_header(index).point_count == 0:
+                # libE57 fails on an empty scan's binary section: skip it, and an
+                # all-empty file is refused below as one with no points.
+                notes.append(f"scan {index + 1} of {n_scans} holds no points: skipped")
+                continue
             try:
                 data = e57.read_scan(index, intensity=any_i, colors=any_rgb, transform=True,
                                      ignore_missing_fields=True)
@@ -918,11 +1008,11 @@ def _read_e57_scans(path: Path, p: PointCloudParams, georef, notes: list[str], p
         raise input_error(path, f"cannot read E57 points ({_why(exc)}; truncated or corrupt?)") from None
     finally:
         e57.close()
-    if n_scans > 1:
-        notes.append(f"{n_scans} scans merged, each moved by its own pose")
+    if len(scans) > 1:
+        notes.append(f"{len(scans)} scans merged, each moved by its own pose")
     xyz = np.concatenate([s[0] for s in scans]) if scans else np.empty((0, 3))
-    inten = np.concatenate([s[1] for s in scans]) if any_i else None
-    rgb = np.concatenate([s[2] for s in scans]) if any_rgb else None
+    inten = np.concatenate([s[1] for s in scans]) if any_i and scans else None
+    rgb = np.concatenate([s[2] for s in scans]) if any_rgb and scans else None
     del scans
     crs = None
     if crs_text.strip():

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 
 from ..io.meshes import MESH_SUFFIXES
+from ..io.pointclouds import POINT_CLOUD_SUFFIXES
 
 __all__ = ["PLUGIN_NAME", "WORKSPACE_PATTERN", "prefer_imgreg_reader",
            "prefer_workspace_reader"]
@@ -20,7 +21,10 @@ log = logging.getLogger(__name__)
 #: The plugin's npe2 name (napari.yaml ``name``), as reader preferences store it.
 PLUGIN_NAME = "napari-imgreg"
 
-_READABLE = tuple(s for s in MESH_SUFFIXES if s in (".obj", ".ply", ".glb", ".gltf"))
+#: What the plugin's reader opens: meshes, and lidar point clouds (napari.yaml lists both).
+_READABLE = tuple(dict.fromkeys(
+    [s for s in MESH_SUFFIXES if s in (".obj", ".ply", ".glb", ".gltf")]
+    + list(POINT_CLOUD_SUFFIXES)))
 
 
 def _competing_readers(suffix: str) -> set[str]:
