@@ -195,6 +195,9 @@ def evaluate(scene, photo_path: Path, method: str, tmp: Path) -> dict | None:
                           if reg.best_trial is not None and registered and reg.trials else None),
         "uncertainty_px": (None if reg.uncertainty is None
                            else reg.uncertainty.to_dict().get("reprojection_px")),
+        # The whole estimate: its metres and degrees are what the sigmas of
+        # projected lines are drawn from.
+        "uncertainty": None if reg.uncertainty is None else reg.uncertainty.to_dict(),
         "hints": list(reg.hints),
         "trials": [{"origin": t.origin, "render_mode": t.render_mode, "verified": t.verified,
                     "grade": t.grade, "feature_inliers": t.metrics.get("feature_inliers"),
