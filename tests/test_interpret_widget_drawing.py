@@ -166,3 +166,19 @@ def test_in_the_workbench_while_drawing(make_napari_viewer, qtbot):
     assert [i.label for i in ws.current.interpretations] == ["sandstone"]
     shapes.mode = "pan_zoom"
     assert all(ctrl.layers.get(k).visible for k in keys)
+
+
+def test_drawings_left_out_of_a_projection_are_named(viewer):
+    """Lines on a photo without a registration are not projected, and the
+    projection says which photo's were left out (never silently)."""
+    w = InterpretWidget(viewer)
+    w.photo_combo.setCurrentText("my own image")
+    layer = w.new_interpretation_layer()
+    layer.add(napari_from_pixels(np.array([[10.0, 10.0], [40.0, 30.0]])), shape_type="path")
+    w.photo_combo.setCurrentText("IMG_0001")
+    drawn = w.new_interpretation_layer()
+    drawn.add(napari_from_pixels(np.array([[10.0, 10.0], [40.0, 30.0]])), shape_type="path")
+    jobs = w._jobs()
+    assert len(jobs) == 1  # IMG_0001's
+    assert len(w.projection_warnings) == 1
+    assert w.projection_warnings[0].startswith("my own image: 1 drawing(s) not projected")

@@ -478,7 +478,9 @@ def test_a_shapefile_leaves_text_it_cannot_hold_empty_and_says_so(tmp_path, proj
     features = [replace(features[0], properties={**features[0].properties,
                                                  "comment": long_note}), *features[1:]]
     notes = export_features(tmp_path / "l.shp", features, GEOREF)
-    assert len(notes) == 1 and "traces: comment of 1 feature(s)" in notes[0]
+    # The trace's note, and its measurement's (the measurements carry it too).
+    assert len(notes) == 2 and "traces: comment of 1 feature(s)" in notes[0]
+    assert "measurements: comment of 1 feature(s)" in notes[1]
     _, data, _ = read_gis_layers(tmp_path / "l.shp")["traces"]
     assert data["comment"][0] is None
     for text in data["uncertaint"]:
@@ -486,3 +488,24 @@ def test_a_shapefile_leaves_text_it_cannot_hold_empty_and_says_so(tmp_path, proj
     assert export_features(tmp_path / "l.gpkg", features, GEOREF) == []
     _, data, _ = read_gis_layers(tmp_path / "l.gpkg")["traces"]
     assert data["comment"][0] == long_note
+
+
+def test_the_drawings_note_and_units_reach_the_measurements(projected, tmp_path):
+    """A note and the units above and below, set on a drawing, are in its
+    MEASUREMENTS.csv row (and so the GIS measurements layer)."""
+    from dataclasses import replace
+
+    from napari_imgreg.interpret.project import measure_features
+
+    *_, features = projected
+    first = replace(features[0], properties={**features[0].properties, "comment": "offset 2 m",
+                                             "above": "Unit B", "below": "Unit A"})
+    measurements = measure_features([first, *features[1:]])
+    path = tmp_path / "m.csv"
+    write_measurements_csv(path, measurements)
+    import csv
+
+    rows = list(csv.DictReader(path.open(encoding="utf-8")))
+    assert (rows[0]["comment"], rows[0]["above"], rows[0]["below"]) == (
+        "offset 2 m", "Unit B", "Unit A")
+    assert rows[1]["comment"] == ""

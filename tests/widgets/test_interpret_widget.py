@@ -127,9 +127,15 @@ def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path):
     m = widget.measurements[0]
     if m.dip_deg is None:  # a trace in the viewing plane: no made-up dip (issue 14)
         assert widget.table.item(0, 3).text() == "" and m.note.startswith("no plane")
+        assert widget.table.item(0, 10).toolTip() == m.note  # "why no plane", whole
         assert m.plunge_deg is not None
     else:
-        assert float(widget.table.item(0, 3).text()) == pytest.approx(12.0, abs=1.0)
+        dip, sigma = widget.table.item(0, 3).text().split(" ± ")  # each angle with its 1σ
+        assert float(dip) == pytest.approx(12.0, abs=1.0)
+        assert float(sigma) == pytest.approx(m.dip_sigma_deg, abs=0.05)
+    plunge_cell = widget.table.item(0, 5).text()
+    assert " ± " in plunge_cell and float(plunge_cell.split(" ± ")[0]) == pytest.approx(
+        m.plunge_deg, abs=0.05)
     assert widget.figure.axes and widget.figure.axes[0].lines
 
     # Save / load pixel GeoJSON and exports.
@@ -237,10 +243,28 @@ def test_snapped_line_from_two_clicks_follows_the_contact(widget, sample, qtbot)
     assert [len(d) for d in shapes.data][1] == 2
 
 
+def test_choosing_the_next_label_does_not_relabel_the_line_just_drawn(widget):
+    """napari leaves a drawn line selected: choosing the label of the next line
+    while drawing must not relabel it; with the select tool it relabels."""
+    shapes = widget.new_interpretation_layer()
+    assert shapes.mode == "add_polyline"
+    widget.label_combo.setCurrentText("sandstone")
+    shapes.add(napari_from_pixels(np.array([[100.0, 100.0], [200.0, 120.0]])), shape_type="path")
+    shapes.selected_data = {0}  # as napari leaves it after the double-click
+    widget.label_combo.setCurrentText("mudstone")
+    shapes.add(napari_from_pixels(np.array([[100.0, 300.0], [200.0, 320.0]])), shape_type="path")
+    assert [i.label for i in interpretations_from_shapes(shapes)] == ["sandstone", "mudstone"]
+    shapes.mode = "select"
+    shapes.selected_data = {0}
+    widget.label_combo.setCurrentText("fault")
+    assert [i.label for i in interpretations_from_shapes(shapes)] == ["fault", "mudstone"]
+
+
 def test_note_and_units_per_feature_reach_the_geojson(widget, tmp_path):
     shapes = widget.new_interpretation_layer()
     shapes.add(napari_from_pixels(np.array([[100.0, 100.0], [200.0, 120.0]])), shape_type="path")
     shapes.add(napari_from_pixels(np.array([[100.0, 300.0], [200.0, 320.0]])), shape_type="path")
+    shapes.mode = "select"  # relabelling is done with the select tool
     shapes.selected_data = {1}
     widget.label_combo.setCurrentText("fault")
     assert widget.set_selected_text(comment="offset 2 m", above="Unit B", below="Unit A") == 1
@@ -249,12 +273,41 @@ def test_note_and_units_per_feature_reach_the_geojson(widget, tmp_path):
     assert items[1].label == "fault"
     assert (items[1].properties["comment"], items[1].properties["above"],
             items[1].properties["below"]) == ("offset 2 m", "Unit B", "Unit A")
+    # Selecting one shape shows its note and units; an emptied box clears one.
+    shapes.selected_data = {0}
+    assert widget.comment_edit.text() == ""
+    shapes.selected_data = {1}
+    assert (widget.comment_edit.text(), widget.above_edit.text()) == ("offset 2 m", "Unit B")
+    widget.comment_edit.setText("")
+    assert widget.set_selected_text() == 1
+    assert interpretations_from_shapes(shapes)[1].properties.get("comment") in (None, "")
+    assert interpretations_from_shapes(shapes)[1].properties["above"] == "Unit B"
+    widget.comment_edit.setText("offset 2 m")
+    widget.set_selected_text()
     path = tmp_path / "lines.geojson"
     widget.save_geojson(path)
     widget.viewer.layers.remove(shapes)
     loaded = widget.load_geojson(path)
     assert list(loaded.features["unit_above"]) == ["", "Unit B"]
     assert list(loaded.features["comment"]) == ["", "offset 2 m"]
+    # A contact name (the same on every photo it is drawn on) and the id a
+    # loaded drawing came with travel to the GeoJSON and back.
+    loaded.mode = "select"
+    loaded.selected_data = {1}
+    assert widget.set_selected_text(loaded, contact="K7") == 1
+    assert interpretations_from_shapes(loaded)[1].properties["contact"] == "K7"
+    from napari_imgreg.interpret.files import read_interpretations, write_interpretations
+
+    with_id = tmp_path / "with_id.geojson"
+    items = interpretations_from_shapes(loaded)
+    items[0].properties["id"] = "c2"
+    write_interpretations(with_id, items)
+    again = widget.load_geojson(with_id)
+    widget.save_geojson(tmp_path / "again.geojson", widget.photo_layer)
+    back = read_interpretations(tmp_path / "again.geojson")
+    # (loaded onto the layer, after the shapes already there)
+    assert back[-2].properties["id"] == "c2" and back[-1].properties["contact"] == "K7"
+    assert again is not None
 
 
 def test_plane_from_three_points_is_still_importable_from_the_widget():

@@ -316,6 +316,17 @@ def test_a_shortcut_nudges_the_pose_and_another_undoes_it(workbench, qtbot):
     qtbot.keyClick(canvas, Qt.Key.Key_Return, Qt.KeyboardModifier.ShiftModifier)  # accept
     assert ctrl.workspace.photos[1].accepted and ctrl.current.name == "IMG_0003.jpg"
     _idle(wb, qtbot)
+    # While a drawing layer is selected, the pose keys do not move the camera
+    # under the lines (Shift+Z is the drawing's undo to the hand).
+    from napari_imgreg.widgets._layers import INTERPRETATION_OF
+
+    drawing = wb.viewer.add_shapes(name="drawings", metadata={INTERPRETATION_OF: "IMG_0003"})
+    wb.viewer.layers.selection.active = drawing
+    before = ctrl.current.pose
+    qtbot.keyClick(canvas, Qt.Key.Key_Right, Qt.KeyboardModifier.ShiftModifier)
+    qtbot.keyClick(canvas, Qt.Key.Key_Z, Qt.KeyboardModifier.ShiftModifier)
+    assert ctrl.current.pose is before
+    _idle(wb, qtbot)
 
 
 # ------------------------------------------------- parameters and loading

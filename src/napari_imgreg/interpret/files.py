@@ -73,7 +73,7 @@ MEASUREMENT_COLUMNS = (
     "id", "label", "kind", "x", "y", "z", "n_points", "dip_deg", "dip_direction_deg",
     "plunge_deg", "trend_deg", "rms_m", "planarity", "collinearity", "source", "note",
     "dip_sigma_deg", "dip_direction_sigma_deg", "plunge_sigma_deg", "trend_sigma_deg", "photo",
-    "view_spread", "ray_angle_deg",
+    "view_spread", "ray_angle_deg", "comment", "above", "below",
 )
 EXPORT_SUFFIXES = (".geojson", ".json", ".csv", ".obj", ".ply", ".gpkg", ".shp")
 #: The layers of a GeoPackage (a shapefile set: ``OUT.shp`` holds the traces,
@@ -860,4 +860,5 @@ def write_measurements_csv(path: str | os.PathLike, measurements: Sequence[Measu
                 _cell(m.dip_sigma_deg, 3), _cell(m.dip_direction_sigma_deg, 3),
                 _cell(m.plunge_sigma_deg, 3), _cell(m.trend_sigma_deg, 3), m.photo,
                 _cell(m.view_spread, 2), _cell(m.ray_angle_deg, 2),
+                m.comment, m.above, m.below,
             ])

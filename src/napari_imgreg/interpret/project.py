@@ -294,6 +294,10 @@ class Feature3D:
                 thresholds, [model] if model is not None else None, uncertainty,
             )
         m.color = color
+        # The geologist's own words travel with the numbers (the CSV, the GIS layer).
+        m.comment = str(self.properties.get("comment") or "")
+        m.above = str(self.properties.get("above") or "")
+        m.below = str(self.properties.get("below") or "")
         return m
 
 

@@ -535,6 +535,9 @@ class Measurement:
         determined from ``min_view_spread``, default 0.75).
     ray_angle_deg : float or None
         Traces: angle between the fitted plane and the viewing rays.
+    comment, above, below : str
+        The drawing's own note and the units above and below the contact
+        (its ``properties.comment``, ``above``, ``below``).
     """
 
     id: str
@@ -559,6 +562,9 @@ class Measurement:
     photo: str = ""
     view_spread: float | None = None
     ray_angle_deg: float | None = None
+    comment: str = ""
+    above: str = ""
+    below: str = ""
 
     @property
     def has_plane(self) -> bool:

@@ -81,6 +81,17 @@ SHORTCUTS: tuple[Shortcut, ...] = (
 )
 
 _BY_NAME = {s.name: s for s in SHORTCUTS}
+#: The shortcuts that move the current camera (nudges, undo, redo).
+_POSE_EDITS = {s.name for s in SHORTCUTS if s.name not in (
+    "run", "auto", "accept", "next", "previous", "attention")}
+
+
+def _drawing(viewer) -> bool:
+    """The active layer is a photo's drawings (its keys are the drawing's)."""
+    from ._layers import INTERPRETATION_OF
+
+    layer = viewer.layers.selection.active
+    return layer is not None and INTERPRETATION_OF in getattr(layer, "metadata", {})
 
 
 def key_of(name: str) -> str:
@@ -109,8 +120,19 @@ def install(viewer: napari.viewer.Viewer, workbench: Workbench) -> list[str]:
     taken = []
     for shortcut in SHORTCUTS:
         def press(_viewer, shortcut=shortcut):
-            if not workbench.controller.closed:
-                shortcut.action(workbench)
+            if workbench.controller.closed:
+                return
+            if shortcut.name in _POSE_EDITS and _drawing(viewer):
+                # Shift+Z while drawing is a drawing undo to the hand, not a
+                # registration undone under the lines (the camera moved metres).
+                from napari.utils.notifications import show_info
+
+                message = (f"{shortcut.key} ({shortcut.text}) moves the camera: not applied "
+                           "while a drawing layer is selected (select the photo layer first)")
+                workbench.controller.status.emit(message)
+                show_info(message)
+                return
+            shortcut.action(workbench)
 
         press.__doc__ = f"napari-imgreg: {shortcut.text}"
         try:

@@ -99,19 +99,30 @@ _GEOJSON_FILTER = "GeoJSON (*.geojson *.json);;All files (*)"
 _EXPORT_FILTER = ("3D GeoJSON (*.geojson);;GeoPackage (*.gpkg);;3D shapefile (*.shp);;"
                   "CSV vertices (*.csv);;OBJ polylines (*.obj);;PLY polylines (*.ply)")
 #: Per-shape text carried into the GeoJSON properties (feature column: property).
-_TEXT_FEATURES = {"comment": "comment", "unit_above": "above", "unit_below": "below"}
+_TEXT_FEATURES = {"comment": "comment", "unit_above": "above", "unit_below": "below",
+                  # the contact a trace belongs to (the same on each photo it is drawn on:
+                  # measured together), and an id the drawing came with (kept as it is)
+                  "contact": "contact", "drawing_id": "id"}
+#: The boxes of the form, by feature column.
+_EDITABLE_TEXT = ("comment", "unit_above", "unit_below", "contact")
 #: napari's click-per-vertex line tool (napari >= 0.6; "add_path" is freehand there).
 _LINE_MODE = "add_polyline"
 _DRAW_HINT = ("click each vertex, double-click (or Enter) to finish the line; "
               "the polygon tool for facets")
 _SNAP_HINT = ("click the start, any waypoints and the end of the contact, double-click (or "
               "Enter) on the end: the line snaps to the contact")
+_THREE_POINT_HINT = ("click three points on the bed surface, double-click (or Enter) on the "
+                     "third: the plane through them")
 _LINE_TYPES = ("path", "line")
 _POLYGON_TYPES = ("polygon", "rectangle", "ellipse")
 #: Status text colour of errors and warnings.
 _WARNING_COLOR = "#e65100"
+#: The measurements table: angles with their 1σ (as the CSV's σ columns), then why a
+#: trace has no plane (the CSV's ``note``) and the geologist's own note.
 _TABLE_COLUMNS = ("id", "label", "kind", "dip", "dip dir.", "plunge", "trend", "rms (m)",
-                  "planarity", "source", "note")
+                  "planarity", "photo", "why no plane", "note")
+#: The widest the "why no plane" column is drawn (its whole text is the tooltip).
+_WHY_WIDTH_PX = 220
 
 
 
@@ -304,8 +315,15 @@ class InterpretWidget(QWidget):
         self.above_edit.setPlaceholderText("unit above")
         self.below_edit = QLineEdit()
         self.below_edit.setPlaceholderText("unit below")
+        self.contact_edit = QLineEdit()
+        self.contact_edit.setPlaceholderText("e.g. K7")
+        self.contact_edit.setToolTip(
+            "The contact this trace is of: the same name on the traces of one contact drawn "
+            "on several photos measures them together (a contact:<name> row), where together "
+            "they define its plane")
         apply_text = QPushButton("Set on selected")
-        apply_text.setToolTip("Label, note and units of the selected shapes (select tool)")
+        apply_text.setToolTip("Label, note, units and contact of the selected shapes "
+                              "(select tool)")
         load_button = QPushButton("Load GeoJSON…")
         save_button = QPushButton("Save GeoJSON…")
         self.project_button = QPushButton("Project onto the model")
@@ -323,7 +341,7 @@ class InterpretWidget(QWidget):
         form.addRow("Snap cost", self.cost_combo)
         form.addRow("Note", self.comment_edit)
         form.addRow("Units", _row(self.above_edit, self.below_edit))
-        form.addRow("", apply_text)
+        form.addRow("Contact", _row(self.contact_edit, apply_text, stretch=(1, 0)))
         io_row = QHBoxLayout()
         io_row.addWidget(load_button)
         io_row.addWidget(save_button)
@@ -331,6 +349,8 @@ class InterpretWidget(QWidget):
         # ---- results
         self.status_label = QLabel("Choose a registered photo and draw on it.")
         self.status_label.setWordWrap(True)
+        #: Photos the last projection left out or projected from an unverified pose.
+        self.projection_warnings: list[str] = []
         self.table = QTableWidget(0, len(_TABLE_COLUMNS))
         self.table.setHorizontalHeaderLabels(list(_TABLE_COLUMNS))
         self.table.verticalHeader().setVisible(False)
@@ -380,6 +400,7 @@ class InterpretWidget(QWidget):
         add_label.clicked.connect(self._add_label_clicked)
         apply_text.clicked.connect(lambda: self.set_selected_text())
         self.snap_check.toggled.connect(self._snap_toggled)
+        self.three_point_check.toggled.connect(self._snap_toggled)
         self.label_combo.currentTextChanged.connect(self._label_changed)
         load_button.clicked.connect(self._load_dialog)
         save_button.clicked.connect(self._save_dialog)
@@ -469,8 +490,7 @@ class InterpretWidget(QWidget):
         self._draw_mode(layer)
         layer.mode = _LINE_MODE
         self.status_label.setText(
-            f"Drawing {self.current_label!r} on {photo_layer.name}: "
-            + (_SNAP_HINT if self.snap_check.isChecked() else _DRAW_HINT) + ".")
+            f"Drawing {self.current_label!r} on {photo_layer.name}: {self._drawing_hint()}.")
         self.status_label.setStyleSheet("")
         return layer
 
@@ -496,6 +516,8 @@ class InterpretWidget(QWidget):
         layer.events.data.connect(lambda event, layer=layer: self._shapes_edited(event, layer))
         layer.events.mode.connect(self._update_drawing)
         layer.events.visible.connect(self._update_drawing)
+        layer.selected_data.events.items_changed.connect(
+            lambda *_, layer=layer: self._show_selected_text(layer))
         # napari calls it with the layer itself, not the proxy a plugin holds:
         # the flag is keyed by the object the data handler above sees.
         layer.mouse_drag_callbacks.append(
@@ -646,6 +668,11 @@ class InterpretWidget(QWidget):
             QTimer.singleShot(0, lambda: self.snap_shape(layer, index))
         if action in (ActionType.ADDED, ActionType.REMOVED, ActionType.CHANGED):
             self._keep_in_workspace(layer)
+            if self.features:  # what the table and the exports show is of the old lines
+                self.status_label.setText(
+                    "Drawings changed since the last projection: the table, stereonet and "
+                    "exports are of the earlier lines until you Project again.")
+                self.status_label.setStyleSheet(f"color: {_WARNING_COLOR};")
 
     def snap_params(self) -> SnapParams:
         """The snapping settings the widget uses (the chosen cost, defaults otherwise)."""
@@ -679,8 +706,8 @@ class InterpretWidget(QWidget):
         self._keep_in_workspace(layer)
         self.status_label.setText(
             f"Snapped: {len(clicks)} clicks -> {len(px)} vertices along the contact "
-            f"({self.snap_params().cost}). Edit it with the vertex tools, or undo with "
-            "the delete tool and draw again.")
+            f"({self.snap_params().cost}). Edit it with the vertex tools, or remove it "
+            "(select tool, then Delete) and click again.")
         self.status_label.setStyleSheet("")
         return True
 
@@ -741,36 +768,67 @@ class InterpretWidget(QWidget):
                 m.dip_deg, m.dip_direction_deg = plane
                 m.note = "3-point plane (no uncertainty propagated)"
 
-    def _snap_toggled(self, on: bool) -> None:
+    def _drawing_hint(self) -> str:
+        """What the next clicks make: a 3-point plane wins over snapping."""
+        if self.three_point_check.isChecked():
+            return _THREE_POINT_HINT + (" (Snap to contact is off while 3-point plane is on)"
+                                        if self.snap_check.isChecked() else "")
+        return _SNAP_HINT if self.snap_check.isChecked() else _DRAW_HINT
+
+    def _snap_toggled(self, on: bool = False) -> None:
         layer = self.interpretation_layer()
         if layer is not None:
             layer.mode = _LINE_MODE
-        self.status_label.setText(_SNAP_HINT + "." if on else "Drawing: " + _DRAW_HINT + ".")
+        self.status_label.setText(f"Drawing {self.current_label!r}: {self._drawing_hint()}.")
+        self.status_label.setStyleSheet("")
+
+    def _show_selected_text(self, layer) -> None:
+        """One shape selected (select tool): its note and units in the boxes, to
+        read or edit; otherwise the boxes are cleared (for several shapes,
+        what is typed is set on all of them)."""
+        if str(layer.mode) not in ("select", "direct"):
+            return
+        values = ("",) * len(_EDITABLE_TEXT)
+        if len(layer.selected_data) == 1:
+            k = next(iter(layer.selected_data))
+            row = layer.features.iloc[k] if k < len(layer.features) else {}
+            values = tuple(str(row.get(col, "") or "") for col in _EDITABLE_TEXT)
+        for edit, value in zip(self._text_edits(), values):
+            edit.setText(value)
+
+    def _text_edits(self) -> tuple:
+        """The boxes of :data:`_EDITABLE_TEXT`, in its order."""
+        return (self.comment_edit, self.above_edit, self.below_edit, self.contact_edit)
 
     def set_selected_text(self, layer=None, comment: str | None = None,
-                          above: str | None = None, below: str | None = None) -> int:
+                          above: str | None = None, below: str | None = None,
+                          contact: str | None = None) -> int:
         """Set the note and the units above/below (and the chosen label) on the
-        selected shapes; empty fields leave a value as it is. Returns the count."""
+        selected shapes. On one shape the boxes are its values (an emptied box
+        clears one); on several, an empty box leaves each shape's value as it
+        is. Returns the count."""
         layer = layer or self.interpretation_layer()
         if layer is None or not layer.selected_data:
             self._fail("Select shapes first (select tool), then set their label and notes.")
             return 0
         values = {"comment": self.comment_edit.text() if comment is None else comment,
                   "unit_above": self.above_edit.text() if above is None else above,
-                  "unit_below": self.below_edit.text() if below is None else below}
+                  "unit_below": self.below_edit.text() if below is None else below,
+                  "contact": self.contact_edit.text() if contact is None else contact}
         features = layer.features.copy()
         for col in _TEXT_FEATURES:
             if col not in features:
                 features[col] = ""
+        single = len(layer.selected_data) == 1
         for k in layer.selected_data:
             for col, value in values.items():
-                if value.strip():
+                if value.strip() or single:
                     features.loc[k, col] = value.strip()
         layer.features = features
         self._reset_defaults(layer)
         self._keep_in_workspace(layer)
         n = len(layer.selected_data)
-        self.status_label.setText(f"Set note/units on {n} shape(s).")
+        self.status_label.setText(f"Set note, units and contact on {n} shape(s).")
         self.status_label.setStyleSheet("")
         return n
 
@@ -870,8 +928,10 @@ class InterpretWidget(QWidget):
         # napari wants a default for every feature column (notes/units stay empty).
         layer.feature_defaults = {**{col: "" for col in layer.features.columns}, "label": label}
         layer.current_edge_color = self._labels.get(label, label_color(label))
-        # Recolour the selected shapes as well: changing the label relabels them.
-        if layer.selected_data:
+        # With the select tools, changing the label relabels the selected shapes.
+        # Not while drawing: napari leaves the line just drawn selected, and
+        # choosing the next line's label must not relabel it.
+        if layer.selected_data and str(layer.mode) in ("select", "direct"):
             features = layer.features.copy()
             for k in layer.selected_data:
                 features.loc[k, "label"] = label
@@ -930,20 +990,33 @@ class InterpretWidget(QWidget):
 
     # ---------------------------------------------------------- project
     def _jobs(self) -> list[tuple[Intrinsics, Pose, list[Interpretation], str]]:
+        """What to project, one job per photo with drawings and a camera; the
+        photos left out or projected from an unverified pose are listed in
+        :attr:`projection_warnings` (said, never silently)."""
         jobs = []
+        self.projection_warnings = []
         for layer in list(self.viewer.layers):
             photo_name = layer.metadata.get(INTERP_KEY)
             if photo_name is None or photo_name not in self.viewer.layers:
                 continue
             camera = camera_of_layer(self.viewer.layers[photo_name])
             items = interpretations_from_shapes(layer)
-            if camera is None or not items:
+            if not items:
+                continue
+            if camera is None:
+                self.projection_warnings.append(
+                    f"{photo_name}: {len(items)} drawing(s) not projected (no registration: "
+                    "Attach RESULT.json…)")
                 continue
             intr, pose, source = camera
             photo_layer = self.viewer.layers[photo_name]
             ps = self._photo_state(photo_layer)
             unc = (self.workspace.pose_uncertainty(ps) if ps is not None
                    else pose_uncertainty_of_layer(photo_layer, intr))
+            if ps is not None and self.workspace.photo_status(ps) in ("not registered", "failed"):
+                self.projection_warnings.append(
+                    f"{photo_name}: {self.workspace.photo_status(ps)}: projected from its "
+                    f"prior pose (error ≈ {unc.position_m:.0f} m, {unc.rotation_deg:.0f}°)")
             jobs.append((intr, pose, items, source, unc))
             self._keep_in_workspace(layer)
         return jobs
@@ -959,6 +1032,8 @@ class InterpretWidget(QWidget):
             self._fail("Nothing to project: draw on a photo that has a registration "
                        "(Attach RESULT.json…).")
             return None
+        for warning in self.projection_warnings:
+            _notify(warning, "warning")
         self.project_button.setEnabled(False)
         n = sum(len(j[2]) for j in jobs)
         self.status_label.setText(f"Projecting {n} interpretation(s) from {len(jobs)} photo(s)…")
@@ -1000,8 +1075,10 @@ class InterpretWidget(QWidget):
             f"{len(self.features)} feature(s) on the model as {n_parts} part(s)"
             + (f"; {split} split where they left the surface" if split else "")
             + (f"; {off} off the surface" if off else "")
-            + f". {planes} well-posed plane(s).")
-        self.status_label.setStyleSheet("")
+            + f". {planes} well-posed plane(s)."
+            + "".join(f"<br>⚠ {w}" for w in self.projection_warnings))
+        self.status_label.setStyleSheet(f"color: {_WARNING_COLOR};"
+                                        if self.projection_warnings else "")
         for b in self._result_buttons:
             b.setEnabled(True)
         self.projection_done.emit(self.features)
@@ -1013,9 +1090,10 @@ class InterpretWidget(QWidget):
         by_source: dict[str, list[Feature3D]] = {}
         for f in features:
             by_source.setdefault(f.source, []).append(f)
+        # Every earlier projection goes: a photo whose lines were all deleted
+        # since has no feature now, and its old 3D lines must not stay.
         for layer in [lay for lay in self.viewer.layers if PROJECTED_KEY in lay.metadata]:
-            if layer.metadata[PROJECTED_KEY] in by_source:
-                self.viewer.layers.remove(layer)
+            self.viewer.layers.remove(layer)
         extent = float(np.ptp(surface.vertices, axis=0).max()) if len(surface.vertices) else 100.0
         width = max(extent / 400.0, 0.05)  # visible at the whole-outcrop zoom
         for source, feats in by_source.items():
@@ -1078,17 +1156,29 @@ class InterpretWidget(QWidget):
         def fmt(v: float | None, d: int = 1) -> str:
             return "" if v is None else f"{v:.{d}f}"
 
+        def angle(v: float | None, sigma: float | None) -> str:
+            return fmt(v) + ("" if v is None or sigma is None else f" ± {sigma:.1f}")
+
+        why = _TABLE_COLUMNS.index("why no plane")
         self.table.setRowCount(len(measurements))
         for row, m in enumerate(measurements):
-            cells = [m.id, m.label, m.kind, fmt(m.dip_deg), fmt(m.dip_direction_deg),
-                     fmt(m.plunge_deg), fmt(m.trend_deg), fmt(m.rms_m, 3), fmt(m.planarity, 3),
-                     m.source, m.note]
+            note = " · ".join(t for t in (m.comment, m.above and f"above: {m.above}",
+                                          m.below and f"below: {m.below}") if t)
+            cells = [m.id, m.label, m.kind, angle(m.dip_deg, m.dip_sigma_deg),
+                     angle(m.dip_direction_deg, m.dip_direction_sigma_deg),
+                     angle(m.plunge_deg, m.plunge_sigma_deg),
+                     angle(m.trend_deg, m.trend_sigma_deg), fmt(m.rms_m, 3),
+                     fmt(m.planarity, 3), m.photo or m.source, m.note, note]
             for col, text in enumerate(cells):
                 item = QTableWidgetItem(text)
                 if col == 1:
                     item.setForeground(_qcolor(m.color or label_color(m.label)))
+                if col in (why, why + 1) and text:
+                    item.setToolTip(text)
                 self.table.setItem(row, col, item)
         self.table.resizeColumnsToContents()
+        if self.table.columnWidth(why) > _WHY_WIDTH_PX:
+            self.table.setColumnWidth(why, _WHY_WIDTH_PX)
 
     def draw_stereonet(self) -> None:
         self.figure.clear()
