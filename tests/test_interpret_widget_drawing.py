@@ -182,3 +182,22 @@ def test_drawings_left_out_of_a_projection_are_named(viewer):
     assert len(jobs) == 1  # IMG_0001's
     assert len(w.projection_warnings) == 1
     assert w.projection_warnings[0].startswith("my own image: 1 drawing(s) not projected")
+
+
+def test_a_trace_keeps_its_id_when_another_is_deleted(viewer):
+    w = InterpretWidget(viewer)
+    w.photo_combo.setCurrentText("IMG_0001")
+    layer = w.new_interpretation_layer()
+    for y in (10.0, 20.0, 30.0):
+        layer.add(napari_from_pixels(np.array([[10.0, y], [40.0, y + 5]])), shape_type="path")
+    w._jobs()
+    assert list(layer.features["drawing_id"]) == ["IMG_0001:1", "IMG_0001:2", "IMG_0001:3"]
+    layer.selected_data = {1}
+    layer.remove_selected()
+    layer.add(napari_from_pixels(np.array([[10.0, 50.0], [40.0, 55.0]])), shape_type="path")
+    w._jobs()
+    assert list(layer.features["drawing_id"]) == ["IMG_0001:1", "IMG_0001:3", "IMG_0001:4"]
+    from napari_imgreg.widgets.interpret_widget import interpretations_from_shapes
+
+    assert [i.properties["id"] for i in interpretations_from_shapes(layer)] == [
+        "IMG_0001:1", "IMG_0001:3", "IMG_0001:4"]

@@ -1000,6 +1000,7 @@ class InterpretWidget(QWidget):
             if photo_name is None or photo_name not in self.viewer.layers:
                 continue
             camera = camera_of_layer(self.viewer.layers[photo_name])
+            self._assign_ids(layer, photo_name)
             items = interpretations_from_shapes(layer)
             if not items:
                 continue
@@ -1020,6 +1021,30 @@ class InterpretWidget(QWidget):
             jobs.append((intr, pose, items, source, unc))
             self._keep_in_workspace(layer)
         return jobs
+
+    def _assign_ids(self, layer, photo_name: str) -> None:
+        """Give every shape without one a lasting id, ``<photo>:<n>`` with the next
+        free ``n``: a trace keeps its id (in the table, the exports, a notebook)
+        when another is deleted, instead of being renumbered by its position."""
+        features = layer.features
+        if len(features) == 0:
+            return
+        stem = Path(photo_name).stem
+        ids = [str(v or "") for v in features["drawing_id"]] if "drawing_id" in features \
+            else [""] * len(features)
+        if all(ids):
+            return
+        used = [int(i.rsplit(":", 1)[1]) for i in ids
+                if i.startswith(stem + ":") and i.rsplit(":", 1)[1].isdigit()]
+        n = max(used, default=0)
+        for k, value in enumerate(ids):
+            if not value:
+                n += 1
+                ids[k] = f"{stem}:{n}"
+        features = features.copy()
+        features["drawing_id"] = ids
+        layer.features = features
+        self._reset_defaults(layer)  # the next shape must not inherit the last one's id
 
     def project(self):
         """Project every interpretation layer in a napari thread worker; returns it."""
