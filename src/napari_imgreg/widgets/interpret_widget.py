@@ -1109,8 +1109,9 @@ class InterpretWidget(QWidget):
         self.projection_done.emit(self.features)
 
     # ---------------------------------------------------------- display
-    def _show_layers(self, features: list[Feature3D]) -> None:
-        """One 3D Shapes layer of paths per photo (replaced on each projection)."""
+    def _show_layers(self, features: list[Feature3D], replace_all: bool = True) -> None:
+        """One 3D Shapes layer of paths per photo: a projection replaces every
+        earlier one (``replace_all``), else only those of the features' photos."""
         surface = self.viewer.layers[self.surface_combo.currentText()]
         by_source: dict[str, list[Feature3D]] = {}
         for f in features:
@@ -1118,7 +1119,8 @@ class InterpretWidget(QWidget):
         # Every earlier projection goes: a photo whose lines were all deleted
         # since has no feature now, and its old 3D lines must not stay.
         for layer in [lay for lay in self.viewer.layers if PROJECTED_KEY in lay.metadata]:
-            self.viewer.layers.remove(layer)
+            if replace_all or layer.metadata[PROJECTED_KEY] in by_source:
+                self.viewer.layers.remove(layer)
         extent = float(np.ptp(surface.vertices, axis=0).max()) if len(surface.vertices) else 100.0
         width = max(extent / 400.0, 0.05)  # visible at the whole-outcrop zoom
         for source, feats in by_source.items():
@@ -1155,7 +1157,8 @@ class InterpretWidget(QWidget):
                  if PROJECTED_KEY in lay.metadata}
         missing = [f for f in self.features if f.source not in shown]
         if missing and self.surface_combo.currentText() in self.viewer.layers:
-            self._show_layers(missing)  # a projection kept by the workspace, not made here
+            # A projection kept by the workspace, not made here: the photos shown stay.
+            self._show_layers(missing, replace_all=False)
         pts = np.concatenate([f.points for f in feats])
         for layer in self.viewer.layers:
             if INTERP_KEY in layer.metadata or layer in self._photo_layers():
