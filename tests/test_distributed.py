@@ -258,20 +258,27 @@ SIGTERM_RUNNER = """
 """
 
 
-def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in, tmp_path):
-    address, marks, _ = stand_in(stall="IMG_0003.jpg")
-    out = tmp_path / "results"
+def _batch_until_started(scene, out, address, marks, photo) -> subprocess.Popen:
+    """``batch`` on the scheduler in a child process, once ``photo`` has started
+    on a worker (the stand-in marks it)."""
     proc = subprocess.Popen(
         [sys.executable, "-c", textwrap.dedent(SIGTERM_RUNNER), "batch", str(scene), "--out",
          str(out), "--scheduler", address],
         env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
-    marker = marks / "started-IMG_0003.jpg"
+    marker = marks / f"started-{photo}"
     t0 = time.monotonic()
     while not marker.exists():
         assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() - t0 < 90, "the batch never reached the stalled photo"
+        assert time.monotonic() - t0 < 90, f"the batch never reached {photo}"
         time.sleep(0.05)
+    return proc
+
+
+def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in, tmp_path):
+    address, marks, _ = stand_in(stall="IMG_0003.jpg")
+    out = tmp_path / "results"
+    proc = _batch_until_started(scene, out, address, marks, "IMG_0003.jpg")
     time.sleep(1.5)  # the other worker finishes the photos it can
     proc.send_signal(signal.SIGTERM)
     stdout, stderr = proc.communicate(timeout=60)
@@ -301,17 +308,7 @@ def test_a_photo_running_on_a_scheduler_at_an_interrupt_writes_no_result_after_i
     _fresh_workers(cluster)
     address, marks, _ = stand_in(slow="IMG_0002.jpg")
     out = tmp_path / "results"
-    proc = subprocess.Popen(
-        [sys.executable, "-c", textwrap.dedent(SIGTERM_RUNNER), "batch", str(scene), "--out",
-         str(out), "--scheduler", address],
-        env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True)
-    marker = marks / "started-IMG_0002.jpg"
-    t0 = time.monotonic()
-    while not marker.exists():
-        assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() - t0 < 90, "the batch never reached the slow photo"
-        time.sleep(0.05)
+    proc = _batch_until_started(scene, out, address, marks, "IMG_0002.jpg")
     proc.send_signal(signal.SIGTERM)
     _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 143, stderr
