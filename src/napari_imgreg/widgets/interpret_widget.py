@@ -361,6 +361,9 @@ class InterpretWidget(QWidget):
         self.tabs = QTabWidget()
         self.tabs.addTab(self.table, "Measurements")
         self.tabs.addTab(self.canvas, "Stereonet")
+        # The results sit below the drawing controls: bring them into view when
+        # they are asked for (a tab chosen, a projection done).
+        self.tabs.currentChanged.connect(lambda _index: self._scroll_to_results())
 
         self.georef_check = QCheckBox("georeferenced")
         self.georef_check.setToolTip(
@@ -1092,6 +1095,7 @@ class InterpretWidget(QWidget):
         self._show_layers(self.features)
         self._show_table(self.measurements)
         self.draw_stereonet()
+        QTimer.singleShot(0, self._scroll_to_results)
         n_parts = sum(len(f.parts) for f in self.features)
         split = sum(len(f.parts) > 1 for f in self.features)
         off = sum(not f.parts for f in self.features)
@@ -1109,6 +1113,18 @@ class InterpretWidget(QWidget):
         self.projection_done.emit(self.features)
 
     # ---------------------------------------------------------- display
+    def _scroll_to_results(self) -> None:
+        """Scroll the dock (or the workbench tab) that holds this widget to its
+        end, where the measurements and the stereonet are."""
+        from qtpy.QtWidgets import QScrollArea
+
+        area = self.parentWidget()
+        while area is not None and not isinstance(area, QScrollArea):
+            area = area.parentWidget()
+        if area is not None:
+            bar = area.verticalScrollBar()
+            bar.setValue(bar.maximum())
+
     def _show_layers(self, features: list[Feature3D], replace_all: bool = True) -> None:
         """One 3D Shapes layer of paths per photo: a projection replaces every
         earlier one (``replace_all``), else only those of the features' photos."""
