@@ -124,7 +124,8 @@ def drawn_lines(scene: Scene, intr, pose, truth_lines: dict) -> list[tuple[Inter
     for stretch in visible_stretches(scene, intr, pose, truth_lines, MIN_DRAWN_PX):
         k = stretch.truth_index
         item = Interpretation("LineString", stretch.pixels,
-                              {"label": stretch.label, "truth": k, "id": f"contact{k}"})
+                              {"label": stretch.label, "truth": k, "id": f"contact{k}",
+                               "contact": f"contact{k}"})
         item.truth_xyz = stretch.xyz
         out.append((item, k))
     return out

@@ -278,7 +278,7 @@ def test_traces_of_one_contact_on_two_photos_combine_into_a_plane():
         px = _draw(intr, pose, trace)
         px = px[np.isfinite(px).all(axis=1)]
         ends = px[[0, -1]]  # straight on the photo: two clicks
-        drawn = Interpretation("LineString", ends, {"label": "sandstone", "id": "K1"})
+        drawn = Interpretation("LineString", ends, {"label": "sandstone", "contact": "K1"})
         sets.append(project_interpretations(scene, intr, pose, [drawn], source=name))
     merged = merge_interpretations(*sets)
     ms = measure_features(merged)

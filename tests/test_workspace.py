@@ -586,7 +586,7 @@ def test_a_contact_drawn_on_two_photos_gets_its_combined_row(ws):
         ws.record_registration(_recorded_registration(ps), "Auto", ps=ps,
                                pose_if_not_current=True)
         ws.add_interpretation(Interpretation("LineString", pix, {"label": "sandstone",
-                                                                 "id": "c3"}), ps)
+                                                                 "contact": "c3"}), ps)
     ws.project_interpretations()
     ids = [m.id for m in ws.measurements]
     assert "contact:c3" in ids, ids

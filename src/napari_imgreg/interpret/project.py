@@ -273,8 +273,8 @@ class Feature3D:
 
     @property
     def contact(self) -> str:
-        """The contact this trace belongs to: ``properties.contact`` (kept from
-        the drawn feature's ``id``), empty when not given."""
+        """The contact this trace belongs to: ``properties.contact`` of the
+        drawing, empty when not given (an ``id`` is not a contact)."""
         return str(self.properties.get("contact") or "")
 
     def measure(
@@ -706,9 +706,10 @@ def project_interpretations(
         props.setdefault("color", item.color)
         if source:
             props["source"] = source
+        # Only an explicit contact joins traces of several photos: ids are often
+        # a per-file count (line1, line2, ...), and the same id on two photos
+        # would measure unrelated contacts together.
         user_id = props.pop("id", None)
-        if user_id is not None and not props.get("contact"):
-            props["contact"] = str(user_id)
         fid = str(user_id or f"{prefix}:{k + 1}")
         props["camera_position"] = [round(float(v), 4) for v in center]
         on_pts = line.part >= 0
