@@ -463,7 +463,9 @@ def test_cluster_shape_defaults_and_ranges(monkeypatch):
     assert backend.ClusterParams().local_shape(3) == (3, 1)  # never more workers than photos
     assert backend.ClusterParams(threads_per_worker=2).local_shape(100) == (4, 2)
     assert backend.ClusterParams(threads_per_worker=16).local_shape(100) == (1, 16)
-    assert backend.ClusterParams(workers=5).local_shape(2) == (5, 1)  # asked for: as asked
+    # Asked for: as asked, but never more workers than photos (each holds the scene).
+    assert backend.ClusterParams(workers=5).local_shape(2) == (2, 1)
+    assert backend.ClusterParams(workers=5).local_shape(9) == (5, 1)
     assert backend.ClusterParams(workers=0).in_process
     assert not backend.ClusterParams(workers=0, scheduler="tcp://x:8786").in_process
     for bad in ({"workers": -1}, {"threads_per_worker": 0}, {"allowed_failures": 101}):

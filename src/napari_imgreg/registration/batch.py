@@ -151,6 +151,8 @@ class ClusterParams:
         """``(workers, threads_per_worker)`` of the local cluster to start."""
         threads = int(self.threads_per_worker or 1)
         workers = int(self.workers) if self.workers else default_workers(threads, n_tasks)
+        if n_tasks:  # a worker without a photo only holds a copy of the scene
+            workers = min(workers, int(n_tasks))
         return workers, threads
 
 
