@@ -47,7 +47,9 @@ def stand_in_register(scene, image, prior, params=None, photo_name="", on_progre
 
     ``STALL_ONCE``: the first attempt marks itself started (with its pid) and
     waits to be killed; the next attempt registers. ``KILLER``: the worker
-    process dies at once, every time. ``STALL``: waits forever.
+    process dies at once, every time. ``STALL``: waits until the test writes
+    ``release`` beside the marks (a cancelled task's thread cannot be stopped:
+    left waiting, it would hold its worker for the tests after).
     """
     from napari_imgreg.registration import pipeline
 
@@ -59,7 +61,7 @@ def stand_in_register(scene, image, prior, params=None, photo_name="", on_progre
     stall = marks / f"started-{photo_name}"
     if photo_name == os.environ.get("NAPARI_IMGREG_TEST_STALL"):
         stall.write_text(str(os.getpid()))
-        while True:
+        while not (marks / "release").exists():
             time.sleep(0.05)
     if photo_name == os.environ.get("NAPARI_IMGREG_TEST_STALL_ONCE") and not stall.exists():
         stall.write_text(str(os.getpid()))
@@ -281,7 +283,10 @@ def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in,
     proc = _batch_until_started(scene, out, address, marks, "IMG_0003.jpg")
     time.sleep(1.5)  # the other worker finishes the photos it can
     proc.send_signal(signal.SIGTERM)
-    stdout, stderr = proc.communicate(timeout=60)
+    try:
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        (marks / "release").write_text("")  # the stalled photo's worker thread ends
     assert proc.returncode == 143, stderr
     assert "Traceback" not in stderr
     summary = strict_load((out / "summary.json").read_text())
@@ -294,18 +299,10 @@ def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in,
     assert "--skip-existing" in stdout
 
 
-def _fresh_workers(cluster) -> None:
-    """New worker processes: a photo stalled forever by an earlier test holds its
-    worker's thread, and the scheduler would queue the next photos behind it."""
-    _, client = cluster
-    client.restart()
-
-
 def test_a_photo_running_on_a_scheduler_at_an_interrupt_writes_no_result_after_it(
-        scene, cluster, stand_in, tmp_path):
+        scene, stand_in, tmp_path):
     """Cancelling does not stop a photo already running on an existing
     scheduler's worker: it must not write its result after the summary."""
-    _fresh_workers(cluster)
     address, marks, _ = stand_in(slow="IMG_0002.jpg")
     out = tmp_path / "results"
     proc = _batch_until_started(scene, out, address, marks, "IMG_0002.jpg")
@@ -321,11 +318,10 @@ def test_a_photo_running_on_a_scheduler_at_an_interrupt_writes_no_result_after_i
 
 
 def test_relative_paths_reach_the_workers_of_a_scheduler_as_absolute(
-        scene, cluster, stand_in, tmp_path, monkeypatch):
+        scene, stand_in, tmp_path, monkeypatch):
     """The workers of an existing scheduler run in their own working folder:
     the command's relative scene folder and results folder must not reach
     them as they were typed."""
-    _fresh_workers(cluster)
     address, _, _ = stand_in()
     work = tmp_path / "elsewhere"
     work.mkdir()
