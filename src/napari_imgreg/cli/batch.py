@@ -590,6 +590,9 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
             todo.append(photo_path)
 
         show = progress_printer(args.verbose, "      ") if cluster.in_process else None
+        if args.verbose and not cluster.in_process:
+            say("  -v: progress within a photo is shown with --workers 0 only (the photos run "
+                "in other processes here)")
         if scene is not None:
             backend.cached_scene(spec, scene)  # in this process: the scene loaded above
         tasks = [(p.name, backend.register_photo_file,
