@@ -109,13 +109,18 @@ def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path):
     d = cKDTree(dense).query(bed.points)[0]
     assert np.median(d) < 0.03 and np.percentile(d, 95) < 0.1
 
-    # The 3D layer shows it where the mesh is, in napari's (z, x, y) order.
+    # The 3D layer is built for the 3D canvas (not while projecting on the 2D one)
+    # and shows the line where the mesh is, in napari's (z, x, y) order.
+    assert not any(PROJECTED_KEY in lay.metadata for lay in widget.viewer.layers)
+    widget.viewer.dims.ndisplay = 3  # napari's own 3D button builds them too
     layer3d = next(lay for lay in widget.viewer.layers if PROJECTED_KEY in lay.metadata)
+    widget.viewer.dims.ndisplay = 2
+    widget.show_3d()  # the 3D canvas, from the photo's viewpoint, photo layers hidden
+    assert layer3d in widget.viewer.layers  # built once, kept
     assert layer3d.metadata[PROJECTED_KEY] == "IMG_0001.jpg" and layer3d.ndim == 3
     first = world_from_napari(np.asarray(layer3d.data[0]))
     np.testing.assert_allclose(first, bed.parts[0], atol=1e-4)
     assert list(layer3d.features["label"])[0] == "sandstone"
-    widget.show_3d()  # the 3D canvas, from the photo's viewpoint, photo layers hidden
     assert widget.viewer.dims.ndisplay == 3 and layer3d.visible
     assert not widget.photo_layer.visible and not shapes.visible
     layer3d.visible = False  # togglable per photo

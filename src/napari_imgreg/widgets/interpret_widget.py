@@ -879,6 +879,8 @@ class InterpretWidget(QWidget):
         they would float as stray strokes beside the model), shown again as
         they were on returning to 2D. Their 3D projections are other layers."""
         three_d = self.viewer.dims.ndisplay == 3
+        if three_d:
+            self._ensure_3d_layers()  # built when first needed, not at each projection
         for layer in list(self.viewer.layers):
             if INTERP_KEY not in layer.metadata:
                 continue
@@ -1092,7 +1094,12 @@ class InterpretWidget(QWidget):
                 self.workspace.record_projection(self.features, self.measurements)
             finally:
                 self._recording = False
-        self._show_layers(self.features)
+        # The 3D lines (0.5 s of layer building) wait for the 3D canvas: on the 2D
+        # one, where a projection is made, they would only hold up the GUI.
+        if self.viewer.dims.ndisplay == 3:
+            self._show_layers(self.features)
+        else:
+            self._show_layers([])  # the earlier projection's go; these come in 3D
         self._show_table(self.measurements)
         self.draw_stereonet()
         QTimer.singleShot(0, self._scroll_to_results)
@@ -1113,6 +1120,15 @@ class InterpretWidget(QWidget):
         self.projection_done.emit(self.features)
 
     # ---------------------------------------------------------- display
+    def _ensure_3d_layers(self) -> None:
+        """The 3D layers of the projected features whose photo has none yet (a
+        projection made on the 2D canvas, or kept by the workspace)."""
+        shown = {lay.metadata[PROJECTED_KEY] for lay in self.viewer.layers
+                 if PROJECTED_KEY in lay.metadata}
+        missing = [f for f in self.features if f.source not in shown]
+        if missing and self.surface_combo.currentText() in self.viewer.layers:
+            self._show_layers(missing, replace_all=False)
+
     def _scroll_to_results(self) -> None:
         """Scroll the dock (or the workbench tab) that holds this widget to its
         end, where the measurements and the stereonet are."""
@@ -1169,12 +1185,7 @@ class InterpretWidget(QWidget):
         feats = [f for f in self.features if f.parts and (source is None or f.source == source)]
         if not feats:
             return
-        shown = {lay.metadata[PROJECTED_KEY] for lay in self.viewer.layers
-                 if PROJECTED_KEY in lay.metadata}
-        missing = [f for f in self.features if f.source not in shown]
-        if missing and self.surface_combo.currentText() in self.viewer.layers:
-            # A projection kept by the workspace, not made here: the photos shown stay.
-            self._show_layers(missing, replace_all=False)
+        self._ensure_3d_layers()
         pts = np.concatenate([f.points for f in feats])
         for layer in self.viewer.layers:
             if INTERP_KEY in layer.metadata or layer in self._photo_layers():
