@@ -39,7 +39,7 @@ from .interpret.structural import DEFAULT_THRESHOLDS, FitThresholds, Measurement
 from .interpret.uncertainty import DEFAULT_UNCERTAINTY, PoseUncertainty, UncertaintyParams
 from .io.photos import Photo, load_photo
 from .orient import OrientationResult, orient
-from .prior import Prior, load_camera_and_pose, prior_for_photo
+from .prior import Prior, check_photo_size, load_camera_and_pose, prior_for_photo
 from .registration.params import RegistrationParams
 from .registration.pipeline import Progress, Registration
 from .registration.pipeline import register as _register
@@ -53,7 +53,8 @@ PathLike = str | os.PathLike
 def _scene(scene) -> Scene:
     if isinstance(scene, (str, os.PathLike)):
         return Scene.load(scene)
-    if not hasattr(scene, "engine") and not getattr(scene, "is_cloud", False):
+    # By type: asking for ``engine`` would build the ray engine here.
+    if not (isinstance(scene, Scene) or getattr(scene, "is_cloud", False)):
         raise TypeError(f"scene must be a Scene or the path of a model, not "
                         f"{type(scene).__name__}")
     return scene
@@ -126,12 +127,14 @@ def register(
         if prior is None and photo.path is None:
             raise input_error(None, "a photo given as an array needs a prior (a Prior, a "
                               "camera and pose, or a sensor record path)")
-        prior = prior_for_photo(photo, scene, record_path=prior)
+        record = prior
+        prior = prior_for_photo(photo, scene, record_path=record)
+        check_photo_size(photo, prior, record)  # as the command line: naming the record
     elif not isinstance(prior, Prior):
         raise TypeError(f"prior must be a Prior, Registration, (Intrinsics, Pose) or a path, "
                         f"not {type(prior).__name__}")
     check_pose(prior.pose, "prior pose")
-    if photo.size != (prior.intrinsics.width, prior.intrinsics.height):
+    if photo.size != (prior.intrinsics.width, prior.intrinsics.height):  # a camera given
         raise input_error(photo.path, f"the photo is {photo.size[0]}×{photo.size[1]}; its "
                           f"camera is {prior.intrinsics.width}×{prior.intrinsics.height}")
     name = photo.path.name if photo.path is not None else ""

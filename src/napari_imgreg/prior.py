@@ -49,6 +49,7 @@ __all__ = [
     "prior_from_record",
     "prior_for_photo",
     "load_camera_and_pose",
+    "check_photo_size",
     "save_pose_to_record",
 ]
 
@@ -517,6 +518,45 @@ def prior_for_photo(
     prior.assumptions = notes + prior.assumptions
     _attach_sun(prior, record, photo, getattr(scene, "georef", None))
     return prior
+
+
+def check_photo_size(photo: Any, prior: Any, record_path: str | os.PathLike | None = None
+                     ) -> None:
+    """Refuse a photo that the prior's camera does not fit.
+
+    A camera block of another size but the photo's aspect ratio is scaled to
+    the photo (a resized photo) when the prior is made; one of another aspect
+    ratio is left as it is and refused here, before the registration.
+
+    Parameters
+    ----------
+    photo : Photo
+    prior : Prior
+        Made from ``photo`` (:func:`~napari_imgreg.prior.prior_for_photo`).
+    record_path : path-like, optional
+        The sensor record the prior was made from; default: the photo's sidecar.
+
+    Raises
+    ------
+    InputError
+        Naming the record (the photo without one) and quoting the record's own
+        camera size, not the one scaled to the photo's width.
+    """
+    w, h = photo.size
+    camera = (prior.intrinsics.width, prior.intrinsics.height)
+    if (w, h) == camera:
+        return
+    record = Path(record_path) if record_path is not None else photo.sidecar
+    if record is None or not Path(record).exists():
+        raise input_error(photo.path, f"the camera is {camera[0]}×{camera[1]} px but the "
+                                      f"photo is {w}×{h} px")
+    block = read_json(record).get("camera") or {}
+    stated = (block.get("width"), block.get("height"))
+    if None not in stated:
+        camera = stated
+    raise input_error(record, f"the camera is {camera[0]}×{camera[1]} px but the photo is "
+                              f"{w}×{h} px, another aspect ratio (the record of another "
+                              "photo, or a cropped photo?)")
 
 
 def _is_result(data) -> bool:

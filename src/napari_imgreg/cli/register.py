@@ -55,7 +55,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     """Run ``register``: register the photo, write RESULT.json, print a summary."""
     from ..registration import pipeline
-    from ..registration.batch import check_photo_size
+    from ..prior import check_photo_size
 
     photo_path = Path(args.photo)
     if not photo_path.name:

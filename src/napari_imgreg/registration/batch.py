@@ -52,7 +52,7 @@ from .._atomic import atomic_write
 from .._json import dumps as strict_dumps
 from ..errors import InputError, input_error
 from ..io.photos import load_photo
-from ..prior import prior_for_photo
+from ..prior import check_photo_size, prior_for_photo
 from ..scene import Scene
 from . import pipeline
 
@@ -319,47 +319,6 @@ def register_photo_file(
     return {"photo": name, "status": reg.status, "error": "", "result": result,
             "hints": list(reg.hints), "assumptions": list(reg.assumptions),
             "seconds": time.perf_counter() - t0, "scene_load_s": scene_s, "pid": os.getpid()}
-
-
-def check_photo_size(photo: Any, prior: Any, record_path: str | os.PathLike | None = None
-                     ) -> None:
-    """Refuse a photo that the prior's camera does not fit.
-
-    A camera block of another size but the photo's aspect ratio is scaled to
-    the photo (a resized photo) when the prior is made; one of another aspect
-    ratio is left as it is and refused here, before the registration.
-
-    Parameters
-    ----------
-    photo : Photo
-    prior : Prior
-        Made from ``photo`` (:func:`~napari_imgreg.prior.prior_for_photo`).
-    record_path : path-like, optional
-        The sensor record the prior was made from; default: the photo's sidecar.
-
-    Raises
-    ------
-    InputError
-        Naming the record (the photo without one) and quoting the record's own
-        camera size, not the one scaled to the photo's width.
-    """
-    w, h = photo.size
-    camera = (prior.intrinsics.width, prior.intrinsics.height)
-    if (w, h) == camera:
-        return
-    record = Path(record_path) if record_path is not None else photo.sidecar
-    if record is None or not Path(record).exists():
-        raise input_error(photo.path, f"the camera is {camera[0]}×{camera[1]} px but the "
-                                      f"photo is {w}×{h} px")
-    from ..io.records import read_json
-
-    block = read_json(record).get("camera") or {}
-    stated = (block.get("width"), block.get("height"))
-    if None not in stated:
-        camera = stated
-    raise input_error(record, f"the camera is {camera[0]}×{camera[1]} px but the photo is "
-                              f"{w}×{h} px, another aspect ratio (the record of another "
-                              "photo, or a cropped photo?)")
 
 
 def register_prior(scene_spec: SceneSpec, image: Any, prior: Any, params: Any,
