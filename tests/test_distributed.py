@@ -226,7 +226,10 @@ def test_worker_killed_mid_photo_and_corrupt_photos(scene, stand_in, tmp_path):
     (marks / "calls.txt").unlink()
     code, stdout, stderr = _run(["batch", scene, "--out", out, "--scheduler", address,
                                  "--skip-existing"])
-    assert sorted(c[0] for c in _calls(marks)) == ["IMG_0004.jpg", "IMG_0004.jpg"]
+    # Only the killer runs again: twice, or four times when a corrupt photo was in
+    # flight beside it when its worker died (both then retried alone, as above).
+    rerun = [c[0] for c in _calls(marks)]
+    assert set(rerun) == {"IMG_0004.jpg"} and len(rerun) in (2, 4)
     assert stdout.count(": skipped, result exists") == 4
     summary = strict_load((out / "summary.json").read_text())
     assert summary["counts"] == {"registered": 4, "failed": 0, "bad_input": 2, "error": 1,
