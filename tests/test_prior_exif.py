@@ -105,6 +105,17 @@ def utm_local(lat, lon, alt):
     return np.array([e, n, alt]) - ORIGIN
 
 
+def grid_azimuth(lat, lon, true_azimuth, crs="EPSG:32630"):
+    """The grid azimuth in ``crs`` of a true azimuth at (lat, lon): a point 100 m
+    along it on the ellipsoid, projected (independent of the code under test)."""
+    from pyproj import Geod
+
+    lon2, lat2, _ = Geod(ellps="WGS84").fwd(lon, lat, true_azimuth, 100.0)
+    to_grid = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+    (e1, e2), (n1, n2) = to_grid.transform([lon, lon2], [lat, lat2])
+    return math.degrees(math.atan2(e2 - e1, n2 - n1)) % 360.0
+
+
 # --------------------------------------------------------- writing works
 def test_pillow_writes_what_we_read_back(tmp_path):
     photo = drone_photo(tmp_path)
@@ -197,7 +208,11 @@ def test_no_focal_length_leaves_no_camera(tmp_path):
     photo = write_photo(tmp_path / "a.jpg", lat=1.0, lon=2.0, focal=5.0, model="Mystery")
     record, notes = record_from_exif(photo)
     assert record.camera is None
-    assert not any("camera" in n for n in notes)
+    # Said: without it the prior's "no focal length" reads as a missing tag.
+    assert notes == ["camera not from EXIF FocalLength 5 mm: no sensor size for it (no "
+                     "FocalLengthIn35mmFilm, no FocalPlaneXResolution, camera model "
+                     "'Mystery' not known)",
+                     "position from EXIF GPS"]
 
 
 def test_compass_direction_alone_gives_the_trend(tmp_path):
@@ -213,7 +228,11 @@ def test_prior_from_exif_and_xmp_with_a_georef(tmp_path):
     prior = prior_for_photo(photo, scene=scene_with_georef())
     np.testing.assert_allclose(prior.pose.center, utm_local(*MAM_TOR, 452.3), atol=1e-3)
     trend, plunge, roll = prior.pose.attitude
-    assert (trend, plunge, roll) == pytest.approx((123.4, 30.5, 1.2))
+    # The gimbal yaw is from true north; the trend from the model's +Y, grid north
+    # (0.96° apart at Mam Tor, 1.2° east of UTM 30's central meridian).
+    grid = grid_azimuth(*MAM_TOR, 123.4)
+    assert grid == pytest.approx(123.4 - 0.955, abs=0.01)
+    assert (trend, plunge, roll) == pytest.approx((grid, 30.5, 1.2), abs=2e-3)
     f = 24 * math.hypot(W, H) / math.hypot(36, 24)
     assert prior.intrinsics == Intrinsics(W, H, f, f, (W - 1) / 2, (H - 1) / 2,
                                           estimated=("fx", "fy"))  # nominal: refined
@@ -221,6 +240,8 @@ def test_prior_from_exif_and_xmp_with_a_georef(tmp_path):
         "camera from EXIF focal length (nominal: refined by the registration)",
         "position from EXIF GPS",
         "attitude from DJI gimbal angles (XMP)",
+        "trend 123.40° from true north is 122.45° from the grid north of EPSG:32630 "
+        "(meridian convergence +0.95° at the camera)",
     ]
 
 
@@ -294,7 +315,9 @@ def test_explicit_record_path_is_used(tmp_path):
     other.write_text(json.dumps({"position": {"x": 1.0, "y": 2.0, "z": 3.0}}))
     prior = prior_for_photo(photo, scene=scene_with_georef(), record_path=other)
     np.testing.assert_allclose(prior.pose.center, [1.0, 2.0, 3.0])
-    assert prior.pose.attitude == pytest.approx((123.4, 30.5, 1.2))  # from XMP
+    lat, lon, _ = GEOREF.local_to_geodetic([1.0, 2.0, 3.0])
+    assert prior.pose.attitude == pytest.approx((grid_azimuth(lat, lon, 123.4), 30.5, 1.2),
+                                                abs=2e-3)  # from XMP, turned to grid north
     assert "attitude from DJI gimbal angles (XMP)" in prior.assumptions
 
 
@@ -316,7 +339,7 @@ def test_compass_direction_alone_assumes_a_level_camera_and_says_so(tmp_path):
                         direction=287.25, focal35=26)
     prior = prior_for_photo(photo, scene=scene_with_georef())
     trend, plunge, roll = prior.pose.attitude
-    assert trend == pytest.approx(287.25)
+    assert trend == pytest.approx(grid_azimuth(*MAM_TOR, 287.25), abs=2e-3)
     assert plunge == pytest.approx(0.0, abs=1e-9) and roll == pytest.approx(0.0, abs=1e-9)
     assert "trend from EXIF GPSImgDirection" in prior.assumptions
     assert any("plunge assumed 0" in a for a in prior.assumptions)

@@ -15,6 +15,7 @@ This module is backend only: no Qt or napari imports.
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -40,7 +41,7 @@ from .io.records import (
     parse_sensor_record,
     read_json,
 )
-from .solar import sun_for_photo, sun_from_record
+from .solar import meridian_convergence_deg, sun_for_photo, sun_from_record
 from .validate import FieldValueError
 
 __all__ = [
@@ -115,8 +116,12 @@ def prior_from_record(
         display) the record is the sensor's unless its ``image_frame`` is
         ``"shown"``: camera and attitude are turned by 180°. The record's
         ``image_frame`` (``"stored"`` / ``"shown"``) overrides the guess for
-        the attitude. A roll the record does not give is taken as 0 for the
-        photo as shown (never turned). A mirrored orientation (2, 4, 5, 7)
+        the attitude. Without ``image_frame`` and without a camera size of
+        its own, the record's roll decides: a phone chooses the orientation
+        that shows the photo within 45° of level, so a roll level only once
+        turned is the sensor's (not for views steeper than 60°). A roll the
+        record does not give is taken as 0 for the photo as shown (never
+        turned). A mirrored orientation (2, 4, 5, 7)
         is refused: a mirror image has no camera pose.
 
     Returns
@@ -134,6 +139,10 @@ def prior_from_record(
     if exif_orientation in EXIF_MIRRORED:
         raise _mirrored_error(src, exif_orientation)
     notes: list[str] = []
+    if record.image_frame is None and not _has_size(record.camera):
+        frame = _frame_from_roll(record, exif_orientation, notes)
+        if frame is not None:
+            record = replace(record, image_frame=frame)
     intrinsics, camera_turns = _intrinsics_of(record, image_size, notes, exif_orientation)
 
     if record.position is None:
@@ -160,8 +169,10 @@ def prior_from_record(
             ox, oy, oz = (georef.origin if georef is not None else (0.0, 0.0, 0.0))
             try:
                 ground = float(dem.height_at(x + ox, y + oy)) - oz
-            except ValueError as exc:
-                raise InputError(f"{src}: {exc}") from None
+            except ValueError as exc:  # outside the DEM, or on its nodata
+                raise InputError(f"{src}: no altitude in 'position' and none from the DEM "
+                                 f"({exc}); give the camera's 'z' (or 'alt' with lat/lon)"
+                                 ) from None
             notes.append(f"altitude from DEM + {height_above_ground_m:g} m")
         elif terrain_height is not None:
             ground = float(terrain_height(x, y))
@@ -228,6 +239,56 @@ def _attitude_turns(record: SensorRecord, exif_orientation: int | None, camera_t
                  f"orientation {exif_orientation}; write \"image_frame\": \"shown\" in the "
                  "record if it is of the photo as shown)")
     return turns
+
+
+#: The largest tilt, degrees, of a photo as shown by the EXIF orientation a
+#: phone chose: it picks the quarter turn that shows the photo nearest to
+#: level (the edge of the screen closest to up), so within 45° of it.
+_SHOWN_ROLL_LIMIT_DEG = 45.0
+#: Steeper than this, degrees, the view is too near vertical for the phone's
+#: choice of orientation (and the roll) to say which way is up.
+_STEEP_PLUNGE_DEG = 60.0
+
+
+def _frame_from_roll(record: SensorRecord, exif_orientation: int | None,
+                     notes: list[str]) -> str | None:
+    """The frame of a record's roll from its value, when nothing else says it.
+
+    A record with a roll but no ``image_frame`` and no camera size of its own
+    (no block, or one without width and height: the photo's or the EXIF's
+    size is used, which is the shown photo's) gives no clue whether the roll
+    is the sensor's (as a phone logs it) or of the photo as shown. A phone
+    chooses the EXIF orientation 3, 6 or 8 so that the shown photo is within
+    45° of level: a roll that is level only once turned with the pixels is
+    the sensor's. Returns ``"stored"``, ``"shown"`` or None (undecided: no
+    turning orientation, no roll, a near-vertical view, or a tilt that fits
+    neither), with a note for a sensor's roll.
+    """
+    turns = EXIF_QUARTER_TURNS.get(exif_orientation or 1, 0)
+    o = record.orientation or {}
+    if not turns or exif_orientation in EXIF_MIRRORED or o.get("roll_deg") is None:
+        return None
+    if abs(float(o.get("plunge_deg") or 0.0)) > _STEEP_PLUNGE_DEG:
+        return None
+    roll = float(o["roll_deg"])
+
+    def tilt(angle: float) -> float:  # distance from level, degrees in [0, 180]
+        return abs((angle + 180.0) % 360.0 - 180.0)
+
+    as_shown, turned = tilt(roll), tilt(roll - 90.0 * turns)
+    if as_shown <= _SHOWN_ROLL_LIMIT_DEG < turned:
+        return "shown"
+    if turned <= _SHOWN_ROLL_LIMIT_DEG < as_shown:
+        notes.append(f"the record's roll {roll:g}° is the sensor's: the photo as shown (EXIF "
+                     f"orientation {exif_orientation}, chosen by the phone within 45° of level) "
+                     f"would be tilted {as_shown:g}°")
+        return "stored"
+    return None
+
+
+def _has_size(camera: Mapping | None) -> bool:
+    """True when a record's camera block gives its own width and height."""
+    return camera is not None and "width" in camera and "height" in camera
 
 
 def _camera_from_block(cam: Mapping, source) -> Intrinsics:
@@ -450,7 +511,10 @@ def prior_for_photo(
 
     The sensor record (``record_path``, by default the ``.json`` beside the
     photo) wins; blocks it lacks come from EXIF/XMP (:func:`record_from_exif`),
-    then from defaults. The prior's ``assumptions`` say which.
+    then from defaults. The prior's ``assumptions`` say which. A heading from
+    the metadata (true north) is turned to the georeference's grid north;
+    a phone's (not a drone's) EXIF GPS altitude gives way to the DEM where
+    the DEM covers the camera (the method's altitude).
 
     Parameters
     ----------
@@ -482,6 +546,9 @@ def prior_for_photo(
     notes: list[str] = []
     if record_path is not None and record_path.exists():
         record = load_sensor_record(record_path)
+        if record.image_frame is None and not _has_size(record.camera):
+            # Decided before the EXIF camera (of the shown photo's size) fills the block.
+            record.image_frame = _frame_from_roll(record, orientation, notes)
         # Only what the record lacks is read from the metadata: a corrupt tag
         # the record makes unnecessary does not refuse the photo.
         wanted = [block for block in ("camera", "position", "orientation")
@@ -489,9 +556,11 @@ def prior_for_photo(
         if record.camera is not None and not _has_focal(record.camera):
             wanted.append("camera")
         from_exif, exif_notes = record_from_exif(photo, blocks=wanted)
+        from_metadata = set()
         for block in ("camera", "position", "orientation"):
             if getattr(record, block) is None and getattr(from_exif, block) is not None:
                 setattr(record, block, getattr(from_exif, block))
+                from_metadata.add(block)
                 notes += [n for n in exif_notes if n.split()[0] in _NOTE_WORDS[block]]
         if record.camera is not None and not _has_focal(record.camera) and from_exif.camera:
             record.camera = _with_exif_focal(record.camera, from_exif.camera, orientation)
@@ -499,16 +568,25 @@ def prior_for_photo(
     else:
         from_exif, exif_notes = record_from_exif(photo)
         if from_exif.position is None or from_exif.orientation is None:
+            lacking = " and ".join(what for what, block in (
+                ("GPS position", from_exif.position), ("compass heading", from_exif.orientation))
+                if block is None)
             raise input_error(
                 photo.path,
-                "no sensor record (.json beside the photo) and no GPS position and "
-                "compass heading in its EXIF/XMP",
+                f"no sensor record (.json beside the photo) and no {lacking} in its EXIF/XMP",
             )
         record = from_exif
         notes += exif_notes
+        from_metadata = {"camera", "position", "orientation"}
+    georef = getattr(scene, "georef", None)
+    if "orientation" in from_metadata:
+        _heading_to_grid_north(record, georef, notes)
+    if "position" in from_metadata and not _is_drone_photo(photo):
+        _phone_altitude_from_dem(record, georef, getattr(scene, "dem", None),
+                                 height_above_ground_m, notes)
     prior = prior_from_record(
         record,
-        georef=getattr(scene, "georef", None),
+        georef=georef,
         dem=getattr(scene, "dem", None),
         terrain_height=getattr(scene, "terrain_height", None),
         image_size=photo.size,
@@ -516,8 +594,109 @@ def prior_for_photo(
         exif_orientation=orientation,
     )
     prior.assumptions = notes + prior.assumptions
+    _say_if_far_from_the_model(prior, scene)
     _attach_sun(prior, record, photo, getattr(scene, "georef", None))
     return prior
+
+
+#: A camera farther than this from the model, metres (and than ten times
+#: the model's width), sees it as a speck: its position is almost surely wrong.
+_FAR_FROM_MODEL_M = 10_000.0
+
+
+def _say_if_far_from_the_model(prior: Prior, scene) -> None:
+    """Add a note when the prior's camera is kilometres away from the model.
+
+    A lost hemisphere (``GPSLatitudeRef``), a CRS of the other hemisphere's
+    UTM zone or another photo's record put the camera hundreds of kilometres
+    away; the registration then fails for no reason its hints could name.
+    """
+    bounds = getattr(scene, "bounds", None)
+    try:
+        low, high = (np.asarray(corner, np.float64)[:2] for corner in bounds)
+    except (TypeError, ValueError):  # no model (a scene stand-in)
+        return
+    centre = prior.pose.center[:2]
+    distance = float(np.linalg.norm(centre - np.clip(centre, low, high)))
+    if distance > max(_FAR_FROM_MODEL_M, 10.0 * float(np.linalg.norm(high - low))):
+        prior.assumptions.append(
+            f"camera is {distance / 1000.0:,.0f} km from the model: its position is likely "
+            "wrong (a GPS hemisphere reference, georef.json's CRS, or another photo's record)")
+
+
+def _local_xy(record: SensorRecord, georef: Georef | None) -> tuple[float, float] | None:
+    """The record's horizontal position in the local frame, metres (None: unknown)."""
+    pos = record.position or {}
+    try:
+        if "lat" in pos:
+            if georef is None:
+                return None
+            x, y, _ = georef.geodetic_to_local(float(pos["lat"]), float(pos["lon"]))
+            return float(x), float(y)
+        return float(pos["x"]), float(pos["y"])
+    except (KeyError, TypeError, ValueError, OverflowError):  # refused later, with the file
+        return None
+
+
+def _heading_to_grid_north(record: SensorRecord, georef: Georef | None,
+                           notes: list[str]) -> None:
+    """Turn a metadata heading from true north to the model's grid north (+Y).
+
+    EXIF ``GPSImgDirection`` and a DJI gimbal yaw are azimuths from true (or
+    magnetic) north; the trend of the contract is from +Y, which in a
+    projected CRS is grid north. The two differ by the meridian convergence
+    (up to ~3° at the edge of a UTM zone at mid-latitudes, more further
+    north), which is taken off here at the camera: grid = true − convergence.
+    """
+    if georef is None or not record.orientation or record.orientation.get("trend_deg") is None:
+        return
+    where = _local_xy(record, georef)
+    if where is None:
+        return
+    convergence = float(meridian_convergence_deg(georef, (where[0], where[1], 0.0)))
+    if not math.isfinite(convergence) or abs(convergence) < 0.005:
+        return
+    true = float(record.orientation["trend_deg"])
+    record.orientation = {**record.orientation, "trend_deg": (true - convergence) % 360.0}
+    notes.append(f"trend {true:.2f}° from true north is {(true - convergence) % 360.0:.2f}° "
+                 f"from the grid north of {georef.crs} (meridian convergence "
+                 f"{convergence:+.2f}° at the camera)")
+
+
+def _is_drone_photo(photo) -> bool:
+    """A drone's photo (DJI XMP): its GPS altitude is the flight's, not a walker's."""
+    return "drone-dji:" in str((getattr(photo, "exif", None) or {}).get("XMP") or "")
+
+
+def _phone_altitude_from_dem(record: SensorRecord, georef: Georef | None, dem: DEM | None,
+                             height_above_ground_m: float, notes: list[str]) -> None:
+    """Take a phone photo's altitude from the DEM rather than its GPS altitude.
+
+    A phone's GNSS altitude is its worst coordinate (tens of metres; 0 for a
+    network fix; ellipsoidal or above sea level depending on the phone) and
+    the DEM's is better (Kehl et al. 2017, fig. 2): with a DEM under the
+    camera the EXIF ``GPSAltitude`` is dropped, and the note says by how much
+    the two differed. Outside the DEM (or on nodata) the GPS altitude stays.
+    """
+    pos = record.position or {}
+    if dem is None or pos.get("alt") is None:
+        return
+    where = _local_xy(record, georef)
+    if where is None:
+        return
+    # The DEM and the GPS altitude are both heights of the CRS: no origin to take off.
+    ox, oy = (georef.origin[:2] if georef is not None else (0.0, 0.0))
+    ground = float(dem.height_at(where[0] + ox, where[1] + oy, strict=False))
+    if not math.isfinite(ground):
+        notes.append(f"camera outside the DEM (or on its nodata): altitude from EXIF GPS "
+                     f"({float(pos['alt']):g} m)")
+        return
+    gps = float(pos["alt"])
+    off_by = gps - (ground + height_above_ground_m)
+    record.position = {k: v for k, v in pos.items() if k != "alt"}
+    notes.append(f"EXIF GPS altitude {gps:g} m not used ({off_by:+.1f} m from the DEM's + "
+                 f"{height_above_ground_m:g} m, which is taken: a phone's GPS altitude is "
+                 "its least accurate coordinate)")
 
 
 def check_photo_size(photo: Any, prior: Any, record_path: str | os.PathLike | None = None

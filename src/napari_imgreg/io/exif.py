@@ -552,6 +552,24 @@ def _checked(value: Any, tag: str, low: float, high: float, source) -> float:
         raise input_error(source, str(exc)) from None
 
 
+def _unknown_rational(value: Any) -> bool:
+    """True for an EXIF rational that is not a finite number (0/0): a value
+    unknown to its writer, not a corrupt one."""
+    try:
+        return value is not None and not math.isfinite(_number(value))
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        return False  # not a number at all: refused where it is read
+
+
+def _positive(value: Any) -> float | None:
+    """An EXIF number that is finite and positive, else None."""
+    try:
+        number = _number(value) if value is not None else None
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        return None
+    return number if number is not None and math.isfinite(number) and number > 0 else None
+
+
 def _gps_angle(gps: Mapping[str, Any], tag: str, default_ref: str, block_key: str, source
                ) -> float:
     """A GPS latitude or longitude in signed degrees, checked against its range."""
@@ -616,8 +634,22 @@ def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
             record.camera = {**Intrinsics.from_exif(exif, *stored).rotated(turns).to_dict(),
                              "estimated": ["fx", "fy"]}
             notes.append("camera from EXIF focal length (nominal: refined by the registration)")
+            zoom = _positive(exif.get("DigitalZoomRatio"))
+            if zoom is not None and zoom > 1.01:
+                # Phones differ: some fold the digital zoom into the 35 mm
+                # equivalent, none into FocalLength; the registration's
+                # estimate of the focal length settles it.
+                notes.append(f"camera from EXIF may be {zoom:g}× too wide: EXIF "
+                             f"DigitalZoomRatio {zoom:g} (a crop; not every phone counts it "
+                             "in the focal length)")
         except ValueError:
-            pass
+            focal_mm = _positive(exif.get("FocalLength"))
+            if focal_mm is not None:
+                # Said, or the "no focal length" of the prior reads as a missing tag.
+                notes.append(f"camera not from EXIF FocalLength {focal_mm:g} mm: no sensor "
+                             "size for it (no FocalLengthIn35mmFilm, no "
+                             "FocalPlaneXResolution, camera model "
+                             f"{_text(exif.get('Model')) or 'absent'!r} not known)")
     gps = exif.get("GPSInfo")
     if not isinstance(gps, Mapping):  # an empty GPS IFD leaves its offset (an int)
         gps = {}
@@ -626,11 +658,12 @@ def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
         lat = _gps_angle(gps, "GPSLatitude", "N", "lat", src)
         lon = _gps_angle(gps, "GPSLongitude", "E", "lon", src)
         record.position = {"lat": lat, "lon": lon}
+        for tag, default in (("GPSLatitudeRef", "N"), ("GPSLongitudeRef", "E")):
+            if _text(gps.get(tag)) is None:
+                # A lost hemisphere puts the camera thousands of km away: said.
+                notes.append(f"position from EXIF GPS: {tag} missing, taken as {default}")
         alt = gps.get("GPSAltitude")
-        try:
-            unknown_alt = alt is not None and not math.isfinite(_number(alt))
-        except (TypeError, ValueError, ZeroDivisionError, OverflowError):
-            unknown_alt = False  # not a number at all: refused just below
+        unknown_alt = _unknown_rational(alt)
         if alt is not None and not unknown_alt:
             alt = _checked(alt, "EXIF GPSAltitude", *RECORD_RANGES["position"]["alt"][:2], src)
             below = gps.get("GPSAltitudeRef") in (1, b"\x01")
@@ -645,6 +678,12 @@ def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
         trend, plunge, roll = attitude_from_dji_gimbal(*gimbal)
         record.orientation = {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
         notes.append("attitude from DJI gimbal angles (XMP)")
+    elif _unknown_rational(gps.get("GPSImgDirection")):
+        # 0/0: the phone had no compass reading. Refused (the trend is what a
+        # prior cannot do without), saying how to give it.
+        raise input_error(src, "field 'EXIF GPSImgDirection' must be a finite number, got 0/0 "
+                               "(no compass reading): give 'orientation.trend_deg' in a sensor "
+                               "record (.json beside the photo)")
     elif gps.get("GPSImgDirection") is not None:
         # EXIF says 0.00 to 359.99; writers that add a declination past a
         # full turn are wrapped. Beyond two turns the tag is corrupt.
