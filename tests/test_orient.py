@@ -19,12 +19,16 @@ from napari_imgreg.errors import InputError
 from napari_imgreg.io.meshes import load_mesh
 from napari_imgreg.io.orientation_tables import OrientationTable, write_orientation_csv
 from napari_imgreg.orient import (
+    MIN_SLOPE_PHOTOS,
+    NARROW_TREND_SPAN_DEG,
     PAPER_STEP_DEG,
+    PATH_SLOPE_MAX,
     angle_by_rss_search,
     apply_to_mesh_file,
     estimate_rotation_lsq,
     estimate_rotation_paper,
     estimate_rotation_robust,
+    fit_line,
     j_vectors,
     orient,
     residual_angles,
@@ -170,6 +174,119 @@ def test_path_position_grows_in_capture_order_and_falls_back_to_order():
 
 def test_trends_across_north_are_unwrapped():
     np.testing.assert_allclose(np.ptp(unwrap_trend(np.array([350.0, 355.0, 5.0, 15.0]))), 25.0)
+
+
+def test_fit_line_reports_the_slope_standard_error():
+    # y = 2x + (0, 0, 0, 1): slope 2.3, residuals (0.1, -0.2, -0.5, 0.2)... by hand:
+    # SE = sqrt(Σr² / (n − 2) / Σ(x − x̄)²) with Σ(x − x̄)² = 5.
+    x, y = np.array([0.0, 1, 2, 3]), np.array([0.0, 2, 4, 7])
+    fit = fit_line(x, y)
+    slope = np.sum((x - 1.5) * (y - y.mean())) / 5.0
+    residual = y - (y.mean() + slope * (x - 1.5))
+    assert fit.slope == pytest.approx(slope)
+    assert fit.slope_stderr == pytest.approx(math.sqrt(np.sum(residual**2) / 2 / 5.0))
+    assert fit.to_dict()["slope_stderr"] == pytest.approx(fit.slope_stderr)
+
+
+def test_view_directions_in_a_narrow_fan_do_not_flag_the_compass():
+    """All photos facing one way: the phone's own 2° trend error, on both axes of
+    the plot, makes a slope near 1 (errors in variables), which is no compass fault."""
+    survey = simulate_survey(np.random.default_rng(14), view_offsets_deg=(0.0,), noise_deg=2.0)
+    result = orient(survey.estimated, survey.measured)
+    fit = result.fits["delta_xi_vs_trend"]
+    assert fit.x_span < NARROW_TREND_SPAN_DEG and abs(fit.slope) > 0.3  # the biased slope
+    flag = {f.key: f for f in result.flags}["slope_vs_trend"]
+    assert flag.status == "n/a" and "too narrow to test the compass" in flag.reading
+    assert rotation_error_deg(result.rotation, survey.rotation) < 1.5  # the rotation is fine
+
+
+def test_few_photos_leave_the_slope_flags_unread():
+    survey = simulate_survey(np.random.default_rng(15), n_stations=1, noise_deg=2.0)
+    result = orient(survey.estimated, survey.measured)  # 3 photos taken at one spot
+    assert len(result.photos) == 3 < MIN_SLOPE_PHOTOS
+    flags = {f.key: f for f in result.flags}
+    assert flags["slope_vs_path"].status == flags["slope_vs_trend"].status == "n/a"
+    assert "too few" in flags["slope_vs_path"].reading
+
+
+def _nadir_survey(doming_deg, seed=3, n=40):
+    """A drone strip looking straight down, domed about the horizontal axis across the strip."""
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0.0, 1.0, n)
+    along = np.array([0.5, math.sqrt(3) / 2, 0.0])
+    across = np.cross([0.0, 0.0, 1.0], along)
+    true = np.array([rotation_from_attitude(rng.uniform(0, 360), rng.uniform(80, 90), 0)
+                     for _ in range(n)])
+    bend = Rotation.from_rotvec(np.outer(np.radians(doming_deg * (s - 0.5)), across)).as_matrix()
+    Q = Rotation.from_rotvec([0.4, -0.9, 0.3]).as_matrix()
+    estimated = true @ np.transpose(bend, (0, 2, 1)) @ Q
+    noise = Rotation.from_rotvec(rng.normal(scale=math.radians(1.0), size=(n, 3))).as_matrix()
+    names = [f"DJI_{i:04d}.JPG" for i in range(n)]
+    centres = np.outer((s - 0.5) * 200.0, along) + [0.0, 0.0, 60.0]
+    return (OrientationTable.from_rotations(names, estimated, centres @ Q),
+            OrientationTable.from_rotations(names, noise @ true), Q)
+
+
+def test_steep_views_leave_the_slope_flags_unread():
+    """Nadir views: the sign of Δξ is noise, so a 26° dome gave a path slope of
+    about 2 ("no doming"); now the slopes say n/a and the mean residual warns."""
+    estimated, measured, Q = _nadir_survey(doming_deg=26.0)
+    result = orient(estimated, measured)
+    flags = {f.key: f for f in result.flags}
+    assert abs(result.fits["delta_xi_vs_path"].slope) < PATH_SLOPE_MAX  # blind to the dome
+    assert flags["slope_vs_path"].status == flags["slope_vs_trend"].status == "n/a"
+    assert "steeply down" in flags["slope_vs_path"].reading
+    assert flags["mean_residual"].status == "warn"
+    assert "the slopes cannot tell which here" in flags["mean_residual"].reading
+    assert rotation_error_deg(result.rotation, Q) < 1.0
+
+
+def _measured_in(survey, transform):
+    att = survey.measured.attitudes
+    trend, plunge, roll = transform(att[:, 0], att[:, 1], att[:, 2])
+    return OrientationTable.from_attitudes(survey.measured.photos, trend, plunge, roll)
+
+
+@pytest.mark.parametrize("transform, words", [
+    (lambda t, p, r: (np.radians(t), np.radians(p), np.radians(r)), "angles look like radians"),
+    (lambda t, p, r: (t, -p, r), "plunge_deg looks positive upward"),
+    (lambda t, p, r: (t, p, -r), "roll_deg looks positive anticlockwise"),
+    (lambda t, p, r: (t, -p, -r), "plunge_deg and roll_deg look opposite in sign"),
+])
+def test_phone_angles_in_another_convention_are_refused(tmp_path, transform, words):
+    """Read as degrees, plunge down, roll clockwise, these tables give large
+    residuals the flags would blame on the model or the compass."""
+    survey = simulate_survey(np.random.default_rng(16), noise_deg=1.0)
+    est, meas = tmp_path / "estimated.csv", tmp_path / "phone.csv"
+    write_orientation_csv(est, survey.estimated)
+    write_orientation_csv(meas, _measured_in(survey, transform))
+    with pytest.raises(InputError, match=rf"phone.csv: {words}: .* instead of"):
+        _run_cli(["orient", str(est), str(meas), "--out", str(tmp_path / "o.json")])
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_model_table_in_radians_is_refused(tmp_path):
+    survey = simulate_survey(np.random.default_rng(17), noise_deg=1.0)
+    att = survey.estimated.attitudes
+    radians = OrientationTable.from_attitudes(
+        survey.estimated.photos, *np.radians(np.where(att > 180, att - 360, att)).T)
+    est = tmp_path / "model.csv"
+    write_orientation_csv(est, radians)
+    with pytest.raises(InputError, match="model.csv: angles look like radians"):
+        orient(est, survey.measured)
+
+
+@pytest.mark.parametrize("kwargs", [
+    {"doming_deg": 26.0, "noise_deg": 1.0},
+    {"compass_gain": 0.9, "noise_deg": 2.0},
+    {"noise_deg": 3.0, "outlier_fraction": 0.3, "doming_deg": 20.0, "compass_gain": 0.5},
+])
+def test_poor_surveys_in_the_right_convention_go_through(kwargs):
+    """Distorted models and bad compasses fit no better in another convention."""
+    for seed in range(5):
+        survey = simulate_survey(np.random.default_rng(100 + seed), **kwargs)
+        result = orient(survey.estimated, survey.measured)
+        assert result.warnings
 
 
 # ------------------------------------------------------------------ result/apply
@@ -326,3 +443,18 @@ def test_every_0_1_name_is_still_importable_from_orient():
             assert getattr(orient_package, name) is not None
     with pytest.raises(AttributeError):
         orient_package.no_such_name  # noqa: B018
+
+
+def test_mean_residual_reading_counts_the_photos_set_aside():
+    """A quarter of the phone's readings 20° off: the robust rotation holds and the
+    mean passes over the rest, but the reading must not hide the photos dropped."""
+    survey = simulate_survey(np.random.default_rng(0), noise_deg=1.0, outlier_fraction=0.25)
+    result = orient(survey.estimated, survey.measured)
+    assert rotation_error_deg(result.rotation, survey.rotation) < 1.0
+    assert len(result.outliers) == survey.outliers.sum() == 13
+    mean_flag = {f.key: f for f in result.flags}["mean_residual"]
+    assert mean_flag.status == "pass"
+    assert "Not counted: 13 photo(s) set aside as gross errors" in mean_flag.reading
+    clean = orient(*(lambda s: (s.estimated, s.measured))(simulate_survey(
+        np.random.default_rng(6), noise_deg=0.7)))
+    assert "Not counted" not in clean.flags[0].reading

@@ -94,3 +94,44 @@ def test_bad_table_is_reported_not_raised(widget, tmp_path, qtbot):
     assert "missing column" in widget.status_label.text()
     qtbot.waitUntil(lambda: widget.run_button.isEnabled(), timeout=5000)
     assert widget.result is None and not widget.apply_button.isEnabled()
+
+
+def test_untestable_flags_are_not_reported_as_all_pass(widget, tmp_path, qtbot):
+    """Three photos from one spot: the slopes cannot be read, which is no pass."""
+    survey = simulate_survey(np.random.default_rng(22), n_stations=1, noise_deg=0.5)
+    est, meas = tmp_path / "estimated.csv", tmp_path / "measured.csv"
+    write_orientation_csv(est, survey.estimated)
+    write_orientation_csv(meas, survey.measured)
+    widget.set_tables(est, meas)
+    result = _run(widget, qtbot)
+    assert [f.status for f in result.flags] == ["pass", "n/a", "n/a"]
+    assert "all flags pass" not in widget.status_label.text()
+    assert "2 flags n/a" in widget.status_label.text()
+
+
+def test_phone_table_in_radians_is_reported_with_the_fix(widget, tables, tmp_path, qtbot):
+    est, _, survey = tables
+    att = survey.measured.attitudes
+    radians = tmp_path / "phone_radians.csv"
+    write_orientation_csv(radians, type(survey.measured).from_attitudes(
+        survey.measured.photos, *np.radians(att).T))
+    widget.set_tables(est, radians)
+    with qtbot.waitSignal(widget.orientation_failed, timeout=15000) as blocker:
+        widget.run()
+    assert "phone_radians.csv: angles look like radians" in blocker.args[0]
+    qtbot.waitUntil(lambda: widget.run_button.isEnabled(), timeout=5000)
+    assert widget.result is None
+
+
+def test_save_to_an_unwritable_place_is_reported(widget, tables, tmp_path, qtbot, monkeypatch):
+    est, meas, _ = tables
+    widget.set_tables(est, meas)
+    _run(widget, qtbot)
+    (tmp_path / "a_file").write_text("not a folder")
+    target = tmp_path / "a_file" / "ORIENTATION.json"
+    monkeypatch.setattr("napari_imgreg.widgets.orient_widget.QFileDialog.getSaveFileName",
+                        lambda *a, **k: (str(target), "JSON (*.json)"))
+    with qtbot.waitSignal(widget.orientation_failed, timeout=2000) as blocker:
+        widget.save_button.click()
+    assert "Could not save" in blocker.args[0] and not target.exists()
+    assert widget.result is not None  # the result is kept, to save elsewhere

@@ -24,10 +24,28 @@ Units and definitions
   paper: Δξ from −4° to 4° over trends 200°–280° is a slope of 0.1); trends
   are unwrapped about their circular mean so a survey across north is one
   interval.
+
+When the slopes cannot be read
+------------------------------
+The two slope flags are ``n/a`` rather than pass or warn when the data
+cannot test them (each case measured on generated surveys):
+
+* fewer than :data:`MIN_SLOPE_PHOTOS` photos: with 2° of phone noise a
+  line through three photos taken at one spot "found" a slope of −7.6;
+* photos facing a range narrower than :data:`NARROW_TREND_SPAN_DEG`: the
+  phone's own trend error is on both axes of the trend plot, which biases
+  the slope towards 1 (errors in variables: ``σ² / (σ² + var(trend))``),
+  so a calibrated phone pointed one way reads as uncalibrated;
+* views steeper than :data:`STEEP_VIEW_PLUNGE_DEG` on median (nadir
+  drone surveys): the sign of Δξ comes from the trend of a near-vertical
+  vector and is noise, so a model domed by 26° gave a path slope of
+  1.7–2 ("no doming"), and a compass error shows in Δξ only as ``cos(plunge)``
+  of itself.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,6 +58,9 @@ __all__ = [
     "DISTORTED_RESIDUAL_DEG",
     "PATH_SLOPE_MAX",
     "TREND_SLOPE_MAX",
+    "MIN_SLOPE_PHOTOS",
+    "NARROW_TREND_SPAN_DEG",
+    "STEEP_VIEW_PLUNGE_DEG",
     "LinearFit",
     "QualityFlag",
     "residual_angles",
@@ -54,6 +75,12 @@ MEAN_RESIDUAL_MAX_DEG = 2.0  # mean |Δξ|, |Δρ| of faithful models
 DISTORTED_RESIDUAL_DEG = 4.0  # ... and of noticeably distorted ones
 PATH_SLOPE_MAX = 3.0  # |slope| of Δξ vs path position, degrees per path length
 TREND_SLOPE_MAX = 0.1  # |slope| of Δξ vs measured trend, degrees per degree
+
+# When the slopes say nothing (module docstring): too few photos, too narrow
+# a fan of view directions, or views too steep for Δξ to carry a sign.
+MIN_SLOPE_PHOTOS = 6
+NARROW_TREND_SPAN_DEG = 20.0
+STEEP_VIEW_PLUNGE_DEG = 60.0
 
 
 def residual_angles(
@@ -147,6 +174,8 @@ class LinearFit:
         Points fitted.
     x_span : float
         Range of x covered.
+    slope_stderr : float
+        Standard error of the slope (NaN when unknown).
     """
 
     slope: float
@@ -154,6 +183,7 @@ class LinearFit:
     r2: float
     n: int
     x_span: float
+    slope_stderr: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -162,6 +192,7 @@ class LinearFit:
             "r2": _finite(self.r2),
             "n": self.n,
             "x_span": _finite(self.x_span),
+            "slope_stderr": _finite(self.slope_stderr),
         }
 
 
@@ -175,7 +206,8 @@ def fit_line(x: np.ndarray, y: np.ndarray) -> LinearFit | None:
         return None
     fit = linregress(x, y)
     return LinearFit(
-        float(fit.slope), float(fit.intercept), float(fit.rvalue**2), len(x), float(np.ptp(x))
+        float(fit.slope), float(fit.intercept), float(fit.rvalue**2), len(x), float(np.ptp(x)),
+        float(fit.stderr),
     )
 
 
@@ -190,7 +222,8 @@ class QualityFlag:
     title : str
         Short name for displays.
     status : str
-        ``"pass"``, ``"warn"`` or ``"n/a"`` (too few photos to tell).
+        ``"pass"``, ``"warn"`` or ``"n/a"`` (the data cannot test it: too few
+        photos, too narrow a fan of view directions, or steep views).
     value, threshold : float or None
         The indicator and its limit.
     reading : str
@@ -215,8 +248,33 @@ class QualityFlag:
         }
 
 
+def _plus_minus(fit: LinearFit, fmt: str) -> str:
+    """``"+0.2° ± 1.4°"``-style slope with its standard error (when known)."""
+    text = format(fit.slope, fmt)
+    if math.isfinite(fit.slope_stderr):
+        text += " ± " + format(fit.slope_stderr, fmt.lstrip("+"))
+    return text
+
+
+def _untestable(fit: LinearFit | None, steep_deg: float | None, what: str) -> str | None:
+    """Why a slope flag cannot be read (None when it can): too few photos or steep views."""
+    if fit is None:
+        return f"Too few photos, or no spread between them, to test {what}."
+    if fit.n < MIN_SLOPE_PHOTOS:
+        return f"Only {fit.n} photos: too few to test {what} (at least {MIN_SLOPE_PHOTOS})."
+    if steep_deg is not None and steep_deg > STEEP_VIEW_PLUNGE_DEG:
+        return (f"The photos look steeply down (median plunge {steep_deg:.0f}°): the sign of Δξ "
+                f"is then noise, so its slope cannot test {what}; judge from the mean residual "
+                "and the plot.")
+    return None
+
+
 def quality_flags(
-    mean_abs_deg: float, path_fit: LinearFit | None, trend_fit: LinearFit | None
+    mean_abs_deg: float,
+    path_fit: LinearFit | None,
+    trend_fit: LinearFit | None,
+    median_abs_plunge_deg: float | None = None,
+    n_set_aside: int = 0,
 ) -> list[QualityFlag]:
     """The paper's three indicators as pass/warn flags with plain readings.
 
@@ -227,8 +285,24 @@ def quality_flags(
     path_fit, trend_fit : LinearFit or None
         Δξ against position along the survey path (degrees per path
         length) and against measured trend (degrees per degree).
+    median_abs_plunge_deg : float, optional
+        Median |plunge| of the measured view directions, degrees; above
+        :data:`STEEP_VIEW_PLUNGE_DEG` the slope flags are ``n/a``.
+    n_set_aside : int
+        Photos the estimator set aside as gross errors (not in the
+        indicators); the mean residual's reading says so.
+
+    Notes
+    -----
+    The slope flags are ``n/a`` with fewer than :data:`MIN_SLOPE_PHOTOS`
+    photos, and the trend flag also when the photos face a range narrower
+    than :data:`NARROW_TREND_SPAN_DEG` (see the module docstring).
     """
     flags = []
+    slopes_readable = (
+        _untestable(path_fit, median_abs_plunge_deg, "") is None
+        or _untestable(trend_fit, median_abs_plunge_deg, "") is None
+    )
     if mean_abs_deg < MEAN_RESIDUAL_MAX_DEG:
         reading = (
             f"Camera directions agree with the phone to {mean_abs_deg:.1f}° on average "
@@ -245,9 +319,14 @@ def quality_flags(
         )
         reading = (
             f"Camera directions differ from the phone's by {mean_abs_deg:.1f}° on average "
-            f"({cause}): the model is distorted or the phone's sensors were off; the two "
-            "slopes tell which."
+            f"({cause}): the model is distorted or the phone's sensors were off; "
+            + ("the two slopes tell which." if slopes_readable
+               else "the slopes cannot tell which here (n/a below): look at the plots.")
         )
+    if n_set_aside:
+        # The mean is over the photos kept: a pass must not hide that many were dropped.
+        reading += (f" Not counted: {n_set_aside} photo(s) set aside as gross errors "
+                    "(listed with the result).")
     flags.append(
         QualityFlag(
             "mean_residual", "mean |Δξ|, |Δρ|", status, mean_abs_deg, MEAN_RESIDUAL_MAX_DEG,
@@ -255,22 +334,24 @@ def quality_flags(
         )
     )
 
-    if path_fit is None:
+    why_not = _untestable(path_fit, median_abs_plunge_deg, "for doming")
+    if why_not is not None:
         flags.append(
-            QualityFlag("slope_vs_path", "Δξ vs survey path", "n/a", None, PATH_SLOPE_MAX,
-                        "Too few photos (or no spread along the path) to test for doming.")
+            QualityFlag("slope_vs_path", "Δξ vs survey path", "n/a",
+                        None if path_fit is None else path_fit.slope, PATH_SLOPE_MAX, why_not)
         )
     else:
         s, r2 = path_fit.slope, path_fit.r2
+        change = _plus_minus(path_fit, "+.1f").replace(" ±", "° ±")
         if abs(s) < PATH_SLOPE_MAX:
             reading = (
-                f"No doming along the survey path: Δξ changes by {s:+.1f}° from one end of "
+                f"No doming along the survey path: Δξ changes by {change}° from one end of "
                 f"the path to the other (R² {r2:.2f}; bent models exceed ±{PATH_SLOPE_MAX:g}°)."
             )
             status = "pass"
         else:
             reading = (
-                f"Doming along the survey path: Δξ changes by {s:+.1f}° from one end of the "
+                f"Doming along the survey path: Δξ changes by {change}° from one end of the "
                 f"path to the other (R² {r2:.2f}), so the model is bent and its ends are "
                 f"turned about ±{abs(s) / 2:.0f}° from true. Add oblique, convergent photos "
                 "and more overlap, or use ground control."
@@ -280,30 +361,34 @@ def quality_flags(
             QualityFlag("slope_vs_path", "Δξ vs survey path", status, s, PATH_SLOPE_MAX, reading)
         )
 
-    if trend_fit is None:
+    why_not = _untestable(trend_fit, median_abs_plunge_deg, "the compass")
+    if why_not is None and trend_fit.x_span < NARROW_TREND_SPAN_DEG:
+        # The phone's trend error sits on both axes of this plot: over a narrow
+        # fan it alone makes a slope near 1, whatever the compass calibration.
+        why_not = (
+            f"The photos face a range of only {trend_fit.x_span:.0f}° "
+            f"(< {NARROW_TREND_SPAN_DEG:g}°): too narrow to test the compass, as the phone's "
+            f"own noise sets the slope (here {trend_fit.slope:+.2f}° per degree)."
+        )
+    if why_not is not None:
         flags.append(
-            QualityFlag("slope_vs_trend", "Δξ vs measured trend", "n/a", None, TREND_SLOPE_MAX,
-                        "Too few photos (or all facing one way) to test the compass.")
+            QualityFlag("slope_vs_trend", "Δξ vs measured trend", "n/a",
+                        None if trend_fit is None else trend_fit.slope, TREND_SLOPE_MAX, why_not)
         )
     else:
         s, r2, span = trend_fit.slope, trend_fit.r2, trend_fit.x_span
-        narrow = (
-            f"; the photos face a range of only {span:.0f}°, so this is loosely constrained"
-            if span < 20
-            else ""
-        )
+        change = _plus_minus(trend_fit, "+.2f")
         if abs(s) <= TREND_SLOPE_MAX:
             reading = (
-                f"Compass consistent: Δξ changes by {s:+.2f}° per degree of view direction "
-                f"(R² {r2:.2f}; ≤ {TREND_SLOPE_MAX:g} in calibrated surveys){narrow}."
+                f"Compass consistent: Δξ changes by {change}° per degree of view direction "
+                f"(R² {r2:.2f}; ≤ {TREND_SLOPE_MAX:g} in calibrated surveys)."
             )
             status = "pass"
         else:
             reading = (
-                f"Compass not calibrated: Δξ changes by {s:+.2f}° per degree of view direction "
+                f"Compass not calibrated: Δξ changes by {change}° per degree of view direction "
                 f"(R² {r2:.2f}; calibrated phones give ≤ {TREND_SLOPE_MAX:g}), about "
-                f"{abs(s) * span:.0f}° across the {span:.0f}° of directions photographed"
-                f"{narrow}. "
+                f"{abs(s) * span:.0f}° across the {span:.0f}° of directions photographed. "
                 "Recalibrate the compass (figure-of-eight), switch on airplane mode, keep away "
                 "from metal, and re-measure."
             )

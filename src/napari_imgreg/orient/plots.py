@@ -47,6 +47,7 @@ def draw_residual_plots(
     figure.clear()
     panels = figure.subplots(2, 1) if vertical else figure.subplots(1, 2, sharey=True)
     set_aside = ~result.used
+    untested = {flag.key for flag in result.flags if flag.status == "n/a"}
     series = (
         ("Δξ", result.delta_xi_deg, "tab:blue", "o", "delta_xi"),
         ("Δρ", result.delta_rho_deg, "tab:orange", "s", "delta_rho"),
@@ -57,6 +58,9 @@ def draw_residual_plots(
         (panels[1], result.measured_trend_deg, "trend", "measured trend of ξ (°)",
          f"compass off if |slope| > {TREND_SLOPE_MAX:g}", "{:+.2f}"),
     ):
+        if f"slope_vs_{key}" in untested:
+            # Too few photos, too narrow a fan, or steep views: the flag's reading says which.
+            title += " — not testable here (n/a)"
         for name, y, color, marker, prefix in series:
             fit = result.fits[f"{prefix}_vs_{key}"]
             label = name

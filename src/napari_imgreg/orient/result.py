@@ -13,6 +13,7 @@ without camera centres it is the model origin.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from typing import Any, Mapping
@@ -22,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from .._atomic import atomic_write
 from .._json import dump as strict_json_dump
-from ..camera import attitude_from_rotation
+from ..camera import attitude_from_rotation, rotation_from_attitude
 from ..errors import input_error
 from ..io.orientation_tables import (
     OrientationTable,
@@ -32,6 +33,7 @@ from ..io.orientation_tables import (
 )
 from .apply import rotate_cameras
 from .diagnostics import (
+    DISTORTED_RESIDUAL_DEG,
     LinearFit,
     QualityFlag,
     fit_line,
@@ -322,7 +324,9 @@ def orient(
     Raises
     ------
     InputError
-        The tables do not pair (see ``pair_tables``).
+        The tables do not pair (see ``pair_tables``), or their angles fit far
+        better read in radians or with plunge or roll negated (a table in
+        another convention: the message says which).
     ValueError
         Unknown ``method``.
     """
@@ -352,6 +356,10 @@ def orient(
         w = np.array([float(weights.get(p, 1.0)) for p in paired.photos])
 
     E, M = paired.estimated, paired.measured
+    _refuse_other_angle_conventions(
+        E, M, inputs.get("measured"), inputs.get("estimated"),
+        estimated_may_be_radians=inputs.get("estimated_format") == "csv",
+    )
     if declination_deg:
         # Turning every measured axis clockwise (seen from above) adds to its trend.
         M = M @ Rotation.from_rotvec([0.0, 0.0, declination_deg], degrees=True).as_matrix()
@@ -396,7 +404,11 @@ def orient(
         "delta_rho_vs_trend": fit_line(trend[used], d_rho[used]),
     }
     mean_abs = max(float(np.mean(np.abs(d_xi[used]))), float(np.mean(np.abs(d_rho[used]))))
-    flags = quality_flags(mean_abs, fits["delta_xi_vs_path"], fits["delta_xi_vs_trend"])
+    # Steep views leave Δξ without a meaningful sign (diagnostics): the flags need the plunge.
+    view_z = np.abs(np.clip(M[used, 2, 2], -1.0, 1.0))
+    median_abs_plunge = float(np.degrees(np.median(np.arcsin(view_z))))
+    flags = quality_flags(mean_abs, fits["delta_xi_vs_path"], fits["delta_xi_vs_trend"],
+                          median_abs_plunge, n_set_aside=int((~used).sum()))
     oriented, oriented_positions = rotate_cameras(E, positions, Q, c)
     return OrientationResult(
         method=method,
@@ -417,6 +429,102 @@ def orient(
         notes=list(paired.notes),
         inputs=inputs,
     )
+
+
+def _mean_residual_deg(E: np.ndarray, M: np.ndarray) -> float:
+    """The larger of mean |Δξ| and mean |Δρ| under the least-squares rotation, degrees."""
+    d_xi, d_rho = residual_angles(estimate_rotation_lsq(E, M).rotation, E, M)
+    return max(float(np.mean(np.abs(d_xi))), float(np.mean(np.abs(d_rho))))
+
+
+def _signed_trend(attitudes: np.ndarray) -> np.ndarray:
+    """Trends in (-180, 180]: a radian table's negative trends were stored modulo 360."""
+    return np.where(attitudes[:, 0] > 180.0, attitudes[:, 0] - 360.0, attitudes[:, 0])
+
+
+def _looks_like_radians(attitudes: np.ndarray) -> bool:
+    """Every trend, plunge and roll (degrees, (N, 3)) is within a radian's range."""
+    trend = _signed_trend(attitudes)
+    return bool(
+        np.all((trend >= -math.pi) & (trend <= 2 * math.pi))
+        and np.all(np.abs(attitudes[:, 1]) <= math.pi / 2)
+        and np.all(np.abs(attitudes[:, 2]) <= math.pi)
+    )
+
+
+def _as_degrees(attitudes: np.ndarray) -> np.ndarray:
+    """Attitudes whose numbers were radians, in degrees."""
+    return np.degrees(np.column_stack([_signed_trend(attitudes), attitudes[:, 1:]]))
+
+
+def _rotations(attitudes: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) ``cam_from_world`` from (N, 3) trend, plunge, roll in degrees."""
+    return np.array([rotation_from_attitude(*a) for a in attitudes])
+
+
+def _refuse_other_angle_conventions(
+    E: np.ndarray,
+    M: np.ndarray,
+    measured_source: str | None,
+    estimated_source: str | None,
+    estimated_may_be_radians: bool,
+) -> None:
+    """Refuse tables whose angles are evidently in another unit or sign convention.
+
+    A phone table in radians, or logging plunge positive upward or roll the
+    other way, still gives a rotation, with large residuals that the flags
+    read as a distorted model or a bad compass. When the fit is poor (mean
+    residual above :data:`DISTORTED_RESIDUAL_DEG`) and reading the angles in
+    radians, or with plunge or roll negated, fits at least twice as well
+    (and, for a sign, well enough to pass as undistorted), the table is
+    refused with the fix; a merely poor survey fits no better in another
+    convention and goes through (135 generated domed, uncalibrated and noisy
+    surveys did).
+
+    Parameters
+    ----------
+    E, M : (N, 3, 3) arrays
+        Estimated ``cam_from_model`` and measured ``cam_from_world``.
+    measured_source, estimated_source : str or None
+        The tables' files, for the message.
+    estimated_may_be_radians : bool
+        The estimated table was typed in as angles (CSV), so it may be in radians too.
+
+    Raises
+    ------
+    InputError
+        Naming the table and the convention its numbers fit.
+    """
+    base = _mean_residual_deg(E, M)
+    if not math.isfinite(base) or base <= DISTORTED_RESIDUAL_DEG:
+        return
+    measured_att = np.array([attitude_from_rotation(R) for R in M])
+    # (source, problem, estimated, measured, is a unit rather than a sign)
+    candidates = []
+    if _looks_like_radians(measured_att):
+        candidates.append((measured_source, "angles look like radians", E,
+                           _rotations(_as_degrees(measured_att)), True))
+    if estimated_may_be_radians:
+        estimated_att = np.array([attitude_from_rotation(R) for R in E])
+        if _looks_like_radians(estimated_att):
+            candidates.append((estimated_source, "angles look like radians",
+                               _rotations(_as_degrees(estimated_att)), M, True))
+    for problem, signs in (
+        ("plunge_deg looks positive upward", (1.0, -1.0, 1.0)),
+        ("roll_deg looks positive anticlockwise", (1.0, 1.0, -1.0)),
+        ("plunge_deg and roll_deg look opposite in sign", (1.0, -1.0, -1.0)),
+    ):
+        candidates.append((measured_source, problem, E, _rotations(measured_att * signs), False))
+    for source, problem, E2, M2, is_unit in candidates:
+        fitted = _mean_residual_deg(E2, M2)
+        if fitted < base / 2 and (is_unit or fitted < DISTORTED_RESIDUAL_DEG):
+            raise input_error(
+                source,
+                f"{problem}: read that way the cameras fit to {fitted:.1f}° on average instead "
+                f"of {base:.1f}°; give trend_deg, plunge_deg and roll_deg in degrees, plunge "
+                "positive looking down, roll positive when the image's right side dips "
+                "(docs/orient.md, 'The angle convention')",
+            )
 
 
 def orient_files(

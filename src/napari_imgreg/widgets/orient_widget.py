@@ -242,12 +242,15 @@ class OrientWidget(QWidget):
             return
         self.result = result
         n_warn = len(result.warnings)
-        self.status_label.setText(
-            f"{len(result.photos)} photos paired"
-            + (f", {n_warn} quality warning{'s' if n_warn > 1 else ''}" if n_warn
-               else ", all flags pass")
-            + "."
-        )
+        n_untested = sum(flag.status == "n/a" for flag in result.flags)
+        # A flag the data cannot test is no pass: say so rather than "all flags pass".
+        if n_warn:
+            verdict = f", {n_warn} quality warning{'s' if n_warn > 1 else ''}"
+        elif n_untested:
+            verdict = f", no warning but {n_untested} flag{'s' if n_untested > 1 else ''} n/a"
+        else:
+            verdict = ", all flags pass"
+        self.status_label.setText(f"{len(result.photos)} photos paired{verdict}.")
         self.status_label.setStyleSheet("")
         self._show_summary(result)
         self._show_estimators(result)
@@ -373,5 +376,9 @@ class OrientWidget(QWidget):
             self, "Save orientation", "ORIENTATION.json", "JSON (*.json)"
         )
         if path:
-            save_orientation(self.result, path)
+            try:
+                save_orientation(self.result, path)
+            except OSError as exc:  # a read-only folder, a full disk: say so, keep the result
+                self._fail(f"Could not save {path}: {exc.strerror or exc}")
+                return
             self.status_label.setText(f"Saved {path}")
