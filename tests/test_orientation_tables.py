@@ -190,6 +190,19 @@ def test_colmap_round_trip(survey, tmp_path):
     assert rotation_error_deg(result.rotation, survey.rotation) < 1e-6
 
 
+def test_colmap_images_without_points_lines_keep_every_image(survey, tmp_path):
+    """Some tools write images.txt with no POINTS2D lines: every image line is read
+    (skipping the line after each blindly had lost every second image)."""
+    images = tmp_path / "images.txt"
+    write_colmap_images(images, survey.estimated)
+    kept = [line for line in images.read_text().splitlines()
+            if line.startswith("#") or len(line.split()) == 10]
+    images.write_text("\n".join(kept) + "\n")
+    table = read_colmap_images(images)
+    assert table.photos == survey.estimated.photos
+    np.testing.assert_allclose(table.cam_from_world, survey.estimated.cam_from_world, atol=1e-9)
+
+
 def test_dji_gimbal_angles_match_aerospace_euler_convention():
     """DJI yaw/pitch/roll are NED Z-Y-X angles of a body frame (x forward, y right,
     z down); the camera's ξ is body x and ρ is body y. Checked independently with scipy."""

@@ -523,7 +523,8 @@ def read_colmap_images(path: str | os.PathLike) -> OrientationTable:
     """Read COLMAP's ``images.txt`` (text model).
 
     Each image takes two lines: ``IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID
-    NAME`` and its 2D points (possibly empty). ``(QW, QX, QY, QZ)`` and
+    NAME`` and its 2D points (possibly empty; a file without the points
+    lines is read too). ``(QW, QX, QY, QZ)`` and
     ``(TX, TY, TZ)`` are ``cam_from_world`` in COLMAP's camera frame, which
     is OpenCV's (x right, y down, z forward); the centre is ``-Rᵀ t``.
 
@@ -567,12 +568,28 @@ def read_colmap_images(path: str | os.PathLike) -> OrientationTable:
         photos.append(" ".join(fields[9:]))
         rotations.append(R)
         centres.append(-R.T @ t)
-        number += 1  # the POINTS2D line that follows every image line
+        if number < len(lines) and _is_points2d_line(lines[number]):
+            number += 1  # the POINTS2D line that follows an image line
     if not photos:
         raise input_error(path, "no images in COLMAP images.txt")
     return OrientationTable.from_rotations(
         photos, np.array(rotations), np.array(centres), source=path, kind="colmap"
     )
+
+
+def _is_points2d_line(line: str) -> bool:
+    """True for the POINTS2D line of an image (empty, or ``X Y POINT3D_ID``
+    triples of numbers). Files written by other tools may leave it out, and
+    then the next line is the next image's (its NAME is not a number, and its
+    10 fields are not triples): skipping it blindly lost every second image."""
+    fields = line.split()
+    if len(fields) % 3:
+        return False
+    try:
+        [float(v) for v in fields]
+    except ValueError:
+        return False
+    return True
 
 
 # ------------------------------------------------------------ photo metadata
