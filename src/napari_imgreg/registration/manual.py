@@ -22,6 +22,7 @@ pixel's centre at (0, 0); the model frame is local ENU metres; poses are
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -35,12 +36,18 @@ from ..camera import Intrinsics, Pose
 from .params import RegistrationParams
 from .pipeline import Cancelled, _Context
 from .pose import PoseParams, estimate_pose, reprojection_errors
-from .round import Trial, score_round, trial_from_round
+from .quality import GRADES
+from .round import (MIN_VERIFIED_INLIERS, STAGE_Q_CEILING, Trial, grade_pose, score_round,
+                    trial_from_round)
+from .uncertainty import Uncertainty
 from ..scene import Scene
 
 __all__ = [
     "MIN_PAIRS",
     "MIN_PAIRS_FOCAL",
+    "CLICK_SIGMA_PX",
+    "MAX_EXPECTED_ROTATION_DEG",
+    "pair_uncertainty",
     "ManualSolution",
     "solve_manual",
     "score_pose",
@@ -50,6 +57,13 @@ __all__ = [
 MIN_PAIRS = 4
 #: Pairs needed to solve the focal length as well.
 MIN_PAIRS_FOCAL = 6
+#: Least error of a picked pair, pixels of the photo per axis: a click on the
+#: photo and one on the reference (each about 1 px), however well the pairs fit.
+CLICK_SIGMA_PX = 1.5
+#: A pose whose expected rotation error (:func:`pair_uncertainty`) reaches this
+#: is no pose: the pairs lie nearly on a line, and fit a pose 20–90° off to a
+#: fraction of a pixel.
+MAX_EXPECTED_ROTATION_DEG = 10.0
 
 #: Names that moved out of this module in 0.2 -> their new module. The old
 #: name keeps working with a DeprecationWarning (:func:`__getattr__`).
@@ -66,6 +80,9 @@ _MOVED = {
     "save_pose_to_record": "napari_imgreg.prior",
 }
 __getattr__ = forward_moved_names(__name__, _MOVED)
+
+#: Grade names, best first.
+GRADE_NAMES = [g.name for g in GRADES]
 
 
 # ===================================================== manual registration
@@ -90,9 +107,18 @@ class ManualSolution:
         The agreement threshold used.
     focal_solved : bool
     method : str
-        ``"ransac-epnp"`` (six or more pairs) or ``"pnp"`` (all pairs).
+        ``"ransac-epnp"`` (six or more pairs), ``"ransac-p4pf"`` (six or
+        more pairs, focal length solved) or ``"pnp"`` (all pairs).
     reason : str
         Why it failed ("" when ok).
+    uncertainty : Uncertainty or None
+        The pose's expected error from the agreeing pairs' geometry and click
+        noise (:func:`pair_uncertainty`); None when ``ok`` is False. Not the
+        RMS: four pairs fit any pose almost exactly, so their RMS says
+        nothing of the error.
+    warning : str
+        Why the pose may be wrong though solved ("" when nothing is
+        suspect): pairs set aside that agree under another focal length.
     """
 
     ok: bool
@@ -104,6 +130,8 @@ class ManualSolution:
     focal_solved: bool = False
     method: str = ""
     reason: str = ""
+    uncertainty: Uncertainty | None = None
+    warning: str = ""
 
     @property
     def rms_px(self) -> float:
@@ -166,9 +194,162 @@ def _best_pose(intr: Intrinsics, p3: np.ndarray, p2: np.ndarray, poses: list[Pos
     return best
 
 
+def _count_distinct(photo_px: np.ndarray, points_3d: np.ndarray, tol_px: float = 2.0) -> int:
+    """How many pairs are different points: a pair whose photo pick lies
+    within ``tol_px`` of an earlier one's, or whose 3D point is an earlier
+    one's (within a millionth of the points' extent), is the same point
+    picked twice and adds nothing to fix the pose."""
+    extent = float(np.ptp(points_3d, axis=0).max()) if len(points_3d) else 0.0
+    tol_m = 1e-6 * max(extent, 1.0)
+    kept: list[int] = []
+    for i in range(len(photo_px)):
+        same = any(np.linalg.norm(photo_px[i] - photo_px[k]) < tol_px
+                   or np.linalg.norm(points_3d[i] - points_3d[k]) < tol_m for k in kept)
+        if not same:
+            kept.append(i)
+    return len(kept)
+
+
+def pair_uncertainty(
+    intrinsics: Intrinsics, pose: Pose, points_3d: np.ndarray, photo_points: np.ndarray,
+    focal_free: bool = False, click_sigma_px: float = CLICK_SIGMA_PX,
+) -> Uncertainty:
+    """The expected error of a pose solved from picked pairs.
+
+    The pose's covariance from the pairs' geometry, σ² (JᵀJ)⁻¹ with J the
+    Jacobian of the pairs' reprojections by rotation, translation (and the
+    focal length when it is free), propagated to the camera centre, the
+    rotation and the frame's pixels. σ is the larger of the residuals' estimate
+    (their sum of squares over the degrees of freedom left) and
+    ``click_sigma_px``: with four pairs two numbers are left over, and an
+    RMS near 0 px is luck, not precision.
+
+    Parameters
+    ----------
+    intrinsics : Intrinsics
+        The camera of the pose (with the solved focal length).
+    pose : Pose
+    points_3d : (N, 3) array
+        The agreeing pairs' 3D points, model frame.
+    photo_points : (N, 2) array
+        Their photo pixels (x, y).
+    focal_free : bool
+        The focal length is not known for sure: solved with the pose, or an
+        assumed value. Its freedom is included (with an assumed focal length
+        and fewer than :data:`MIN_PAIRS_FOCAL` pairs, the error is then
+        large or infinite: the pairs cannot tell focal length from distance).
+    click_sigma_px : float
+        Least error of one pair, pixels per axis.
+
+    Returns
+    -------
+    Uncertainty
+        ``reprojection_px``: the median over the frame (a grid of the photo
+        at the pairs' median depth) of the expected distance between where
+        the solved and the true pose put a model point (RMS of the 2D
+        error); ``position_m``, ``rotation_deg``: RMS errors of the camera
+        centre and rotation; ``focal_px`` when free. Infinite when the pairs
+        do not fix the pose (a singular geometry).
+    """
+    p3 = np.asarray(points_3d, np.float64).reshape(-1, 3)
+    p2 = np.asarray(photo_points, np.float64).reshape(-1, 2)
+    centre = p3.mean(axis=0)
+    c3 = p3 - centre
+    pose_c = Pose(pose.R, pose.t + pose.R @ centre)
+    f0 = intrinsics.fx
+    n_par = 7 if focal_free else 6
+    v0 = np.concatenate([pose_c.rvec, pose_c.t, [0.0]])[:n_par]
+
+    def project(v: np.ndarray, points: np.ndarray = c3) -> np.ndarray:
+        intr = _with_focal(intrinsics, f0 * math.exp(v[6])) if len(v) > 6 else intrinsics
+        proj, _ = cv2.projectPoints(points, v[:3], v[3:6], intr.K, intr.dist_coeffs)
+        return proj.reshape(-1, 2)
+
+    # The model seen over the frame, approximated by a 5 × 5 grid of the
+    # photo at the pairs' median depth: the pairs themselves are where the
+    # fitted pose errs least.
+    depth = float(np.median(pose_c.transform(c3)[:, 2]))
+    gx, gy = np.meshgrid(np.linspace(0, intrinsics.width - 1, 5),
+                         np.linspace(0, intrinsics.height - 1, 5))
+    cam = np.c_[(gx.ravel() - intrinsics.cx) / intrinsics.fx,
+                (gy.ravel() - intrinsics.cy) / intrinsics.fy, np.ones(gx.size)] * depth
+    frame = (cam - pose_c.t) @ pose_c.R  # camera -> centred model frame
+
+    def camera(v: np.ndarray) -> np.ndarray:
+        """Centre (model frame) and the rotation vector from the solved
+        rotation: its length is the rotation's error angle."""
+        p = Pose.from_rvec_tvec(v[:3], v[3:6])
+        m = p.R @ pose_c.R.T  # near the identity: its skew part is the small turn
+        turn = 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+        return np.concatenate([p.center + centre, turn])
+
+    def jacobian(fun, v: np.ndarray) -> np.ndarray:
+        steps = np.r_[np.full(3, 1e-6), np.full(3, 1e-6 * max(1.0, np.abs(v[3:6]).max())),
+                      np.full(len(v) - 6, 1e-6)]
+        cols = []
+        for k, h in enumerate(steps):
+            dv = np.zeros_like(v)
+            dv[k] = h
+            cols.append((np.ravel(fun(v + dv)) - np.ravel(fun(v - dv))) / (2 * h))
+        return np.stack(cols, axis=1)
+
+    inf = Uncertainty(math.inf, math.inf, math.inf, focal_px=math.inf if focal_free else None)
+    J = jacobian(project, v0)
+    residual = (project(v0) - p2).ravel()
+    dof = residual.size - n_par
+    sigma = click_sigma_px
+    if dof > 0:
+        sigma = max(sigma, float(np.sqrt(residual @ residual / dof)))
+    try:
+        cov = sigma**2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return inf
+    if not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
+        return inf
+    J_cam = jacobian(camera, v0)
+    cov_cam = J_cam @ cov @ J_cam.T
+    # Each frame point's 2D error: its two rows of the Jacobian, traced.
+    J_frame = jacobian(lambda v: project(v, frame), v0)
+    per_point = np.einsum("ij,jk,ik->i", J_frame, cov, J_frame).reshape(-1, 2).sum(axis=1)
+    focal = None
+    if focal_free:
+        focal = f0 * math.sqrt(max(cov[6, 6], 0.0))
+    return Uncertainty(
+        reprojection_px=float(np.median(np.sqrt(np.maximum(per_point, 0.0)))),
+        position_m=float(np.sqrt(max(np.trace(cov_cam[:3, :3]), 0.0))),
+        rotation_deg=float(np.degrees(np.sqrt(max(np.trace(cov_cam[3:, 3:]), 0.0)))),
+        focal_px=focal)
+
+
+def _focal_warning(intr: Intrinsics, c3: np.ndarray, q2: np.ndarray, thr: float,
+                   n_agree: int, agree_errors: np.ndarray) -> str:
+    """A warning when the pairs fit another focal length clearly better.
+
+    A focal length 40 % off in the photo's record puts the pose ~20 m off
+    with a residual of a few pixels only, within the agreement threshold, or
+    sets good pairs aside; P4Pf (the focal length free) then keeps more
+    pairs, or fits the same ones with a residual 1.5× smaller.
+    """
+    est = estimate_pose(intr, c3, q2, PoseParams(reprojection_error_px=thr, iterations=2000,
+                                                 confidence=0.999, refine=True, solver="p4pf"))
+    if not est.ok or est.intrinsics is None:
+        return ""
+    f = est.intrinsics.fx
+    rms = float(np.sqrt(np.mean(agree_errors**2))) if len(agree_errors) else math.inf
+    rms_free = float(np.sqrt(np.mean(est.errors_px[est.inliers] ** 2)))
+    better = est.n_inliers > n_agree or (
+        est.n_inliers == n_agree and rms > max(1.5 * rms_free, CLICK_SIGMA_PX))
+    if not better or abs(f / intr.fx - 1.0) < 0.05:
+        return ""
+    return (f"the pairs fit a focal length of {f:.0f} px better ({est.n_inliers} agree, RMS "
+            f"{rms_free:.1f} px) than the photo's {intr.fx:.0f} px ({n_agree}, RMS {rms:.1f} px): "
+            "if its camera may be wrong, solve the focal length too")
+
+
 def _with_focal(intr: Intrinsics, f: float) -> Intrinsics:
     fy = f * intr.fy / intr.fx
-    return Intrinsics(intr.width, intr.height, f, fy, intr.cx, intr.cy, intr.dist)
+    return Intrinsics(intr.width, intr.height, f, fy, intr.cx, intr.cy, intr.dist,
+                      estimated=intr.estimated)
 
 
 def _solve_focal(
@@ -216,8 +397,11 @@ def solve_manual(
     iterative PnP, each refined by Levenberg–Marquardt, the one with the
     smallest RMS error that keeps all points in front of the camera wins.
     With ``solve_focal`` and six or more agreeing pairs, the focal length
-    (square pixels, principal point fixed) is solved with the pose: a
-    search over 0.5–2× the current focal length, then joint least squares.
+    (square pixels, principal point fixed) is solved with the pose: P4Pf in
+    RANSAC finds it and the pairs that agree (at a wrong focal length RANSAC
+    EPnP would set good pairs aside), then a search over 0.5–2× that focal
+    length and joint least squares refine it. A pair picked twice (the same
+    photo pixel or the same 3D point) counts once towards the minimum.
 
     Parameters
     ----------
@@ -233,8 +417,8 @@ def solve_manual(
     solve_focal : bool
         Also solve the focal length (needs :data:`MIN_PAIRS_FOCAL` pairs).
     threshold_px : float, optional
-        A pair agrees with the pose within this many pixels; default 0.8 % of
-        the photo width, at least 8 px.
+        A pair agrees with the pose within this many pixels; default 1.2 % of
+        the photo width, at least 12 px.
 
     Returns
     -------
@@ -245,7 +429,10 @@ def solve_manual(
     Notes
     -----
     PnP is degenerate when the points are (nearly) collinear; spread the
-    picks over the photo. Solving the focal length needs depth variety:
+    picks over the photo. Nearly collinear pairs fit a pose far off to a
+    fraction of a pixel, so a pose whose expected rotation error
+    (:attr:`ManualSolution.uncertainty`) reaches
+    :data:`MAX_EXPECTED_ROTATION_DEG` is refused. Solving the focal length needs depth variety:
     with all points on one plane seen square-on, focal length and distance
     trade off.
 
@@ -266,7 +453,9 @@ def solve_manual(
     if len(p2) != len(p3):
         raise ValueError(f"{len(p2)} photo points but {len(p3)} 3D points")
     n = len(p2)
-    thr = float(threshold_px) if threshold_px else max(8.0, 0.008 * intrinsics.width)
+    # Two clicks of up to 3 px each put a good pair ~12 px off at 2σ: a tighter
+    # default marked a good pair a mis-pick in most solves at that noise.
+    thr = float(threshold_px) if threshold_px else max(12.0, 0.012 * intrinsics.width)
     valid = np.isfinite(p2).all(axis=1) & np.isfinite(p3).all(axis=1)
     nan = np.full(n, np.nan)
 
@@ -280,6 +469,10 @@ def solve_manual(
         extra = f" ({missing} without a 3D point)" if missing else ""
         return fail(f"{m} usable pairs{extra}: need at least {MIN_PAIRS}")
     q2, q3 = p2[valid], p3[valid]
+    distinct = _count_distinct(q2, q3)
+    if distinct < MIN_PAIRS:
+        return fail(f"{distinct} different pairs ({m - distinct} picked twice): "
+                    f"need at least {MIN_PAIRS}")
     centre = q3.mean(axis=0)
     c3 = q3 - centre
     if np.linalg.svd(c3, compute_uv=False)[1] < 1e-6 * max(1.0, np.abs(c3).max()):
@@ -294,11 +487,19 @@ def solve_manual(
     init_c = centred(initial) if initial is not None else None
     pose_c, method = None, ""
     sel = np.ones(m, bool)
-    if m >= 6:
-        est = estimate_pose(
-            intrinsics, c3, q2,
-            PoseParams(reprojection_error_px=thr, iterations=2000, confidence=0.999, refine=True),
-        )
+    # The focal length the pairs are first tested with: the photo's, or,
+    # when it is to be solved, the one P4Pf finds in RANSAC. With a wrong
+    # focal length, RANSAC EPnP sets good pairs aside as mis-picks and the
+    # focal length is then fitted to the few it kept.
+    intr_start = intrinsics
+    ransac = PoseParams(reprojection_error_px=thr, iterations=2000, confidence=0.999, refine=True)
+    if solve_focal and distinct >= MIN_PAIRS_FOCAL:
+        est = estimate_pose(intrinsics, c3, q2, dataclasses.replace(ransac, solver="p4pf"))
+        if est.ok and est.n_inliers >= MIN_PAIRS_FOCAL and est.intrinsics is not None:
+            intr_start = _with_focal(intrinsics, est.intrinsics.fx)
+            pose_c, method, sel = est.pose, "ransac-p4pf", est.inliers
+    if pose_c is None and m >= 6:
+        est = estimate_pose(intrinsics, c3, q2, ransac)
         if est.ok:
             pose_c, method, sel = est.pose, "ransac-epnp", est.inliers
     if pose_c is None:
@@ -309,10 +510,13 @@ def solve_manual(
     intr = intrinsics
     focal_solved = False
     if solve_focal:
-        if int(sel.sum()) < MIN_PAIRS_FOCAL:
+        if int(sel.sum()) < MIN_PAIRS_FOCAL or distinct < MIN_PAIRS_FOCAL:
             pass  # not enough agreeing pairs: keep the focal length (caller sees focal_solved)
         else:
-            intr, pose_c = _solve_focal(intrinsics, c3[sel], q2[sel], pose_c)
+            intr, pose_c = _solve_focal(intr_start, c3[sel], q2[sel], pose_c)
+            # RESULT.json's camera.estimated: the focal length was solved, not read.
+            intr = dataclasses.replace(
+                intr, estimated=tuple(dict.fromkeys((*intr.estimated, "fx", "fy"))))
             focal_solved = True
     pose = uncentre(pose_c)
     errors = nan.copy()
@@ -323,7 +527,19 @@ def solve_manual(
         return fail("the pose puts picked points behind the camera")
     if inliers.sum() < MIN_PAIRS:
         return fail(f"only {int(inliers.sum())} pairs agree with any pose within {thr:.0f} px")
-    return ManualSolution(True, pose, intr, errors, inliers, thr, focal_solved, method)
+    # An assumed focal length (none in the photo's record) is as uncertain as a solved one.
+    focal_free = focal_solved or not intr.focal_known
+    unc = pair_uncertainty(intr, pose, p3[inliers], p2[inliers], focal_free)
+    if not unc.rotation_deg < MAX_EXPECTED_ROTATION_DEG:
+        return fail(f"these pairs do not fix the pose (expected error ≈ {unc.rotation_deg:.0f}°, "
+                    f"{unc.position_m:.0f} m): spread them over the photo and over distance "
+                    "(pairs nearly on a line fit a pose far off), or solve the focal length "
+                    "too if the photo's may be wrong")
+    warning = ""
+    if not focal_solved and distinct >= MIN_PAIRS_FOCAL:
+        warning = _focal_warning(intr, c3, q2, thr, int(inliers.sum()), errors[inliers])
+    return ManualSolution(True, pose, intr, errors, inliers, thr, focal_solved, method,
+                          uncertainty=unc, warning=warning)
 
 
 # ================================================================ scoring
@@ -351,7 +567,9 @@ def score_pose(
     is *verified* as an automatic trial is
     (:func:`~napari_imgreg.registration.round.trial_from_round`): enough 3D
     inliers and photo and render keypoints coincide (small residual flow); an
-    unverified pose is graded "fair" at best.
+    unverified pose is graded "fair" at best, and "poor" at best when fewer
+    than ``MIN_VERIFIED_INLIERS`` matches agree with it (an automatic round
+    would have found no pose there).
 
     Parameters
     ----------
@@ -387,6 +605,19 @@ def score_pose(
 
     source = _Context(scene, photo_rgb, intrinsics, params, check)
     last = score_round(source, pose, params, params.match_width, near=True, solve=False)
-    return trial_from_round(
+    trial = trial_from_round(
         last, index=-1, params=params, pose=pose, start_pose=pose, rounds=0, converged=True,
         origin=origin, seconds=time.perf_counter() - t_start, image_width=w)
+    inliers = int(trial.metrics.get("inliers_3d") or 0)
+    if inliers < MIN_VERIFIED_INLIERS:
+        # An automatic round whose matches agree with no pose has none and
+        # fails; a given pose that they do not support either must not read
+        # "fair: probably registered" on Q from the point counts alone.
+        capped = grade_pose(trial.q, pose_found=True, verified=False, ceiling=STAGE_Q_CEILING)
+        if GRADE_NAMES.index(capped.name) > GRADE_NAMES.index(trial.grade):
+            trial.grade = capped.name
+        trial.hints.insert(0, (
+            f"The photo's features confirm this pose at only {inliers} points (need "
+            f"{MIN_VERIFIED_INLIERS}): it rests on the control points alone, so it is "
+            "graded \"poor\" at best — check the overlay at the pairs."))
+    return trial

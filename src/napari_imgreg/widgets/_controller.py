@@ -1417,8 +1417,13 @@ class WorkbenchController(QObject):
                 self.show_2d()
             job.apply(result)
             where = "3D view" if source == "view" else "current pose"
-            self.status.emit(f"reference rendered from the {where}:"
-                             " pick the same points on the photo and on the reference")
+            kept = len(job.photo.photo_points_px)
+            # The old reference's picks went; the photo's stay, waiting for partners.
+            points = "point 1" if kept == 1 else f"points 1–{kept}"
+            then = (f" click {points} again on the new reference, in order (the photo's "
+                    "picks stay; Clear to start afresh)" if kept else
+                    " pick the same points on the photo and on the reference")
+            self.status.emit(f"reference rendered from the {where}:{then}")
 
         self._start("reference", job.run, on_returned=done, progress={"desc": job.description})
 
@@ -1454,6 +1459,7 @@ class WorkbenchController(QObject):
         """Put the photo's pair layer in add mode; clicks alternate photo → reference."""
         photo, ref = self.pair_layers()
         target = photo if len(photo.data) <= len(ref.data) else ref
+        target.selected_data = set()  # Delete must not take a pair picked earlier
         self.viewer.layers.selection.active = target
         target.mode = "add"
 
@@ -1500,6 +1506,11 @@ class WorkbenchController(QObject):
                 else:
                     nxt = photo
                 if nxt is not source:
+                    # napari selects each added point, and Delete removes the
+                    # active layer's selection: left selected, the partner of
+                    # the last pair would go (with its pair) when the user
+                    # deletes a mis-click just made on the other image.
+                    nxt.selected_data = set()
                     self.viewer.layers.selection.active = nxt
                     nxt.mode = "add"
         finally:

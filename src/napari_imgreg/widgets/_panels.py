@@ -1483,8 +1483,8 @@ class ManualPanel(QWidget):
             "Click a recognisable point on the photo (left), then the same point on the reference "
             "(right); the next click goes back to the photo. Pairs are numbered and coloured "
             "alike. "
-            "Drag a point (select mode) to correct it; select it and press Delete, or use "
-            "Delete pair, to remove the pair."))
+            "Drag a point (select mode, key 3) to correct it; select it there and press "
+            "Delete, or use Delete pair, to remove the pair."))
         pl.addLayout(pick_row)
         pl.addWidget(self.table, 1)
         solve_box = QGroupBox(f"3. Solve (≥ {MIN_PAIRS} pairs)")
@@ -1537,20 +1537,21 @@ class ManualPanel(QWidget):
 
     def refresh(self) -> None:
         ps = self.ws.current
-        photo_px, ref_px = self.ws.pairs()
-        # Picked so far on each image (one may wait for its partner).
-        n_photo = len(ps.photo_points_px) if ps is not None else 0
-        n_ref = len(ps.reference_points_px) if ps is not None else 0
+        # Every point picked so far on each image: one may wait for its partner
+        # (all the photo's do after a new reference, which drops the old one's).
+        photo_px = np.asarray(ps.photo_points_px if ps is not None else np.zeros((0, 2)), float)
+        ref_px = np.asarray(ps.reference_points_px if ps is not None else np.zeros((0, 2)), float)
+        n_photo, n_ref = len(photo_px), len(ref_px)
         valid = self.ws.pair_points_3d()[1]
         n = max(n_photo, n_ref)
         self.table.setRowCount(n)
         res = self._residuals
         for i in range(n):
             items = [str(i + 1),
-                     f"{photo_px[i, 0]:.1f}, {photo_px[i, 1]:.1f}" if i < len(photo_px) else
-                     ("(pending)" if i < n_photo else "—"),
-                     f"{ref_px[i, 0]:.1f}, {ref_px[i, 1]:.1f}" if i < len(ref_px) else
-                     ("(pending)" if i < n_ref else "click the reference"),
+                     f"{photo_px[i, 0]:.1f}, {photo_px[i, 1]:.1f}" if i < n_photo else
+                     "click the photo",
+                     f"{ref_px[i, 0]:.1f}, {ref_px[i, 1]:.1f}" if i < n_ref else
+                     "click the reference",
                      ("✓" if valid[i] else "✗ off the model") if i < len(valid) else "",
                      f"{res[i]:.2f} px" if res is not None and i < len(res)
                      and np.isfinite(res[i]) else ""]
@@ -1608,8 +1609,29 @@ class ManualPanel(QWidget):
         self.result_label.setText(
             f"Pose from {sol.n_inliers} of {len(sol.inliers)} pairs, RMS {sol.rms_px:.2f} px "
             f"({sol.method}){focal}: ({c[0]:.2f}, {c[1]:.2f}, {c[2]:.2f}) m, trend {t:.2f}° "
-            f"plunge {p:.2f}° roll {r:.2f}°{grade}.")
+            f"plunge {p:.2f}° roll {r:.2f}°{grade}.<br>"
+            + _pairs_error_text(sol.uncertainty, sol.intrinsics.width)
+            + (f"<br><span style='color:#ff8a80'>{sol.warning}.</span>"
+               if getattr(sol, "warning", "") else ""))
         self.refresh()
+
+
+def _pairs_error_text(unc, width: int) -> str:
+    """The expected error of a pose from control points (rich text): green when
+    small (:data:`~napari_imgreg.registration.uncertainty.UNCERTAIN_PX`, scaled
+    to the photo's ``width``), red when not; the RMS of a few pairs is no guide."""
+    if unc is None:
+        return ""
+    if not np.isfinite(unc.reprojection_px) or not np.isfinite(unc.position_m):
+        return ("<span style='color:#ff8a80'>Expected error: unbounded — these pairs do not "
+                "fix the pose (too few for an unknown focal length, or on a line): add pairs "
+                "spread over the photo and over distance.</span>")
+    colour = "#b9f6ca" if unc.is_small(width) else "#ff8a80"
+    advice = "" if unc.is_small(width) else (
+        " — add pairs spread over the photo and over distance")
+    return (f"<span style='color:{colour}'>Expected error ≈ {unc.reprojection_px:.1f} px · "
+            f"camera ≈ {unc.position_m:.2f} m · {unc.rotation_deg:.2f}° (from the pairs' "
+            f"spread and click noise, not their RMS){advice}</span>")
 
 
 def _qcolor(hex_color: str):
