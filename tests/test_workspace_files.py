@@ -664,3 +664,42 @@ def test_one_session_saves_into_a_folder_at_a_time(ws, tmp_path):
     with pytest.raises(InputError, match="open in napari-imgreg on field-laptop .*delete "
                                          "workspace.lock if that session is gone"):
         Workspace.open(folder, scene=ws.scene, terrain=ws.terrain)
+
+
+def test_two_photos_with_one_file_name_are_told_apart_not_confused(sample, tmp_path, capsys):
+    # Two cameras both name a photo IMG_0001.jpg: a command naming
+    # "IMG_0001.jpg" must not pick one of them silently (it used to draw on
+    # the first, replacing its drawings); the photo's folder name or its path does.
+    src = sample[0]
+    other = tmp_path / "camera2"
+    other.mkdir()
+    for suffix in (".jpg", ".json"):
+        shutil.copy(src / f"IMG_0002{suffix}", other / f"IMG_0001{suffix}")
+    folder = tmp_path / "campaign.imgreg"
+    assert _cli("workspace", "create", folder, src, "--no-photos") == 0
+    assert _cli("workspace", "add", folder, src / "IMG_0001.jpg", other / "IMG_0001.jpg") == 0
+    assert _cli("workspace", "add", folder, other / "IMG_0001.jpg") == 0  # once is enough
+    assert (f"already in the workspace: {other / 'IMG_0001.jpg'}\n"
+            f"{folder}: 0 photo(s) added, 2 in all") in capsys.readouterr().out
+    lines = tmp_path / "lines.geojson"
+    lines.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"label": "sandstone"},
+         "geometry": {"type": "LineString", "coordinates": [[200, 300], [700, 330]]}}]}))
+    capsys.readouterr()
+    with pytest.raises(InputError, match=r"2 photos are named 'IMG_0001.jpg': IMG_0001 \(.*"
+                                         r"IMG_0001_2 \(.*camera2"):
+        _cli("workspace", "lines", folder, "IMG_0001.jpg", lines)
+    with pytest.raises(InputError, match="2 photos are named"):
+        _cli("workspace", "register", folder, "--photo", "IMG_0001.jpg")
+    assert _cli("workspace", "lines", folder, "IMG_0001_2", lines) == 0
+    assert "IMG_0001.jpg (IMG_0001_2): 1 feature(s) drawn" in capsys.readouterr().out
+    assert _cli("workspace", "lines", folder, other / "IMG_0001.jpg", lines) == 0  # by its path
+    opened = Workspace.open(folder, autosave=False)
+    assert [(opened.photo_key(ps), len(ps.interpretations)) for ps in opened.photos] == [
+        ("IMG_0001", 0), ("IMG_0001_2", 1)]
+    assert opened.photos[1].photo.path.parent == other
+    capsys.readouterr()
+    assert _cli("workspace", "info", folder) == 0
+    info = capsys.readouterr().out
+    assert "IMG_0001.jpg (IMG_0001): not registered" in info
+    assert "IMG_0001.jpg (IMG_0001_2): not registered; 0 trial(s), 1 drawn" in info

@@ -45,6 +45,7 @@ turn right 1
 from __future__ import annotations
 
 import gc
+import hashlib
 import inspect
 import math
 import os
@@ -222,6 +223,12 @@ class PhotoState:
     accepted : bool
         The user accepted its current pose (:meth:`Workspace.accept`): it no
         longer needs attention until the pose changes again.
+    registered_on : dict or None
+        ``{"photo": ..., "model": ...}``: fingerprints
+        (:func:`~napari_imgreg.io.workspace_files.file_fingerprint`) of the
+        photo file and the model at its last registration (automatic or
+        manual); None before any. A file replaced since (a re-exported model,
+        another photo under the same name) is reported when the workspace is opened.
     """
 
     photo: Photo
@@ -243,6 +250,7 @@ class PhotoState:
     sun_estimate: SunEstimate | None = None
     interpretations: list[Interpretation] = field(default_factory=list)
     accepted: bool = False
+    registered_on: dict | None = None
     _convergence: float | None = None
 
     @property
@@ -615,6 +623,15 @@ class Workspace:
         #: What could not be restored when the workspace was opened (one line each).
         self.open_problems: list[str] = []
         self._store: _FolderStore | None = None
+        #: The folder names of the photos read by :meth:`open` (kept without autosave too).
+        self._opened_keys: dict[PhotoState, str] = {}
+        #: The lines of ``open_problems`` that are warnings: everything was opened,
+        #: but a file changed since the work on it was done.
+        self.open_warnings: list[str] = []
+        #: The model file's fingerprint when it was loaded (what registrations are made on).
+        self._mesh_fingerprint: dict | None = None
+        #: Per photo, :func:`_projection_input` of what the last projection was made from.
+        self._projected_from: dict[PhotoState, str] | None = None
 
     # -------------------------------------------------------------- scene
     def load_scene(self, scene: Scene, terrain: adjust.TerrainMap | None = None,
@@ -638,8 +655,10 @@ class Workspace:
             self.params_changed.emit()
         self.terrain = terrain if terrain is not None else adjust.terrain_map(scene)
         self.scene_files = {k: str(v or "") for k, v in (files or {}).items()}
+        self._mesh_fingerprint = wsfiles.file_fingerprint(self.scene_files.get("mesh"))
         self.photos, self.current = [], None
         self.features_3d, self.measurements = [], []
+        self._projected_from = None
         self.scene_changed.emit()
         self.photos_changed.emit()
 
@@ -715,6 +734,14 @@ class Workspace:
         return (next((ps for ps in self.photos if ps.photo.path == path), None)
                 or next((ps for ps in self.photos
                          if _resolved(ps.photo.path) == _resolved(path)), None))
+
+    def photo_key(self, ps: PhotoState) -> str | None:
+        """The photo's folder name in the workspace folder (``photos/<key>/``),
+        unique where file names are not (two ``IMG_0001.jpg`` of two cameras);
+        None for a photo not saved in a folder."""
+        if self._store is not None and ps in self._store.keys:
+            return self._store.keys[ps]
+        return self._opened_keys.get(ps)
 
     def select_photo(self, index: int) -> None:
         """Make photo ``index`` current (out of range: nothing happens)."""
@@ -912,6 +939,8 @@ class Workspace:
         ps = ps if ps is not None else self.current
         ps.runs += 1
         ps.registration = reg
+        if reg.registered:
+            ps.registered_on = self._fingerprints_now(ps)
         first = len(ps.trials)
         for t in reg.trials:
             ps.trials.append(TrialRecord(t, ps.runs, kind))
@@ -931,6 +960,10 @@ class Workspace:
         if ps is self.current:
             self.select_trial(best)
         return reg
+
+    def _fingerprints_now(self, ps: PhotoState) -> dict:
+        """What ``ps.registered_on`` records: the photo file and the model as they are now."""
+        return {"photo": wsfiles.file_fingerprint(ps.photo.path), "model": self._mesh_fingerprint}
 
     def add_trial(self, trial: Trial, kind: str = "Run", run: int | None = None,
                   ps: PhotoState | None = None) -> TrialRecord:
@@ -1128,6 +1161,7 @@ class Workspace:
             return solution
         if solution.focal_solved:
             ps.intrinsics = solution.intrinsics
+        ps.registered_on = self._fingerprints_now(ps)
         ps.trials.append(TrialRecord(trial, ps.runs, "Manual"))
         ps.selected_trial = len(ps.trials) - 1
         if ps is self.current:
@@ -1255,13 +1289,16 @@ class Workspace:
             No scene, or nothing drawn.
         """
         scene = self.require_scene()
+        drawn = [ps for ps in self.photos if ps.interpretations]
         jobs = [(ps.intrinsics, ps.pose, list(ps.interpretations), ps.name,
-                 self.pose_uncertainty(ps))
-                for ps in self.photos if ps.interpretations]
+                 self.pose_uncertainty(ps)) for ps in drawn]
         if not jobs:
             raise WorkbenchError("Nothing to project: draw on a photo first.")
+        # What it is made from, as the job starts (edits while it runs make it out of date).
+        projected_from = {ps: _projection_input(ps) for ps in drawn}
         return Job("projection", lambda: project_interpretation_sets(scene, jobs),
-                   lambda value: self.record_projection(*value), "Projecting interpretations")
+                   lambda value: self.record_projection(*value, projected_from=projected_from),
+                   "Projecting interpretations")
 
     def pose_uncertainty(self, ps: PhotoState) -> PoseUncertainty:
         """The expected error of the photo's current pose, for what is projected from it.
@@ -1303,12 +1340,37 @@ class Workspace:
         """Project the interpretations (blocking); see :meth:`projection_job`."""
         return self.projection_job()()
 
-    def record_projection(self, features: list[Feature3D],
-                          measurements: list[Measurement]) -> list[Feature3D]:
-        """Record projected interpretations and their measurements."""
+    def record_projection(self, features: list[Feature3D], measurements: list[Measurement],
+                          projected_from: dict[PhotoState, str] | None = None) -> list[Feature3D]:
+        """Record projected interpretations and their measurements.
+
+        ``projected_from``: per photo projected, :func:`_projection_input` of
+        its drawings, camera and pose as the projection started
+        (:meth:`projection_job` passes it), so that
+        :meth:`projection_out_of_date` can tell. By default, the photos named
+        as the features' sources, as they are now.
+        """
         self.features_3d, self.measurements = list(features), list(measurements)
+        if projected_from is None:
+            sources = {f.source for f in self.features_3d}
+            projected_from = {ps: _projection_input(ps) for ps in self.photos
+                              if ps.interpretations and ps.name in sources}
+        self._projected_from = dict(projected_from)
         self.projection_changed.emit()
         return self.features_3d
+
+    def projection_out_of_date(self) -> list[PhotoState]:
+        """The photos whose drawings, camera or pose changed since the last
+        projection (drawn on since, or no longer drawn on): what it shows, and
+        an export writes, is not what they hold now. Empty when nothing was
+        projected, or when it is not known what from (a workspace projected
+        before napari-imgreg recorded it)."""
+        if not (self.features_3d or self.measurements) or self._projected_from is None:
+            return []
+        before = self._projected_from
+        return [ps for ps in self.photos
+                if (ps.interpretations or ps in before)
+                and before.get(ps) != _projection_input(ps)]
 
     # -------------------------------------------------------------- saving
     # ------------------------------------------------------- the campaign
@@ -1513,7 +1575,11 @@ class Workspace:
         self.params = other.params
         self.photos, self.current = list(other.photos), None
         self.features_3d, self.measurements = other.features_3d, other.measurements
+        self._projected_from = other._projected_from
         self.open_problems = list(other.open_problems)
+        self.open_warnings = list(other.open_warnings)
+        self._opened_keys = dict(other._opened_keys)
+        self._mesh_fingerprint = other._mesh_fingerprint
         current = other.current_index
         other.photos, other.current, other.scene = [], None, None
         # The views follow the events; the folder is bound after them, so that
@@ -1823,6 +1889,7 @@ def _photo_doc(ps: PhotoState, folder: Path, has_matches: bool) -> dict:
                             else _manual_to_dict(ps.manual_solution)),
         "registration": registration,
         "accepted": bool(ps.accepted),
+        "registered_on": ps.registered_on,
         "files": {"trials": wsfiles.PHOTO_TRIALS, "lines": wsfiles.PHOTO_LINES,
                   "correspondences": wsfiles.PHOTO_MATCHES if has_matches else None},
     }
@@ -1852,6 +1919,9 @@ class _FolderStore:
         self._saved_once: set[str] = set()
         self._connected: list[tuple[Any, Callable]] = []
         self._release: weakref.finalize | None = None
+        #: What a failed save left unwritten (photos, "projection", "manifest"):
+        #: the next change writes it first, whichever photo that change is of.
+        self._unsaved: dict[Any, None] = {}
 
     def bind(self, ws: Workspace | None, keys: dict | None = None,
              unavailable: list[dict] | None = None) -> None:
@@ -1861,6 +1931,8 @@ class _FolderStore:
         self.keys: dict[PhotoState, str] = dict(keys or {})
         #: Manifest entries of photos that could not be read when opened: kept.
         self.unavailable: list[dict] = list(unavailable or [])
+        #: Their places in the manifest's list (kept there: the campaign keeps its order).
+        self.unavailable_at: list[int] = []
         self.fingerprints: dict[PhotoState, tuple] = {ps: _fingerprint(ps) for ps in self.keys}
 
     # --------------------------------------------------------------- lock
@@ -1909,14 +1981,40 @@ class _FolderStore:
     def _guarded(self, action: Callable[[], None]) -> None:
         # An autosave that fails (disk full, folder gone) must not break the
         # edit that triggered it: it is said in one line, the next change retries.
-        try:
-            action()
-        except (OSError, InputError, TypeError, ValueError) as exc:
-            self.ws.autosave_failed.emit(one_line(exc))
+        failed = None
+        # What earlier saves left unwritten first; the change's own save even if that fails
+        # (each save marks what it did not finish, for the next change to write).
+        for step in (self._save_unsaved, action):
+            try:
+                step()
+            except (OSError, InputError, TypeError, ValueError) as exc:
+                failed = failed or exc
+        if failed is not None:
+            # The manifest is written after the files it names: it waited too.
+            self._unsaved["manifest"] = None
+            message = one_line(failed)
+            if isinstance(failed, OSError) and not failed.filename:  # a full disk's names no file
+                message = f"{self.folder}: {message}"
+            self.ws.autosave_failed.emit(message)
+
+    def _save_unsaved(self) -> None:
+        """Write what earlier saves failed to write (a drawing on another photo
+        than the next change's, a projection), before the next change's files."""
+        for item in list(self._unsaved):
+            if isinstance(item, PhotoState):
+                if item in self.ws.photos:
+                    self.save_photo(item)
+                else:
+                    self._unsaved.pop(item, None)
+            elif item == "projection":
+                self.save_projection()
+        if "manifest" in self._unsaved:
+            self.save_manifest()
 
     def _on_scene(self, *_) -> None:
         # A new scene clears the photos: their folders stay on disk, unlisted.
         self.unavailable, self.keys, self.fingerprints = [], {}, {}
+        self.unavailable_at = []
         self._guarded(self.save_manifest)
 
     def _on_photos(self, *_) -> None:
@@ -1986,6 +2084,7 @@ class _FolderStore:
         not even serialised: a nudge must stay quick); all of them when the
         photo's trials, registration or camera changed since the last write.
         """
+        self._unsaved[ps] = None  # until every file of it is written
         key = self._key(ps)
         folder = self.folder / wsfiles.PHOTOS_DIR / key
         if self.fingerprints.get(ps) != _fingerprint(ps) or key not in self._saved_once:
@@ -2020,8 +2119,10 @@ class _FolderStore:
                 self._write(path, text)
         self.fingerprints[ps] = _fingerprint(ps)
         self._saved_once.add(key)
+        self._unsaved.pop(ps, None)
 
     def save_projection(self) -> None:
+        self._unsaved["projection"] = None  # until its three files are written
         ws = self.ws
         georef = ws.scene.georef if ws.scene is not None else None
         interpret_files.write_features_geojson(self.folder / wsfiles.FEATURES_3D,
@@ -2030,6 +2131,7 @@ class _FolderStore:
                                                ws.measurements)
         wsfiles.write_json(self.folder / wsfiles.MEASUREMENTS_JSON,
                            {"measurements": [_measurement_to_dict(m) for m in ws.measurements]})
+        self._unsaved.pop("projection", None)
 
     def manifest(self) -> dict:
         ws = self.ws
@@ -2043,22 +2145,37 @@ class _FolderStore:
             "scene": {name: wsfiles.file_ref(path, self.folder) if path else None
                       for name, path in ws.scene_files.items()},
             "params": ws.params.to_dict(),
-            "photos": entries + self.unavailable,
+            "photos": self._with_unavailable(entries),
             "current": None if ws.current is None else self._key(ws.current),
             "projection": None if not projected else {
                 "features": wsfiles.FEATURES_3D, "measurements": wsfiles.MEASUREMENTS,
                 "measurements_exact": wsfiles.MEASUREMENTS_JSON,
-                "n_features": len(ws.features_3d), "n_measurements": len(ws.measurements)},
+                "n_features": len(ws.features_3d), "n_measurements": len(ws.measurements),
+                # Per photo key, what it was projected from (see Workspace.projection_out_of_date).
+                "projected_from": None if ws._projected_from is None else {
+                    self._key(ps): digest for ps, digest in ws._projected_from.items()
+                    if ps in ws.photos}},
         }
+
+    def _with_unavailable(self, entries: list[dict]) -> list[dict]:
+        """The manifest's photo entries: the photos read, with those that could
+        not be read back at their places (photos are only ever appended)."""
+        entries = list(entries)
+        if len(self.unavailable_at) != len(self.unavailable):
+            return entries + self.unavailable
+        for at, entry in sorted(zip(self.unavailable_at, self.unavailable), key=lambda p: p[0]):
+            entries.insert(min(at, len(entries)), entry)
+        return entries
 
     def save_manifest(self) -> None:
         """Write ``workspace.json`` (when its content changed), atomically."""
         doc = self.manifest()
         text = wsfiles.json_text(doc)
-        if text == self._manifest_text:
-            return
-        wsfiles.write_json(wsfiles.manifest_path(self.folder), {**doc, "saved": wsfiles.utc_now()})
-        self._manifest_text = text
+        if text != self._manifest_text:
+            wsfiles.write_json(wsfiles.manifest_path(self.folder),
+                               {**doc, "saved": wsfiles.utc_now()})
+            self._manifest_text = text
+        self._unsaved.pop("manifest", None)
 
     def save_all(self) -> None:
         """Every photo, the projection, then the manifest."""
@@ -2132,6 +2249,8 @@ def _read_photo(folder: Path, entry: dict, inline: dict | None,
     if state.get("manual_solution"):
         ps.manual_solution = _manual_from_dict(state["manual_solution"])
     ps.accepted = bool(state.get("accepted", False))
+    if isinstance(state.get("registered_on"), dict):
+        ps.registered_on = state["registered_on"]
     registration = state.get("registration")
     if registration and inline is None:
         result = wsfiles.read_json_file(here / registration.get("result", wsfiles.PHOTO_RESULT))
@@ -2147,6 +2266,41 @@ def _read_photo(folder: Path, entry: dict, inline: dict | None,
             if item.properties.get("color") == label_color(item.label, None):
                 del item.properties["color"]
     return ps
+
+
+def _changed_since_registered(ws: Workspace) -> list[str]:
+    """One line per photo file, and one for the model, replaced since a photo
+    was registered on it: its pose may no longer fit, and nothing else would say so."""
+    lines, on_old_model, difference = [], [], ""
+    for ps in ws.photos:
+        saved = ps.registered_on or {}
+        changed = wsfiles.fingerprint_difference(
+            saved.get("photo"), wsfiles.file_fingerprint(ps.photo.path))
+        if changed:
+            lines.append(f"{ps.name}: the photo file {ps.photo.path} has changed since it was "
+                         f"registered ({changed}): its pose may not fit it; register it again")
+        model_changed = wsfiles.fingerprint_difference(saved.get("model"), ws._mesh_fingerprint)
+        if model_changed:
+            on_old_model.append(ps.name)
+            difference = model_changed
+    if on_old_model:
+        names = ", ".join(on_old_model[:5]) + (", ..." if len(on_old_model) > 5 else "")
+        mesh = Path(ws.scene_files.get("mesh", "")).name
+        lines.insert(0, f"the model {mesh} has changed since {len(on_old_model)} photo(s) were "
+                        f"registered on it ({names}; {difference}): their poses, and what was "
+                        "projected with them, may not fit it; register them again (Register "
+                        "all with 'redo registered', or 'workspace register --redo')")
+    return lines
+
+
+def _projection_input(ps: PhotoState) -> str:
+    """A digest of what a photo's projection is made from: its drawings, its
+    camera and its pose (equal digests: projecting it again gives the same)."""
+    drawn = [(item.geometry, np.asarray(item.pixels, float).tolist(), dict(item.properties))
+             for item in ps.interpretations]
+    text = wsfiles.json_text([ps.pose.R.tolist(), ps.pose.t.tolist(), ps.intrinsics.to_dict(),
+                              drawn], compact=True)
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
 
 
 def _open_workspace(cls, folder: Path, scene: Scene | None,
@@ -2182,6 +2336,15 @@ def _read_workspace(cls, folder: Path, data: dict, version: int, scene: Scene | 
     params = RegistrationParams.from_dict(manifest.get("params") or {}, manifest_path)
     scene_refs = manifest.get("scene") or {}
     files = {name: wsfiles.resolve_ref(ref, folder) for name, ref in scene_refs.items()}
+    for name, path in files.items():
+        if scene is None and path is not None and not path.exists():
+            # A workspace moved or copied without its model: say where it was looked for.
+            ref = scene_refs[name]
+            tried = dict.fromkeys([str(path)] + ([str(ref["absolute"])] if isinstance(ref, dict)
+                                                 and ref.get("absolute") else []))
+            raise input_error(manifest_path, f"the {name} file is not found (looked for "
+                                             f"{' and '.join(tried)}): put it back there, or "
+                                             f"set scene.{name}.path in this file")
     if scene is None and files.get("mesh"):
         scene, terrain = read_scene(files["mesh"], files.get("dem"), files.get("georef"))
     elif scene is None and entries:
@@ -2190,18 +2353,26 @@ def _read_workspace(cls, folder: Path, data: dict, version: int, scene: Scene | 
     if scene is not None:  # (a workspace saved before any model was opened has none)
         ws.load_scene(scene, terrain, files)
 
-    keys, unavailable, problems = {}, [], []
+    keys, unavailable, unavailable_at, problems = {}, [], [], []
     for k, entry in enumerate(entries):
         try:
             ps = _read_photo(folder, entry, None if migrated is None else migrated[k], scene)
-        except (InputError, OSError, KeyError, TypeError, ValueError) as exc:
+        except (InputError, OSError, KeyError, TypeError, ValueError, AttributeError) as exc:
             name = entry.get("key") or f"photo {k + 1}"
-            problems.append(f"{name}: {one_line(exc)}")
+            if isinstance(exc, (InputError, OSError)):  # they name their file
+                problems.append(f"{name}: {one_line(exc)}")
+            else:  # a field of the wrong type (a hand edit): say where its files are
+                here = folder / wsfiles.PHOTOS_DIR / str(entry.get("key", ""))
+                problems.append(f"{name}: {here}: a file there holds a field this "
+                                f"napari-imgreg cannot read ({one_line(exc)})")
             unavailable.append(entry)
+            unavailable_at.append(k)
             continue
         keys[ps] = str(entry.get("key", ""))
     ws.photos = list(keys)
-    ws.open_problems = problems
+    ws.open_warnings = _changed_since_registered(ws)
+    ws.open_problems = problems + ws.open_warnings
+    ws._opened_keys = dict(keys)
     projection = manifest.get("projection")
     if projection:
         try:
@@ -2210,6 +2381,10 @@ def _read_workspace(cls, folder: Path, data: dict, version: int, scene: Scene | 
             exact = wsfiles.read_json_file(
                 folder / projection.get("measurements_exact", wsfiles.MEASUREMENTS_JSON))
             ws.measurements = [_measurement_from_dict(m) for m in exact.get("measurements") or []]
+            projected_from = projection.get("projected_from")
+            if isinstance(projected_from, dict):
+                ws._projected_from = {ps: str(projected_from[key]) for ps, key in keys.items()
+                                      if key in projected_from}
         except (InputError, OSError, KeyError, TypeError, ValueError) as exc:
             ws.features_3d, ws.measurements = [], []
             problems.append(f"projected interpretations: {one_line(exc)}")
@@ -2222,6 +2397,7 @@ def _read_workspace(cls, folder: Path, data: dict, version: int, scene: Scene | 
     if store is None:
         return ws
     store.bind(ws, keys, unavailable if migrated is None else [])
+    store.unavailable_at = unavailable_at if migrated is None else []
     if migrated is not None:
         # The old single file is kept beside the new layout, then replaced.
         backup = folder / wsfiles.V0_BACKUP

@@ -79,7 +79,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     r = sub.add_parser("register", help="register the photos not registered yet (resumable)")
     r.add_argument("folder", metavar="WORKSPACE")
     r.add_argument("--photo", action="append", metavar="NAME",
-                   help="only this photo (file name); repeat for several")
+                   help="only this photo (its file name; where two photos share one, its "
+                   "folder name under photos/ or its path); repeat for several")
     r.add_argument("--retry-failed", action="store_true",
                    help="register again the photos whose last registration failed")
     r.add_argument("--redo", action="store_true", help="register every photo again")
@@ -91,7 +92,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
     li = sub.add_parser("lines", help="set what is drawn on a photo from a pixel GeoJSON")
     li.add_argument("folder", metavar="WORKSPACE")
-    li.add_argument("photo", metavar="PHOTO_NAME", help="the photo's file name in the workspace")
+    li.add_argument("photo", metavar="PHOTO_NAME",
+                    help="the photo's file name in the workspace (where two photos share one, "
+                    "its folder name under photos/ or its path)")
     li.add_argument("lines", metavar="LINES.geojson", help="pixel GeoJSON (docs/formats.md §7)")
 
     sub.add_parser("project", help="project every photo's drawings onto the model and measure "
@@ -168,10 +171,49 @@ def _open(folder: str) -> Workspace:
     from ..workspace import Workspace
     ws = Workspace.open(folder)
     _OPENED.append(ws)
-    for line in ws.open_problems:
-        say(f"  not opened: {line}")
+    _say_open_problems(ws)
     ws.autosave_failed.connect(lambda message: say(f"  not saved: {message}"))
     return ws
+
+
+def _say_open_problems(ws: Workspace) -> None:
+    """What opening the workspace could not restore, and the files changed since
+    the photos were registered on them (opened, but to check)."""
+    for line in ws.open_problems:
+        say(f"  warning: {line}" if line in ws.open_warnings else f"  not opened: {line}")
+
+
+def _photo_named(ws: Workspace, folder: str, name: str):
+    """The photo ``name`` names: its file name, its folder name in the
+    workspace (``photos/<key>``) or its path.
+
+    Raises
+    ------
+    InputError
+        No such photo, or a file name that several photos have (two cameras'
+        ``IMG_0001.jpg``): picking one of them would put drawings or a
+        registration on the wrong photo without a word.
+    """
+    def same_path(ps) -> bool:
+        return ps.photo.path is not None and same_file(ps.photo.path, name)
+
+    for matches in ([ps for ps in ws.photos if ws.photo_key(ps) == name],
+                    [ps for ps in ws.photos if ps.name == name],
+                    [ps for ps in ws.photos if same_path(ps)]):
+        if len(matches) == 1:
+            return matches[0]
+        if matches:
+            which = ", ".join(f"{ws.photo_key(ps)} ({ps.photo.path})" for ps in matches)
+            raise input_error(folder, f"{len(matches)} photos are named {name!r}: {which}; "
+                                      "name one by its folder name in the workspace or its path")
+    raise input_error(folder, f"no photo named {name!r} in the workspace")
+
+
+def _label(ws: Workspace, ps) -> str:
+    """The photo's file name, with its folder name in the workspace when
+    another photo has the same file name (two cameras' ``IMG_0001.jpg``)."""
+    shared = sum(other.name == ps.name for other in ws.photos) > 1
+    return f"{ps.name} ({ws.photo_key(ps)})" if shared else ps.name
 
 
 def _create(args: argparse.Namespace) -> int:
@@ -203,6 +245,10 @@ def _create(args: argparse.Namespace) -> int:
 def _add(args: argparse.Namespace) -> int:
     ws = _open(args.folder)
     before = len(ws.photos)
+    for path in args.photos:  # skipped by add_photos: said, so that "0 added" is not a puzzle
+        there = ws.photo_at_path(path) if Path(path).exists() else None
+        if there is not None:
+            say(f"  already in the workspace: {path}")
     errors = ws.add_photos([Path(p) for p in args.photos])
     for line in errors:
         say(f"  not added: {line}")
@@ -222,11 +268,8 @@ def _not_added(errors: list[str], action: str) -> int:
 def _register(args: argparse.Namespace) -> int:
     from ..workspace import one_line
     ws = _open(args.folder)
-    names = {ps.name for ps in ws.photos}
-    for name in args.photo or []:
-        if name not in names:
-            raise input_error(args.folder, f"no photo named {name!r} in the workspace")
-    asked = [k for k, ps in enumerate(ws.photos) if not args.photo or ps.name in args.photo]
+    chosen = {id(_photo_named(ws, args.folder, name)) for name in args.photo or []}
+    asked = [k for k, ps in enumerate(ws.photos) if not args.photo or id(ps) in chosen]
     todo = []
     for k in asked:
         reg = ws.photos[k].registration
@@ -252,12 +295,12 @@ def _register(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             raise  # the photos done are saved; a rerun goes on from this one
         except Exception as exc:  # noqa: BLE001 - one photo's crash does not stop the campaign
-            say(f"  [{n}/{len(todo)}] {ps.name}: not registered: {one_line(exc)}")
+            say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: not registered: {one_line(exc)}")
             failed += 1
             continue
         failed += not reg.registered
-        say(f"  [{n}/{len(todo)}] {ps.name}: {reg.status} — grade {reg.grade} (Q = {reg.q:+.2f}), "
-            f"{len(reg.trials)} trial(s), {time.perf_counter() - start:.1f} s")
+        say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — grade {reg.grade} "
+            f"(Q = {reg.q:+.2f}), {len(reg.trials)} trial(s), {time.perf_counter() - start:.1f} s")
     missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered
                   for k in asked)
     return EXIT_FAILED if (failed or missing) else EXIT_OK
@@ -291,13 +334,13 @@ def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) ->
         for n, (tag, reg) in enumerate(runner.run(tasks), 1):
             ps = ws.photos[int(tag)]
             if isinstance(reg, BaseException):
-                say(f"  [{n}/{len(todo)}] {ps.name}: not registered: {one_line(reg)}")
+                say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: not registered: {one_line(reg)}")
                 failed += 1
                 continue
             # Its pose becomes the photo's pose though another photo is current.
             ws.record_registration(reg, kind, ps, pose_if_not_current=True)
             failed += not reg.registered
-            say(f"  [{n}/{len(todo)}] {ps.name}: {reg.status} — grade {reg.grade} "
+            say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — grade {reg.grade} "
                 f"(Q = {reg.q:+.2f}), {len(reg.trials)} trial(s), "
                 f"{reg.timings_s.get('total', 0.0):.1f} s")
     return failed
@@ -306,12 +349,10 @@ def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) ->
 def _lines(args: argparse.Namespace) -> int:
     from ..interpret import files as interpret_files
     ws = _open(args.folder)
-    ps = next((p for p in ws.photos if p.name == args.photo), None)
-    if ps is None:
-        raise input_error(args.folder, f"no photo named {args.photo!r} in the workspace")
+    ps = _photo_named(ws, args.folder, args.photo)
     items = interpret_files.read_interpretations(args.lines)
     ws.set_interpretations(items, ps=ps)
-    say(f"{ps.name}: {len(items)} feature(s) drawn (from {args.lines})")
+    say(f"{_label(ws, ps)}: {len(items)} feature(s) drawn (from {args.lines})")
     return EXIT_OK
 
 
@@ -354,7 +395,17 @@ def _export(args: argparse.Namespace) -> int:
            if args.measurements else ""))
     for note in notes:
         say(f"  note: {note}")
+    if ws.projection_out_of_date():
+        say(f"  note: {_out_of_date(ws)}")
     return EXIT_OK
+
+
+def _out_of_date(ws: Workspace) -> str:
+    """The projection is older than what some photos hold now, in words."""
+    stale = [_label(ws, ps) for ps in ws.projection_out_of_date()]
+    names = ", ".join(stale[:5]) + (", ..." if len(stale) > 5 else "")
+    return (f"the projection is older than the drawings or poses of {len(stale)} photo(s) "
+            f"({names}): run 'workspace project' to bring it up to date")
 
 
 def _info(args: argparse.Namespace) -> int:
@@ -368,11 +419,12 @@ def _info(args: argparse.Namespace) -> int:
         reg = ps.registration
         state = "not registered" if reg is None else (
             f"{reg.status}, grade {reg.grade}, Q = {reg.q:+.2f}")
-        say(f"  {ps.name}: {state}; {len(ps.trials)} trial(s), {len(ps.interpretations)} drawn")
-    for line in ws.open_problems:
-        say(f"  not opened: {line}")
+        say(f"  {_label(ws, ps)}: {state}; {len(ps.trials)} trial(s), "
+            f"{len(ps.interpretations)} drawn")
+    _say_open_problems(ws)
     if ws.features_3d:
-        say(f"  projected: {len(ws.features_3d)} feature(s), {len(ws.measurements)} measured")
+        say(f"  projected: {len(ws.features_3d)} feature(s), {len(ws.measurements)} measured"
+            + (f"; {_out_of_date(ws)}" if ws.projection_out_of_date() else ""))
     return EXIT_OK
 
 
