@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -26,6 +27,8 @@ from napari_imgreg.workspace import (
     TrialRecord,
     WorkbenchError,
     Workspace,
+    _manual_from_dict,
+    _manual_to_dict,
     one_line,
     read_photos,
     read_scene,
@@ -365,8 +368,9 @@ def _truth_pairs(ws, n=8):
     seen = valid & (np.linalg.norm(xyz - truth.check_xyz, axis=1) < 0.05)
     photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
     inside = np.all((photo_px >= 0) & (photo_px < [ps.size[0] - 1, ps.size[1] - 1]), axis=1)
-    idx = np.flatnonzero(seen & inside)[:n]
-    assert len(idx) == n
+    usable = np.flatnonzero(seen & inside)
+    assert len(usable) >= n
+    idx = usable[np.linspace(0, len(usable) - 1, n).round().astype(int)]  # spread over the frame
     return truth, photo_px[idx], ref_px[idx]
 
 
@@ -414,6 +418,26 @@ def test_control_points_and_the_manual_solution(ws):
     assert record.trial.grade in ("excellent", "good") and ps.selected_trial == len(ps.trials) - 1
     assert rec.events == [("pose_changed", ("manual",)), ("trials_changed", ()),
                           ("trial_selected", (0,))]
+    # Its error is the pairs' own (no match verifies a manual pose): shown with the
+    # trial, projected with, and the photo registered while it has that pose.
+    unc = sol.uncertainty
+    assert unc.basis == "control points" and record.trial.uncertainty is unc
+    assert unc.rotation_deg >= ps.pose.rotation_error_deg(truth.pose)
+    projected_with = ws.pose_uncertainty(ps)
+    assert (projected_with.reprojection_px, projected_with.rotation_deg) == (
+        unc.reprojection_px, unc.rotation_deg) and projected_with.source == "result"
+    assert ws.photo_status(ps) == "registered"
+    back = _manual_from_dict(json.loads(json.dumps(_manual_to_dict(sol))))
+    assert back.uncertainty.basis == "control points" and back.warning == sol.warning
+    assert back.uncertainty.rotation_deg == pytest.approx(unc.rotation_deg, abs=1e-4)
+    # After a failed automatic registration (the reason to pick pairs) too, while
+    # the photo keeps the manual pose.
+    ps.registration = SimpleNamespace(registered=False, pose=ps.prior.pose)
+    assert ws.photo_status(ps) == "registered"
+    ws.nudge(forward=5.0)
+    assert ws.photo_status(ps) == "failed"
+    ws.undo()
+    ps.registration = None
 
     # Six or more pairs can solve the focal length as well: it becomes the photo's camera.
     sol = ws.solve_manual(solve_focal=True)

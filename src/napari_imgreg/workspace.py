@@ -1162,6 +1162,10 @@ class Workspace:
         if solution.focal_solved:
             ps.intrinsics = solution.intrinsics
         ps.registered_on = self._fingerprints_now(ps)
+        if trial is not None and trial.uncertainty is None and solution.uncertainty is not None:
+            # A scored manual pose has no estimate of the photo's matches (none
+            # verify it): the pairs' own is its error, shown and projected with.
+            trial.uncertainty = solution.uncertainty
         ps.trials.append(TrialRecord(trial, ps.runs, "Manual"))
         ps.selected_trial = len(ps.trials) - 1
         if ps is self.current:
@@ -1304,8 +1308,9 @@ class Workspace:
         """The expected error of the photo's current pose, for what is projected from it.
 
         The estimate of the registration or trial whose pose it is
-        (RESULT.json ``uncertainty``); for a manual solve, or a registration
-        without an estimate, the default derived from its reprojection error;
+        (RESULT.json ``uncertainty``); for a manual solve, the pairs' own
+        (:func:`~napari_imgreg.registration.manual.pair_uncertainty`); for a
+        registration without an estimate, the default derived from its reprojection error;
         for a pose no check verified (a failed registration or trial) or no
         solve produced (the prior, or moved by hand since), the sensor prior's
         default (50 px, 5 m, 3°).
@@ -1313,8 +1318,7 @@ class Workspace:
         pose, fx = ps.pose, ps.intrinsics.fx
 
         def same(other: Pose | None) -> bool:
-            return (other is not None and np.allclose(other.R, pose.R, rtol=0, atol=1e-9)
-                    and np.allclose(other.t, pose.t, rtol=0, atol=1e-6))
+            return _same_pose(other, pose)
 
         def of(unc: Uncertainty | None, status: str, metrics: dict) -> PoseUncertainty:
             return PoseUncertainty.from_estimate(unc, status, metrics, fx)
@@ -1327,9 +1331,14 @@ class Workspace:
         for k in order:
             if 0 <= k < len(ps.trials) and same(ps.trials[k].trial.pose):
                 t = ps.trials[k].trial
-                return of(t.uncertainty, "registered" if t.verified else "failed", t.metrics)
+                # A manual pose no match verifies has the pairs' own estimate.
+                by_pairs = t.uncertainty is not None and t.uncertainty.basis == "control points"
+                return of(t.uncertainty, "registered" if t.verified or by_pairs else "failed",
+                          t.metrics)
         sol = ps.manual_solution
         if sol is not None and sol.ok and same(sol.pose):
+            if sol.uncertainty is not None:
+                return of(sol.uncertainty, "registered", {})
             errors = np.asarray(sol.errors_px, np.float64)
             errors = errors[np.asarray(sol.inliers, bool) & np.isfinite(errors)]
             rms = float(np.sqrt(np.mean(errors ** 2))) if errors.size else 2.0
@@ -1378,14 +1387,21 @@ class Workspace:
         """Where a photo stands: one of :data:`PHOTO_STATUSES`.
 
         "accepted" (the user accepted its pose), "registered" (the last
-        registration, automatic or manual, verified its pose), "failed" (it
-        was tried and did not), "not registered" (never tried).
+        automatic registration verified its pose, or the photo has a manual
+        pose whose pairs' expected error is small), "failed" (it was tried
+        and did not), "not registered" (never tried).
         """
         if ps.accepted:
             return "accepted"
         reg = ps.registration
-        manual_ok = ps.manual_solution is not None and ps.manual_solution.ok
-        if (reg is not None and reg.registered) or (reg is None and manual_ok):
+        sol = ps.manual_solution
+        # A manual pose registers a photo when its pairs' expected error is
+        # small, and (after a failed automatic registration, the reason to
+        # pick pairs) while the photo has that pose.
+        manual_ok = (sol is not None and sol.ok
+                     and (sol.uncertainty is None or sol.uncertainty.is_small(ps.intrinsics.width))
+                     and (reg is None or _same_pose(sol.pose, ps.pose)))
+        if (reg is not None and reg.registered) or manual_ok:
             return "registered"
         if reg is not None or ps.manual_solution is not None or ps.runs:
             return "failed"
@@ -1803,7 +1819,9 @@ def _manual_to_dict(sol: manual.ManualSolution) -> dict:
             "errors_px": np.asarray(sol.errors_px, float).tolist(),
             "inliers": np.asarray(sol.inliers, bool).tolist(),
             "threshold_px": float(sol.threshold_px), "focal_solved": bool(sol.focal_solved),
-            "method": sol.method, "reason": sol.reason}
+            "method": sol.method, "reason": sol.reason,
+            "uncertainty": None if sol.uncertainty is None else sol.uncertainty.to_dict(),
+            "warning": sol.warning}
 
 
 def _manual_from_dict(d: dict) -> manual.ManualSolution:
@@ -1814,7 +1832,16 @@ def _manual_from_dict(d: dict) -> manual.ManualSolution:
         inliers=np.array(d.get("inliers") or [], bool),
         threshold_px=float(d.get("threshold_px", 0.0)),
         focal_solved=bool(d.get("focal_solved", False)),
-        method=str(d.get("method", "")), reason=str(d.get("reason", "")))
+        method=str(d.get("method", "")), reason=str(d.get("reason", "")),
+        uncertainty=(Uncertainty.from_dict({"basis": "control points", **d["uncertainty"]})
+                     if isinstance(d.get("uncertainty"), dict) else None),
+        warning=str(d.get("warning") or ""))
+
+
+def _same_pose(a: Pose | None, b: Pose | None) -> bool:
+    """The same pose to a nanoradian and a micrometre (an edit changes it more)."""
+    return (a is not None and b is not None
+            and np.allclose(a.R, b.R, rtol=0, atol=1e-9) and np.allclose(a.t, b.t, rtol=0, atol=1e-6))
 
 
 def _sun_estimate_to_dict(est: SunEstimate) -> dict:

@@ -293,7 +293,8 @@ def pair_uncertainty(
             cols.append((np.ravel(fun(v + dv)) - np.ravel(fun(v - dv))) / (2 * h))
         return np.stack(cols, axis=1)
 
-    inf = Uncertainty(math.inf, math.inf, math.inf, focal_px=math.inf if focal_free else None)
+    inf = Uncertainty(math.inf, math.inf, math.inf, focal_px=math.inf if focal_free else None,
+                      basis="control points")
     J = jacobian(project, v0)
     residual = (project(v0) - p2).ravel()
     dof = residual.size - n_par
@@ -318,7 +319,7 @@ def pair_uncertainty(
         reprojection_px=float(np.median(np.sqrt(np.maximum(per_point, 0.0)))),
         position_m=float(np.sqrt(max(np.trace(cov_cam[:3, :3]), 0.0))),
         rotation_deg=float(np.degrees(np.sqrt(max(np.trace(cov_cam[3:, 3:]), 0.0)))),
-        focal_px=focal)
+        focal_px=focal, basis="control points")
 
 
 def _focal_warning(intr: Intrinsics, c3: np.ndarray, q2: np.ndarray, thr: float,

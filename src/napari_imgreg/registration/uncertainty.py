@@ -232,10 +232,15 @@ class Uncertainty:
     #: Expected error of an estimated focal length (``fx``, pixels): the
     #: bootstrap's spread × its gain; None when the focal length was known.
     focal_px: float | None = None
+    #: What the estimate rests on: ``""`` the photo's matches (split halves,
+    #: resampling), ``"control points"`` the picked pairs' geometry and click
+    #: noise (:func:`~napari_imgreg.registration.manual.pair_uncertainty`).
+    basis: str = ""
 
     def to_dict(self) -> dict:
         """The RESULT.json fields (JSON-ready: infinite becomes None): the three
-        of the contract, and ``focal_px`` when the focal length was estimated."""
+        of the contract, ``focal_px`` when the focal length was estimated, and
+        ``basis`` when the estimate is not the photo's matches'."""
         def num(v: float, nd: int):
             return round(float(v), nd) if np.isfinite(v) else None
         out = {"reprojection_px": num(self.reprojection_px, 3),
@@ -243,6 +248,8 @@ class Uncertainty:
                "rotation_deg": num(self.rotation_deg, 4)}
         if self.focal_px is not None:
             out["focal_px"] = num(self.focal_px, 2)
+        if self.basis:
+            out["basis"] = self.basis
         return out
 
     @classmethod
@@ -254,7 +261,7 @@ class Uncertainty:
             return float("inf") if v is None else float(v)
         focal = val("focal_px") if "focal_px" in d else None
         return cls(val("reprojection_px"), val("position_m"), val("rotation_deg"),
-                   focal_px=focal)
+                   focal_px=focal, basis=str(d.get("basis") or ""))
 
     def is_small(self, image_width: int) -> bool:
         """Below :data:`UNCERTAIN_PX` at 1632 px width (scaled to ``image_width``)."""

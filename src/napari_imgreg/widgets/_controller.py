@@ -934,7 +934,12 @@ class WorkbenchController(QObject):
                              f"{sum(ws.photo_status(p) in ('registered', 'accepted') for p in ws.photos)}"
                              " registered; every change is saved there as it happens")
             for problem in ws.open_problems:
-                self.notify_error(f"{folder.name}: {problem}")
+                if problem in ws.open_warnings:  # opened, but a file changed since its work
+                    from napari.utils.notifications import show_warning
+
+                    show_warning(f"{folder.name}: {problem}")
+                else:
+                    self.notify_error(f"{folder.name}: {problem}")
             self.workspace_folder_changed.emit()
 
         message = f"opening the workspace {folder.name} (model, photos, their work)…"

@@ -95,11 +95,16 @@ def uncertainty_text(unc, width: int) -> str:
     if unc is None:
         return ("<span style='color:#aaa'>Expected error: not estimated "
                 "(no pose, or a pose scored as it is)</span>")
+    if not np.isfinite(unc.reprojection_px) and getattr(unc, "basis", "") == "control points":
+        return ("<span style='color:#ff8a80'>Expected error: unbounded — the control points do "
+                "not fix the pose</span>")
     if not np.isfinite(unc.reprojection_px):
         return ("<span style='color:#ff8a80'>Expected error: unknown — too few matches on "
                 "separate halves of the photo to check the pose independently</span>")
     colour = "#b9f6ca" if unc.is_small(width) else "#ff8a80"
-    if unc.halves_disagree(width):
+    if getattr(unc, "basis", "") == "control points":
+        why = "from the control points' spread and click noise: the photo's matches did not check it"
+    elif unc.halves_disagree(width):
         why = "the photo's halves disagree: the matches share a bias"
     elif unc.shared_px > 0 and unc.shared_px >= 0.5 * unc.reprojection_px:
         why = (f"≈ {unc.shared_px:.1f} px of it from the render's synthetic light, "
