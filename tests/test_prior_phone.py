@@ -260,3 +260,27 @@ def test_a_camera_in_the_wrong_hemisphere_is_said(tmp_path):
                        direction=10.0, focal35=26)
     assert not any("from the model" in n
                    for n in prior_for_photo(near, scene=scene).assumptions)
+
+
+# ------------------------------------------------------- units of the camera block
+@pytest.mark.parametrize("camera, view", [
+    ({"focal_length_mm": 4250.0, "sensor_width_mm": 5.6, "sensor_height_mm": 4.2}, "so little"),
+    ({"focal_length_mm": 4.25, "sensor_width_mm": 0.0056, "sensor_height_mm": 0.0042},
+     "so little"),
+    ({"fx": 1.2e6, "fy": 1.2e6, "cx": 800.0, "cy": 600.0}, "so little"),  # fx in µm?
+])
+def test_a_camera_block_in_the_wrong_units_is_refused_naming_the_file(camera, view):
+    """A 4.25 mm phone lens on a 5.6 mm sensor sees 67°; written as 4250 mm, or the
+    sensor in metres, it would see 0.08° and the prior was made with it unsaid."""
+    record = parse_sensor_record({"camera": {"width": 1600, "height": 1200, **camera},
+                                  "position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                                  "orientation": {"trend_deg": 0.0}}, "IMG_0001.json")
+    with pytest.raises(Exception, match=rf"IMG_0001.json: field 'camera'.*{view}.*units"):
+        prior_from_record(record, image_size=(1600, 1200))
+    good = parse_sensor_record({"camera": {"width": 1600, "height": 1200, "focal_length_mm": 4.25,
+                                           "sensor_width_mm": 5.6, "sensor_height_mm": 4.2},
+                                "position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                                "orientation": {"trend_deg": 0.0}}, "IMG_0001.json")
+    hfov = 2 * math.degrees(math.atan2(800.0, prior_from_record(good, image_size=(1600, 1200))
+                                       .intrinsics.fx))
+    assert hfov == pytest.approx(2 * math.degrees(math.atan(2.8 / 4.25)), abs=1e-6)

@@ -144,6 +144,7 @@ def prior_from_record(
         if frame is not None:
             record = replace(record, image_frame=frame)
     intrinsics, camera_turns = _intrinsics_of(record, image_size, notes, exif_orientation)
+    _check_field_of_view(intrinsics, src)
 
     if record.position is None:
         raise input_error(src, "no 'position' block (needs x, y[, z] or lat, lon[, alt])")
@@ -361,6 +362,25 @@ def _intrinsics_of(
                      f"as the start; {_ESTIMATED_NOTE}")
         return _assumed_camera(int(cam["width"]), int(cam["height"])), 0
     return _camera_from_block(cam, src), 0
+
+
+#: Horizontal fields of view, degrees, beyond any camera a pinhole model with
+#: distortion describes (a 50× zoom sees ~1.5°, a phone's ultra-wide ~120°):
+#: outside them the record's camera mixes units (``focal_length_mm`` 4250 for
+#: 4.25, ``sensor_width_mm`` in metres), which gave a 0.08° view unsaid.
+FIELD_OF_VIEW_RANGE_DEG = (0.5, 175.0)
+
+
+def _check_field_of_view(intrinsics: Intrinsics, source) -> None:
+    """Refuse a camera whose field of view no camera has (one line naming the file)."""
+    hfov = math.degrees(2.0 * math.atan2(intrinsics.width / 2.0, intrinsics.fx))
+    low, high = FIELD_OF_VIEW_RANGE_DEG
+    if not low <= hfov <= high:
+        raise input_error(
+            source, f"field 'camera': a horizontal field of view of {hfov:.3g}° (fx "
+                    f"{intrinsics.fx:.4g} px for {intrinsics.width} px): no camera sees "
+                    f"{'so little' if hfov < low else 'so much'}; check the units "
+                    "(focal_length_mm and sensor_width_mm in millimetres, fx in pixels)")
 
 
 #: The field of view assumed for a camera without a focal length (a phone's).
