@@ -178,6 +178,22 @@ def test_metashape_geocentric_chunk_is_not_applied(survey, tmp_path):
     np.testing.assert_allclose(forced.positions, survey.estimated.positions[order], atol=1e-6)
 
 
+def test_applying_a_geocentric_chunks_rotation_to_a_mesh_warns(survey, tmp_path, run_cli):
+    """The rotation is of the chunk's internal frame: right for a mesh exported in
+    local coordinates only, which the command cannot tell, so it says so."""
+    import trimesh
+
+    xml = tmp_path / "cameras.xml"
+    write_metashape_xml(xml, survey.estimated, np.eye(3), np.array([4.5e6, 1.1e6, 4.3e6]), 1.0)
+    measured = tmp_path / "phone.csv"
+    write_orientation_csv(measured, survey.measured)
+    trimesh.creation.box().export(tmp_path / "model.ply")
+    run = run_cli(["orient", xml, measured, "--out", tmp_path / "o.json",
+                   "--apply", tmp_path / "model.ply", "--mesh-out", tmp_path / "turned.ply"])
+    assert run.code == 0 and (tmp_path / "turned.ply").exists()
+    assert "warning:" in run.err and "referenced to a CRS" in run.err and "local" in run.err
+
+
 def test_colmap_round_trip(survey, tmp_path):
     sparse = tmp_path / "sparse" / "0"
     sparse.mkdir(parents=True)

@@ -10,6 +10,7 @@ into one line on stderr and exit code 2.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -123,6 +124,13 @@ def cmd_orient(args: argparse.Namespace) -> int:
         print(f"  note: {note}")
     if args.apply:
         print(f"rotated {args.apply} ({written}) -> {args.mesh_out}")
+        if any("geocentric" in note for note in estimated.notes):
+            # The rotation is of the chunk's internal frame; Metashape exports a
+            # referenced chunk's mesh in its CRS, where it would turn it wrongly.
+            print(f"warning: {args.estimated}: the chunk is referenced to a CRS, so the "
+                  f"rotation is of its internal frame: {args.mesh_out} is right only if "
+                  f"{args.apply} was exported in local (chunk) coordinates, not in the CRS",
+                  file=sys.stderr)
     if args.plots:
         print(f"plots -> {save_residual_plots(result, args.plots)}")
     n_warn = len(result.warnings)
