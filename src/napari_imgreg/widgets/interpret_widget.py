@@ -18,7 +18,8 @@ replaced by the least-cost path along the contact
 (:mod:`napari_imgreg.interpret.snap`), an ordinary editable path. Each shape
 carries a label, a note and the units above and below it (edited for the
 selected shapes), written to the GeoJSON properties. *Project* casts every interpretation layer onto the model in
-a napari thread worker and shows one 3D layer per photo (togglable), coloured
+a napari thread worker (in the workbench: every workspace photo's drawings, those
+of the photos not on screen too) and shows one 3D layer per photo (togglable), coloured
 by label, with the measurements table and the stereonet.
 
 Docked in the registration workbench, the widget also keeps what is drawn on
@@ -77,7 +78,13 @@ from ..interpret.structural import (  # the three-point plane moved there (issue
 )
 from ..io.records import read_json
 from ..prior import load_camera_and_pose
-from ..workspace import PhotoState, Workspace, one_line, project_interpretation_sets
+from ..workspace import (
+    PhotoState,
+    WorkbenchError,
+    Workspace,
+    one_line,
+    project_interpretation_sets,
+)
 from ._jobs import JobRunner
 from ._layers import (
     INTERPRETATION_OF,
@@ -280,6 +287,17 @@ class InterpretWidget(QWidget):
         self._count_before: dict[int, int] = {}  # shapes before the one being drawn
         self._drawing_started: set[int] = set()  # layers pressed on in a drawing mode
         self._recording = False  # this widget is recording its projection in the workspace
+        #: Records the running projection in the workspace (see :meth:`_jobs`).
+        self._record = None
+        #: Camera and pose of each photo of the running projection, by name.
+        self._projected_cameras: dict[str, tuple[Intrinsics, Pose]] = {}
+        #: Photos and traces of the running projection.
+        self._projected_counts = (0, 0)
+        #: Says which projections are out of date once a run of pose edits pauses.
+        self._pose_timer = QTimer(self)
+        self._pose_timer.setSingleShot(True)
+        self._pose_timer.setInterval(300)
+        self._pose_timer.timeout.connect(lambda: self._say_out_of_date())
 
         # ---- inputs
         self.photo_combo = QComboBox()
@@ -327,8 +345,8 @@ class InterpretWidget(QWidget):
         load_button = QPushButton("Load GeoJSON…")
         save_button = QPushButton("Save GeoJSON…")
         self.project_button = QPushButton("Project onto the model")
-        self.project_button.setToolTip("Cast every interpretation layer onto the model "
-                                       "(runs in the background)")
+        self.project_button.setToolTip("Cast every photo's drawings onto the model, shown "
+                                       "or not (runs in the background)")
 
         # At most two widgets side by side: the tab must fit a 380 px dock.
         form = QFormLayout()
@@ -571,7 +589,9 @@ class InterpretWidget(QWidget):
         ws = self.workspace
         followed = [(ws.photo_changed, self._current_photo_shown),
                     (ws.scene_changed, self._photos_closed),
-                    (ws.projection_changed, self.show_workspace_projection)]
+                    (ws.projection_changed, self.show_workspace_projection),
+                    # a pose changed (nudged, registered): its projection may be out of date
+                    (ws.pose_changed, self._pose_edited)]
         for signal, handler in followed:
             signal.connect(handler)
 
@@ -632,10 +652,42 @@ class InterpretWidget(QWidget):
         for b in self._result_buttons:
             b.setEnabled(bool(self.features or self.measurements))
         if self.features or self.measurements:
+            stale = self._out_of_date_note()
             self.status_label.setText(
                 f"The workspace's last projection: {len(self.features)} feature(s), "
-                f"{len(self.measurements)} measurement(s). Project again after editing.")
-            self.status_label.setStyleSheet("")
+                f"{len(self.measurements)} measurement(s)." + (f" {stale}" if stale else ""))
+            self.status_label.setStyleSheet(f"color: {_WARNING_COLOR};" if stale else "")
+
+    def _out_of_date_note(self, edited: bool = False) -> str:
+        """Which photos the shown projection is out of date for (drawn on, or
+        their pose changed, since: :meth:`Workspace.projection_out_of_date`),
+        as a sentence; "" when none is. Without a workspace, or one that does
+        not know what its projection was made from (saved by an older
+        version), an edit (``edited``) after a projection is said as such."""
+        stale = ([ps.name for ps in self.workspace.projection_out_of_date()]
+                 if self.workspace is not None else [])
+        if not stale:
+            unknown = self.workspace is None or getattr(self.workspace, "_projected_from",
+                                                        None) is None
+            return ("Drawings changed since the last projection: the table, stereonet and "
+                    "exports are of the earlier lines until you Project again."
+                    if edited and unknown and self.features else "")
+        return (f"Out of date for {', '.join(stale)} (drawn on, or the pose changed, since): "
+                "the table, stereonet and exports are of the earlier lines until you "
+                "Project again.")
+
+    def _pose_edited(self, *_args) -> None:
+        """A photo's pose changed: once the edits pause, say what that made out of date."""
+        if self.features or self.measurements:
+            self._pose_timer.start()
+
+    def _say_out_of_date(self, *_args, edited: bool = False) -> None:
+        """The status line names the photos the shown projection is now out
+        of date for (it is left as it is when none is)."""
+        stale = self._out_of_date_note(edited)
+        if stale:
+            self.status_label.setText(stale)
+            self.status_label.setStyleSheet(f"color: {_WARNING_COLOR};")
 
     def _photo_state(self, photo_layer) -> PhotoState | None:
         """The workspace's photo a photo layer shows (None: not one of its photos)."""
@@ -671,11 +723,7 @@ class InterpretWidget(QWidget):
             QTimer.singleShot(0, lambda: self.snap_shape(layer, index))
         if action in (ActionType.ADDED, ActionType.REMOVED, ActionType.CHANGED):
             self._keep_in_workspace(layer)
-            if self.features:  # what the table and the exports show is of the old lines
-                self.status_label.setText(
-                    "Drawings changed since the last projection: the table, stereonet and "
-                    "exports are of the earlier lines until you Project again.")
-                self.status_label.setStyleSheet(f"color: {_WARNING_COLOR};")
+            self._say_out_of_date(edited=True)  # the table and the exports are older
 
     def snap_params(self) -> SnapParams:
         """The snapping settings the widget uses (the chosen cost, defaults otherwise)."""
@@ -742,7 +790,9 @@ class InterpretWidget(QWidget):
         """Replace the measurement of each 3-point feature by the plane
         through the surface points under its three clicks (in place)."""
         scene = self.scene
-        cameras = {c[2]: c for c in (camera_of_layer(lay) for lay in self._photo_layers()) if c}
+        cameras = {c[2]: (c[0], c[1]) for c in (camera_of_layer(lay)
+                                                for lay in self._photo_layers()) if c}
+        cameras.update(self._projected_cameras)  # the cameras projected from (shown or not)
         by_id = {m.id: m for m in measurements}
         for f in features:
             if f.properties.get("measure") != "three_point" or f.id not in by_id:
@@ -750,7 +800,7 @@ class InterpretWidget(QWidget):
             m, camera = by_id[f.id], cameras.get(f.source)
             if camera is None or scene is None:
                 continue
-            intr, pose, _ = camera
+            intr, pose = camera
             origin, dirs = pose.rays(intr, np.asarray(f.properties["three_point_px"], float))
             hits = scene.cast_rays(origin, dirs)
             m.plunge_deg = m.trend_deg = m.rms_m = m.planarity = m.collinearity = None
@@ -997,34 +1047,60 @@ class InterpretWidget(QWidget):
     def _jobs(self) -> list[tuple[Intrinsics, Pose, list[Interpretation], str]]:
         """What to project, one job per photo with drawings and a camera; the
         photos left out or projected from an unverified pose are listed in
-        :attr:`projection_warnings` (said, never silently)."""
+        :attr:`projection_warnings` (said, never silently).
+
+        With a workspace, every workspace photo with drawings is projected,
+        shown or not (as :meth:`Workspace.projection_job`): the interpretation
+        layer of a photo on screen is first kept as its drawings (its edits),
+        the others are projected from what the workspace holds for them, each
+        from its current camera and pose. A photo layer that is not a
+        workspace photo (a RESULT.json attached) is projected from its layer.
+        """
         jobs = []
         self.projection_warnings = []
+        self._record = None
+        others = []  # layers of photos that are not workspace photos
         for layer in list(self.viewer.layers):
             photo_name = layer.metadata.get(INTERP_KEY)
             if photo_name is None or photo_name not in self.viewer.layers:
                 continue
-            camera = camera_of_layer(self.viewer.layers[photo_name])
             self._assign_ids(layer, photo_name)
+            if self._photo_state(self.viewer.layers[photo_name]) is not None:
+                self._keep_in_workspace(layer)  # projected below, with the photos not shown
+            else:
+                others.append((layer, photo_name))
+        ws = self.workspace
+        if ws is not None:
+            for ps in ws.photos:
+                if not ps.interpretations:
+                    continue
+                unc = ws.pose_uncertainty(ps)
+                status = ws.photo_status(ps)
+                if status in ("not registered", "failed"):
+                    self.projection_warnings.append(
+                        f"{ps.name}: {status}: projected from its prior pose "
+                        f"(error ≈ {unc.position_m:.0f} m, {unc.rotation_deg:.0f}°)")
+                jobs.append((ps.intrinsics, ps.pose, list(ps.interpretations), ps.name, unc))
+            if jobs:
+                try:
+                    # Its apply records the projection with what each photo's was
+                    # made from now (Workspace.projection_out_of_date reads it).
+                    self._record = ws.projection_job().apply
+                except WorkbenchError:  # no scene in the workspace: recorded plainly
+                    self._record = None
+        for layer, photo_name in others:
             items = interpretations_from_shapes(layer)
             if not items:
                 continue
+            photo_layer = self.viewer.layers[photo_name]
+            camera = camera_of_layer(photo_layer)
             if camera is None:
                 self.projection_warnings.append(
                     f"{photo_name}: {len(items)} drawing(s) not projected (no registration: "
                     "Attach RESULT.json…)")
                 continue
             intr, pose, source = camera
-            photo_layer = self.viewer.layers[photo_name]
-            ps = self._photo_state(photo_layer)
-            unc = (self.workspace.pose_uncertainty(ps) if ps is not None
-                   else pose_uncertainty_of_layer(photo_layer, intr))
-            if ps is not None and self.workspace.photo_status(ps) in ("not registered", "failed"):
-                self.projection_warnings.append(
-                    f"{photo_name}: {self.workspace.photo_status(ps)}: projected from its "
-                    f"prior pose (error ≈ {unc.position_m:.0f} m, {unc.rotation_deg:.0f}°)")
-            jobs.append((intr, pose, items, source, unc))
-            self._keep_in_workspace(layer)
+            jobs.append((intr, pose, items, source, pose_uncertainty_of_layer(photo_layer, intr)))
         return jobs
 
     def _assign_ids(self, layer, photo_name: str) -> None:
@@ -1066,7 +1142,9 @@ class InterpretWidget(QWidget):
             _notify(warning, "warning")
         self.project_button.setEnabled(False)
         n = sum(len(j[2]) for j in jobs)
-        self.status_label.setText(f"Projecting {n} interpretation(s) from {len(jobs)} photo(s)…")
+        self._projected_counts = (len(jobs), n)
+        self._projected_cameras = {j[3]: (j[0], j[1]) for j in jobs}
+        self.status_label.setText(f"Projecting {n} trace(s) from {len(jobs)} photo(s)…")
         self.status_label.setStyleSheet("")
         # Errors come back as one line (bugs are logged with their traceback).
         return self.jobs.start("projection", project_interpretation_sets, scene, jobs,
@@ -1091,9 +1169,13 @@ class InterpretWidget(QWidget):
         if self.workspace is not None:
             self._recording = True  # shown below, not again by the workspace's event
             try:
-                self.workspace.record_projection(self.features, self.measurements)
+                if self._record is not None:
+                    self._record((self.features, self.measurements))
+                else:
+                    self.workspace.record_projection(self.features, self.measurements)
             finally:
                 self._recording = False
+                self._record = None
         # The 3D lines (0.5 s of layer building) wait for the 3D canvas: on the 2D
         # one, where a projection is made, they would only hold up the GUI.
         if self.viewer.dims.ndisplay == 3:
@@ -1107,7 +1189,9 @@ class InterpretWidget(QWidget):
         split = sum(len(f.parts) > 1 for f in self.features)
         off = sum(not f.parts for f in self.features)
         planes = sum(m.has_plane for m in self.measurements)
+        n_photos, n_traces = self._projected_counts
         self.status_label.setText(
+            f"Projected {n_traces} trace(s) from {n_photos} photo(s): "
             f"{len(self.features)} feature(s) on the model as {n_parts} part(s)"
             + (f"; {split} split where they left the surface" if split else "")
             + (f"; {off} off the surface" if off else "")

@@ -1,0 +1,147 @@
+"""Project onto the model, in the workbench, projects every photo's drawings:
+those of the photo on screen (its interpretation layer, with the edits made
+there) and the workspace's saved drawings of the photos not shown (a reopened
+workspace shows only the current photo's layer). The status line says how many
+photos and traces were projected, and which photos' projection is out of date.
+
+Run in a real napari viewer under Xvfb.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from napari_imgreg.interpret.project import Interpretation
+from napari_imgreg.registration.params import RegistrationParams
+from napari_imgreg.registration.pipeline import Registration, Trial
+from napari_imgreg.registration.uncertainty import Uncertainty
+from napari_imgreg.sample import load_truth
+from napari_imgreg.widgets._layers import napari_from_pixels
+from napari_imgreg.widgets.interpret_widget import INTERP_KEY
+from napari_imgreg.widgets.workbench import INTERPRET_TAB, Workbench
+
+LOAD_S = 90_000  # ms: the first run on a fresh machine generates the sample scene
+SHOTS = Path("/tmp/gui_fix")
+
+
+@pytest.fixture
+def workbench(make_napari_viewer, qtbot):
+    viewer = make_napari_viewer()
+    wb = Workbench.add_to_viewer(viewer)
+    yield wb
+    wb.controller.cancel_register_all()
+    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
+    wb.controller.workspace.detach()
+
+
+def _idle(wb, qtbot, timeout=30_000):
+    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=timeout)
+
+
+def _registered(ps) -> Registration:
+    """A registration that found the photo's true pose (no pipeline run)."""
+    truth = load_truth(ps.photo.path)
+    trial = Trial(index=0, params=RegistrationParams(), metrics={"inliers_3d": 200}, q=1.4,
+                  grade="excellent", hints=[], pose=truth.pose, start_pose=ps.pose, rounds=1,
+                  converged=True, verified=True, residual_flow_px=0.4)
+    return Registration(status="registered", photo=ps.name, intrinsics=ps.intrinsics,
+                        pose=truth.pose, prior=ps.prior, metrics=trial.metrics, q=1.4,
+                        grade="excellent", hints=[], trials=[trial], timings_s={"total": 1.0},
+                        best_trial=0, uncertainty=Uncertainty(1.2, 0.12, 0.06, 4))
+
+
+def _lines(n: int, tag: str) -> list[Interpretation]:
+    return [Interpretation("LineString",
+                           [[250.0 + 120 * k, 300.0], [300.0 + 120 * k, 500.0]],
+                           {"label": ("sandstone", "fault")[k % 2], "comment": f"{tag} {k}"})
+            for k in range(n)]
+
+
+def test_a_reopened_workspace_projects_the_photos_not_shown_too(workbench, qtbot, tmp_path):
+    wb = workbench
+    wb.scene_panel.sample_button.click()
+    qtbot.waitUntil(lambda: wb.controller.current is not None, timeout=LOAD_S)
+    _idle(wb, qtbot)
+    ctrl, ws = wb.controller, wb.controller.workspace
+    one, two = ws.photos[0], ws.photos[1]
+    for k in (1, 0):  # each registered while current; IMG_0001 is current at the end
+        ctrl.select_photo(k)
+        _idle(wb, qtbot)
+        ws.record_registration(_registered(ws.photos[k]))
+    assert ws.current is one
+    ws.set_interpretations(_lines(3, "one"), one)
+    ws.set_interpretations(_lines(4, "two"), two)
+    ws.project_interpretations()  # the backend: both photos
+    assert Counter(f.source for f in ws.features_3d) == {"IMG_0001.jpg": 3, "IMG_0002.jpg": 4}
+    # IMG_0002 drawn on after that projection: its projection is out of date.
+    ws.set_interpretations(_lines(5, "two"), two)
+    assert ws.projection_out_of_date() == [two]
+    ctrl.save_workspace(tmp_path / "campaign")
+    folder = tmp_path / "campaign.imgreg"
+    _idle(wb, qtbot)
+
+    # Reopened: only IMG_0001 (the current photo) is shown, with its layer.
+    ws.detach()
+    ctrl.open_workspace(folder)
+    qtbot.waitUntil(lambda: ctrl.workspace_folder is not None and ctrl.current is not None,
+                    timeout=LOAD_S)
+    _idle(wb, qtbot)
+    ws = ctrl.workspace
+    iw = wb.interpret_widget
+    one, two = ws.photos[0], ws.photos[1]
+    assert ws.current is one
+    assert len(one.interpretations) == 3 and len(two.interpretations) == 5
+    layers = [lay for lay in wb.viewer.layers if INTERP_KEY in lay.metadata]
+    assert [lay.metadata[INTERP_KEY] for lay in layers] == ["IMG_0001"]
+    # The saved projection is shown, naming the photo it is out of date for.
+    assert "IMG_0002.jpg" in iw.status_label.text()
+    assert "IMG_0001.jpg" not in iw.status_label.text()
+
+    # One more line drawn on screen on IMG_0001: 4 there, 5 saved on IMG_0002.
+    layer = layers[0]
+    layer.add(napari_from_pixels(np.array([[700.0, 150.0], [740.0, 450.0]])), shape_type="path")
+    assert len(one.interpretations) == 4
+    assert "IMG_0001.jpg" in iw.status_label.text()  # now out of date too
+
+    with qtbot.waitSignal(iw.projection_done, timeout=60_000) as blocker:
+        assert iw.project() is not None
+    qtbot.waitUntil(lambda: iw.project_button.isEnabled(), timeout=10_000)
+    by_photo = Counter(f.source for f in blocker.args[0])
+    assert by_photo == {"IMG_0001.jpg": 4, "IMG_0002.jpg": 5}
+    # Recorded in the workspace (and so saved), nothing left out of date.
+    assert Counter(f.source for f in ws.features_3d) == by_photo
+    assert ws.projection_out_of_date() == []
+    text = iw.status_label.text()
+    assert "9 trace(s) from 2 photo(s)" in text, text
+    # The saved drawings of IMG_0002 are untouched (not replaced by a layer's).
+    assert [i.properties.get("comment") for i in two.interpretations] == [
+        f"two {k}" for k in range(5)]
+
+    SHOTS.mkdir(exist_ok=True)
+    tabs = wb.tabs
+    tabs.setCurrentIndex(next(i for i in range(tabs.count())
+                              if tabs.tabText(i) == INTERPRET_TAB))
+    window = wb.viewer.window._qt_window
+    window.resize(1600, 1000)
+    qtbot.wait(300)
+    window.grab().save(str(SHOTS / "interpret_all_photos_window.png"))
+    iw.grab().save(str(SHOTS / "interpret_all_photos_tab.png"))  # the whole tab, unscrolled
+
+    # A pose moved after the projection: the status line names its photo.
+    ctrl.nudge("turn right 1", d_trend=1.0)
+    qtbot.waitUntil(lambda: "IMG_0001.jpg" in iw.status_label.text(), timeout=5_000)
+    assert [ps.name for ps in ws.projection_out_of_date()] == ["IMG_0001.jpg"]
+    ctrl.undo()
+    _idle(wb, qtbot)
+    assert ws.projection_out_of_date() == []
+
+    # An edit after the projection names the photo it makes out of date.
+    layer.selected_data = {0}
+    layer.remove_selected()
+    assert len(one.interpretations) == 3
+    text = iw.status_label.text()
+    assert "IMG_0001.jpg" in text and "IMG_0002.jpg" not in text, text
