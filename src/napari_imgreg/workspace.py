@@ -747,7 +747,13 @@ class Workspace:
         """Make photo ``index`` current (out of range: nothing happens)."""
         if not 0 <= index < len(self.photos):
             return
-        self.current = self.photos[index]
+        previous, self.current = self.current, self.photos[index]
+        # Only the current photo keeps its decoded pixels: the one left lets
+        # them go (a photo read from a file decodes again when next shown).
+        self.current.photo.keep_decoded = True
+        if previous is not None and previous is not self.current:
+            previous.photo.keep_decoded = False
+            previous.photo.release()
         self.photo_changed.emit()
 
     @property
@@ -959,6 +965,8 @@ class Workspace:
         self.trials_changed.emit()
         if ps is self.current:
             self.select_trial(best)
+        else:  # registered in the background: only the current photo keeps its pixels
+            ps.photo.release()
         return reg
 
     def _fingerprints_now(self, ps: PhotoState) -> dict:
@@ -1511,26 +1519,34 @@ class Workspace:
         if not auto:
             params.search_prior = False
             params.max_trials = 1
-        # Captured now: the GUI may edit the photos while the batch runs.
-        work = [(ps, ps.photo.image, self.registration_prior(ps)) for ps in todo]
+        # Captured now: the GUI may edit the photos while the batch runs. The
+        # pixels are decoded in the worker, one photo at a time: a photo that
+        # is not current lets them go when it is done.
+        work = [(ps, ps.photo, self.registration_prior(ps)) for ps in todo]
         kind = "Auto" if auto else "Run"
         is_cancelled = cancelled or (lambda: False)
 
         def run():
             summary = BatchSummary(total=len(work), skipped=len(self.photos) - len(work))
-            for k, (ps, image, prior) in enumerate(work):
+            for k, (ps, photo, prior) in enumerate(work):
                 if is_cancelled():
                     summary.cancelled = True
                     return summary
                 share = 1.0 / max(len(work), 1)
-                steps = pipeline.register_photo(scene, image, prior, params,
-                                                photo_name=ps.name, cancelled=cancelled)
                 try:
-                    while True:
-                        progress = next(steps)
-                        yield pipeline.Progress(
-                            "register all", (k + float(progress.fraction)) * share,
-                            f"{ps.name} ({k + 1}/{len(work)}): {progress.message}")
+                    image = photo.image
+                except Exception as exc:  # noqa: BLE001 - e.g. its file is gone since it was read
+                    image, reg, error = None, None, one_line(exc)
+                if image is not None:
+                    steps = pipeline.register_photo(scene, image, prior, params,
+                                                    photo_name=ps.name, cancelled=cancelled)
+                try:
+                    if image is not None:
+                        while True:
+                            progress = next(steps)
+                            yield pipeline.Progress(
+                                "register all", (k + float(progress.fraction)) * share,
+                                f"{ps.name} ({k + 1}/{len(work)}): {progress.message}")
                 except StopIteration as stop:
                     reg, error = stop.value, ""
                 except pipeline.Cancelled:
@@ -1538,6 +1554,10 @@ class Workspace:
                     return summary
                 except Exception as exc:  # noqa: BLE001 - one bad photo does not stop the batch
                     reg, error = None, one_line(exc)
+                finally:
+                    steps = image = None
+                    if ps is not self.current:
+                        photo.release()
                 summary.done += 1
                 if reg is not None and reg.registered:
                     summary.registered += 1

@@ -78,10 +78,19 @@ def test_rows_follow_the_workspace_and_sort_by_number(table):
     assert table.table.item(table.row_of(ws.current_index), 1).isSelected()
 
 
-def test_a_thumbnail_is_the_photo_made_small():
+@pytest.mark.parametrize("from_file", [False, True])
+def test_a_thumbnail_is_the_photo_made_small(tmp_path, from_file):
+    """Of a photo in memory, and of one read from a file without keeping its pixels."""
+    from napari_imgreg.io.photos import Photo, load_photo, save_image
+
     image = np.zeros((300, 400, 3), np.uint8)
     image[:, :200] = (255, 0, 0)
-    pixmap = _thumbnail(image)
+    photo = Photo(image)
+    if from_file:
+        save_image(tmp_path / "p.png", image)
+        photo = load_photo(tmp_path / "p.png")
+    pixmap = _thumbnail(photo)
+    assert not photo.from_file or not photo.decoded
     assert pixmap.width() == THUMBNAIL_WIDTH
     assert pixmap.height() == round(300 * THUMBNAIL_WIDTH / 400)
     qimage = pixmap.toImage()

@@ -327,7 +327,7 @@ def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) ->
             params.search_prior = False
             params.max_trials = 1
         tasks.append((str(k), backend.register_prior,
-                      (spec, ps.photo.image, ws.registration_prior(ps), params, ps.name)))
+                      (spec, ps.photo, ws.registration_prior(ps), params, ps.name)))
     failed = 0
     with backend.PhotoRunner(cluster, len(todo)) as runner:
         say(f"  on the {runner.description}", flush=True)

@@ -51,7 +51,7 @@ from .._allocator import allocator_environment, tune_allocator
 from .._atomic import atomic_write
 from .._json import dumps as strict_dumps
 from ..errors import InputError, input_error
-from ..io.photos import load_photo
+from ..io.photos import Photo, load_photo
 from ..prior import check_photo_size, prior_for_photo
 from ..scene import Scene
 from . import pipeline
@@ -325,10 +325,17 @@ def register_prior(scene_spec: SceneSpec, image: Any, prior: Any, params: Any,
                    name: str) -> Any:
     """Register an image from a given prior: a ``workspace register`` task.
 
+    ``image``: an RGB array, or a :class:`~napari_imgreg.io.photos.Photo` read
+    from a file, which is sent without its pixels and decoded here (the
+    client does not hold every photo of the campaign decoded at once).
+
     Returns the :class:`~napari_imgreg.registration.pipeline.Registration`
     (pickled back to the client, which records it in the workspace).
     """
     scene = cached_scene(scene_spec)
+    if isinstance(image, Photo):
+        photo, image = image, image.image
+        photo.release()  # the array is held here until the photo is done
     return pipeline.register(scene, image, prior, params, name)
 
 

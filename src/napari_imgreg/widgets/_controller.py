@@ -298,7 +298,15 @@ class _Layers:
         One layer per photo: what is drawn over a photo (the interpretation
         tools key their layers by the photo layer's name) stays with it.
         """
-        image = ps.photo.image
+        try:
+            image = ps.photo.image  # a photo read from a file decodes here
+        except InputError as exc:
+            # Its file became unreadable since it was opened: a grey stand-in of
+            # its size keeps its pose, drawings and pairs where they belong.
+            from napari.utils.notifications import show_error
+
+            show_error(str(exc))
+            image = np.full((ps.photo.size[1], ps.photo.size[0], 3), 96, np.uint8)
         self.height, self.width = image.shape[:2]
         key = f"photo:{ps.photo.path}"
         layer = self.get(key)

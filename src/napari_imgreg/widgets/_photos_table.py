@@ -75,14 +75,11 @@ def _number_key(value: float) -> float:
     return value if math.isfinite(value) else float("inf")
 
 
-def _thumbnail(image: np.ndarray) -> QPixmap:
-    """A small RGB copy of a photo as a pixmap."""
-    h, w = image.shape[:2]
-    tw = THUMBNAIL_WIDTH
-    th = max(1, int(round(h * tw / max(w, 1))))
-    small = cv2.resize(np.ascontiguousarray(image[..., :3]), (tw, th),
-                       interpolation=cv2.INTER_AREA)
-    small = np.ascontiguousarray(small, dtype=np.uint8)
+def _thumbnail(photo) -> QPixmap:
+    """A small RGB copy of a photo as a pixmap (a JPEG decoded at a reduced
+    scale, its full pixels not kept: a campaign's photos are not all decoded)."""
+    small = np.ascontiguousarray(photo.thumbnail(THUMBNAIL_WIDTH), dtype=np.uint8)
+    th, tw = small.shape[:2]
     qimage = QImage(small.data, tw, th, 3 * tw, QImage.Format.Format_RGB888)
     return QPixmap.fromImage(qimage.copy())  # copy: the array is freed
 
@@ -188,7 +185,7 @@ class PhotosTable(QWidget):
     def thumbnail(self, ps: PhotoState) -> QPixmap:
         key = id(ps)
         if key not in self._thumbs:
-            self._thumbs[key] = _thumbnail(ps.photo.image)
+            self._thumbs[key] = _thumbnail(ps.photo)
         return self._thumbs[key]
 
     def refresh(self) -> None:
