@@ -233,3 +233,23 @@ def test_a_hand_edited_photo_state_is_one_line_and_the_rest_opens(scene_dir, tmp
     opened.nudge("turn right 1", d_trend=1.0)
     opened.detach()
     assert json.loads(state_file.read_text()) == state  # kept as it was, to be mended
+
+
+@pytest.mark.parametrize("written, accepted", [(True, True), ("no", False), ("false", False),
+                                               (1, False), (False, False)])
+def test_only_a_json_true_accepts_a_pose(scene_dir, tmp_path, written, accepted):
+    """A hand-written "no" is a non-empty string: read as truthy it accepted the pose."""
+    import json
+
+    folder = tmp_path / "campaign.imgreg"
+    ws = Workspace()
+    ws.open_scene(scene_dir / "outcrop.obj", dem=scene_dir / "dem.tif")
+    ws.add_photos(sorted(scene_dir.glob("IMG_*.jpg")))
+    ws.save(folder)
+    ws.detach()
+    state_file = folder / "photos" / "IMG_0001" / "photo.json"
+    state = json.loads(state_file.read_text())
+    state["accepted"] = written
+    state_file.write_text(json.dumps(state))
+    opened = Workspace.open(folder, autosave=False)
+    assert opened.photos[0].accepted is accepted

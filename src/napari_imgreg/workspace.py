@@ -2295,7 +2295,8 @@ def _read_photo(folder: Path, entry: dict, inline: dict | None,
         ps.sun_estimate = _sun_estimate_from_dict(state["sun_estimate"])
     if state.get("manual_solution"):
         ps.manual_solution = _manual_from_dict(state["manual_solution"])
-    ps.accepted = bool(state.get("accepted", False))
+    # Only a JSON true accepts: a hand-written "no" or "false" is a string, and truthy.
+    ps.accepted = state.get("accepted", False) is True
     if isinstance(state.get("registered_on"), dict):
         ps.registered_on = state["registered_on"]
     registration = state.get("registration")
