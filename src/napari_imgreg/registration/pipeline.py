@@ -42,6 +42,7 @@ from .features import Features, detect_and_describe
 from .filters import apply_filters, illumination_invariant, reduce_for_matching
 from ..prior import Prior
 from .params import RegistrationParams
+from .explain import diagnose
 from .quality import GRADES, evaluate_rules
 from .round import (  # noqa: F401  (re-exported: the names' old home)
     MIN_VERIFIED_INLIERS,
@@ -841,6 +842,12 @@ def register_photo(
                 f"focal length estimated during registration: fx = fy = {camera.fx:.1f} px "
                 f"({camera.hfov_deg:.1f}° horizontal view; the start was {intr.fx:.1f} px); "
                 f"estimated: {', '.join(camera.estimated)}")
+    # The likely cause in the inputs (record, photo) first: the quality panel
+    # shows the best trial's hints, RESULT.json the result's.
+    diagnosis = [d for d in diagnose(trials, best, status, prior, camera, photo_rgb,
+                                     appearance=not untextured)
+                 if d not in best.hints]
+    best.hints[:0] = diagnosis
     hints = list(best.hints)
     if status == "failed" and not hints:
         hints = ["No verified pose: try the manual control-point registration."]

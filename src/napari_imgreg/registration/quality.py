@@ -249,9 +249,13 @@ def evaluate_rules(
             _filter_step,
         ))
     if r2 > 0.1 and r3 < 0.1:
+        # A ratio of a handful of matches says little: say so (a photo of
+        # another place keeps 8 of 17 chance matches, "ratio 0.47").
+        few = (f", but of only {inl2} matches: perhaps chance ones, from a start far off"
+               if inl2 < 20 else "")
         hits.append(RuleHit(
             5,
-            f"2D correspondences are good (ratio {_num(r2, '>', 0.1)}) but few survive the "
+            f"2D correspondences are good (ratio {_num(r2, '>', 0.1)}{few}) but few survive the "
             f"pose (3D ratio {_num(r3, '<', 0.1)} < 0.1): features are badly localised; relax the "
             "epipolar constraint slightly.",
             f"epipolar threshold {min(12.0, f.geometric_threshold_px * 1.5):.1f} px",

@@ -775,19 +775,31 @@ def trial_from_round(
             f"Focal length estimated with the pose: fx = {intrinsics.fx:.1f}{spread} px (a "
             f"{intrinsics.hfov_deg:.1f}° horizontal view); the uncertainty includes its error.")
     if uncertain:
-        expected = (f"expected error ≈ {uncertainty.reprojection_px:.1f} px, camera "
-                    f"≈ {uncertainty.position_m:.2f} m, {uncertainty.rotation_deg:.2f}°")
-        if uncertainty.halves_disagree(image_width) or not math.isfinite(uncertainty.halves_px):
+        if math.isfinite(uncertainty.reprojection_px):
+            expected = (f"expected error ≈ {uncertainty.reprojection_px:.1f} px, camera "
+                        f"≈ {uncertainty.position_m:.2f} m, {uncertainty.rotation_deg:.2f}°")
+        else:
+            expected = "too few matches to estimate the error"
+        if not math.isfinite(uncertainty.halves_px) and not math.isfinite(
+                uncertainty.reprojection_px):
+            hints.append(
+                f"Independent check: the halves of the photo could not be solved separately "
+                f"({expected}): the pose rests on too few matches to be checked, so it is not "
+                "verified — add control points by hand.")
+        elif uncertainty.halves_disagree(image_width) or not math.isfinite(uncertainty.halves_px):
             hints.append(
                 f"Independent check: poses solved from separate halves of the photo disagree "
-                f"({expected}): the matches are probably biased (e.g. shading under another "
-                "sun) — check the overlay at control points, or add control points by hand.")
+                f"({expected}): the matches share an error or are partly wrong — a wrong focal "
+                "length, shading under another sun, matches in one part of the photo only, or "
+                "a wrong pose altogether. Check the overlay at a few control points, or add "
+                "control points by hand.")
         elif uncertainty.shared_px >= 0.5 * uncertainty.reprojection_px:
             hints.append(
                 f"Independent check: the render was matched on its synthetic light ({expected}): "
-                "the model shades only the relief it resolves, an error every match shares and "
-                "no check can see — give the model its photographed colours (a texture, or the "
-                "scan's RGB) or the photo its capture time, or add control points by hand.")
+                "the model was shaded by a computed sun, which reproduces only the relief the "
+                "model resolves — an error every match shares and no check can see. Photographed "
+                "colours on the model (a texture, or the scan's RGB) and the photo's capture time "
+                "reduce it; where both are given already, add control points by hand.")
         else:
             hints.append(
                 f"Independent check: the matches leave the pose loose ({expected}): too few "

@@ -1,0 +1,281 @@
+"""The likely cause of a registration that did not verify, in words.
+
+The six rules of the paper (:func:`~napari_imgreg.registration.quality.evaluate_rules`)
+advise on the *parameters* of the next trial. When a whole registration fails
+the cause is more often in the inputs: the sensor record's camera position,
+heading or focal length, or the photo itself (over- or underexposed, blurred,
+mostly covered). :func:`diagnose` looks at what the trials measured and at
+the photo, and names the cause it finds evidence for, with the fix, so that a
+new user knows what to change. It only reads: it changes no pose, grade or
+status, and runs in well under a second.
+
+Each check needs clear evidence; none says more than it measured:
+
+- the photo's exposure (share of pure white or near-black pixels);
+- blur or low contrast: the photo has far fewer distinct points than the
+  render of the model from the same pose;
+- the sensor pose far off: from it, photo and render have almost nothing in
+  common although the photo has plenty of distinct points;
+- the focal length of the record: the matched 2D-3D pairs, refitted with the
+  focal length free, fit a clearly different one clearly better;
+- matches in a small part of the photo only;
+- a best pose far beyond the sensor record's stated accuracy (a failed result),
+  or a registered pose that shows how far the record was off.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Sequence
+
+import numpy as np
+
+from ..camera import Intrinsics, Pose
+from .pose import reprojection_errors
+from .resection import refine_camera
+
+__all__ = ["diagnose", "photo_exposure", "focal_refit", "match_spread", "prior_offset_hint"]
+
+#: A photo with this share of pure-white pixels (luminance ≥ 250) is overexposed.
+OVEREXPOSED_SHARE = 0.25
+#: A photo with this mean luminance (0–255) or less is very dark.
+DARK_MEAN = 40.0
+#: Fewer photo points than this share of the render's, from the same pose: blurred.
+BLUR_POINT_RATIO = 0.25
+#: "Almost nothing in common": fewer consistent matches than this.
+FEW_MATCHES = 20
+#: A refitted focal length this far off (relative) with an error this much smaller.
+FOCAL_OFF = 0.08
+FOCAL_GAIN = 0.7
+#: Grid of the photo for :func:`match_spread`; matches in this share of its cells or fewer.
+SPREAD_GRID = (4, 4)
+SPREAD_SHARE = 0.25
+
+
+def photo_exposure(photo_rgb: np.ndarray) -> tuple[float, float]:
+    """(share of pure-white pixels, mean luminance 0–255) of a photo."""
+    step = max(1, int(max(photo_rgb.shape[:2]) // 512))
+    a = np.asarray(photo_rgb[::step, ::step, :3], dtype=np.float32)
+    y = a @ np.float32([0.299, 0.587, 0.114])
+    return float(np.mean(y >= 250.0)), float(y.mean())
+
+
+def focal_refit(corr, pose: Pose, intrinsics: Intrinsics,
+                min_pairs: int = 20) -> tuple[float, float, float] | None:
+    """Refit a trial's 2D–3D inliers with the focal length free.
+
+    Returns
+    -------
+    (fx, error_given_px, error_free_px) or None
+        The refitted focal length and the median reprojection errors with the
+        given and with the refitted camera; None with too few pairs.
+    """
+    if corr is None or corr.xyz is None or pose is None:
+        return None
+    use = corr.lifted & corr.pose_inlier
+    if int(use.sum()) < min_pairs:
+        return None
+    X, u = corr.xyz[use], corr.photo_points[use]
+    try:
+        e0 = float(np.median(reprojection_errors(intrinsics, pose, X, u)))
+        pose1, f, _, _ = refine_camera(X, u, pose, (intrinsics.fx, intrinsics.fy),
+                                       (intrinsics.cx, intrinsics.cy))
+        cam = replace(intrinsics, fx=float(f[0]), fy=float(f[0]) * intrinsics.fy / intrinsics.fx)
+        e1 = float(np.median(reprojection_errors(cam, pose1, X, u)))
+    except Exception:  # a diagnosis never breaks a registration
+        return None
+    if not (math.isfinite(e0) and math.isfinite(e1) and f[0] > 0):
+        return None
+    return float(f[0]), e0, e1
+
+
+def match_spread(corr, width: int, height: int) -> tuple[int, int] | None:
+    """(cells of the photo holding pose inliers, cells) on :data:`SPREAD_GRID`."""
+    if corr is None:
+        return None
+    use = corr.pose_inlier
+    if int(use.sum()) < 7:
+        return None
+    p = corr.photo_points[use]
+    gx, gy = SPREAD_GRID
+    ix = np.clip((p[:, 0] / width * gx).astype(int), 0, gx - 1)
+    iy = np.clip((p[:, 1] / height * gy).astype(int), 0, gy - 1)
+    counts = np.bincount(iy * gx + ix, minlength=gx * gy)
+    return int((counts >= 3).sum()), gx * gy
+
+
+def _hfov(fx: float, width: int) -> float:
+    return math.degrees(2.0 * math.atan(width / 2.0 / fx))
+
+
+def _heading_diff(a: float, b: float) -> float:
+    """a − b in (−180, 180]."""
+    d = (a - b + 180.0) % 360.0 - 180.0
+    return 180.0 if d == -180.0 else d
+
+
+def prior_offset_hint(pose: Pose, prior, registered: bool) -> str | None:
+    """How far the pose lies from the sensor record, when far beyond its sigma."""
+    if pose is None:
+        return None
+    sig = prior.sigma
+    delta = pose.center - prior.pose.center
+    d = float(np.linalg.norm(delta))
+    moved = bool(np.hypot(delta[0], delta[1]) > 3.0 * float(sig.position_m)
+                 or abs(delta[2]) > 3.0 * float(sig.altitude_m))
+    a = pose.rotation_error_deg(prior.pose)
+    s_pos = float(sig.position_m)
+    s_ang = float(sig.angles_deg)
+    if not moved and a <= 3.0 * s_ang:
+        return None
+    dtrend = _heading_diff(pose.attitude[0], prior.pose.attitude[0])
+    dplunge = pose.attitude[1] - prior.pose.attitude[1]
+    parts, checks = [], []
+    if moved:
+        parts.append(f"the camera position by {d:.0f} m")
+        checks.append("the GPS fix (wait for a good fix, or place the camera on the DEM map)")
+    if abs(dtrend) > 3.0 * s_ang:
+        parts.append(f"the heading by {abs(dtrend):.0f}°")
+        checks.append("the compass (calibrate it, away from the car and metal)")
+    if abs(dplunge) > 3.0 * s_ang:
+        parts.append(f"the tilt (plunge) by {abs(dplunge):.0f}°")
+    if not parts:
+        parts.append(f"the view direction by {a:.0f}°")
+    if len(checks) < len(parts):
+        checks.append("the orientation sensor")
+    what = ", ".join(parts[:-1]) + (" and " if len(parts) > 1 else "") + parts[-1]
+    if registered:
+        return (f"The sensor record was off: {what}, beyond its stated accuracy "
+                f"({s_pos:g} m, {s_ang:g}°); the registration found the pose anyway and "
+                f"verified it. For the next photos check {' and '.join(checks)}.")
+    return (f"The best pose found differs from the sensor record in {what}, far beyond the "
+            f"record's stated accuracy ({s_pos:g} m, {s_ang:g}°): unless the record is that far "
+            "off, this pose is wrong — do not map on it.")
+
+
+def diagnose(trials: Sequence, best, status: str, prior, camera: Intrinsics,
+             photo_rgb: np.ndarray, appearance: bool = True) -> list[str]:
+    """:func:`_diagnose`, never raising: advice must not break a registration."""
+    try:
+        return _diagnose(trials, best, status, prior, camera, photo_rgb, appearance)
+    except Exception:  # noqa: BLE001
+        return []
+
+
+def _diagnose(trials: Sequence, best, status: str, prior, camera: Intrinsics,
+              photo_rgb: np.ndarray, appearance: bool = True) -> list[str]:
+    """Lines naming the likely cause of a result and its fix, most likely first.
+
+    Parameters
+    ----------
+    trials : list of Trial
+        All trials of the registration, in order.
+    best : Trial
+        The one the result reports.
+    status : str
+        ``"registered"`` or ``"failed"``.
+    prior : Prior
+        The sensor prior (its pose, sigma and camera).
+    camera : Intrinsics
+        The result's camera.
+    photo_rgb : (H, W, 3) uint8 array
+    appearance : bool
+        The model renders with its own appearance (a texture, colours, a
+        scan's intensity). Without (a bare mesh's shading), keypoints rarely
+        match from any pose: their counts then say nothing about the photo
+        or the sensor pose, and those two checks are skipped.
+
+    Returns
+    -------
+    list of str
+        Empty when nothing is clearly wrong.
+    """
+    out: list[str] = []
+    if status == "registered":
+        hint = prior_offset_hint(best.pose, prior, True)
+        return [hint] if hint else []
+    intr = prior.intrinsics
+    w, h = intr.width, intr.height
+    keypoint = [t for t in trials if getattr(t, "matcher", "keypoints") == "keypoints"]
+    first = keypoint[0] if keypoint else (trials[0] if trials else None)
+
+    # The photo itself.
+    white, mean = photo_exposure(photo_rgb)
+    exposure_bad = False
+    if white >= OVEREXPOSED_SHARE:
+        exposure_bad = True
+        share = "nearly all" if white >= 0.95 else f"{white:.0%}"
+        out.append(f"The photo is overexposed: {share} of it is pure white, where nothing "
+                   "can be matched. Use a photo exposed for the rock (on a phone, tap the rock "
+                   "face before shooting), or register it with control points.")
+    elif mean <= DARK_MEAN:
+        exposure_bad = True
+        out.append(f"The photo is very dark (mean brightness {mean:.0f} of 255): little of the "
+                   "rock's detail can be matched. Use a brighter exposure of the same view, or "
+                   "register it with control points.")
+    pts_photo = pts_render = 0
+    if first is not None:
+        pts_photo = int(first.metrics.get("points_photo") or 0)
+        pts_render = int(first.metrics.get("points_render") or 0)
+    if (appearance and not exposure_bad and pts_render > 0 and pts_photo < 1000
+            and pts_photo < BLUR_POINT_RATIO * pts_render):
+        out.append(f"The photo has far fewer distinct points than the render of the model "
+                   f"({pts_photo} against {pts_render}): it is probably blurred (camera shake, "
+                   "out of focus), hazy or low in contrast. A sharp photo of the same view "
+                   "registers best; otherwise add control points by hand.")
+
+    # The focal length of the sensor record.
+    if "fx" not in (camera.estimated or ()) and getattr(intr, "focal_known", True):
+        fits = []
+        for t in keypoint:
+            if t.pose is None or t.verified:
+                continue
+            fit = focal_refit(t.correspondences, t.pose, t.intrinsics or camera)
+            if fit is not None:
+                fits.append((int(t.metrics.get("inliers_3d") or 0), fit, t))
+        if fits:
+            _, (fx, e0, e1), t = max(fits, key=lambda x: x[0])
+            given = (t.intrinsics or camera).fx
+            if abs(fx / given - 1.0) >= FOCAL_OFF and e1 <= FOCAL_GAIN * e0:
+                out.append(
+                    f"The focal length looks wrong: the matches fit fx ≈ {fx:.0f} px (a "
+                    f"{_hfov(fx, w):.0f}° horizontal view) far better than the given "
+                    f"{given:.0f} px ({_hfov(given, w):.0f}°): reprojection error {e0:.1f} → "
+                    f"{e1:.1f} px. Correct the focal length (or the sensor width) in the sensor "
+                    "record, or delete it there so that it is estimated during registration.")
+
+    # The sensor pose.
+    from_prior = [t for t in keypoint if t.origin == "prior"]
+    if (appearance and from_prior and not exposure_bad
+            and not any(t.verified for t in trials)):
+        inl = max(int(t.metrics.get("feature_inliers") or 0) for t in from_prior)
+        inl3 = max(int(t.metrics.get("inliers_3d") or 0) for t in from_prior)
+        if inl < FEW_MATCHES and inl3 < 7 and pts_photo >= 500:
+            s = prior.sigma
+            searched = (f", and the search around it (heading ±{3 * s.angles_deg:g}°, position "
+                        f"±{s.position_m:g} m) found no better start"
+                        if getattr(first.params, "search_prior", False) else "")
+            out.append(
+                f"From the sensor record's pose, photo and render have almost nothing in common "
+                f"({inl} consistent matches, although the photo has {pts_photo} distinct "
+                f"points){searched}. Most likely the camera position "
+                "or the heading in the sensor record is far off — or the photo shows another "
+                "place, or is mirrored or upside down. Compare the photo with the render from "
+                "the sensor pose: if they show different parts of the outcrop, move the camera "
+                "on the DEM map and turn it toward what the photo shows, then register again; "
+                "or register with control points.")
+
+    # Where the matches are.
+    if best is not None and best.pose is not None and not exposure_bad:
+        spread = match_spread(best.correspondences, w, h)
+        if spread is not None and spread[0] <= SPREAD_SHARE * spread[1]:
+            out.append(
+                f"The matches hold only {spread[0]} of {spread[1]} parts of the photo (is the "
+                "rest vegetation, sky, foreground or deep shadow?): a pose held by one patch "
+                "tilts easily, so it could not be verified. Add control points in the other "
+                "parts of the photo, or use a photo showing more of the outcrop.")
+        hint = prior_offset_hint(best.pose, prior, False)
+        if hint:
+            out.append(hint)
+    return out
