@@ -613,7 +613,7 @@ def score_pose(
     if inliers < MIN_VERIFIED_INLIERS:
         # An automatic round whose matches agree with no pose has none and
         # fails; a given pose that they do not support either must not read
-        # "fair: probably registered" on Q from the point counts alone.
+        # "fair" on Q from the point counts alone.
         capped = grade_pose(trial.q, pose_found=True, verified=False, ceiling=STAGE_Q_CEILING)
         if GRADE_NAMES.index(capped.name) > GRADE_NAMES.index(trial.grade):
             trial.grade = capped.name

@@ -96,7 +96,7 @@ class Grade:
 GRADES: tuple[Grade, ...] = (
     Grade("excellent", 1.2, "#1a9850", "registered; use it"),
     Grade("good", 0.6, "#91cf60", "registered; check the overlay"),
-    Grade("fair", 0.0, "#fee08b", "probably registered; inspect before mapping"),
+    Grade("fair", 0.0, "#fee08b", "uncertain; inspect before mapping"),
     Grade("poor", -0.6, "#fc8d59", "doubtful; adapt the parameters"),
     Grade("failed", float("-inf"), "#d73027", "not registered"),
 )
