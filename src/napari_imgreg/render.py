@@ -131,12 +131,18 @@ class RenderResult:
 def _camera_rays(intrinsics: Intrinsics) -> np.ndarray:
     """Unit camera-frame ray directions of every pixel centre, (H*W, 3) float32.
 
+    NaN for a pixel that no ray reaches: beyond where the distortion
+    polynomial folds back (:func:`~napari_imgreg.render_points.unfolded_rays`).
     Cached: a registration renders the same camera many times.
     """
     w, h = intrinsics.width, intrinsics.height
     if intrinsics.has_distortion:
+        from .render_points import unfolded_rays
+
         cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        d = intrinsics.normalized_rays(np.stack([cols.ravel(), rows.ravel()], axis=1))
+        pixels = np.stack([cols.ravel(), rows.ravel()], axis=1)
+        d = intrinsics.normalized_rays(pixels)
+        d[~unfolded_rays(intrinsics, pixels, d)] = np.nan
     else:
         xn = (np.arange(w, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
         yn = (np.arange(h, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
@@ -275,10 +281,15 @@ def render(
         # One block of pixels: Embree and large numpy operations release the
         # GIL, so blocks run in parallel on all cores.
         d = rays_cam[lo:hi] @ R32  # world directions (R.T @ d_cam, row-wise)
+        unreached = np.isnan(d[:, 0]) if intr.has_distortion else None
+        if unreached is not None:
+            d[unreached] = R32[2]  # any direction; the pixel stays empty
         origins = np.empty_like(d)
         origins[:] = center
         res = engine.run(origins, d, output=1)
         face = res["primID"]
+        if unreached is not None:
+            face[unreached] = -1
         miss = face < 0
         face_id[lo:hi] = face
         face_id[lo:hi][miss] = -1

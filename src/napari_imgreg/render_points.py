@@ -148,8 +148,8 @@ def _threads() -> int:
 # mode took ~17 s of CPU to compile these, the plain ones ~3 s (compiled once
 # per install, then loaded from numba's on-disk cache).
 @njit(cache=True, nogil=True, error_model="numpy")
-def _project_kernel(lo, hi, xyz, radius, R, t, fx, fy, cx, cy, dist, fov, width, height,
-                    near, min_r, max_r, out_u, out_v, out_z, out_r, vis,
+def _project_kernel(lo, hi, xyz, radius, R, t, fx, fy, cx, cy, dist, fov, fold_r2, width,
+                    height, near, min_r, max_r, out_u, out_v, out_z, out_r, vis,
                     row_work):  # pragma: no cover
     # Camera-frame depth, distorted pixel position and screen radius of
     # points lo..hi; the indices of those that can touch the image go to
@@ -179,6 +179,8 @@ def _project_kernel(lo, hi, xyz, radius, R, t, fx, fy, cx, cy, dist, fov, width,
         xd, yd, mag = x, y, 1.0
         if distorted:
             r2 = x * x + y * y
+            if r2 >= fold_r2:
+                continue  # beyond where the lens polynomial folds back
             radial = 1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
             xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
             yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
@@ -430,7 +432,8 @@ def _finish_kernel(y_lo, y_hi, zbuf, ids, csum, wsum, normals, colors, id_map, R
         for xx in range(width):
             i = ids[yy, xx]
             zs = zbuf[yy, xx]
-            if i < 0 or not zs < np.inf:
+            if i < 0 or not zs < np.inf or not rays[yy, xx, 0] == rays[yy, xx, 0]:
+                # (empty, or a pixel no ray reaches: NaN, see pixel_rays)
                 face_id[yy, xx] = -1
                 depth[yy, xx] = np.nan
                 for c in range(3):
@@ -515,13 +518,16 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
     """Undistorted normalised ray (x, y) of every pixel centre, (H, W, 2) float64.
 
     The ray through pixel (col, row) is ``(x, y, 1)`` in the camera frame
-    (z = 1, not unit length). Cached: a registration renders the same
-    camera many times.
+    (z = 1, not unit length); NaN for a pixel that no ray reaches, beyond
+    where the distortion polynomial folds back (:func:`unfolded_rays`).
+    Cached: a registration renders the same camera many times.
     """
     w, h = intrinsics.width, intrinsics.height
     if intrinsics.has_distortion:
         cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-        d = intrinsics.normalized_rays(np.stack([cols.ravel(), rows.ravel()], axis=1))
+        pixels = np.stack([cols.ravel(), rows.ravel()], axis=1)
+        d = intrinsics.normalized_rays(pixels)
+        d[~unfolded_rays(intrinsics, pixels, d)] = np.nan
         out = np.ascontiguousarray(d[:, :2].reshape(h, w, 2))
     else:
         out = np.empty((h, w, 2))
@@ -531,12 +537,62 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
     return out
 
 
+def fold_radius2(dist: np.ndarray) -> float:
+    """Squared normalised radius where the radial distortion first folds
+    back (``d r_distorted / d r`` reaches 0), ``inf`` where it never does.
+
+    Beyond it the OpenCV polynomial maps farther rays nearer the image centre:
+    the pixels there see the same rays twice, or none.
+    """
+    k1, k2, _, _, k3 = (float(c) for c in np.asarray(dist, np.float64)[:5])
+    # d/dr [r (1 + k1 r² + k2 r⁴ + k3 r⁶)] = 1 + 3 k1 s + 5 k2 s² + 7 k3 s³, s = r².
+    roots = np.roots([7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0])
+    real = [r.real for r in roots if abs(r.imag) <= 1e-9 * max(1.0, abs(r)) and r.real > 0]
+    return float(min(real)) if real else math.inf
+
+
+def unfolded_rays(intrinsics: Intrinsics, pixels: np.ndarray, rays: np.ndarray,
+                  tol_px: float = 0.5) -> np.ndarray:
+    """Which undistorted rays really are those of their pixels, (N,) bool.
+
+    False where the ray lies beyond the distortion's fold
+    (:func:`fold_radius2`) or does not project back onto its pixel (within
+    ``tol_px``): a camera whose distortion folds inside the image has
+    pixels no ray reaches, which a render leaves empty rather than fill with
+    a wrong ray.
+
+    Parameters
+    ----------
+    intrinsics : Intrinsics
+    pixels : (N, 2) array
+        Pixel positions (x, y).
+    rays : (N, 3) array
+        Their rays from :meth:`Intrinsics.normalized_rays` (z = 1).
+    tol_px : float
+    """
+    if not intrinsics.has_distortion:
+        return np.ones(len(pixels), bool)
+    r2 = rays[:, 0] ** 2 + rays[:, 1] ** 2
+    ok = r2 < fold_radius2(intrinsics.dist_coeffs)
+    back = intrinsics.project(rays)
+    with np.errstate(invalid="ignore"):
+        ok &= np.abs(back - pixels).max(axis=1) <= tol_px
+    return ok
+
+
 def _field_of_view(intrinsics: Intrinsics) -> np.ndarray:
     """(x min, x max, y min, y max) of the view in normalised coordinates,
     from the pixel rays of the image border (a distortion polynomial must
     not fold far points in), with a 2-pixel margin."""
     rays = pixel_rays(intrinsics)
     border = np.concatenate([rays[0], rays[-1], rays[:, 0], rays[:, -1]])
+    if not np.isfinite(border).all():
+        # A distortion folding inside the image: the bounds of the rays
+        # that do reach pixels (the border's do not).
+        border = rays.reshape(-1, 2)
+        border = border[np.isfinite(border).all(axis=1)]
+        if len(border) == 0:
+            return np.zeros(4)
     margin = 2.0 / max(intrinsics.fx, intrinsics.fy)
     return np.array([border[:, 0].min() - margin, border[:, 0].max() + margin,
                      border[:, 1].min() - margin, border[:, 1].max() + margin])
@@ -630,7 +686,8 @@ def splat_depth(
     point_bounds = np.linspace(0, n, (n_threads if n > 200_000 else 1) + 1).astype(int)
     row_work = np.zeros((len(point_bounds) - 1, h))
     project_args = (xyz, radius, R, t, intrinsics.fx, intrinsics.fy, intrinsics.cx,
-                    intrinsics.cy, intrinsics.dist_coeffs, fov, w, h, params.near_m,
+                    intrinsics.cy, intrinsics.dist_coeffs, fov,
+                    fold_radius2(intrinsics.dist_coeffs), w, h, params.near_m,
                     params.min_radius_px, params.max_radius_px, u, v, z, rad, vis_blocks)
     if len(point_bounds) == 2:
         counts = [_project_kernel(0, n, *project_args, row_work[0])]

@@ -72,9 +72,15 @@ def run(args: argparse.Namespace) -> int:
     if args.depth and args.xyz and same_file(args.depth, args.xyz):
         raise input_error(args.xyz, "refusing to write --depth and --xyz to one file; "
                                     "choose another name")
+    inputs = [("mesh", args.mesh), ("pose file", args.pose_file),
+              ("georeference", args.georef), ("DEM", args.dem)]
+    # An OBJ's material file and texture images are inputs too: a render
+    # written over the texture would destroy the model.
+    for companion in _mesh_companions(args.mesh):
+        what = "mesh's material file" if companion.suffix.lower() == ".mtl" else "mesh's texture"
+        inputs.append((what, companion))
     for output in (out, args.depth, args.xyz):
-        refuse_overwriting_inputs(output, [("mesh", args.mesh), ("pose file", args.pose_file),
-                                           ("georeference", args.georef), ("DEM", args.dem)])
+        refuse_overwriting_inputs(output, inputs)
     # Before loading the model: a path that cannot be written fails now.
     for path in (out, args.depth, args.xyz):
         if path:
@@ -110,7 +116,60 @@ def run(args: argparse.Namespace) -> int:
         + (f", depth -> {args.depth}" if args.depth else "")
         + (f", xyz -> {args.xyz}" if args.xyz else "")
     )
+    back = _back_face_share(scene, result)
+    if back > 0.5:
+        print(f"  warning: {back:.0%} of the surface in view is seen from behind (its "
+              "triangles face away from the camera): is the camera below the ground or "
+              "inside the model (its altitude, the DEM), or are the model's triangles wound "
+              "inward?")
+    far = _far_from_origin_warning(scene, pose)
+    if far:
+        print(f"  warning: {far}")
     if result.coverage == 0:
         print("  warning: nothing of the model is in view: is the pose in the model's frame "
               "(the georef.json beside the model) and facing it?")
     return EXIT_OK
+
+
+def _mesh_companions(mesh: str | Path) -> list[Path]:
+    """The files an OBJ reads beside it (its MTL and texture images)."""
+    from ..io.meshes import _companions
+
+    path = Path(mesh)
+    if not path.is_file():
+        return []
+    return _companions(path)[1:]
+
+
+#: Coordinates beyond this (metres) lose more than ~1 cm in single precision.
+FAR_FROM_ORIGIN_M = 1.0e5
+
+
+def _far_from_origin_warning(scene, pose) -> str | None:
+    """A warning when the model or the camera lies so far from the origin of
+    the model frame (e.g. a mesh in UTM coordinates) that single-precision
+    ray casting and the float32 xyz lose centimetres or more."""
+    import numpy as np
+
+    reach = float(max(np.abs(np.asarray(scene.bounds, np.float64)).max(),
+                      np.abs(pose.center).max()))
+    if not reach > FAR_FROM_ORIGIN_M:
+        return None
+    step = float(np.spacing(np.float32(reach)))
+    return (f"the model's coordinates reach {reach:,.0f} m from the origin: single-precision "
+            f"ray casting resolves only ~{step:.2g} m there, so xyz and depth may be off "
+            f"by that much or more; use a local frame (coordinates minus an origin, the "
+            f"origin in georef.json)")
+
+
+def _back_face_share(scene, result) -> float:
+    """Of the pixels that see a mesh, the share that see a triangle from
+    behind (0 for a point cloud, whose normals have no outside)."""
+    import numpy as np
+
+    if getattr(scene, "is_cloud", False) or not result.mask.any():
+        return 0.0
+    faces = result.face_id[result.mask]
+    normals = scene.face_array("normals")[faces]
+    view = result.xyz[result.mask] - result.cam_from_world.center.astype(np.float32)
+    return float(np.mean(np.einsum("ij,ij->i", normals, view) > 0))
