@@ -168,3 +168,32 @@ def test_width_height_only_record_registers_with_the_focal_estimated(sample, tmp
     assert any("estimated during registration: fx" in a for a in reg.assumptions)
     camera, pose, kind, _ = load_camera_and_pose(result)  # what render/project read
     assert kind == "result" and camera == reg.intrinsics
+
+
+@pytest.mark.parametrize("factor", [1.4, 0.6])
+def test_a_wrong_focal_length_in_the_record_is_estimated_when_nothing_verifies(sample, factor):
+    """The record's focal length 40 % off: no trial verifies with it, the
+    matches of one fit the true focal length far better, so one more trial
+    estimates it (before, five trials failed and the result said 'fair')."""
+    folder, scene = sample
+    name = "IMG_0002"
+    photo = load_photo(folder / f"{name}.jpg")
+    prior = prior_for_photo(photo, scene)
+    truth = load_truth(folder / f"{name}.jpg")
+    true_fx = prior.intrinsics.fx
+    wrong = replace(prior.intrinsics, fx=factor * true_fx, fy=factor * prior.intrinsics.fy)
+    prior = replace(prior, intrinsics=wrong)
+    params = RegistrationParams(match_width=512, max_trials=2, search_prior=False,
+                                sun_relight=False, edge_align=False, dense_refine=False,
+                                area_match=False)
+    reg = register(scene, photo.image, prior, params, photo_name=name)
+    assert reg.status == "registered", reg.hints
+    assert reg.intrinsics.estimated == ("fx", "fy")
+    assert reg.intrinsics.fx == pytest.approx(true_fx, rel=0.01)
+    assert reg.pose.rotation_error_deg(truth.pose) < 0.2
+    assert any("did not fit the photo" in a for a in reg.assumptions)
+    assert reg.trials[reg.best_trial].origin == "focal length"
+    # Without adaptation the record's focal length stands, and fails.
+    fixed = register(scene, photo.image, prior, replace(params, auto_adapt=False),
+                     photo_name=name)
+    assert fixed.status == "failed" and fixed.intrinsics.fx == wrong.fx

@@ -35,7 +35,8 @@ from ..camera import Intrinsics, Pose
 from .pose import reprojection_errors
 from .resection import refine_camera
 
-__all__ = ["diagnose", "photo_exposure", "focal_refit", "match_spread", "prior_offset_hint"]
+__all__ = ["diagnose", "photo_exposure", "focal_refit", "focal_retry_start", "match_spread",
+           "prior_offset_hint"]
 
 #: A photo with this share of pure-white pixels (luminance ≥ 250) is overexposed.
 OVEREXPOSED_SHARE = 0.25
@@ -62,7 +63,7 @@ def photo_exposure(photo_rgb: np.ndarray) -> tuple[float, float]:
 
 
 def focal_refit(corr, pose: Pose, intrinsics: Intrinsics,
-                min_pairs: int = 20) -> tuple[float, float, float] | None:
+                min_pairs: int = 20, with_pose: bool = False) -> tuple | None:
     """Refit a trial's 2D–3D inliers with the focal length free.
 
     Returns
@@ -70,6 +71,7 @@ def focal_refit(corr, pose: Pose, intrinsics: Intrinsics,
     (fx, error_given_px, error_free_px) or None
         The refitted focal length and the median reprojection errors with the
         given and with the refitted camera; None with too few pairs.
+        ``with_pose``: the refitted pose as a fourth item.
     """
     if corr is None or corr.xyz is None or pose is None:
         return None
@@ -87,7 +89,42 @@ def focal_refit(corr, pose: Pose, intrinsics: Intrinsics,
         return None
     if not (math.isfinite(e0) and math.isfinite(e1) and f[0] > 0):
         return None
-    return float(f[0]), e0, e1
+    return (float(f[0]), e0, e1, pose1) if with_pose else (float(f[0]), e0, e1)
+
+
+def focal_retry_start(trials: Sequence, intrinsics: Intrinsics):
+    """The trial to estimate the focal length from, and the focal length to
+    start with, when the record's looks wrong; None otherwise.
+
+    Of the unverified keypoint trials with a pose, the one with the most 3D
+    inliers is refitted with the focal length free (:func:`focal_refit`);
+    a fit at least :data:`FOCAL_OFF` away from the record's and with a median
+    error at most :data:`FOCAL_GAIN` of the record's is evidence that the
+    record's focal length is wrong.
+
+    Returns
+    -------
+    (Trial, float, Pose) or None
+        The trial, the refitted fx (pixels) and the pose refitted with it (a
+        focal length that wrong puts the trial's own camera tens of metres off
+        along its view: the start for the focal length's trial).
+    """
+    fits = []
+    for t in trials:
+        if getattr(t, "matcher", "keypoints") != "keypoints" or t.pose is None or t.verified:
+            continue
+        camera = t.intrinsics or intrinsics
+        if not camera.focal_known:
+            continue
+        fit = focal_refit(t.correspondences, t.pose, camera, with_pose=True)
+        if fit is not None:
+            fits.append((int(t.metrics.get("inliers_3d") or 0), fit, t, camera))
+    if not fits:
+        return None
+    _, (fx, e0, e1, pose), t, camera = max(fits, key=lambda x: x[0])
+    if abs(fx / camera.fx - 1.0) >= FOCAL_OFF and e1 <= FOCAL_GAIN * e0:
+        return t, fx, pose
+    return None
 
 
 def match_spread(corr, width: int, height: int) -> tuple[int, int] | None:
@@ -227,23 +264,17 @@ def _diagnose(trials: Sequence, best, status: str, prior, camera: Intrinsics,
 
     # The focal length of the sensor record.
     if "fx" not in (camera.estimated or ()) and getattr(intr, "focal_known", True):
-        fits = []
-        for t in keypoint:
-            if t.pose is None or t.verified:
-                continue
-            fit = focal_refit(t.correspondences, t.pose, t.intrinsics or camera)
-            if fit is not None:
-                fits.append((int(t.metrics.get("inliers_3d") or 0), fit, t))
-        if fits:
-            _, (fx, e0, e1), t = max(fits, key=lambda x: x[0])
+        refit = focal_retry_start(keypoint, camera)
+        if refit is not None:
+            t, fx, _ = refit
             given = (t.intrinsics or camera).fx
-            if abs(fx / given - 1.0) >= FOCAL_OFF and e1 <= FOCAL_GAIN * e0:
-                out.append(
-                    f"The focal length looks wrong: the matches fit fx ≈ {fx:.0f} px (a "
-                    f"{_hfov(fx, w):.0f}° horizontal view) far better than the given "
-                    f"{given:.0f} px ({_hfov(given, w):.0f}°): reprojection error {e0:.1f} → "
-                    f"{e1:.1f} px. Correct the focal length (or the sensor width) in the sensor "
-                    "record, or delete it there so that it is estimated during registration.")
+            _, e0, e1 = focal_refit(t.correspondences, t.pose, t.intrinsics or camera)
+            out.append(
+                f"The focal length looks wrong: the matches fit fx ≈ {fx:.0f} px (a "
+                f"{_hfov(fx, w):.0f}° horizontal view) far better than the given "
+                f"{given:.0f} px ({_hfov(given, w):.0f}°): reprojection error {e0:.1f} → "
+                f"{e1:.1f} px. Correct the focal length (or the sensor width) in the sensor "
+                "record, or delete it there so that it is estimated during registration.")
 
     # The sensor pose.
     from_prior = [t for t in keypoint if t.origin == "prior"]

@@ -31,7 +31,7 @@ pose; this check is what keeps wrong poses from being called good.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Generator
 
 import numpy as np
@@ -42,7 +42,7 @@ from .features import Features, detect_and_describe
 from .filters import apply_filters, illumination_invariant, reduce_for_matching
 from ..prior import Prior
 from .params import RegistrationParams
-from .explain import diagnose
+from .explain import diagnose, focal_retry_start
 from .quality import GRADES, evaluate_rules
 from .round import (  # noqa: F401  (re-exported: the names' old home)
     MIN_VERIFIED_INLIERS,
@@ -803,6 +803,41 @@ def register_photo(
         yield from _robust_stages(ctx, prior, start_prior, best.params, trials, first_mode,
                                   params, progress, rounds_of, n_budget, untextured, biased)
         best = max(trials, key=_trial_rank)
+
+    if params.auto_adapt and intr.focal_known and not _good(best):
+        # Nothing verified with the record's focal length: when the matches of
+        # a trial fit another one far better (a record 40 % off failed after
+        # five trials, a record without one registers), one trial estimates it.
+        refit = focal_retry_start(trials, intr)
+        if refit is not None:
+            _, fx, start = refit
+            guess = replace(intr, fx=fx, fy=fx * intr.fy / intr.fx, estimated=("fx", "fy"))
+            trial = yield from rounds_of(
+                _run_trial(ctx, len(trials), start, params, "focal length",
+                           mode=first_mode, intrinsics=guess),
+                f"estimating the focal length (the matches fit {fx:.0f} px, not "
+                f"{intr.fx:.0f} px)")
+            trial.adaptation = (f"the record's focal length ({intr.fx:.0f} px) estimated: its "
+                                f"matches fitted {fx:.0f} px far better")
+            trials.append(trial)
+            check()
+            if not _good(trial) and robust and params.area_match and trial.pose is not None:
+                # As for an unknown focal length: keypoints near the pose, then
+                # blocks over the whole frame hold it (and verify it) better.
+                area = yield from rounds_of(
+                    _run_trial(ctx, len(trials), trial.pose, params, "focal length",
+                               mode=_area_light(ctx, first_mode), matcher="area",
+                               far_start=False, intrinsics=_trial_camera(trial, guess)),
+                    "area matching with the estimated focal length")
+                area.adaptation = trial.adaptation
+                trials.append(area)
+                check()
+            best = max(trials, key=_trial_rank)
+            estimated = _trial_camera(best, intr)
+            if best.origin == "focal length" and "fx" in (estimated.estimated or ()):
+                assumptions.append(
+                    f"focal length of the record ({intr.fx:.1f} px) did not fit the photo: "
+                    f"estimated during registration, fx = {estimated.fx:.1f} px")
 
     if robust and params.area_match and _refinable(best, intr.width):
         # Keypoints verified, but their pose is held by a few hundred matches
