@@ -243,6 +243,12 @@ def overview_direction(poses, dip_deg: float = OVERVIEW_DIP_DEG) -> np.ndarray |
 
 
 # ------------------------------------------------------------------ layers
+#: A hidden photo layer keeps every this-many-th pixel (scaled back up), not all.
+_HIDDEN_PHOTO_STEP = 16
+#: Layer metadata key: its photo's pixels were let go while it was hidden.
+_PIXELS_LET_GO = "pixels_let_go"
+
+
 class _Layers:
     """The napari layers of the workbench, found again if the user renamed them
     and made anew if deleted."""
@@ -314,10 +320,20 @@ class _Layers:
             name = ps.photo.path.stem if ps.photo.path is not None else "photo"
             layer = self._put(key, self._add("add_image", image, name=name, rgb=True,
                                              metadata={"photo_path": str(ps.photo.path)}))
+        elif layer.metadata.get(_PIXELS_LET_GO):
+            layer.data, layer.scale = image, (1.0, 1.0)
+            layer.metadata[_PIXELS_LET_GO] = False
         previous = self.get("photo")
         self._refs["photo"] = layer
         if previous is not None and previous is not layer:
             previous.visible = False
+            # Its full pixels go (a campaign's photos, each visited once, would
+            # all stay in memory): a 1/16 copy keeps its extent, and showing
+            # it again puts the photo's pixels back.
+            step = _HIDDEN_PHOTO_STEP
+            previous.data = np.ascontiguousarray(previous.data[::step, ::step])
+            previous.scale = (float(step), float(step))
+            previous.metadata[_PIXELS_LET_GO] = True
         layer.visible = self.viewer.dims.ndisplay == 2
         self.order()
         for key in ("photo_filtered", "render_filtered", "correspondences"):
