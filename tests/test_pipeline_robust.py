@@ -410,3 +410,26 @@ def test_photographed_colours_and_appearance(sample):
     assert not has_colours(_bare(scene)) and not has_appearance(_bare(scene))
     scan = SimpleNamespace(has_texture=False, vertex_colors=None, intensity=np.ones(3))
     assert not has_colours(scan) and has_appearance(scan)
+
+
+@pytest.mark.parametrize("d_trend", [90.0, 180.0])
+def test_a_compass_far_off_is_found_by_headings_all_round(sample, d_trend):
+    """Nothing in common from the sensor heading and the prior's ±3σ search:
+    headings all round are tried at reduced resolution, the best refined and
+    verified (a compass 90° off failed after nine trials)."""
+    folder, scene = sample
+    photo = load_photo(folder / "IMG_0002.jpg")
+    prior = prior_for_photo(photo, scene)
+    truth = load_truth(folder / "IMG_0002.jpg")
+    prior.pose = _off(prior.pose, d_trend, 0.0, (0.0, 0.0, 0.0))
+    fast = dict(match_width=512, max_trials=1, n_search=2, sun_relight=False,
+                edge_align=False, dense_refine=False, area_match=False)
+    reg = register(scene, photo.image, prior, RegistrationParams(**fast))
+    assert reg.status == "registered" and reg.pose.rotation_error_deg(truth.pose) < 0.2
+    best = reg.trials[reg.best_trial]
+    assert best.origin == "heading search" and "headings all round" in best.adaptation
+    assert any("the heading by" in h for h in reg.hints)  # what was off, for the next photos
+    # Without adaptation nothing is searched beyond the prior's uncertainty.
+    fixed = register(scene, photo.image, prior, RegistrationParams(**fast, auto_adapt=False))
+    assert fixed.status == "failed"
+    assert not any(t.origin == "heading search" for t in fixed.trials)

@@ -36,7 +36,7 @@ from .pose import reprojection_errors
 from .resection import refine_camera
 
 __all__ = ["diagnose", "photo_exposure", "focal_refit", "focal_retry_start", "match_spread",
-           "prior_offset_hint"]
+           "nothing_in_common", "prior_offset_hint"]
 
 #: A photo with this share of pure-white pixels (luminance ≥ 250) is overexposed.
 OVEREXPOSED_SHARE = 0.25
@@ -124,6 +124,26 @@ def focal_retry_start(trials: Sequence, intrinsics: Intrinsics):
     _, (fx, e0, e1, pose), t, camera = max(fits, key=lambda x: x[0])
     if abs(fx / camera.fx - 1.0) >= FOCAL_OFF and e1 <= FOCAL_GAIN * e0:
         return t, fx, pose
+    return None
+
+
+def nothing_in_common(trials: Sequence) -> tuple[int, int] | None:
+    """From the sensor pose, photo and render share almost nothing although
+    the photo has plenty of distinct points: (consistent matches, photo
+    points) of the keypoint trials from the prior, or None when that is not so
+    (or a trial verified). The heading may be far off: the search around the
+    prior covers ±3σ only."""
+    if any(t.verified for t in trials):
+        return None
+    from_prior = [t for t in trials if getattr(t, "matcher", "keypoints") == "keypoints"
+                  and t.origin == "prior"]
+    if not from_prior:
+        return None
+    inl = max(int(t.metrics.get("feature_inliers") or 0) for t in from_prior)
+    inl3 = max(int(t.metrics.get("inliers_3d") or 0) for t in from_prior)
+    pts_photo = int(from_prior[0].metrics.get("points_photo") or 0)
+    if inl < FEW_MATCHES and inl3 < 7 and pts_photo >= 500:
+        return inl, pts_photo
     return None
 
 
@@ -277,25 +297,22 @@ def _diagnose(trials: Sequence, best, status: str, prior, camera: Intrinsics,
                 "record, or delete it there so that it is estimated during registration.")
 
     # The sensor pose.
-    from_prior = [t for t in keypoint if t.origin == "prior"]
-    if (appearance and from_prior and not exposure_bad
-            and not any(t.verified for t in trials)):
-        inl = max(int(t.metrics.get("feature_inliers") or 0) for t in from_prior)
-        inl3 = max(int(t.metrics.get("inliers_3d") or 0) for t in from_prior)
-        if inl < FEW_MATCHES and inl3 < 7 and pts_photo >= 500:
-            s = prior.sigma
-            searched = (f", and the search around it (heading ±{3 * s.angles_deg:g}°, position "
-                        f"±{s.position_m:g} m) found no better start"
-                        if getattr(first.params, "search_prior", False) else "")
-            out.append(
-                f"From the sensor record's pose, photo and render have almost nothing in common "
-                f"({inl} consistent matches, although the photo has {pts_photo} distinct "
-                f"points){searched}. Most likely the camera position "
-                "or the heading in the sensor record is far off — or the photo shows another "
-                "place, or is mirrored or upside down. Compare the photo with the render from "
-                "the sensor pose: if they show different parts of the outcrop, move the camera "
-                "on the DEM map and turn it toward what the photo shows, then register again; "
-                "or register with control points.")
+    common = nothing_in_common(trials) if appearance and not exposure_bad else None
+    if common is not None:
+        inl, pts_photo = common
+        s = prior.sigma
+        searched = (f", and the search around it (heading ±{3 * s.angles_deg:g}°, position "
+                    f"±{s.position_m:g} m, then headings all round) found no better start"
+                    if getattr(first.params, "search_prior", False) else "")
+        out.append(
+            f"From the sensor record's pose, photo and render have almost nothing in common "
+            f"({inl} consistent matches, although the photo has {pts_photo} distinct "
+            f"points){searched}. Most likely the camera position "
+            "or the heading in the sensor record is far off — or the photo shows another "
+            "place, or is mirrored or upside down. Compare the photo with the render from "
+            "the sensor pose: if they show different parts of the outcrop, move the camera "
+            "on the DEM map and turn it toward what the photo shows, then register again; "
+            "or register with control points.")
 
     # Where the matches are.
     if best is not None and best.pose is not None and not exposure_bad:

@@ -42,7 +42,7 @@ from .features import Features, detect_and_describe
 from .filters import apply_filters, illumination_invariant, reduce_for_matching
 from ..prior import Prior
 from .params import RegistrationParams
-from .explain import diagnose, focal_retry_start
+from .explain import diagnose, focal_retry_start, nothing_in_common
 from .quality import GRADES, evaluate_rules
 from .round import (  # noqa: F401  (re-exported: the names' old home)
     MIN_VERIFIED_INLIERS,
@@ -446,6 +446,11 @@ def _perturbed_priors(prior: Prior, n: int, seed: int = 0,
     return poses[:n]
 
 
+#: Heading offsets, degrees, tried when nothing matches from the sensor pose
+#: (the prior search covers ±3σ of it).
+WIDE_HEADING_OFFSETS_DEG = (45.0, -45.0, 90.0, -90.0, 135.0, -135.0, 180.0)
+
+
 def _good(t: Trial) -> bool:
     return t.verified and t.grade in ("excellent", "good")
 
@@ -838,6 +843,48 @@ def register_photo(
                 assumptions.append(
                     f"focal length of the record ({intr.fx:.1f} px) did not fit the photo: "
                     f"estimated during registration, fx = {estimated.fx:.1f} px")
+
+    if (params.auto_adapt and params.search_prior and not untextured and not _good(best)
+            and nothing_in_common(trials) is not None):
+        # From the sensor pose photo and render share almost nothing, and the
+        # search covered ±3σ of heading: a compass 90° off (a phone held near
+        # metal, a heading logged from the wrong axis) failed after nine
+        # trials. Headings all round, at reduced resolution; the best refined.
+        trend, plunge, roll = start_prior.attitude
+        candidates = [_above_ground(scene, Pose.from_attitude(trend + dh, plunge, roll,
+                                                              start_prior.center))[0]
+                      for dh in WIDE_HEADING_OFFSETS_DEG]
+        scored = []
+        for k, cand in enumerate(candidates):
+            yield progress("search", f"searching headings all round ({k + 1}/{len(candidates)})",
+                           (len(trials) + 0.5 * k / len(candidates)) / n_budget)
+            t = run_to_end(_run_trial(ctx, -1, cand, params, "heading search",
+                                      width=min(params.match_width, 800), max_rounds=2,
+                                      mode=first_mode, intrinsics=start_camera))
+            if t.pose is not None and t.metrics.get("inliers_3d", 0) >= MIN_VERIFIED_INLIERS:
+                scored.append(t)
+            check()
+        if scored:
+            lead = max(scored, key=lambda t: (t.metrics.get("inliers_3d", 0), t.q))
+            trial = yield from rounds_of(
+                _run_trial(ctx, len(trials), lead.pose, params, "heading search",
+                           mode=first_mode, intrinsics=_trial_camera(lead, start_camera)),
+                "refining the best heading", base=len(trials) + 0.5, span=0.5)
+            dh = lead.pose.attitude[0] - trend
+            trial.adaptation = (f"nothing in common from the sensor heading: searched headings "
+                                f"all round, the best {((dh + 180) % 360) - 180:+.0f}° from it")
+            trials.append(trial)
+            check()
+            if not _good(trial) and robust and params.area_match and trial.pose is not None:
+                area = yield from rounds_of(
+                    _run_trial(ctx, len(trials), trial.pose, params, "heading search",
+                               mode=_area_light(ctx, first_mode), matcher="area",
+                               far_start=False, intrinsics=_trial_camera(trial, start_camera)),
+                    "area matching from the best heading")
+                area.adaptation = trial.adaptation
+                trials.append(area)
+                check()
+            best = max(trials, key=_trial_rank)
 
     if robust and params.area_match and _refinable(best, intr.width):
         # Keypoints verified, but their pose is held by a few hundred matches
