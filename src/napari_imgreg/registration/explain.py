@@ -301,8 +301,10 @@ def _diagnose(trials: Sequence, best, status: str, prior, camera: Intrinsics,
     if common is not None:
         inl, pts_photo = common
         s = prior.sigma
+        all_round = (", then headings all round"
+                     if getattr(first.params, "auto_adapt", False) else "")
         searched = (f", and the search around it (heading ±{3 * s.angles_deg:g}°, position "
-                    f"±{s.position_m:g} m, then headings all round) found no better start"
+                    f"±{s.position_m:g} m{all_round}) found no better start"
                     if getattr(first.params, "search_prior", False) else "")
         out.append(
             f"From the sensor record's pose, photo and render have almost nothing in common "
