@@ -510,15 +510,26 @@ class PhotoRunner:
                 "distributed.worker.memory.monitor-interval": "1s",
                 "distributed.admin.tick.interval": "500ms",
             }), _interrupt_kept_from_workers():
-                self._local = LocalCluster(
-                    n_workers=n_workers, threads_per_worker=threads,
-                    processes=self.cluster.processes,
-                    # Any free port: several batches may run on one machine.
-                    dashboard_address=":0",
-                    # The workers' own log lines (a task cancelled at Ctrl-C, a
-                    # restart): the command reports each photo in its own words.
-                    silence_logs=logging.CRITICAL,
-                )
+                for attempt in (1, 2):
+                    try:
+                        self._local = LocalCluster(
+                            n_workers=n_workers, threads_per_worker=threads,
+                            processes=self.cluster.processes,
+                            # Any free port: several batches may run on one machine.
+                            dashboard_address=":0",
+                            # The workers' own log lines (a task cancelled at Ctrl-C, a
+                            # restart): the command reports each photo in its own words.
+                            silence_logs=logging.CRITICAL,
+                        )
+                        break
+                    except AssertionError:
+                        # Dask's event-loop thread gives itself 10 s to start and
+                        # then fails an assert (distributed.utils.LoopRunner): seen
+                        # once in CI on a loaded machine. One more try, then a line.
+                        if attempt == 2:
+                            raise InputError("the local Dask cluster did not start (its "
+                                             "event loop took over 10 s): the machine is "
+                                             "busy; try again") from None
             self.client = Client(self._local)
             kind = "process(es)" if self.cluster.processes else "thread(s) of this process"
             self.description = (f"local cluster: {n_workers} worker {kind}, "
