@@ -9,15 +9,6 @@ import pytest
 pytest.importorskip("napari")
 
 from napari_imgreg.io.pointclouds import PointCloud, write_point_cloud  # noqa: E402
-from napari_imgreg.widgets.workbench import Workbench  # noqa: E402
-
-
-@pytest.fixture
-def workbench(make_napari_viewer, qtbot):
-    viewer = make_napari_viewer()
-    wb = Workbench.add_to_viewer(viewer)
-    yield wb
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
 
 
 def _wall_cloud(path, n=60_000, seed=0):

@@ -10,10 +10,8 @@ Run in a real napari viewer under Xvfb.
 from __future__ import annotations
 
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
-import pytest
 
 from napari_imgreg.interpret.project import Interpretation
 from napari_imgreg.registration.params import RegistrationParams
@@ -22,24 +20,8 @@ from napari_imgreg.registration.uncertainty import Uncertainty
 from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._layers import napari_from_pixels
 from napari_imgreg.widgets.interpret_widget import INTERP_KEY
-from napari_imgreg.widgets.workbench import INTERPRET_TAB, Workbench
 
-LOAD_S = 90_000  # ms: the first run on a fresh machine generates the sample scene
-SHOTS = Path("/tmp/gui_fix")
-
-
-@pytest.fixture
-def workbench(make_napari_viewer, qtbot):
-    viewer = make_napari_viewer()
-    wb = Workbench.add_to_viewer(viewer)
-    yield wb
-    wb.controller.cancel_register_all()
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
-    wb.controller.workspace.detach()
-
-
-def _idle(wb, qtbot, timeout=30_000):
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=timeout)
+from ._workbench import LOAD_S, idle as _idle
 
 
 def _registered(ps) -> Registration:
@@ -120,16 +102,6 @@ def test_a_reopened_workspace_projects_the_photos_not_shown_too(workbench, qtbot
     # The saved drawings of IMG_0002 are untouched (not replaced by a layer's).
     assert [i.properties.get("comment") for i in two.interpretations] == [
         f"two {k}" for k in range(5)]
-
-    SHOTS.mkdir(exist_ok=True)
-    tabs = wb.tabs
-    tabs.setCurrentIndex(next(i for i in range(tabs.count())
-                              if tabs.tabText(i) == INTERPRET_TAB))
-    window = wb.viewer.window._qt_window
-    window.resize(1600, 1000)
-    qtbot.wait(300)
-    window.grab().save(str(SHOTS / "interpret_all_photos_window.png"))
-    iw.grab().save(str(SHOTS / "interpret_all_photos_tab.png"))  # the whole tab, unscrolled
 
     # A pose moved after the projection: the status line names its photo.
     ctrl.nudge("turn right 1", d_trend=1.0)

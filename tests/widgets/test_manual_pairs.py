@@ -4,25 +4,11 @@ expected error (the full solve from the truth: test_workbench.py)."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._layers import napari_from_pixels
-from napari_imgreg.widgets.workbench import Workbench
 
-LOAD_S = 90_000  # ms: the first run on a fresh machine generates the sample scene
-
-
-@pytest.fixture
-def workbench(make_napari_viewer, qtbot):
-    viewer = make_napari_viewer()
-    wb = Workbench.add_to_viewer(viewer)
-    yield wb
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
-
-
-def _idle(wb, qtbot, timeout=30_000):
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=timeout)
+from ._workbench import LOAD_S, idle as _idle
 
 
 def test_pairs_stay_matched_through_deletes_and_a_new_reference(workbench, qtbot):

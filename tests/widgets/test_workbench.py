@@ -27,26 +27,7 @@ from napari_imgreg.widgets._controller import GAP, controller_for
 from napari_imgreg.widgets._quality import CLASS_COLORS
 from napari_imgreg.widgets.workbench import INTERPRET_TAB, QUALITY_NAME, WORKBENCH_NAME, Workbench
 
-LOAD_S = 90_000  # ms: the first run on a fresh machine generates the sample scene
-
-
-@pytest.fixture
-def workbench(make_napari_viewer, qtbot):
-    viewer = make_napari_viewer()
-    wb = Workbench.add_to_viewer(viewer)
-    yield wb
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
-
-
-def _idle(wb, qtbot, timeout=30_000):
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=timeout)
-
-
-def _load_sample(wb, qtbot):
-    wb.scene_panel.sample_button.click()
-    qtbot.waitUntil(lambda: wb.controller.current is not None, timeout=LOAD_S)
-    _idle(wb, qtbot)
-    return wb.controller
+from ._workbench import LOAD_S, idle as _idle, load_sample as _load_sample
 
 
 def _map_point(canvas, x, y) -> QPoint:

@@ -35,28 +35,7 @@ from napari_imgreg.widgets.workbench import (
 )
 from napari_imgreg.workspace import Workspace
 
-LOAD_S = 90_000  # ms: the first run on a fresh machine generates the sample scene
-
-
-@pytest.fixture
-def workbench(make_napari_viewer, qtbot):
-    viewer = make_napari_viewer()
-    wb = Workbench.add_to_viewer(viewer)
-    yield wb
-    wb.controller.cancel_register_all()
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=30_000)
-    wb.controller.workspace.detach()
-
-
-def _idle(wb, qtbot, timeout=30_000):
-    qtbot.waitUntil(lambda: not wb.controller.busy, timeout=timeout)
-
-
-def _load_sample(wb, qtbot):
-    wb.scene_panel.sample_button.click()
-    qtbot.waitUntil(lambda: wb.controller.current is not None, timeout=LOAD_S)
-    _idle(wb, qtbot)
-    return wb.controller
+from ._workbench import LOAD_S, idle as _idle, load_sample as _load_sample
 
 
 def _true_registration(ps, q=1.4, reproj=1.2, secs=2.0) -> Registration:
