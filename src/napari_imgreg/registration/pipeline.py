@@ -718,6 +718,38 @@ def register_photo(
                 return stop.value
             yield progress("trial", f"{label}, round {k + 1}/{n}", (base + span * k / n) / n_budget)
 
+    def search(candidates: list[Pose], label: str, trial_params: RegistrationParams,
+               origin: str, min_inliers: int = 0):
+        # Each start one quick trial at reduced resolution (two rounds); the
+        # trials with a pose (and ``min_inliers`` 3D inliers) are returned.
+        scored = []
+        for k, cand in enumerate(candidates):
+            yield progress("search", f"{label} ({k + 1}/{len(candidates)})",
+                           (len(trials) + 0.5 * k / len(candidates)) / n_budget)
+            t = run_to_end(_run_trial(ctx, -1, cand, trial_params, origin,
+                                      width=min(params.match_width, 800), max_rounds=2,
+                                      mode=first_mode, intrinsics=start_camera))
+            if t.pose is not None and t.metrics.get("inliers_3d", 0) >= min_inliers:
+                scored.append(t)
+            check()
+        return scored
+
+    def then_area(trial: Trial, camera: Intrinsics, label: str):
+        # A keypoint trial of an adaptation that does not verify is followed,
+        # as for an unknown focal length, by blocks over the whole frame from
+        # its pose, which hold (and verify) it better. Both join the trials.
+        trials.append(trial)
+        check()
+        if not _good(trial) and robust and params.area_match and trial.pose is not None:
+            area = yield from rounds_of(
+                _run_trial(ctx, len(trials), trial.pose, params, trial.origin,
+                           mode=_area_light(ctx, first_mode), matcher="area",
+                           far_start=False, intrinsics=_trial_camera(trial, camera)),
+                label)
+            area.adaptation = trial.adaptation
+            trials.append(area)
+            check()
+
     # Keypoints of a bare mesh's shading rarely match a photo's rock colours:
     # one trial to try, then the structure and dense stages.
     n_keypoint_trials = 1 if (untextured and robust) else (
@@ -782,17 +814,8 @@ def register_photo(
         candidates = [_above_ground(scene, c)[0]
                       for c in _perturbed_priors(prior, params.n_search, seed=params.seed,
                                                        start=start_prior)]
-        search_width = min(params.match_width, 800)
-        scored = []
-        for k, cand in enumerate(candidates):
-            yield progress("search", f"searching the prior's uncertainty ({k + 1}/{len(candidates)})",
-                           (len(trials) + 0.5 * k / len(candidates)) / n_budget)
-            t = run_to_end(_run_trial(ctx, -1, cand, best.params, "search",
-                                      width=search_width, max_rounds=2, mode=first_mode,
-                                      intrinsics=start_camera))
-            if t.pose is not None:
-                scored.append(t)
-            check()
+        scored = yield from search(candidates, "searching the prior's uncertainty",
+                                   best.params, "search")
         if scored:
             lead = max(scored, key=lambda t: (t.metrics.get("inliers_3d", 0), t.q))
             trial = yield from rounds_of(
@@ -824,19 +847,7 @@ def register_photo(
                 f"{intr.fx:.0f} px)")
             trial.adaptation = (f"the record's focal length ({intr.fx:.0f} px) estimated: its "
                                 f"matches fitted {fx:.0f} px far better")
-            trials.append(trial)
-            check()
-            if not _good(trial) and robust and params.area_match and trial.pose is not None:
-                # As for an unknown focal length: keypoints near the pose, then
-                # blocks over the whole frame hold it (and verify it) better.
-                area = yield from rounds_of(
-                    _run_trial(ctx, len(trials), trial.pose, params, "focal length",
-                               mode=_area_light(ctx, first_mode), matcher="area",
-                               far_start=False, intrinsics=_trial_camera(trial, guess)),
-                    "area matching with the estimated focal length")
-                area.adaptation = trial.adaptation
-                trials.append(area)
-                check()
+            yield from then_area(trial, guess, "area matching with the estimated focal length")
             best = max(trials, key=_trial_rank)
             estimated = _trial_camera(best, intr)
             if best.origin == "focal length" and "fx" in (estimated.estimated or ()):
@@ -854,16 +865,8 @@ def register_photo(
         candidates = [_above_ground(scene, Pose.from_attitude(trend + dh, plunge, roll,
                                                               start_prior.center))[0]
                       for dh in WIDE_HEADING_OFFSETS_DEG]
-        scored = []
-        for k, cand in enumerate(candidates):
-            yield progress("search", f"searching headings all round ({k + 1}/{len(candidates)})",
-                           (len(trials) + 0.5 * k / len(candidates)) / n_budget)
-            t = run_to_end(_run_trial(ctx, -1, cand, params, "heading search",
-                                      width=min(params.match_width, 800), max_rounds=2,
-                                      mode=first_mode, intrinsics=start_camera))
-            if t.pose is not None and t.metrics.get("inliers_3d", 0) >= MIN_VERIFIED_INLIERS:
-                scored.append(t)
-            check()
+        scored = yield from search(candidates, "searching headings all round", params,
+                                   "heading search", MIN_VERIFIED_INLIERS)
         if scored:
             lead = max(scored, key=lambda t: (t.metrics.get("inliers_3d", 0), t.q))
             trial = yield from rounds_of(
@@ -873,17 +876,7 @@ def register_photo(
             dh = lead.pose.attitude[0] - trend
             trial.adaptation = (f"nothing in common from the sensor heading: searched headings "
                                 f"all round, the best {((dh + 180) % 360) - 180:+.0f}° from it")
-            trials.append(trial)
-            check()
-            if not _good(trial) and robust and params.area_match and trial.pose is not None:
-                area = yield from rounds_of(
-                    _run_trial(ctx, len(trials), trial.pose, params, "heading search",
-                               mode=_area_light(ctx, first_mode), matcher="area",
-                               far_start=False, intrinsics=_trial_camera(trial, start_camera)),
-                    "area matching from the best heading")
-                area.adaptation = trial.adaptation
-                trials.append(area)
-                check()
+            yield from then_area(trial, start_camera, "area matching from the best heading")
             best = max(trials, key=_trial_rank)
 
     if robust and params.area_match and _refinable(best, intr.width):
