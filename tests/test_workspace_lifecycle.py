@@ -34,12 +34,18 @@ def scene_dir(tmp_path):
     return out
 
 
-def test_a_model_or_photo_replaced_after_registering_is_said_on_opening(scene_dir, tmp_path):
-    folder = tmp_path / "campaign.imgreg"
+def _campaign(scene_dir, folder, photos=None) -> Workspace:
+    """A workspace of the scene and its photos (default: all), saved to ``folder``."""
     ws = Workspace()
     ws.open_scene(scene_dir / "outcrop.obj", dem=scene_dir / "dem.tif")
-    ws.add_photos(sorted(scene_dir.glob("IMG_*.jpg")))
+    ws.add_photos(photos if photos is not None else sorted(scene_dir.glob("IMG_*.jpg")))
     ws.save(folder)
+    return ws
+
+
+def test_a_model_or_photo_replaced_after_registering_is_said_on_opening(scene_dir, tmp_path):
+    folder = tmp_path / "campaign.imgreg"
+    ws = _campaign(scene_dir, folder)
     for ps in ws.photos:
         ws.record_registration(_registration(ps), "Auto", ps, pose_if_not_current=True)
     ws.detach()
@@ -85,10 +91,7 @@ def test_a_file_fingerprint_ignores_dates_and_sees_content(tmp_path):
 
 def test_a_workspace_moved_with_or_without_its_model(scene_dir, tmp_path):
     folder = tmp_path / "campaign.imgreg"
-    ws = Workspace()
-    ws.open_scene(scene_dir / "outcrop.obj", dem=scene_dir / "dem.tif")
-    ws.add_photos([scene_dir / "IMG_0001.jpg"])
-    ws.save(folder)
+    ws = _campaign(scene_dir, folder, [scene_dir / "IMG_0001.jpg"])
     ws.detach()
     # The whole campaign (workspace and data) moved elsewhere: the relative paths find it.
     moved = tmp_path / "elsewhere"
@@ -113,10 +116,7 @@ def test_a_projection_older_than_the_drawings_or_poses_is_said(scene_dir, tmp_pa
     from napari_imgreg.interpret.project import Interpretation
 
     folder = tmp_path / "campaign.imgreg"
-    ws = Workspace()
-    ws.open_scene(scene_dir / "outcrop.obj", dem=scene_dir / "dem.tif")
-    ws.add_photos(sorted(scene_dir.glob("IMG_*.jpg")))
-    ws.save(folder)
+    ws = _campaign(scene_dir, folder)
     first, second = ws.photos
     line = Interpretation("LineString", [[200.0, 300.0], [700.0, 330.0]], {"label": "sandstone"})
     ws.add_interpretation(line, ps=first)
@@ -152,10 +152,7 @@ def test_a_projection_older_than_the_drawings_or_poses_is_said(scene_dir, tmp_pa
 
 def test_a_photo_missing_for_a_while_keeps_its_place_in_the_campaign(scene_dir, tmp_path):
     folder = tmp_path / "campaign.imgreg"
-    ws = Workspace()
-    ws.open_scene(scene_dir / "outcrop.obj", dem=scene_dir / "dem.tif")
-    ws.add_photos(sorted(scene_dir.glob("IMG_*.jpg")))
-    ws.save(folder)
+    ws = _campaign(scene_dir, folder)
     ws.detach()
     (scene_dir / "IMG_0001.jpg").rename(tmp_path / "IMG_0001.jpg")  # on a disk not mounted today
     today = Workspace.open(folder)
@@ -177,10 +174,7 @@ def test_what_a_full_disk_kept_from_being_saved_is_saved_by_the_next_change(scen
     from napari_imgreg.interpret.project import Interpretation
 
     folder = tmp_path / "campaign.imgreg"
-    ws = Workspace()
-    ws.open_scene(scene_dir / "outcrop.obj", dem=scene_dir / "dem.tif")
-    ws.add_photos(sorted(scene_dir.glob("IMG_*.jpg")))
-    ws.save(folder)
+    ws = _campaign(scene_dir, folder)
     messages = []
     ws.autosave_failed.connect(messages.append)
 
@@ -215,10 +209,7 @@ def test_a_hand_edited_photo_state_is_one_line_and_the_rest_opens(scene_dir, tmp
     import json
 
     folder = tmp_path / "campaign.imgreg"
-    ws = Workspace()
-    ws.open_scene(scene_dir / "outcrop.obj", dem=scene_dir / "dem.tif")
-    ws.add_photos(sorted(scene_dir.glob("IMG_*.jpg")))
-    ws.save(folder)
+    ws = _campaign(scene_dir, folder)
     ws.detach()
     state_file = folder / "photos" / "IMG_0001" / "photo.json"
     state = json.loads(state_file.read_text())
@@ -242,10 +233,7 @@ def test_only_a_json_true_accepts_a_pose(scene_dir, tmp_path, written, accepted)
     import json
 
     folder = tmp_path / "campaign.imgreg"
-    ws = Workspace()
-    ws.open_scene(scene_dir / "outcrop.obj", dem=scene_dir / "dem.tif")
-    ws.add_photos(sorted(scene_dir.glob("IMG_*.jpg")))
-    ws.save(folder)
+    ws = _campaign(scene_dir, folder)
     ws.detach()
     state_file = folder / "photos" / "IMG_0001" / "photo.json"
     state = json.loads(state_file.read_text())
