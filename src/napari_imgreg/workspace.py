@@ -1307,7 +1307,7 @@ class Workspace:
         if not jobs:
             raise WorkbenchError("Nothing to project: draw on a photo first.")
         # What it is made from, as the job starts (edits while it runs make it out of date).
-        projected_from = {ps: _projection_input(ps) for ps in drawn}
+        projected_from = self.projection_inputs(drawn)
         return Job("projection", lambda: project_interpretation_sets(scene, jobs),
                    lambda value: self.record_projection(*value, projected_from=projected_from),
                    "Projecting interpretations")
@@ -1375,6 +1375,19 @@ class Workspace:
         self._projected_from = dict(projected_from)
         self.projection_changed.emit()
         return self.features_3d
+
+    def projection_inputs(self, photos: list[PhotoState] | None = None) -> dict[PhotoState, str]:
+        """What each photo's projection is made from now (default: every photo
+        drawn on), for :meth:`record_projection`'s ``projected_from``: taken
+        as a projection starts, so that edits while it runs make it out of date."""
+        photos = [ps for ps in self.photos if ps.interpretations] if photos is None else photos
+        return {ps: _projection_input(ps) for ps in photos}
+
+    @property
+    def projection_inputs_known(self) -> bool:
+        """It is known what the last projection was made from (not so for one
+        saved before napari-imgreg recorded it): :meth:`projection_out_of_date` can tell."""
+        return self._projected_from is not None
 
     def projection_out_of_date(self) -> list[PhotoState]:
         """The photos whose drawings, camera or pose changed since the last

@@ -78,13 +78,7 @@ from ..interpret.structural import (  # the three-point plane moved there (issue
 )
 from ..io.records import read_json
 from ..prior import load_camera_and_pose
-from ..workspace import (
-    PhotoState,
-    WorkbenchError,
-    Workspace,
-    one_line,
-    project_interpretation_sets,
-)
+from ..workspace import PhotoState, Workspace, one_line, project_interpretation_sets
 from ._jobs import JobRunner
 from ._layers import (
     INTERPRETATION_OF,
@@ -287,8 +281,8 @@ class InterpretWidget(QWidget):
         self._count_before: dict[int, int] = {}  # shapes before the one being drawn
         self._drawing_started: set[int] = set()  # layers pressed on in a drawing mode
         self._recording = False  # this widget is recording its projection in the workspace
-        #: Records the running projection in the workspace (see :meth:`_jobs`).
-        self._record = None
+        #: Per workspace photo, what the running projection is made from (see :meth:`_jobs`).
+        self._projected_from: dict[PhotoState, str] | None = None
         #: Camera and pose of each photo of the running projection, by name.
         self._projected_cameras: dict[str, tuple[Intrinsics, Pose]] = {}
         #: Photos and traces of the running projection.
@@ -667,8 +661,7 @@ class InterpretWidget(QWidget):
         stale = ([ps.name for ps in self.workspace.projection_out_of_date()]
                  if self.workspace is not None else [])
         if not stale:
-            unknown = self.workspace is None or getattr(self.workspace, "_projected_from",
-                                                        None) is None
+            unknown = self.workspace is None or not self.workspace.projection_inputs_known
             return ("Drawings changed since the last projection: the table, stereonet and "
                     "exports are of the earlier lines until you Project again."
                     if edited and unknown and self.features else "")
@@ -1058,7 +1051,7 @@ class InterpretWidget(QWidget):
         """
         jobs = []
         self.projection_warnings = []
-        self._record = None
+        self._projected_from = None
         others = []  # layers of photos that are not workspace photos
         for layer in list(self.viewer.layers):
             photo_name = layer.metadata.get(INTERP_KEY)
@@ -1081,13 +1074,9 @@ class InterpretWidget(QWidget):
                         f"{ps.name}: {status}: projected from its prior pose "
                         f"(error ≈ {unc.position_m:.0f} m, {unc.rotation_deg:.0f}°)")
                 jobs.append((ps.intrinsics, ps.pose, list(ps.interpretations), ps.name, unc))
-            if jobs:
-                try:
-                    # Its apply records the projection with what each photo's was
-                    # made from now (Workspace.projection_out_of_date reads it).
-                    self._record = ws.projection_job().apply
-                except WorkbenchError:  # no scene in the workspace: recorded plainly
-                    self._record = None
+            # What each photo's projection is made from now, recorded with it
+            # (Workspace.projection_out_of_date reads it).
+            self._projected_from = ws.projection_inputs()
         for layer, photo_name in others:
             items = interpretations_from_shapes(layer)
             if not items:
@@ -1169,13 +1158,11 @@ class InterpretWidget(QWidget):
         if self.workspace is not None:
             self._recording = True  # shown below, not again by the workspace's event
             try:
-                if self._record is not None:
-                    self._record((self.features, self.measurements))
-                else:
-                    self.workspace.record_projection(self.features, self.measurements)
+                self.workspace.record_projection(self.features, self.measurements,
+                                                 projected_from=self._projected_from)
             finally:
                 self._recording = False
-                self._record = None
+                self._projected_from = None
         # The 3D lines (0.5 s of layer building) wait for the 3D canvas: on the 2D
         # one, where a projection is made, they would only hold up the GUI.
         if self.viewer.dims.ndisplay == 3:
