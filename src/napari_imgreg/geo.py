@@ -24,6 +24,8 @@ import math
 import os
 import threading
 from dataclasses import dataclass
+from datetime import date as date_type
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -42,6 +44,12 @@ __all__ = [
     "camera_altitude",
     "dem_height_local",
     "DEFAULT_HEIGHT_ABOVE_GROUND_M",
+    "DeclinationError",
+    "MagneticDeclination",
+    "magnetic_declination",
+    "declination_deg",
+    "site_latitude_longitude",
+    "WMM_GRACE_YEARS",
 ]
 
 #: Default camera height above the DEM surface (hand-held, eye level), metres.
@@ -579,3 +587,273 @@ def dem_height_local(dem, georef, x: float, y: float) -> float:
     else:
         e, n, oz = x, y, 0.0
     return float(dem.height_at(e, n)) - oz
+
+
+# ---------------------------------------------------------------------------
+# Magnetic declination (World Magnetic Model)
+# ---------------------------------------------------------------------------
+
+
+class DeclinationError(GeoError):
+    """The World Magnetic Model cannot give a declination there and then: a
+    date outside its models' spans, or a place inside a magnetic pole's
+    blackout zone. A :class:`GeoError`, so it is reported as one line."""
+
+
+#: The World Magnetic Model editions used, oldest first: (name, first decimal
+#: year, pygeomag module and attribute of its coefficients). Each is valid
+#: for five years from its epoch (NOAA/NCEI); a date is given to the newest
+#: edition whose epoch it is not before.
+_WMM_EDITIONS = (
+    ("WMM2010", 2010.0, "pygeomag.wmm.wmm_2010", "WMM_2010"),
+    ("WMM2015v2", 2015.0, "pygeomag.wmm.wmm_2015v2", "WMM_2015v2"),
+    ("WMM2020", 2020.0, "pygeomag.wmm.wmm_2020", "WMM_2020"),
+    ("WMM2025", 2025.0, "pygeomag.wmm.wmm_2025", "WMM_2025"),
+)
+_WMM_SPAN_YEARS = 5.0
+
+#: Years past the newest edition's span during which it is still used,
+#: extrapolated (and said): its secular variation drifts by about 0.1° a
+#: year at mid-latitudes, well under a phone compass's error, while a
+#: pygeomag with the next edition may not be installed yet.
+WMM_GRACE_YEARS = 1.0
+
+#: Horizontal field strength (nT) below which NOAA calls a place a blackout
+#: zone (declination and compass meaningless) and a caution zone.
+_BLACKOUT_NT, _CAUTION_NT = 2000.0, 6000.0
+
+# pygeomag's GeoMag keeps scratch arrays between calls: one per thread.
+_wmm_tls = threading.local()
+
+
+@dataclass(frozen=True)
+class MagneticDeclination:
+    """The declination at a place and date, and what it was computed from.
+
+    Attributes
+    ----------
+    declination_deg : float
+        Angle from true north to magnetic north, degrees, **east positive**:
+        a true azimuth is the magnetic azimuth plus this.
+    model : str
+        The World Magnetic Model edition used (``"WMM2025"``).
+    date : datetime.date
+        The (UTC) date it was computed for.
+    decimal_year : float
+        The same instant as a decimal year, as the model takes it.
+    latitude_deg, longitude_deg : float
+        WGS84 degrees of the place.
+    height_m : float
+        Height of the place, metres (the model wants it above the ellipsoid;
+        100 m either way changes the declination by well under 0.001°).
+    uncertainty_deg : float
+        The model's own error of the declination there (NOAA's error model
+        of the edition), degrees; larger where the horizontal field is weak.
+        NaN for WMM2010 (no error model at hand).
+    horizontal_field_nT : float
+        Horizontal field strength, nanotesla.
+    caution : bool
+        The place is in a caution zone near a magnetic pole (horizontal
+        field under 6000 nT): compass headings there are poor.
+    extrapolated : bool
+        The date lies past the newest edition's five years (within
+        :data:`WMM_GRACE_YEARS`).
+    """
+
+    declination_deg: float
+    model: str
+    date: date_type
+    decimal_year: float
+    latitude_deg: float
+    longitude_deg: float
+    height_m: float
+    uncertainty_deg: float
+    horizontal_field_nT: float
+    caution: bool = False
+    extrapolated: bool = False
+
+    def label(self) -> str:
+        """``"+3.2° (WMM2025, 2026-06-01)"``: the value and where it came from."""
+        return f"{self.declination_deg:+.1f}° ({self.model}, {self.date.isoformat()})"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready record of the value and its source (for result files)."""
+        return {
+            "declination_deg": round(float(self.declination_deg), 4),
+            "source": "World Magnetic Model",
+            "model": self.model,
+            "date": self.date.isoformat(),
+            "latitude_deg": round(float(self.latitude_deg), 6),
+            "longitude_deg": round(float(self.longitude_deg), 6),
+            "height_m": round(float(self.height_m), 1),
+            "uncertainty_deg": (round(float(self.uncertainty_deg), 2)
+                                if math.isfinite(self.uncertainty_deg) else None),
+            "caution_zone": bool(self.caution),
+            "extrapolated": bool(self.extrapolated),
+        }
+
+
+def _decimal_year(when: Any) -> tuple[float, Any]:
+    """A datetime (aware: taken in UTC) or date → (decimal year, UTC date)."""
+    if isinstance(when, datetime):
+        if when.tzinfo is not None:
+            when = when.astimezone(timezone.utc).replace(tzinfo=None)
+    elif isinstance(when, date_type):
+        when = datetime(when.year, when.month, when.day)
+    else:
+        raise TypeError(f"when must be a datetime or a date, got {type(when).__name__}")
+    start, end = datetime(when.year, 1, 1), datetime(when.year + 1, 1, 1)
+    fraction = (when - start).total_seconds() / (end - start).total_seconds()
+    return when.year + fraction, when.date()
+
+
+def _wmm_edition(year: float, when_date: Any) -> tuple[str, str, str, float, bool]:
+    """The edition for a decimal year: (name, module, attribute, epoch, extrapolated)."""
+    oldest, newest = _WMM_EDITIONS[0], _WMM_EDITIONS[-1]
+    newest_end = newest[1] + _WMM_SPAN_YEARS
+    if year < oldest[1]:
+        raise DeclinationError(
+            f"magnetic declination: {when_date.isoformat()} is before {oldest[1]:.1f}, the "
+            f"start of the oldest World Magnetic Model known ({oldest[0]}): give the "
+            "declination as a number")
+    if year > newest_end + WMM_GRACE_YEARS:
+        raise DeclinationError(
+            f"magnetic declination: {when_date.isoformat()} is past the newest World "
+            f"Magnetic Model installed ({newest[0]}, valid to {newest_end:.1f}; used "
+            f"{WMM_GRACE_YEARS:g} year beyond): update pygeomag or give the declination as a "
+            "number")
+    name, epoch, module, attribute = next(e for e in reversed(_WMM_EDITIONS) if year >= e[1])
+    return name, module, attribute, epoch, year > epoch + _WMM_SPAN_YEARS
+
+
+def _wmm(module: str, attribute: str) -> Any:
+    """This thread's pygeomag ``GeoMag`` for one edition (loaded once)."""
+    import importlib
+
+    cache: dict[str, Any] | None = getattr(_wmm_tls, "cache", None)
+    if cache is None:
+        cache = _wmm_tls.cache = {}
+    geomag = cache.get(attribute)
+    if geomag is None:
+        from pygeomag import GeoMag
+
+        coefficients = getattr(importlib.import_module(module), attribute)
+        geomag = cache[attribute] = GeoMag(coefficients_data=coefficients)
+    return geomag
+
+
+def magnetic_declination(
+    lat_deg: float, lon_deg: float, height_m: float, when: Any
+) -> MagneticDeclination:
+    """The magnetic declination of the World Magnetic Model, with its source.
+
+    The WMM edition valid at ``when`` is used (WMM2010, WMM2015v2, WMM2020,
+    WMM2025, each for five years from its epoch, as NOAA/NCEI publish them
+    and pygeomag bundles them), evaluated by pygeomag, a port of NOAA's own
+    code.
+
+    Parameters
+    ----------
+    lat_deg, lon_deg : float
+        WGS84 latitude and longitude, degrees (longitude east positive; any
+        turn is wrapped to [-180, 180)).
+    height_m : float
+        Height above the WGS84 ellipsoid, metres (a height above sea level
+        will do: the declination changes by well under 0.001° per 100 m).
+    when : datetime.datetime or datetime.date
+        The date; an aware datetime is taken in UTC, a naive one as it is.
+
+    Returns
+    -------
+    MagneticDeclination
+
+    Raises
+    ------
+    DeclinationError
+        ``when`` is before 2010.0 or past the newest edition's span by more
+        than :data:`WMM_GRACE_YEARS`, or the place is in a magnetic pole's
+        blackout zone (horizontal field under 2000 nT), where a compass has
+        no meaningful heading.
+    GeoError
+        Latitude outside [-90, 90], or a value that is not finite, or a
+        height outside the model's -1 km to 850 km.
+    """
+    values = {"latitude": lat_deg, "longitude": lon_deg, "height": height_m}
+    for name, value in values.items():
+        if not _is_number(value) or not math.isfinite(value):
+            raise GeoError(f"magnetic declination: {name} must be a finite number, got {value!r}")
+    if abs(lat_deg) > 90.0:
+        raise GeoError(f"magnetic declination: latitude {_fmt(lat_deg)} is outside [-90, 90]")
+    if not -1000.0 <= height_m <= 850_000.0:
+        raise GeoError(f"magnetic declination: height {_fmt(height_m)} m is outside the "
+                       "model's -1 km to 850 km")
+    lon = (float(lon_deg) + 180.0) % 360.0 - 180.0
+    year, when_date = _decimal_year(when)
+    name, module, attribute, epoch, extrapolated = _wmm_edition(year, when_date)
+    # The grace beyond the span is ours: pygeomag refuses outside five years.
+    field_ = _wmm(module, attribute).calculate(
+        float(lat_deg), lon, float(height_m) / 1000.0, year,
+        allow_date_outside_lifespan=extrapolated)
+    if field_.h < _BLACKOUT_NT:
+        raise DeclinationError(
+            f"magnetic declination: at {_fmt(lat_deg)}°, {_fmt(lon)}° the horizontal field is "
+            f"{field_.h:.0f} nT (a magnetic pole's blackout zone, under {_BLACKOUT_NT:.0f} nT): "
+            "a compass heading means nothing there, and neither does a declination")
+    try:  # NOAA's error model of the edition (pygeomag has WMM2015 and later)
+        uncertainty = float(field_.calculate_uncertainty().d)
+    except ValueError:
+        uncertainty = math.nan
+    return MagneticDeclination(
+        declination_deg=float(field_.d), model=name, date=when_date, decimal_year=year,
+        latitude_deg=float(lat_deg), longitude_deg=lon, height_m=float(height_m),
+        uncertainty_deg=uncertainty, horizontal_field_nT=float(field_.h),
+        caution=field_.h < _CAUTION_NT, extrapolated=extrapolated)
+
+
+def declination_deg(lat_deg: float, lon_deg: float, height_m: float, when: Any) -> float:
+    """Magnetic declination at a place and date, degrees **east positive**.
+
+    True azimuth = magnetic azimuth + declination. The World Magnetic Model
+    edition valid at ``when``; see :func:`magnetic_declination` (which also
+    says which edition, and how sure it is) for the parameters and errors.
+
+    Parameters
+    ----------
+    lat_deg, lon_deg : float
+        WGS84 degrees.
+    height_m : float
+        Height above the ellipsoid (or sea level), metres.
+    when : datetime.datetime or datetime.date
+
+    Returns
+    -------
+    float
+        Degrees, in (-180, 180].
+
+    Raises
+    ------
+    DeclinationError, GeoError
+        As :func:`magnetic_declination`.
+    """
+    return magnetic_declination(lat_deg, lon_deg, height_m, when).declination_deg
+
+
+def site_latitude_longitude(georef: Georef, local_xyz: npt.ArrayLike = (0.0, 0.0, 0.0)
+                            ) -> tuple[float, float, float]:
+    """WGS84 ``(lat, lon, height)`` of a local point (default: the model origin).
+
+    Parameters
+    ----------
+    georef : Georef
+    local_xyz : array, shape (3,)
+        Local ENU metres.
+
+    Returns
+    -------
+    lat, lon : float
+        Degrees.
+    height : float
+        Metres, in the CRS's vertical reference.
+    """
+    lat, lon, alt = georef.local_to_geodetic(np.asarray(local_xyz, dtype=np.float64).reshape(3))
+    return float(lat), float(lon), float(alt)
