@@ -1419,8 +1419,7 @@ class Workspace:
         # A manual pose registers a photo when its pairs' expected error is
         # small, and (after a failed automatic registration, the reason to
         # pick pairs) while the photo has that pose.
-        manual_ok = (sol is not None and sol.ok
-                     and (sol.uncertainty is None or sol.uncertainty.is_small(ps.intrinsics.width))
+        manual_ok = (sol is not None and manual.registers(sol)
                      and (reg is None or _same_pose(sol.pose, ps.pose)))
         if (reg is not None and reg.registered) or manual_ok:
             return "registered"

@@ -34,12 +34,13 @@ import numpy as np
 from .._deprecated import forward_moved_names
 from ..camera import Intrinsics, Pose
 from .params import RegistrationParams
-from .pipeline import Cancelled, _Context
+from .pipeline import Cancelled, Registration, _Context
 from .pose import PoseParams, estimate_pose, reprojection_errors
 from .quality import GRADES
 from .round import (MIN_VERIFIED_INLIERS, STAGE_Q_CEILING, Trial, grade_pose, score_round,
                     trial_from_round)
-from .uncertainty import Uncertainty
+from .uncertainty import UNCERTAIN_PX, Uncertainty
+from ..prior import Prior
 from ..scene import Scene
 
 __all__ = [
@@ -51,6 +52,8 @@ __all__ = [
     "ManualSolution",
     "solve_manual",
     "score_pose",
+    "registers",
+    "register_from_pairs",
 ]
 
 #: Pairs needed for a pose (EPnP's minimum).
@@ -622,3 +625,118 @@ def score_pose(
             f"{MIN_VERIFIED_INLIERS}): it rests on the control points alone, so it is "
             "graded \"poor\" at best — check the overlay at the pairs."))
     return trial
+
+
+# ====================================================== a manual result
+def registers(solution: ManualSolution) -> bool:
+    """Whether a manual pose registers its photo: solved, and its pairs'
+    expected error (:func:`pair_uncertainty`) small.
+
+    Small is what a verified automatic pose needs:
+    :data:`~napari_imgreg.registration.uncertainty.UNCERTAIN_PX` at 1632 px
+    width, scaled to the photo's. The scored trial's grade does not enter:
+    a pose the photo's features hardly confirm (extreme light, the reason to
+    pick pairs) still stands on good pairs. A solution without an estimate
+    (saved before napari-imgreg made one) registers when solved.
+    """
+    unc = solution.uncertainty
+    return bool(solution.ok and (unc is None or unc.is_small(solution.intrinsics.width)))
+
+
+def register_from_pairs(
+    scene: Scene,
+    photo_rgb: np.ndarray,
+    prior: Prior,
+    photo_points: np.ndarray,
+    points_3d: np.ndarray,
+    solve_focal: bool = False,
+    params: RegistrationParams | None = None,
+    photo_name: str = "",
+    cancelled: Callable[[], bool] | None = None,
+) -> tuple[Registration, ManualSolution]:
+    """Register a photo from control points: its RESULT.json as a :class:`Registration`.
+
+    The pose is solved from the pairs (:func:`solve_manual`, from the
+    prior's camera and pose), scored as an automatic trial
+    (:func:`score_pose`), and registered or not by :func:`registers`, as the
+    workbench judges a manual pose.
+
+    Parameters
+    ----------
+    scene : Scene
+    photo_rgb : (H, W, 3) uint8 array
+    prior : Prior
+        The photo's camera (its focal length the start when ``solve_focal``)
+        and the starting pose.
+    photo_points : (N, 2) array
+        Photo pixels (x, y), pixel-centre convention.
+    points_3d : (N, 3) array
+        The same points on the model, model frame, metres.
+    solve_focal : bool
+        Also solve the focal length (needs :data:`MIN_PAIRS_FOCAL` pairs).
+    params : RegistrationParams, optional
+        For the scoring (filters, features, matching width, PnP threshold).
+    photo_name : str
+        RESULT.json's ``photo``.
+    cancelled : callable, optional
+        Polled while scoring; raises :class:`~napari_imgreg.registration.pipeline.Cancelled`.
+
+    Returns
+    -------
+    registration : Registration
+        Status ``"registered"`` or ``"failed"``; ``uncertainty`` the pairs'
+        own (basis ``"control points"``); ``camera.estimated`` holds ``fx,
+        fy`` when the focal length was solved; one trial (origin ``manual``),
+        none when no pose was solved (then the prior's pose, grade
+        ``failed`` and the reason as the hint). ``metrics`` adds
+        ``control_points``, ``control_point_inliers`` and
+        ``control_point_rms_px`` to the trial's.
+    solution : ManualSolution
+    """
+    t_start = time.perf_counter()
+    params = (params or RegistrationParams()).copy()
+    sol = solve_manual(prior.intrinsics, photo_points, points_3d, initial=prior.pose,
+                       solve_focal=solve_focal)
+    t_solved = time.perf_counter()
+    counts = {"control_points": int(len(sol.inliers)),
+              "control_point_inliers": sol.n_inliers, "control_point_rms_px": sol.rms_px}
+    assumptions = list(prior.assumptions)
+    if not sol.ok:
+        timings = {"solve": t_solved - t_start, "total": t_solved - t_start}
+        registration = Registration(
+            status="failed", photo=photo_name, intrinsics=prior.intrinsics, pose=prior.pose,
+            prior=prior, metrics=counts, q=math.nan, grade="failed",
+            hints=[f"No pose from the control points: {sol.reason}."], trials=[],
+            timings_s=timings, best_trial=None, assumptions=assumptions)
+        return registration, sol
+    trial = score_pose(scene, photo_rgb, sol.intrinsics, sol.pose, params, cancelled=cancelled)
+    trial.index = 0
+    if trial.uncertainty is None:
+        # As the workbench records it: no match verifies a manual pose, so the
+        # pairs' own estimate is its error.
+        trial.uncertainty = sol.uncertainty
+    registered = registers(sol)
+    hints = list(trial.hints)
+    if sol.warning:
+        hints.insert(0, sol.warning[:1].upper() + sol.warning[1:] + ".")
+    if not registered and sol.uncertainty is not None:
+        limit = UNCERTAIN_PX * sol.intrinsics.width / 1632.0
+        hints.insert(0, (
+            f"The control points leave the pose uncertain (expected error "
+            f"{sol.uncertainty.reprojection_px:.1f} px, {sol.uncertainty.position_m:.2f} m, "
+            f"{sol.uncertainty.rotation_deg:.2f}°; registered needs below {limit:.1f} px): "
+            "add pairs spread over the photo and over distance."))
+    if sol.focal_solved:
+        assumptions.append(
+            f"focal length solved from the control points: fx = fy = {sol.intrinsics.fx:.1f} px "
+            f"({sol.intrinsics.hfov_deg:.1f}° horizontal view; the start was "
+            f"{prior.intrinsics.fx:.1f} px)")
+    t_end = time.perf_counter()
+    timings = {"solve": t_solved - t_start, "score": t_end - t_solved, "total": t_end - t_start}
+    registration = Registration(
+        status="registered" if registered else "failed", photo=photo_name,
+        intrinsics=sol.intrinsics, pose=sol.pose, prior=prior,
+        metrics={**trial.metrics, **counts}, q=trial.q, grade=trial.grade, hints=hints,
+        trials=[trial], timings_s=timings, best_trial=0, assumptions=assumptions,
+        uncertainty=sol.uncertainty)
+    return registration, sol

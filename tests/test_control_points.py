@@ -1,0 +1,276 @@
+"""Control-point files and ``register --pairs``: known answers from a synthetic
+camera and from the sample's true pose, bad files refused in one line (exit 2)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from napari_imgreg.camera import Intrinsics, Pose
+from napari_imgreg.errors import InputError
+from napari_imgreg.io.control_points import read_control_points, write_control_points
+from napari_imgreg.registration.manual import MIN_PAIRS, registers, solve_manual
+
+# The conftest wall (wall.obj): 40 m × 20 m in the plane y = 0, seen from the south.
+WALL_INTR = Intrinsics(1632, 1224, 1300.0, 1300.0, 815.5, 611.5)
+WALL_TRUTH = Pose.from_attitude(5.0, -3.0, 1.5, np.array([19.0, -30.0, 10.0]))
+
+
+def _wall_points(n: int, rng) -> np.ndarray:
+    """Points on the wall (y = 0) with a few off it (targets on poles): not all coplanar."""
+    pts = np.c_[rng.uniform(8, 32, n), np.zeros(n), rng.uniform(3, 17, n)]
+    pts[::3, 1] = -rng.uniform(1, 4, len(pts[::3]))
+    return pts
+
+
+def _record(path, intr: Intrinsics, pose: Pose):
+    """A sensor record near (not at) ``pose``: 3 m and 4° off."""
+    trend, plunge, roll = pose.attitude
+    c = pose.center + [3.0, -2.0, 0.5]
+    path.write_text(json.dumps({
+        "camera": {"width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy,
+                   "cx": intr.cx, "cy": intr.cy},
+        "position": {"x": c[0], "y": c[1], "z": c[2]},
+        "orientation": {"trend_deg": trend + 4.0, "plunge_deg": plunge - 2.0,
+                        "roll_deg": roll}}))
+    return path
+
+
+@pytest.fixture
+def wall_photo(tmp_path):
+    """A photo file of the wall camera's size and its sensor record."""
+    photo = tmp_path / "IMG_0001.png"
+    Image.fromarray(np.full((WALL_INTR.height, WALL_INTR.width, 3), 90, np.uint8)).save(photo)
+    return photo, _record(tmp_path / "IMG_0001.json", WALL_INTR, WALL_TRUTH)
+
+
+def _result(path) -> tuple[dict, Pose]:
+    data = json.loads(path.read_text())
+    return data, Pose.from_dict(data["pose"])
+
+
+# ------------------------------------------------------------------ file
+def test_written_pairs_read_back_with_their_names(tmp_path):
+    rng = np.random.default_rng(0)
+    px, xyz = rng.uniform(0, 600, (5, 2)), rng.uniform(-50, 50, (5, 3))
+    path = tmp_path / "pairs.csv"
+    write_control_points(path, px, xyz, [f"GCP{k}" for k in range(5)])
+    cp = read_control_points(path, min_pairs=MIN_PAIRS)
+    np.testing.assert_allclose(cp.photo_px, px, atol=1e-6)
+    np.testing.assert_allclose(cp.model_xyz(None), xyz, atol=1e-6)
+    assert cp.names == [f"GCP{k}" for k in range(5)] and cp.rows == [2, 3, 4, 5, 6]
+    assert cp.frame == "model"
+
+
+def test_crs_coordinates_are_taken_into_the_model_frame_by_the_georeference(tmp_path):
+    from napari_imgreg.geo import Georef
+
+    georef = Georef("EPSG:32630", np.array([579000.0, 5912000.0, 350.0]))
+    local = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [-7.0, 8.0, 9.0], [10.0, 0.5, 1.0]])
+    enh = georef.local_to_crs(local)
+    path = tmp_path / "gnss.csv"
+    path.write_text("# GNSS targets\nname;photo_x;photo_y;easting;northing;elevation\n" + "".join(
+        f"T{k};{10 * k};{20 + k};{e:.4f};{n:.4f};{h:.4f}\n" for k, (e, n, h) in enumerate(enh)))
+    cp = read_control_points(path)
+    assert cp.frame == "crs"
+    np.testing.assert_allclose(cp.model_xyz(georef), local, atol=1e-4)
+    with pytest.raises(InputError, match="gnss.csv: points are given as easting,northing"):
+        cp.model_xyz(None)
+
+
+GOOD = "photo_x,photo_y,x,y,z\n1,2,3,4,5\n6,7,8,9,10\n11,12,13,14,15\n16,17,18,19,20\n"
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("", "empty file"),
+    ("photo_x,x,y,z\n1,2,3,4\n", "missing column photo_y"),
+    ("photo_x,photo_y,x,y\n1,2,3,4\n", "missing column z"),
+    ("photo_x,photo_y\n1,2\n", "missing columns x, y, z"),
+    ("photo_x,photo_y,render_x,render_y\n1,2,3,4\n", "render_x,render_y (pixels of a render) "
+                                                     "are not read"),
+    ("photo_x,photo_y,x,y,z,easting,northing,elevation\n1,2,3,4,5,6,7,8\n",
+     "both x,y,z and easting,northing,elevation"),
+    (GOOD + "21,22,abc,24,25\n", "row 6: x is not a number ('abc')"),
+    (GOOD + "21,22,23,nan,25\n", "row 6: y is not a finite number ('nan')"),
+    (GOOD + "21,22,23,24\n", "row 6: z is empty"),
+    (GOOD + "6,7,8,9,10\n", "row 6: repeats row 3"),
+    ("photo_x,photo_y,x,y,z,name\n1,2,3,4,5,A\n6,7,8,9,10,A\n", "row 3: name 'A' appears twice "
+                                                               "(first at row 2)"),
+    ("photo_x,photo_y,x,y,z\n1,2,3,4,5\n6,7,8,9,10\n11,12,13,14,15\n", "3 pairs: need at least 4"),
+    ("photo_x,photo_y,x,y,z\n", "no pairs after the header: need at least 4"),
+])
+def test_a_bad_file_is_one_line_naming_the_row(tmp_path, text, needle):
+    path = tmp_path / "pairs.csv"
+    path.write_text(text)
+    with pytest.raises(InputError) as info:
+        read_control_points(path, min_pairs=MIN_PAIRS)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(f"{path}: ") and needle in message, message
+
+
+def test_a_photo_pixel_outside_the_photo_is_refused(tmp_path):
+    path = tmp_path / "pairs.csv"
+    path.write_text(GOOD.replace("16,17", "699.5,17"))
+    cp = read_control_points(path)
+    cp.check_inside(700, 480)  # the last pixel's edge
+    with pytest.raises(InputError, match=r"row 5: photo pixel \(699.5, 17\) is outside the "
+                                         r"640×480 photo"):
+        cp.check_inside(640, 480)
+
+
+# --------------------------------------------------------- the command
+def test_register_from_exact_pairs_recovers_the_true_pose(wall_mesh, wall_photo, tmp_path,
+                                                          run_cli):
+    photo, record = wall_photo
+    rng = np.random.default_rng(1)
+    xyz = _wall_points(10, rng)
+    pairs = tmp_path / "pairs.csv"
+    write_control_points(pairs, WALL_TRUTH.project(WALL_INTR, xyz), xyz)
+    out = tmp_path / "R.json"
+    run = run_cli(["register", wall_mesh, photo, "--prior", record, "--pairs", pairs,
+                   "--out", out], max_seconds=None)
+    result, pose = _result(out)
+    assert pose.rotation_error_deg(WALL_TRUTH) < 0.01
+    assert np.linalg.norm(pose.center - WALL_TRUTH.center) < 0.01
+    # Ten exact pairs: the expected error is the click noise's alone, small.
+    assert result["status"] == "registered" and run.code == 0, run.out
+    assert result["uncertainty"]["basis"] == "control points"
+    assert result["metrics"]["control_points"] == 10
+    assert result["metrics"]["control_point_inliers"] == 10
+    assert len(result["trials"]) == 1 and result["trials"][0]["origin"] == "manual"
+    assert result["best_trial"] == 0 and "estimated" not in result["camera"]
+    assert "REGISTERED" in run.out and "control points: 10 of 10 agree" in run.out
+    # The file is the same contract as an automatic result's.
+    from napari_imgreg.registration.result_file import load_registration
+
+    assert load_registration(out).status == "registered"
+
+
+def test_noisy_pairs_give_an_error_within_twice_the_reported_uncertainty(
+        wall_mesh, wall_photo, tmp_path, run_cli):
+    photo, record = wall_photo
+    rng = np.random.default_rng(2)
+    xyz = _wall_points(12, rng)
+    clicked = WALL_TRUTH.project(WALL_INTR, xyz) + rng.normal(0, 1.5, (12, 2))
+    pairs = tmp_path / "pairs.csv"
+    write_control_points(pairs, clicked, xyz)
+    out = tmp_path / "R.json"
+    run_cli(["register", wall_mesh, photo, "--prior", record, "--pairs", pairs, "--out", out],
+            max_seconds=None)
+    result, pose = _result(out)
+    unc = result["uncertainty"]
+    rotation = pose.rotation_error_deg(WALL_TRUTH)
+    position = np.linalg.norm(pose.center - WALL_TRUTH.center)
+    assert 0 < rotation <= 2 * unc["rotation_deg"], (rotation, unc)
+    assert 0 < position <= 2 * unc["position_m"], (position, unc)
+
+
+def test_the_focal_length_is_solved_and_marked_estimated(wall_mesh, tmp_path, run_cli):
+    # The record's focal length 30 % short; the pairs fix the true one.
+    photo = tmp_path / "IMG_0002.png"
+    Image.fromarray(np.full((WALL_INTR.height, WALL_INTR.width, 3), 90, np.uint8)).save(photo)
+    wrong = Intrinsics(1632, 1224, 910.0, 910.0, 815.5, 611.5)
+    record = _record(tmp_path / "IMG_0002.json", wrong, WALL_TRUTH)
+    rng = np.random.default_rng(3)
+    xyz = _wall_points(12, rng)
+    pairs = tmp_path / "pairs.csv"
+    write_control_points(pairs, WALL_TRUTH.project(WALL_INTR, xyz), xyz)
+    out = tmp_path / "R.json"
+    run = run_cli(["register", wall_mesh, photo, "--prior", record, "--pairs", pairs,
+                   "--solve-focal", "--out", out], max_seconds=None)
+    result, pose = _result(out)
+    assert result["camera"]["estimated"] == ["fx", "fy"]
+    assert result["camera"]["fx"] == pytest.approx(WALL_INTR.fx, rel=1e-4)
+    assert "focal_px" in result["uncertainty"]
+    assert pose.rotation_error_deg(WALL_TRUTH) < 0.01
+    assert "focal length solved" in run.out
+
+
+def test_the_sample_photo_registers_from_its_check_points(tmp_path, run_cli):
+    """The sample's true pose from pairs on its textured model, scored verified."""
+    from napari_imgreg.sample import load_truth, sample_scene
+
+    folder = sample_scene("small")
+    truth = load_truth(folder / "IMG_0002.jpg")
+    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
+    # Given as a GNSS survey would give them: in the georeference's CRS.
+    from napari_imgreg.geo import Georef
+
+    enh = Georef.load(folder / "georef.json").local_to_crs(truth.check_xyz)
+    pairs = tmp_path / "gnss.csv"
+    pairs.write_text("photo_x,photo_y,easting,northing,elevation\n" + "".join(
+        f"{x:.4f},{y:.4f},{e:.4f},{n:.4f},{h:.4f}\n" for (x, y), (e, n, h) in zip(photo_px, enh)))
+    out = tmp_path / "R.json"
+    run = run_cli(["register", folder / "outcrop.obj", folder / "IMG_0002.jpg",
+                   "--dem", folder / "dem.tif", "--pairs", pairs, "--out", out],
+                  max_seconds=None)
+    result, pose = _result(out)
+    assert run.code == 0 and result["status"] == "registered", run.out
+    assert pose.rotation_error_deg(truth.pose) < 0.01
+    assert np.linalg.norm(pose.center - truth.pose.center) < 0.01
+    assert result["trials"][0]["verified"] and result["quality"]["grade"] in ("excellent", "good")
+
+
+def test_pairs_on_a_line_fail_with_the_reason_exit_1(wall_mesh, wall_photo, tmp_path, run_cli):
+    photo, record = wall_photo
+    xyz = np.c_[np.linspace(5, 35, 6), np.zeros(6), np.full(6, 10.0)]
+    pairs = tmp_path / "pairs.csv"
+    write_control_points(pairs, WALL_TRUTH.project(WALL_INTR, xyz), xyz)
+    out = tmp_path / "R.json"
+    run = run_cli(["register", wall_mesh, photo, "--prior", record, "--pairs", pairs,
+                   "--out", out], max_seconds=None)
+    result, _ = _result(out)
+    assert run.code == 1 and result["status"] == "failed" and result["trials"] == []
+    assert "on a line" in result["quality"]["hints"][0]
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("missing", "pairs.csv: no such file"),
+    ("few", "pairs.csv: 3 pairs: need at least 4"),
+    ("nan", "pairs.csv: row 3: photo_y is not a finite number"),
+    ("outside", "pairs.csv: row 2: photo pixel (1700, 10) is outside the 1632×1224 photo"),
+    ("focal", "pairs.csv: 5 pairs: --solve-focal needs at least 6"),
+    ("focal_alone", "--solve-focal needs --pairs"),
+    ("crs", "pairs.csv: points are given as easting,northing,elevation but the model has no "
+            "georeference"),
+    ("out_is_pairs", "refusing to overwrite the input control points"),
+])
+def test_bad_pairs_are_one_line_exit_2(wall_mesh, wall_photo, tmp_path, run_cli, case, needle):
+    photo, record = wall_photo
+    pairs = tmp_path / "pairs.csv"
+    rows = [f"{10 + 40 * k},{10 + 30 * k},{5 + k},0,{3 + 2 * k}" for k in range(5)]
+    texts = {
+        "few": rows[:3], "nan": [rows[0], "1,nan,2,3,4", *rows[2:]],
+        "outside": ["1700,10,1,0,1", *rows[1:]], "focal": rows,
+    }
+    header = "photo_x,photo_y,x,y,z\n"
+    if case == "crs":
+        pairs.write_text("photo_x,photo_y,easting,northing,elevation\n" + "\n".join(rows) + "\n")
+    elif case in texts:
+        pairs.write_text(header + "\n".join(texts[case]) + "\n")
+    elif case != "missing":
+        pairs.write_text(header + "\n".join(rows) + "\n")
+    out = pairs if case == "out_is_pairs" else tmp_path / "R.json"
+    argv = ["register", wall_mesh, photo, "--prior", record, "--out", out]
+    if case != "focal_alone":
+        argv += ["--pairs", pairs]
+    if case in ("focal", "focal_alone"):
+        argv += ["--solve-focal"]
+    run = run_cli(argv)
+    assert run.code == 2 and needle in run.line, run.err
+    assert case == "out_is_pairs" or not (tmp_path / "R.json").exists()
+
+
+def test_registers_is_the_rule_the_workspace_applies():
+    rng = np.random.default_rng(4)
+    xyz = _wall_points(8, rng)
+    good = solve_manual(WALL_INTR, WALL_TRUTH.project(WALL_INTR, xyz), xyz)
+    assert good.ok and registers(good)
+    # Four pairs close together, clicked 3 px off: solved, but it does not fix the pose.
+    near = xyz[:4] * 0.05 + [19, 0, 9]
+    loose = solve_manual(WALL_INTR, WALL_TRUTH.project(WALL_INTR, near)
+                         + rng.normal(0, 3, (4, 2)), near)
+    assert not registers(loose)
