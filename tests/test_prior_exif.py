@@ -153,8 +153,9 @@ def test_gps_without_altitude_has_no_alt(tmp_path):
 def test_dji_gimbal_angles_give_trend_plunge_roll(tmp_path):
     record, notes = record_from_exif(drone_photo(tmp_path))
     # DJI pitch is positive nose-up: plunge (positive down) = −pitch.
-    assert record.orientation == pytest.approx(
-        {"trend_deg": 123.4, "plunge_deg": 30.5, "roll_deg": 1.2})
+    assert record.orientation == {"trend_deg": pytest.approx(123.4),
+                                  "plunge_deg": pytest.approx(30.5),
+                                  "roll_deg": pytest.approx(1.2), "heading_reference": "true"}
     assert "attitude from DJI gimbal angles (XMP)" in notes
 
 
@@ -218,7 +219,7 @@ def test_no_focal_length_leaves_no_camera(tmp_path):
 def test_compass_direction_alone_gives_the_trend(tmp_path):
     photo = write_photo(tmp_path / "a.jpg", lat=10.0, lon=20.0, direction=372.5)
     record, notes = record_from_exif(photo)
-    assert record.orientation == {"trend_deg": pytest.approx(12.5)}
+    assert record.orientation == {"trend_deg": pytest.approx(12.5), "heading_reference": "true"}
     assert "trend from EXIF GPSImgDirection" in notes
 
 

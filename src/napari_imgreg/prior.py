@@ -18,6 +18,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field, replace
+from datetime import date
 from pathlib import Path
 from typing import Mapping
 
@@ -27,10 +28,19 @@ from ._atomic import atomic_write
 from ._json import dump as strict_json_dump
 from .camera import Intrinsics, Pose
 from .errors import InputError, input_error
-from .geo import DEFAULT_HEIGHT_ABOVE_GROUND_M, DEM, Georef
+from .geo import (
+    DEFAULT_HEIGHT_ABOVE_GROUND_M,
+    DEM,
+    GeoError,
+    Georef,
+    magnetic_declination,
+    site_latitude_longitude,
+)
 from .io.exif import (
     EXIF_MIRRORED,
     EXIF_QUARTER_TURNS,
+    HEADING_REFERENCES,
+    capture_date,
     exif_orientation,
     record_from_exif,
 )
@@ -145,6 +155,9 @@ def prior_from_record(
             record = replace(record, image_frame=frame)
     intrinsics, camera_turns = _intrinsics_of(record, image_size, notes, exif_orientation)
     _check_field_of_view(intrinsics, src)
+    # A heading from true or magnetic north becomes one from +Y (prior_for_photo
+    # has done so already, with the photo's EXIF date at hand).
+    record = _heading_to_grid_north(record, georef, notes)
 
     if record.position is None:
         raise input_error(src, "no 'position' block (needs x, y[, z] or lat, lon[, alt])")
@@ -599,8 +612,11 @@ def prior_for_photo(
         notes += exif_notes
         from_metadata = {"camera", "position", "orientation"}
     georef = getattr(scene, "georef", None)
-    if "orientation" in from_metadata:
-        _heading_to_grid_north(record, georef, notes)
+    # A metadata heading says what it is from (true or magnetic north); a
+    # record's own may (orientation.heading_reference). The photo's EXIF date
+    # dates a magnetic one when the record gives no time.
+    record = _heading_to_grid_north(record, georef, notes,
+                                    exif_date=capture_date(photo.exif or {}))
     if "position" in from_metadata and not _is_drone_photo(photo):
         _phone_altitude_from_dem(record, georef, getattr(scene, "dem", None),
                                  height_above_ground_m, notes)
@@ -658,29 +674,118 @@ def _local_xy(record: SensorRecord, georef: Georef | None) -> tuple[float, float
         return None
 
 
-def _heading_to_grid_north(record: SensorRecord, georef: Georef | None,
-                           notes: list[str]) -> None:
-    """Turn a metadata heading from true north to the model's grid north (+Y).
+def _heading_to_grid_north(record: SensorRecord, georef: Georef | None, notes: list[str],
+                           exif_date: date | None = None) -> SensorRecord:
+    """The record with its heading turned to the model's grid north (+Y).
 
-    EXIF ``GPSImgDirection`` and a DJI gimbal yaw are azimuths from true (or
-    magnetic) north; the trend of the contract is from +Y, which in a
-    projected CRS is grid north. The two differ by the meridian convergence
-    (up to ~3° at the edge of a UTM zone at mid-latitudes, more further
-    north), which is taken off here at the camera: grid = true − convergence.
+    ``orientation.heading_reference`` says what the trend is measured from
+    (:data:`~napari_imgreg.io.exif.HEADING_REFERENCES`): a metadata heading
+    is from true north (EXIF ``GPSImgDirectionRef`` ``T``, a DJI gimbal yaw)
+    or magnetic north (``M``); a record's trend without the field is from +Y
+    and is used as given. The field is consumed: the record returned has
+    none, so a second call leaves it as it is.
+
+    Magnetic to true: plus the World Magnetic Model's declination at the
+    camera on the capture date (:func:`~napari_imgreg.geo.magnetic_declination`),
+    which needs the camera's latitude and longitude and a date (the record's
+    ``time``, else ``exif_date``); without them the heading is used as if
+    from true north, and a note says why. True to grid: minus the meridian
+    convergence at the camera (up to ~3° at the edge of a UTM zone at
+    mid-latitudes, more further north). Declination first, as it belongs to
+    the place's true north: grid = magnetic + declination − convergence.
+
+    Parameters
+    ----------
+    record : SensorRecord
+    georef : Georef or None
+        The model's georeference (no convergence without it).
+    notes : list of str
+        Gets one note per turn made (or not made).
+    exif_date : datetime.date, optional
+        The photo's EXIF capture day, for a record without ``time``.
+
+    Returns
+    -------
+    SensorRecord
+        ``record`` itself when there was nothing to turn, else a copy.
+
+    Raises
+    ------
+    InputError
+        ``heading_reference`` is not one of the known references.
     """
-    if georef is None or not record.orientation or record.orientation.get("trend_deg") is None:
-        return
-    where = _local_xy(record, georef)
-    if where is None:
-        return
-    convergence = float(meridian_convergence_deg(georef, (where[0], where[1], 0.0)))
-    if not math.isfinite(convergence) or abs(convergence) < 0.005:
-        return
-    true = float(record.orientation["trend_deg"])
-    record.orientation = {**record.orientation, "trend_deg": (true - convergence) % 360.0}
-    notes.append(f"trend {true:.2f}° from true north is {(true - convergence) % 360.0:.2f}° "
-                 f"from the grid north of {georef.crs} (meridian convergence "
-                 f"{convergence:+.2f}° at the camera)")
+    orientation = record.orientation
+    if not orientation or "heading_reference" not in orientation:
+        return record
+    reference = orientation["heading_reference"]
+    if reference not in HEADING_REFERENCES:
+        raise input_error(record.source, "field 'orientation.heading_reference' must be one of "
+                          f"{', '.join(repr(r) for r in HEADING_REFERENCES)}, got {reference!r:.40}")
+    orientation = {k: v for k, v in orientation.items() if k != "heading_reference"}
+    record = replace(record, orientation=orientation)
+    if reference == "grid" or orientation.get("trend_deg") is None:
+        return record
+    trend = float(orientation["trend_deg"])
+    if reference == "magnetic":
+        trend = _magnetic_to_true(record, georef, trend, exif_date, notes)
+    where = _local_xy(record, georef) if georef is not None else None
+    if where is not None:
+        convergence = float(meridian_convergence_deg(georef, (where[0], where[1], 0.0)))
+        if math.isfinite(convergence) and abs(convergence) >= 0.005:
+            notes.append(f"trend {trend:.2f}° from true north is {(trend - convergence) % 360.0:.2f}° "
+                         f"from the grid north of {georef.crs} (meridian convergence "
+                         f"{convergence:+.2f}° at the camera)")
+            trend -= convergence
+    record.orientation = {**orientation, "trend_deg": trend % 360.0}
+    return record
+
+
+def _magnetic_to_true(record: SensorRecord, georef: Georef | None, magnetic_deg: float,
+                      exif_date: date | None, notes: list[str]) -> float:
+    """A magnetic heading turned to true north by the WMM declination at the
+    camera on the capture date, with a note; as it was (and a note saying
+    why) when the place or the date is unknown or the model has no answer."""
+    def not_applied(why: str) -> float:
+        notes.append(f"magnetic heading: declination not applied ({why}): the trend is used "
+                     "as if from true north")
+        return magnetic_deg
+
+    site = _latitude_longitude_height(record, georef)
+    if site is None:
+        return not_applied("the camera's latitude and longitude are unknown: a GPS position "
+                           "or a georef.json is needed")
+    when = record.capture_datetime or exif_date
+    if when is None:
+        return not_applied("no capture date: give the record's 'time' or keep the photo's "
+                           "EXIF DateTimeOriginal")
+    try:
+        declination = magnetic_declination(*site, when)
+    except GeoError as exc:
+        return not_applied(str(exc).removeprefix("magnetic declination: "))
+    true = (magnetic_deg + declination.declination_deg) % 360.0
+    caveats = "".join((
+        "; near a magnetic pole, where a compass is poor" if declination.caution else "",
+        "; extrapolated past the model's years" if declination.extrapolated else ""))
+    notes.append(f"magnetic heading: declination {declination.label()} applied (trend "
+                 f"{magnetic_deg:.2f}° from magnetic north is {true:.2f}° from true "
+                 f"north{caveats})")
+    return true
+
+
+def _latitude_longitude_height(record: SensorRecord, georef: Georef | None
+                               ) -> tuple[float, float, float] | None:
+    """The camera's WGS84 latitude and longitude (degrees) and height (metres,
+    0 when unknown: immaterial to a declination), or None when unknown."""
+    pos = record.position or {}
+    try:
+        if "lat" in pos:
+            return float(pos["lat"]), float(pos["lon"]), float(pos.get("alt") or 0.0)
+        if georef is None:
+            return None
+        local = (float(pos["x"]), float(pos["y"]), float(pos.get("z") or 0.0))
+        return site_latitude_longitude(georef, local)
+    except (KeyError, TypeError, ValueError, OverflowError):  # refused later, with the file
+        return None
 
 
 def _is_drone_photo(photo) -> bool:

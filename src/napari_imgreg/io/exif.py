@@ -6,6 +6,8 @@ The one place where EXIF and XMP tags are read and interpreted:
   :func:`napari_imgreg.io.photos.load_photo` stores them in ``Photo.exif``;
 * :func:`read_capture_time`: when the photo was taken, time zone included,
   and how that was found (Exif 2.31 offsets, GPS time, an assumed zone);
+  :func:`capture_date` / :func:`read_photo_capture_date`: only the day, which
+  needs no time zone (what a magnetic declination needs);
 * :func:`gps_degrees`: EXIF GPS degrees/minutes/seconds to signed degrees;
 * :func:`dji_gimbal_angles` / :func:`attitude_from_dji_gimbal`: a drone's
   camera attitude from its XMP packet (:func:`raw_xmp` finds the packet in
@@ -30,7 +32,7 @@ import math
 import os
 import re
 from dataclasses import dataclass, field
-from datetime import datetime, timedelta, timezone, tzinfo
+from datetime import date, datetime, timedelta, timezone, tzinfo
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -43,6 +45,10 @@ __all__ = [
     "CaptureTime",
     "read_capture_time",
     "capture_time_from_exif",
+    "capture_date",
+    "read_photo_capture_date",
+    "HEADING_REFERENCES",
+    "gps_heading_reference",
     "gps_degrees",
     "exif_of_image",
     "ensure_heif_opener",
@@ -283,6 +289,61 @@ def capture_time_from_exif(
     (which also says how the time was found) for the rules.
     """
     return read_capture_time(exif, assume_time_zone).when
+
+
+def capture_date(exif: Mapping[str, Any]) -> date | None:
+    """The day a photo was taken, from its EXIF, or None.
+
+    ``DateTimeOriginal``'s calendar date as the camera wrote it (local: no
+    time zone is needed for a day), else the GPS ``GPSDateStamp`` (UTC).
+    A day is what a magnetic declination needs: it changes by a few
+    hundredths of a degree in a month, so the zone (a day at most) is moot.
+
+    Parameters
+    ----------
+    exif : mapping
+        Tags by name, as for :func:`read_capture_time`.
+
+    Returns
+    -------
+    datetime.date or None
+    """
+    local = _parse_local_datetime(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal"))
+    if local is not None:
+        return local.date()
+    gps = exif.get("GPSInfo")
+    if not isinstance(gps, Mapping):
+        gps = exif
+    stamp = _text(gps.get("GPSDateStamp"))
+    found = _EXIF_DATE.match(stamp) if stamp else None
+    if found is None:
+        return None
+    try:
+        return date(int(found.group(1)), int(found.group(2)), int(found.group(3)))
+    except ValueError:  # "0000:00:00"
+        return None
+
+
+def read_photo_capture_date(path: str | os.PathLike) -> date | None:
+    """The day a photo file was taken (:func:`capture_date`), without decoding
+    its pixels; None when its EXIF has no date or the file has no EXIF.
+
+    Raises
+    ------
+    InputError
+        The file cannot be read as an image.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if path.suffix.lower() in HEIF_SUFFIXES:
+        ensure_heif_opener()
+    try:
+        with Image.open(path) as im:
+            tags = exif_of_image(im)
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise input_error(path, f"cannot read photo metadata ({exc})") from None
+    return capture_date(tags)
 
 
 # ---------------------------------------------------------------------------
@@ -590,7 +651,9 @@ def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
     pixels), marked ``estimated``: a nominal value the registration starts
     from and refines. Position: EXIF GPS latitude/longitude/altitude. Orientation: DJI
     XMP gimbal angles (drone photos), else EXIF ``GPSImgDirection`` for the
-    trend only.
+    trend only; its ``heading_reference`` says what the heading is from
+    (``"true"``, or ``"magnetic"`` for ``GPSImgDirectionRef`` ``M``), for the
+    prior to turn it to the model's grid north.
 
     Parameters
     ----------
@@ -676,7 +739,9 @@ def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
     gimbal = dji_gimbal_angles(exif.get("XMP") or "", src)
     if gimbal is not None:
         trend, plunge, roll = attitude_from_dji_gimbal(*gimbal)
-        record.orientation = {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
+        # DJI's gimbal yaw is from true north (the aircraft's compass corrected).
+        record.orientation = {"trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll,
+                              "heading_reference": "true"}
         notes.append("attitude from DJI gimbal angles (XMP)")
     elif _unknown_rational(gps.get("GPSImgDirection")):
         # 0/0: the phone had no compass reading. Refused (the trend is what a
@@ -689,8 +754,24 @@ def record_from_exif(photo, blocks=_BLOCKS) -> tuple[SensorRecord, list[str]]:
         # full turn are wrapped. Beyond two turns the tag is corrupt.
         trend = _checked(gps["GPSImgDirection"], "EXIF GPSImgDirection",
                          *GPS_IMG_DIRECTION_RANGE, src)
-        record.orientation = {"trend_deg": trend % 360.0}
-        notes.append("trend from EXIF GPSImgDirection")
-        if str(gps.get("GPSImgDirectionRef", "T")).strip().upper().startswith("M"):
-            notes.append("trend is a magnetic heading: declination not applied")
+        reference = gps_heading_reference(gps)
+        # The prior turns a magnetic heading to true north where it knows the
+        # place and the date (napari_imgreg.prior), and says so either way.
+        record.orientation = {"trend_deg": trend % 360.0, "heading_reference": reference}
+        notes.append("trend from EXIF GPSImgDirection"
+                     + (" (magnetic north)" if reference == "magnetic" else ""))
     return record, notes
+
+
+#: What a heading is measured from, as a sensor record's
+#: ``orientation.heading_reference`` says (extension): ``"grid"`` the model's
+#: +Y (a record's trend without the field), ``"true"`` true north,
+#: ``"magnetic"`` magnetic north.
+HEADING_REFERENCES = ("grid", "true", "magnetic")
+
+
+def gps_heading_reference(gps: Mapping[str, Any]) -> str:
+    """``"magnetic"`` for EXIF ``GPSImgDirectionRef`` ``M``, else ``"true"``
+    (``T``, or the tag absent: EXIF's default)."""
+    return "magnetic" if (_text(gps.get("GPSImgDirectionRef")) or "T").upper().startswith("M") \
+        else "true"
