@@ -51,13 +51,47 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "origin (default: cameras when the table has centres)",
     )
     p.add_argument(
-        "--declination", type=float, default=0.0, metavar="DEG",
+        "--declination", type=_declination, default=0.0, metavar="DEG|auto",
         help="magnetic declination, degrees east in [-180, 180], added to MEASURED trends "
-        "(default 0: the phone logged true north)",
+        "(default 0: the phone logged true north); 'auto': the World Magnetic Model's at the "
+        "model's georeferenced origin on the photos' median capture day (needs georef.json)",
+    )
+    p.add_argument(
+        "--georef", metavar="georef.json",
+        help="the model's georeference, whose origin places the site for --declination auto "
+        "(default: a georef.json beside the --apply mesh or the ESTIMATED table)",
     )
     p.add_argument("--plots", metavar="DIR", help="write the Δξ/Δρ plots (PNG) into DIR")
     p.set_defaults(func=cmd_orient)
     return p
+
+
+def _declination(text: str) -> float | str:
+    """``--declination``: degrees (checked for range later) or ``auto``."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected degrees east (e.g. 3.0) or 'auto', got {text!r}") from None
+
+
+def _georef_for_auto(args: argparse.Namespace) -> Path:
+    """The georef.json that places the site for ``--declination auto``."""
+    from ..orient import default_georef_path
+
+    if args.georef:
+        if not Path(args.georef).is_file():
+            raise input_error(args.georef, "no such file")
+        return Path(args.georef)
+    found = default_georef_path(args.apply, args.estimated)
+    if found is None:
+        raise input_error(
+            args.estimated, "--declination auto needs the model's georef.json (its origin "
+            "places the site): give --georef FILE, put georef.json beside the mesh or this "
+            "table, or give the declination as a number")
+    return found
 
 
 def cmd_orient(args: argparse.Namespace) -> int:
@@ -74,8 +108,13 @@ def cmd_orient(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".json":
         raise input_error(out, "output must be a .json file")
-    # A NaN declination would turn every trend into NaN (and the fit into nonsense).
-    check_option(args.declination, "--declination", -180.0, 180.0)
+    auto = args.declination == "auto"
+    if not auto:
+        # A NaN declination would turn every trend into NaN (and the fit into nonsense).
+        check_option(args.declination, "--declination", -180.0, 180.0)
+    if args.georef and not auto:
+        raise input_error(args.georef, "--georef is read only with --declination auto")
+    georef = _georef_for_auto(args) if auto else None
     if bool(args.apply) != bool(args.mesh_out):
         raise input_error(
             args.apply or args.mesh_out, "--apply MESH and --mesh-out OUT go together"
@@ -88,7 +127,7 @@ def cmd_orient(args: argparse.Namespace) -> int:
                 args.mesh_out, f"output must be one of {', '.join(MESH_OUT_SUFFIXES)}"
             )
     tables = [("ESTIMATED table", args.estimated), ("MEASURED table", args.measured)]
-    refuse_overwriting_inputs(out, [*tables, ("mesh", args.apply)])
+    refuse_overwriting_inputs(out, [*tables, ("mesh", args.apply), ("georef", georef)])
     refuse_overwriting_inputs(args.mesh_out, [("mesh", args.apply), *tables])
     check_writable(out)
     if args.mesh_out:
@@ -106,7 +145,7 @@ def cmd_orient(args: argparse.Namespace) -> int:
         result = orient(
             estimated, measured, method=args.method,
             center=None if args.about == "auto" else args.about,
-            declination_deg=args.declination,
+            declination_deg=args.declination, georef=georef,
         )
     except InputError as exc:
         # A paired photo without a centre: orient() words the fix for the API,

@@ -7,7 +7,7 @@ photos as the photogrammetry model has them (its arbitrary frame).
 
 Readers, chosen by :func:`read_orientation_table`:
 
-* contract CSV ``photo,trend_deg,plunge_deg,roll_deg[,x,y,z]``;
+* contract CSV ``photo,trend_deg,plunge_deg,roll_deg[,x,y,z][,time]``;
 * Agisoft Metashape / PhotoScan camera XML (File > Export > Cameras);
 * COLMAP ``images.txt`` (or a sparse-model folder holding it);
 * a folder of photos: DJI XMP gimbal angles (full attitude) or EXIF
@@ -25,6 +25,7 @@ import math
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
+from datetime import date, datetime
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -33,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from .._deprecated import forward_moved_names
 from ..camera import attitude_from_rotation, rotation_from_attitude
-from ..errors import input_error
+from ..errors import InputError, input_error
 from . import exif
 
 __all__ = [
@@ -46,6 +47,7 @@ __all__ = [
     "read_photo_attitudes",
     "pair_tables",
     "write_orientation_csv",
+    "photo_capture_dates",
     "CSV_COLUMNS",
 ]
 
@@ -87,6 +89,13 @@ class OrientationTable:
         ``"csv"``, ``"metashape"``, ``"colmap"``, ``"photos"`` or ``"memory"``.
     notes : list of str
         What the reader skipped or assumed.
+    capture_dates : list of (datetime.date or None), or None
+        The day each photo was taken (a CSV's ``time`` column, a photo's
+        EXIF); None when the table has no dates at all.
+    heading_references : list of str, or None
+        What each trend is measured from, where the table knows it:
+        ``"true"`` or ``"magnetic"`` north (photo metadata), ``""`` unknown;
+        None for tables that do not say (CSV, the model's tables).
     """
 
     photos: list[str]
@@ -96,6 +105,8 @@ class OrientationTable:
     source: Path | None = None
     kind: str = "memory"
     notes: list[str] = field(default_factory=list)
+    capture_dates: list[date | None] | None = None
+    heading_references: list[str] | None = None
 
     # ------------------------------------------------------------ build
     @classmethod
@@ -243,7 +254,10 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
     """Read the contract's orientation CSV (§7).
 
     Header first: ``photo,trend_deg,plunge_deg,roll_deg`` and optionally
-    ``x,y,z``; other columns are ignored. Commas, semicolons or tabs separate
+    ``x,y,z`` and ``time`` (when the photo was taken: an ISO 8601 date or
+    date and time, ``2026-06-01`` or ``2026-06-01T10:21:00+02:00``; EXIF's
+    ``2026:06:01 10:21:00`` too; only the day is kept, for a magnetic
+    declination); other columns are ignored. Commas, semicolons or tabs separate
     fields; blank lines and lines starting with ``#`` are skipped. An empty
     plunge or roll cell marks a trend-only attitude (the photo is left out of
     the fit, with a note).
@@ -253,7 +267,8 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
     InputError
         Missing column, a bad or non-finite number ("row N" is the line
         number in the file, the header being row 1), plunge outside
-        [-90, 90], an empty or repeated photo name, or no data rows.
+        [-90, 90], a ``time`` that is not a date, an empty or repeated photo
+        name, or no data rows.
     """
     path = Path(path)
     if not path.exists():
@@ -289,8 +304,10 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
         raise input_error(path, f"has column(s) {', '.join(present_xyz)} but not all of x, y, z")
     col = {name: header.index(name) for name in CSV_COLUMNS + tuple(present_xyz)}
 
+    has_time = "time" in header
     photos: list[str] = []
     values: list[list[float]] = []
+    dates: list[date | None] = []
     first_row: dict[str, int] = {}
     for (row_number, _), row in zip(lines[1:], rows[1:]):
         cells = [c.strip() for c in row]
@@ -316,6 +333,8 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
             )
         photos.append(photo)
         values.append(record)
+        if has_time:
+            dates.append(_cell_date(path, row_number, cells[header.index("time")]))
     if not photos:
         raise input_error(path, "no data rows after the header")
 
@@ -323,7 +342,7 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
     table = OrientationTable.from_attitudes(
         photos, data[:, 0], data[:, 1], data[:, 2],
         positions=data[:, 3:6] if present_xyz else None,
-        source=path, kind="csv",
+        source=path, kind="csv", capture_dates=dates if has_time else None,
     )
     incomplete = int((~table.complete).sum())
     if incomplete:
@@ -343,6 +362,56 @@ def _cell_number(path: Path, row: int, column: str, cell: str, optional: bool) -
     if not math.isfinite(value):
         raise input_error(path, f"row {row}: {column} is not a finite number ({cell!r})")
     return value
+
+
+def _cell_date(path: Path, row: int, cell: str) -> date | None:
+    """A ``time`` cell's day: ISO 8601 (``Z`` accepted) or EXIF's colons; empty: None."""
+    text = cell.strip()
+    if not text:
+        return None
+    exif_style = len(text) >= 10 and text[4] == ":" and text[7] == ":"
+    candidate = (text[:10].replace(":", "-") + text[10:]) if exif_style else text
+    try:
+        return datetime.fromisoformat(candidate.replace("Z", "+00:00")).date()
+    except ValueError:
+        raise input_error(path, f"row {row}: time is not a date ({cell!r}; expected e.g. "
+                                "2026-06-01 or 2026-06-01T10:21:00+02:00)") from None
+
+
+def photo_capture_dates(photos: Sequence[str], folder: str | os.PathLike
+                        ) -> list[date | None] | None:
+    """The EXIF day of each photo found in ``folder`` by its name.
+
+    A name matches the file of that name, or of that stem with a photo
+    suffix (``IMG_0001`` → ``IMG_0001.JPG``), case aside. Unreadable
+    files and photos without a date give None.
+
+    Returns
+    -------
+    list of (datetime.date or None), or None when no photo was found.
+    """
+    folder = Path(folder)
+    try:
+        files = {p.name.lower(): p for p in folder.iterdir()
+                 if p.is_file() and p.suffix.lower() in _PHOTO_SUFFIXES}
+    except OSError:
+        return None
+    by_stem = {Path(name).stem: p for name, p in files.items()}
+    dates: list[date | None] = []
+    found = False
+    for photo in photos:
+        name = Path(photo).name.lower()
+        path = files.get(name) or by_stem.get(Path(name).stem if Path(name).suffix.lower()
+                                              in _PHOTO_SUFFIXES else name)
+        day = None
+        if path is not None:
+            found = True
+            try:
+                day = exif.read_photo_capture_date(path)
+            except InputError:  # a damaged photo dates nothing; the others still do
+                day = None
+        dates.append(day)
+    return dates if found else None
 
 
 def write_orientation_csv(path: str | os.PathLike, table: OrientationTable) -> None:
@@ -603,7 +672,8 @@ def read_photo_attitudes(
     :func:`napari_imgreg.io.exif.attitude_from_dji_gimbal`); else EXIF
     ``GPSImgDirection`` (trend only: the photo is listed but cannot enter
     the fit). Photos with neither are skipped with a note. Positions are not read (GPS needs a
-    georeference).
+    georeference). Each photo's heading reference (DJI: true north; EXIF:
+    ``GPSImgDirectionRef``) and EXIF capture day are kept.
 
     Raises
     ------
@@ -614,8 +684,9 @@ def read_photo_attitudes(
     src = Path(source) if source is not None else (paths[0] if len(paths) == 1 else None)
     photos: list[str] = []
     attitudes: list[tuple[float, float, float]] = []
+    references: list[str] = []
+    dates: list[date | None] = []
     skipped: list[str] = []
-    magnetic = 0
     for path in paths:
         if not path.exists():
             raise input_error(path, "no such file")
@@ -624,6 +695,8 @@ def read_photo_attitudes(
         if gimbal is not None:
             photos.append(path.name)
             attitudes.append(exif.attitude_from_dji_gimbal(*gimbal))
+            references.append("true")  # DJI's yaw is from true north
+            dates.append(exif.read_photo_capture_date(path))
             continue
         direction = gps.get("GPSImgDirection") if gps else None
         if direction is not None:
@@ -634,9 +707,8 @@ def read_photo_attitudes(
             if math.isfinite(trend):
                 photos.append(path.name)
                 attitudes.append((trend % 360.0, math.nan, math.nan))
-                reference = str(gps.get("GPSImgDirectionRef", "T")).strip().upper()
-                if reference.startswith("M"):
-                    magnetic += 1
+                references.append(exif.gps_heading_reference(gps))
+                dates.append(exif.read_photo_capture_date(path))
                 continue
         skipped.append(path.name)
     if not photos:
@@ -647,7 +719,9 @@ def read_photo_attitudes(
         )
     a = np.array(attitudes)
     table = OrientationTable.from_attitudes(
-        photos, a[:, 0], a[:, 1], a[:, 2], source=src, kind="photos"
+        photos, a[:, 0], a[:, 1], a[:, 2], source=src, kind="photos",
+        capture_dates=dates if any(d is not None for d in dates) else None,
+        heading_references=references,
     )
     trend_only = int((~table.complete).sum())
     if trend_only:
@@ -655,9 +729,11 @@ def read_photo_attitudes(
             f"{trend_only} photo(s) give only a compass direction (EXIF GPSImgDirection), "
             "no plunge or roll"
         )
+    magnetic = references.count("magnetic")
     if magnetic:
+        # Whether a declination is added is orient's to say (--declination).
         table.notes.append(
-            f"{magnetic} photo(s) give magnetic, not true, north: declination not applied"
+            f"{magnetic} photo(s) give magnetic, not true, north (EXIF GPSImgDirectionRef M)"
         )
     if skipped:
         table.notes.append(f"{len(skipped)} photo(s) without attitude metadata skipped")

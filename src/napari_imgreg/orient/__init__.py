@@ -45,6 +45,8 @@ The package, in the order the data flows:
 * :mod:`~napari_imgreg.orient.apply` — rotate points, cameras and mesh or
   point cloud files.
 * :mod:`~napari_imgreg.orient.plots` — the Δξ/Δρ residual plots (matplotlib).
+* :mod:`~napari_imgreg.orient.declination` — the survey's magnetic
+  declination (World Magnetic Model) for ``declination_deg="auto"``.
 
 A generated survey with a known answer is in :mod:`napari_imgreg.sample.survey`
 (``SimulatedSurvey``, ``simulate_survey``; importing them from here still
@@ -94,6 +96,7 @@ from .estimate import (
     rotation_axis_from_j,
     rotation_error_deg,
 )
+from .declination import SurveyDeclination, default_georef_path, survey_date, survey_declination
 from .plots import draw_residual_plots, save_residual_plots
 from .result import OrientationResult, orient, orient_files, save_orientation
 
@@ -134,6 +137,10 @@ __all__ = [
     "save_orientation",
     "rotation_error_deg",
     "lower_hemisphere_axis",
+    "SurveyDeclination",
+    "survey_date",
+    "survey_declination",
+    "default_georef_path",
 ]
 
 #: Names that left ``orient`` in 0.2 -> their new module. Looked up by name

@@ -31,7 +31,9 @@ from ..io.orientation_tables import (
     pair_tables,
     read_orientation_table,
 )
+from ..geo import Georef
 from .apply import rotate_cameras
+from .declination import AUTO, SurveyDeclination, survey_declination
 from .diagnostics import (
     DISTORTED_RESIDUAL_DEG,
     LinearFit,
@@ -292,7 +294,8 @@ def orient(
     weights: Mapping[str, float] | None = None,
     center: np.ndarray | str | None = None,
     step_deg: float = PAPER_STEP_DEG,
-    declination_deg: float = 0.0,
+    declination_deg: float | str = 0.0,
+    georef: Georef | str | os.PathLike | None = None,
 ) -> OrientationResult:
     """Orient a model from estimated and measured camera attitudes.
 
@@ -313,9 +316,16 @@ def orient(
         estimated camera centres when known, else the origin.
     step_deg : float
         Angle increment of the paper's search, degrees.
-    declination_deg : float
+    declination_deg : float or "auto"
         Magnetic declination, degrees east of true north, added to the
-        measured trends (for a phone that logs magnetic headings).
+        measured trends (for a phone that logs magnetic headings). ``"auto"``:
+        the World Magnetic Model's at the origin of ``georef`` on the median
+        capture day of the measured photos
+        (:func:`~napari_imgreg.orient.declination.survey_declination`).
+        ORIENTATION.json's ``inputs.declination`` says which was used and
+        where it came from.
+    georef : Georef or path-like, optional
+        The model's ``georef.json``; needed (only) for ``"auto"``.
 
     Returns
     -------
@@ -326,9 +336,12 @@ def orient(
     InputError
         The tables do not pair (see ``pair_tables``), or their angles fit far
         better read in radians or with plunge or roll negated (a table in
-        another convention: the message says which).
+        another convention: the message says which); with ``"auto"``: no
+        georeference, no capture date, or a date or place the World Magnetic
+        Model does not cover.
     ValueError
-        Unknown ``method``.
+        Unknown ``method``, an unknown declination word, or ``"auto"``
+        without the measured table (already paired tables carry no dates).
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -350,7 +363,17 @@ def orient(
             "measured_format": measured.kind,
         }
     inputs["n_photos"] = len(paired)
+    declination_notes: list[str] = []
+    if isinstance(declination_deg, str):
+        survey = _auto_declination(declination_deg, measured, georef)
+        declination_deg = survey.declination_deg
+        inputs["declination"] = survey.to_dict()
+        declination_notes.append(survey.note())
+    else:
+        inputs["declination"] = {"declination_deg": float(declination_deg), "source": "given"}
     inputs["declination_deg"] = float(declination_deg)
+    if isinstance(measured, OrientationTable):
+        declination_notes += _heading_reference_notes(measured, float(declination_deg))
     w = None
     if weights is not None:
         w = np.array([float(weights.get(p, 1.0)) for p in paired.photos])
@@ -426,9 +449,39 @@ def orient(
         oriented_positions=oriented_positions,
         fits=fits,
         flags=flags,
-        notes=list(paired.notes),
+        notes=list(paired.notes) + declination_notes,
         inputs=inputs,
     )
+
+
+def _auto_declination(word: str, measured: OrientationTable | None,
+                      georef: Georef | str | os.PathLike | None) -> SurveyDeclination:
+    """The survey's WMM declination for ``declination_deg="auto"``."""
+    if word != AUTO:
+        raise ValueError(f"declination_deg must be degrees or {AUTO!r}, got {word!r}")
+    if not isinstance(measured, OrientationTable):
+        raise ValueError("an automatic declination needs the measured table (its capture "
+                         "dates), not tables already paired")
+    if georef is None:
+        raise input_error(None, "an automatic declination needs the model's georef.json (its "
+                                "origin places the site): give one, or the declination as a "
+                                "number")
+    return survey_declination(measured, georef)
+
+
+def _heading_reference_notes(measured: OrientationTable, declination_deg: float) -> list[str]:
+    """Say where the measured photos' own heading references disagree with the
+    declination used: magnetic headings left as they are, or true-north ones turned."""
+    references = measured.heading_references or []
+    magnetic, true = references.count("magnetic"), references.count("true")
+    if magnetic and not declination_deg:
+        return [f"{magnetic} measured photo(s) give magnetic headings and no declination was "
+                "added (--declination auto computes it; --declination DEG gives it)"]
+    if true and declination_deg:
+        return [f"{true} measured photo(s) give headings from true north (DJI gimbal yaw, EXIF "
+                f"GPSImgDirectionRef T): the declination {declination_deg:+.1f}° was added to "
+                "them too"]
+    return []
 
 
 def _mean_residual_deg(E: np.ndarray, M: np.ndarray) -> float:

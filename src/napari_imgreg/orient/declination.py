@@ -1,0 +1,178 @@
+"""The magnetic declination of a survey, for phones that log magnetic headings.
+
+:func:`survey_declination` gives the World Magnetic Model's declination
+(:func:`napari_imgreg.geo.magnetic_declination`) at the model's
+georeferenced origin on the survey's date: the median day of the MEASURED
+table's capture dates (a CSV's ``time`` column, the EXIF of a folder of
+photos), else of the EXIF ``DateTimeOriginal`` of its photos found beside
+it. Over a survey's few hundred metres and few days the declination varies
+by hundredths of a degree, far below a phone compass's error, so one value
+serves every photo.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+from dataclasses import dataclass
+from datetime import date
+from pathlib import Path
+from typing import Any
+
+from ..errors import input_error
+from ..geo import (
+    GeoError,
+    Georef,
+    MagneticDeclination,
+    magnetic_declination,
+    site_latitude_longitude,
+)
+from ..io.orientation_tables import OrientationTable, photo_capture_dates
+
+__all__ = ["AUTO", "SurveyDeclination", "survey_date", "survey_declination",
+           "default_georef_path"]
+
+#: What the command line and the widget take for "compute it".
+AUTO = "auto"
+
+
+@dataclass(frozen=True)
+class SurveyDeclination:
+    """A survey's declination and where each of its inputs came from.
+
+    Attributes
+    ----------
+    declination : MagneticDeclination
+        The value (degrees east), the WMM edition and the date.
+    date_source : str
+        How the date was found ("median of 51 capture dates in the MEASURED
+        table's time column", ...).
+    georef_source : str
+        The ``georef.json`` that placed the site (or ``"given"``).
+    """
+
+    declination: MagneticDeclination
+    date_source: str
+    georef_source: str
+
+    @property
+    def declination_deg(self) -> float:
+        """Degrees, east positive."""
+        return self.declination.declination_deg
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``inputs.declination`` block of ORIENTATION.json."""
+        return {**self.declination.to_dict(), "date_from": self.date_source,
+                "place": "the georeferenced model origin", "georef": self.georef_source}
+
+    def note(self) -> str:
+        """One line for the result's notes."""
+        d = self.declination
+        extra = "".join((
+            "; near a magnetic pole, where a compass is poor" if d.caution else "",
+            "; extrapolated past the model's years" if d.extrapolated else ""))
+        return (f"declination {d.label()} added to the measured trends: World Magnetic Model "
+                f"at {abs(d.latitude_deg):.4f}° {'N' if d.latitude_deg >= 0 else 'S'}, "
+                f"{abs(d.longitude_deg):.4f}° {'E' if d.longitude_deg >= 0 else 'W'} (the "
+                f"origin of {self.georef_source}) on the {self.date_source}{extra}")
+
+
+def survey_date(measured: OrientationTable) -> tuple[date, str]:
+    """The median capture day of a MEASURED table, and how it was found.
+
+    The table's own dates (a CSV ``time`` column, a folder of photos' EXIF)
+    first; else the EXIF ``DateTimeOriginal`` of the table's photos found
+    beside it (a CSV's folder), by name.
+
+    Raises
+    ------
+    InputError
+        No date in the table nor in photos beside it: the message names the
+        table and asks for the declination as a number.
+    """
+    dates, where = measured.capture_dates, "the MEASURED table's time column"
+    if measured.kind == "photos":
+        where = "the photos' EXIF"
+    if not _any(dates) and measured.source is not None:
+        folder = measured.source if measured.source.is_dir() else measured.source.parent
+        dates = photo_capture_dates(measured.photos, folder)
+        where = f"EXIF DateTimeOriginal of the photos in {folder}"
+    known = [d for d in (dates or []) if d is not None]
+    if not known:
+        raise input_error(
+            measured.source, "no capture dates for an automatic declination (no time column, "
+            "no photos with EXIF DateTimeOriginal beside it): give the declination as a "
+            "number (--declination DEG)")
+    # The median day: a survey over a few days is dated by its middle.
+    middle = date.fromordinal(int(statistics.median_low(d.toordinal() for d in known)))
+    count = f"{len(known)} capture date{'s' if len(known) > 1 else ''}"
+    span = (max(known) - min(known)).days
+    spread = f", over {span + 1} days" if span else ""
+    return middle, f"median of {count} in {where}{spread}"
+
+
+def _any(dates) -> bool:
+    return bool(dates) and any(d is not None for d in dates)
+
+
+def survey_declination(
+    measured: OrientationTable, georef: Georef | str | os.PathLike
+) -> SurveyDeclination:
+    """The WMM declination at the model's georeferenced origin on the survey's date.
+
+    Parameters
+    ----------
+    measured : OrientationTable
+        The phone's table; its capture dates date the survey
+        (:func:`survey_date`).
+    georef : Georef or path-like
+        The model's ``georef.json`` (or the object): its origin is the site.
+
+    Returns
+    -------
+    SurveyDeclination
+
+    Raises
+    ------
+    InputError
+        No capture date; a bad georef.json; a date no WMM edition covers or
+        a site in a magnetic pole's blackout zone (the message names the
+        georef.json or the table and asks for a number).
+    """
+    if isinstance(georef, Georef):
+        georef_source = "the georeference given"
+    else:
+        georef_source = str(georef)
+        georef = Georef.load(georef)
+    when, date_source = survey_date(measured)
+    lat, lon, height = site_latitude_longitude(georef)
+    try:
+        declination = magnetic_declination(lat, lon, height, when)
+    except GeoError as exc:
+        raise input_error(georef_source if georef_source != "the georeference given" else None,
+                          f"{exc} (--declination DEG)") from None
+    return SurveyDeclination(declination, date_source, georef_source)
+
+
+def default_georef_path(*near: str | os.PathLike | None) -> Path | None:
+    """The first ``georef.json`` beside (or inside, for a folder) the given files.
+
+    Parameters
+    ----------
+    *near : path-like or None
+        Files or folders in order of preference (the mesh to rotate, the
+        ESTIMATED table); None entries are skipped.
+
+    Returns
+    -------
+    Path or None
+    """
+    for item in near:
+        if item is None or str(item) == "":
+            continue
+        path = Path(item)
+        folder = path if path.is_dir() else path.parent
+        candidate = folder / "georef.json"
+        if candidate.is_file():
+            return candidate
+    return None
