@@ -13,6 +13,7 @@ from napari_imgreg.camera import Intrinsics, Pose
 from napari_imgreg.errors import InputError
 from napari_imgreg.io.control_points import read_control_points, write_control_points
 from napari_imgreg.registration.manual import MIN_PAIRS, registers, solve_manual
+from napari_imgreg.sample import load_truth
 
 # The conftest wall (wall.obj): 40 m × 20 m in the plane y = 0, seen from the south.
 WALL_INTR = Intrinsics(1632, 1224, 1300.0, 1300.0, 815.5, 611.5)
@@ -274,3 +275,32 @@ def test_registers_is_the_rule_the_workspace_applies():
     loose = solve_manual(WALL_INTR, WALL_TRUTH.project(WALL_INTR, near)
                          + rng.normal(0, 3, (4, 2)), near)
     assert not registers(loose)
+
+
+def test_loaded_pairs_keep_their_points_in_a_saved_workspace(tmp_path):
+    from napari_imgreg.sample import sample_scene
+    from napari_imgreg.workspace import Workspace
+
+    folder = sample_scene("small")
+    ws = Workspace()
+    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
+    ws.add_photos([folder / "IMG_0001.jpg"])
+    ws.make_reference()
+    truth = load_truth(folder / "IMG_0001.jpg")
+    xyz = truth.check_xyz[:6] + [0.0, -2.0, 0.0]  # 2 m in front of the rock: off the model
+    pairs = tmp_path / "pairs.csv"
+    write_control_points(pairs, truth.pose.project(truth.intrinsics, xyz), xyz)
+    assert ws.load_pairs(pairs) == 6
+    np.testing.assert_allclose(ws.pair_points_3d()[0], xyz, atol=1e-6)
+    ws.save(tmp_path / "campaign.imgreg")
+    ws.detach()
+    again = Workspace.open(tmp_path / "campaign.imgreg")
+    try:
+        np.testing.assert_allclose(again.pair_points_3d()[0], xyz, atol=1e-6)
+        assert again.pairs_with_own_point().all()
+        written, left_out = again.save_pairs(tmp_path / "again.csv")
+        assert (written, left_out) == (6, 0)
+        np.testing.assert_allclose(read_control_points(tmp_path / "again.csv").xyz, xyz,
+                                   atol=1e-5)
+    finally:
+        again.detach()

@@ -75,6 +75,7 @@ from .interpret.project import (
 from .interpret.structural import Measurement
 from .io import workspace_files as wsfiles
 from .io.exif import exif_orientation
+from .io.control_points import read_control_points, write_control_points
 from .io.photos import Photo, load_photo
 from .io.records import Sigma
 from .prior import Prior, prior_for_photo, save_pose_to_record
@@ -208,6 +209,11 @@ class PhotoState:
         Control points picked on the reference render, its pixel (x, y).
         Point k of each list make pair k; the longer list has at most one
         point waiting for its partner.
+    pair_points_xyz : (N, 3) float array
+        The model point (model frame, metres) of each photo pick that
+        carries its own, loaded from a control-point file
+        (:meth:`Workspace.load_pairs`); NaN rows take theirs from the
+        reference pick. Aligned with ``photo_points_px``.
     selected_trial : int or None
         Index into ``trials`` of the trial shown.
     runs : int
@@ -243,6 +249,7 @@ class PhotoState:
     reference_source: str = ""
     photo_points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     reference_points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    pair_points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     selected_trial: int | None = None
     runs: int = 0
     sun_override: np.ndarray | None = None
@@ -312,6 +319,7 @@ class PhotoState:
             "selected_trial": self.selected_trial,
             "pairs": {"photo_px": np.asarray(self.photo_points_px).tolist(),
                       "reference_px": np.asarray(self.reference_points_px).tolist(),
+                      "xyz": _xyz_to_list(self.pair_points_xyz),
                       "reference_source": self.reference_source,
                       "reference_pose": (None if self.reference is None
                                          else self.reference.cam_from_world.to_dict())},
@@ -1055,23 +1063,41 @@ class Workspace:
         return self.reference_job(intrinsics, pose, source)()
 
     def set_reference(self, reference: RenderResult, source: str = "pose") -> None:
-        """Set the current photo's reference render; its picks on the old one go."""
+        """Set the current photo's reference render; its picks on the old one go.
+
+        Pairs with their own model point (loaded from a file) stay complete:
+        they come first, their points shown where they project in the new
+        reference; the photo picks of the others wait for new partners.
+        """
         ps = self.current
         if ps is None:
             return
         ps.reference, ps.reference_source = reference, source
-        ps.reference_points_px = np.zeros((0, 2))
+        xyz = self._pair_xyz(ps)
+        own = np.isfinite(xyz).all(axis=1)
+        order = np.r_[np.flatnonzero(own), np.flatnonzero(~own)]
+        ps.photo_points_px = np.asarray(ps.photo_points_px, float)[order].reshape(-1, 2)
+        ps.pair_points_xyz = xyz[order]
+        ps.reference_points_px = _reference_pixels(reference, xyz[own])
         self.reference_changed.emit()
         self.pairs_changed.emit()
 
     def set_pair_points(self, photo_px: np.ndarray, reference_px: np.ndarray) -> None:
         """Set the current photo's picks (as a view edited them): photo pixels
-        (N, 2) and reference pixels (M, 2), (x, y), pair k = point k of each."""
+        (N, 2) and reference pixels (M, 2), (x, y), pair k = point k of each.
+
+        A pair loaded with its own model point keeps it through the edit
+        (points added, deleted or dragged on the photo) unless its reference
+        point was dragged: it then takes the model point under it.
+        """
         ps = self.current
         if ps is None:
             return
-        ps.photo_points_px = np.asarray(photo_px, float).reshape(-1, 2).copy()
-        ps.reference_points_px = np.asarray(reference_px, float).reshape(-1, 2).copy()
+        photo = np.asarray(photo_px, float).reshape(-1, 2).copy()
+        ref = np.asarray(reference_px, float).reshape(-1, 2).copy()
+        xyz = _carried_xyz(ps.photo_points_px, ps.reference_points_px, self._pair_xyz(ps),
+                           photo, ref)
+        ps.photo_points_px, ps.reference_points_px, ps.pair_points_xyz = photo, ref, xyz
         self.pairs_changed.emit()
 
     def add_pair(self, photo_xy, reference_xy) -> int:
@@ -1091,12 +1117,13 @@ class Workspace:
         ps = self.current
         if ps is None:
             return
-        photo, ref = ps.photo_points_px, ps.reference_points_px
+        photo, ref, xyz = ps.photo_points_px, ps.reference_points_px, self._pair_xyz(ps)
         if index < len(photo):
-            photo = np.delete(photo, index, axis=0)
+            photo, xyz = np.delete(photo, index, axis=0), np.delete(xyz, index, axis=0)
         if index < len(ref):
             ref = np.delete(ref, index, axis=0)
-        self.set_pair_points(photo, ref)
+        ps.photo_points_px, ps.reference_points_px, ps.pair_points_xyz = photo, ref, xyz
+        self.pairs_changed.emit()
 
     def clear_pairs(self) -> None:
         self.set_pair_points(np.zeros((0, 2)), np.zeros((0, 2)))
@@ -1111,12 +1138,87 @@ class Workspace:
                 np.asarray(ps.reference_points_px[:n], float))
 
     def pair_points_3d(self, ps: PhotoState | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """3D points under the reference picks (N, 3), metres, and whether each has one."""
+        """3D points of the complete pairs (N, 3), metres, and whether each has one:
+        a pair's own (loaded from a file), else the one under its reference pick."""
         ps = ps if ps is not None else self.current
         _, ref_px = self.pairs(ps)
         if ps is None or ps.reference is None or not len(ref_px):
             return np.full((len(ref_px), 3), np.nan), np.zeros(len(ref_px), bool)
-        return ps.reference.lift(ref_px)
+        xyz, valid = ps.reference.lift(ref_px)
+        own_xyz = self._pair_xyz(ps)[:len(ref_px)]
+        own = np.isfinite(own_xyz).all(axis=1)
+        xyz[own], valid = own_xyz[own], valid | own
+        return xyz, valid
+
+    def pairs_with_own_point(self, ps: PhotoState | None = None) -> np.ndarray:
+        """(N,) bool, one per photo pick: the pair carries its own model point
+        (loaded from a file), not the one under its reference pick."""
+        ps = ps if ps is not None else self.current
+        if ps is None:
+            return np.zeros(0, bool)
+        return np.isfinite(self._pair_xyz(ps)).all(axis=1)
+
+    @staticmethod
+    def _pair_xyz(ps: PhotoState) -> np.ndarray:
+        """``ps.pair_points_xyz`` aligned with its photo picks (NaN-padded: a
+        workspace saved before pairs carried points has none)."""
+        n = len(ps.photo_points_px)
+        xyz = np.asarray(ps.pair_points_xyz, float).reshape(-1, 3)[:n]
+        return np.vstack([xyz, np.full((n - len(xyz), 3), np.nan)])
+
+    def load_pairs(self, path: str | os.PathLike) -> int:
+        """Replace the current photo's pairs by those of a control-point file.
+
+        Each pair keeps its model point (``x,y,z``, or the CRS's ``easting,
+        northing, elevation`` through the scene's georeference), whether or
+        not the reference render shows it; its reference point is where that
+        model point projects in the reference. Returns the number of pairs.
+
+        Raises
+        ------
+        WorkbenchError
+            No photo, or no reference render to show the pairs on.
+        InputError
+            A bad file (:func:`~napari_imgreg.io.control_points.read_control_points`),
+            or a photo pixel outside the photo.
+        """
+        ps, scene = self._photo_and_scene()
+        if ps.reference is None:
+            raise WorkbenchError("Make a reference render first: loaded pairs are shown on it.")
+        points = read_control_points(path)
+        points.check_inside(*ps.size)
+        xyz = points.model_xyz(scene.georef)
+        ps.photo_points_px = points.photo_px.copy()
+        ps.pair_points_xyz = xyz
+        ps.reference_points_px = _reference_pixels(ps.reference, xyz)
+        self.pairs_changed.emit()
+        return len(points)
+
+    def save_pairs(self, path: str | os.PathLike) -> tuple[int, int]:
+        """Write the current photo's complete pairs with a model point to a
+        control-point file (``x,y,z``, model frame; atomically).
+
+        Returns
+        -------
+        written, left_out : int
+            Pairs written, and complete pairs left out for want of a model
+            point (a reference pick off the model).
+
+        Raises
+        ------
+        WorkbenchError
+            No photo, or no pair with a model point.
+        """
+        ps = self.current
+        if ps is None:
+            raise WorkbenchError("Load a scene and a photo first.")
+        photo_px, _ = self.pairs(ps)
+        xyz, valid = self.pair_points_3d(ps)
+        if not valid.any():
+            raise WorkbenchError("No pair with a point on the model to save.")
+        numbers = [str(k + 1) for k in np.flatnonzero(valid)]  # the pairs table's numbers
+        write_control_points(path, photo_px[valid], xyz[valid], numbers)
+        return int(valid.sum()), int((~valid).sum())
 
     def manual_job(self, solve_focal: bool = False,
                    cancelled: Callable[[], bool] | None = None) -> Job:
@@ -1870,6 +1972,55 @@ def _manual_from_dict(d: dict) -> manual.ManualSolution:
         warning=str(d.get("warning") or ""))
 
 
+def _xyz_to_list(xyz: np.ndarray) -> list:
+    """Pairs' own model points for JSON: NaN (none) as null."""
+    return [[None if not math.isfinite(v) else float(v) for v in row]
+            for row in np.asarray(xyz, float).reshape(-1, 3)]
+
+
+def _reference_pixels(reference: RenderResult, xyz: np.ndarray) -> np.ndarray:
+    """Where model points (N, 3) show in a reference render, its pixels (N, 2).
+
+    A point behind its camera has no such pixel: it is put just off the
+    render's top-left corner (a pick must have a place), and the pair keeps
+    its own model point.
+    """
+    px = reference.cam_from_world.project(reference.intrinsics, np.reshape(xyz, (-1, 3)))
+    px[~np.isfinite(px).all(axis=1)] = -1.0
+    return px.reshape(-1, 2)
+
+
+def _carried_xyz(old_photo: np.ndarray, old_ref: np.ndarray, old_xyz: np.ndarray,
+                 photo: np.ndarray, ref: np.ndarray, tol_px: float = 0.01) -> np.ndarray:
+    """The pairs' own model points after a view's edit of the picks.
+
+    An edit adds points at the end, deletes a pair from both lists, or drags
+    one point: the same count keeps the points in place (a dragged reference
+    point drops its pair's own point: it takes the one under it); fewer
+    follows the photo picks that remain, in order; more adds pairs without one.
+    """
+    n = len(photo)
+    out = np.full((n, 3), np.nan)
+    if not np.isfinite(old_xyz).any():
+        return out
+    if n >= len(old_photo):
+        out[:len(old_xyz)] = old_xyz
+        m = min(len(ref), len(old_ref))
+        moved = np.zeros(n, bool)
+        moved[:m] = np.abs(ref[:m] - old_ref[:m]).max(axis=1, initial=0.0) > tol_px
+        out[moved] = np.nan
+        return out
+    i = 0
+    for j in range(n):  # the remaining picks are a subsequence of the old ones
+        while i < len(old_photo) and np.abs(old_photo[i] - photo[j]).max() > tol_px:
+            i += 1
+        if i == len(old_photo):
+            break
+        out[j] = old_xyz[i]
+        i += 1
+    return out
+
+
 def _same_pose(a: Pose | None, b: Pose | None) -> bool:
     """The same pose to a nanoradian and a micrometre (an edit changes it more)."""
     return (a is not None and b is not None
@@ -1937,6 +2088,7 @@ def _photo_doc(ps: PhotoState, folder: Path, has_matches: bool) -> dict:
         "selected_trial": ps.selected_trial,
         "pairs": {"photo_px": np.asarray(ps.photo_points_px, float).tolist(),
                   "reference_px": np.asarray(ps.reference_points_px, float).tolist(),
+                  "xyz": _xyz_to_list(ps.pair_points_xyz),
                   "reference_source": ps.reference_source,
                   "reference_pose": None if ref is None else ref.cam_from_world.to_dict(),
                   "reference_camera": None if ref is None else ref.intrinsics.to_dict()},
@@ -2293,6 +2445,8 @@ def _read_photo(folder: Path, entry: dict, inline: dict | None,
     pairs = state.get("pairs") or {}
     ps.photo_points_px = np.asarray(pairs.get("photo_px") or [], float).reshape(-1, 2)
     ps.reference_points_px = np.asarray(pairs.get("reference_px") or [], float).reshape(-1, 2)
+    ps.pair_points_xyz = np.array([[math.nan if v is None else v for v in row]
+                                   for row in pairs.get("xyz") or []], float).reshape(-1, 3)
     ps.reference_source = str(pairs.get("reference_source", ""))
     if pairs.get("reference_pose"):
         # Renders are not kept: the reference is rendered again from its camera.

@@ -60,6 +60,8 @@ from ..scene import has_colours, size_text
 from ..registration.pose import PoseParams
 from ..registration.features import FeatureParams
 from ..validate import param_range
+from ..workspace import WorkbenchError, one_line
+from ..errors import InputError
 from ._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
 from ._shortcuts import key_of
 
@@ -69,6 +71,7 @@ __all__ = ["ScenePanel", "PosePanel", "FiltersPanel", "RegisterPanel", "SunBox",
 _MESH_FILTER = "Models (*.obj *.ply *.glb *.gltf *.tif *.tiff *.asc);;All files (*)"
 _DEM_FILTER = "DEM (*.tif *.tiff *.asc);;All files (*)"
 _PHOTO_FILTER = "Photos (" + " ".join(f"*{s}" for s in PHOTO_SUFFIXES) + ");;All files (*)"
+_PAIRS_FILTER = "Control points (*.csv);;All files (*)"
 
 
 def _hint(text: str) -> QLabel:
@@ -1454,6 +1457,16 @@ class ManualPanel(QWidget):
         pick_row = QHBoxLayout()
         for b in (self.pick_button, self.delete_button, self.clear_button):
             pick_row.addWidget(b)
+        self.save_pairs_button = QPushButton("Save pairs…")
+        self.save_pairs_button.setToolTip(
+            "Write the pairs to a CSV: photo pixel and model point (x, y, z) of each")
+        self.load_pairs_button = QPushButton("Load pairs…")
+        self.load_pairs_button.setToolTip(
+            "Replace the pairs by a CSV's (saved here, clicked in another tool, or surveyed "
+            "targets): photo_x, photo_y and x, y, z or easting, northing, elevation")
+        file_row = QHBoxLayout()
+        for b in (self.save_pairs_button, self.load_pairs_button):
+            file_row.addWidget(b)
         self.table = QTableWidget(0, 5)
         self.table.setHorizontalHeaderLabels(["#", "photo (x, y)", "reference (x, y)", "on model",
                                               "residual"])
@@ -1484,8 +1497,11 @@ class ManualPanel(QWidget):
             "(right); the next click goes back to the photo. Pairs are numbered and coloured "
             "alike. "
             "Drag a point (select mode, key 3) to correct it; select it there and press "
-            "Delete, or use Delete pair, to remove the pair."))
+            "Delete, or use Delete pair, to remove the pair. Save pairs… writes them to a CSV "
+            "(photo pixel and model point); Load pairs… reads one, whose points keep their "
+            "model coordinates, shown on the reference or not."))
         pl.addLayout(pick_row)
+        pl.addLayout(file_row)
         pl.addWidget(self.table, 1)
         solve_box = QGroupBox(f"3. Solve (≥ {MIN_PAIRS} pairs)")
         sl = QVBoxLayout(solve_box)
@@ -1502,6 +1518,8 @@ class ManualPanel(QWidget):
         self.pick_button.clicked.connect(controller.start_picking)
         self.delete_button.clicked.connect(self.delete_selected)
         self.clear_button.clicked.connect(controller.clear_pairs)
+        self.save_pairs_button.clicked.connect(self._save_pairs_dialog)
+        self.load_pairs_button.clicked.connect(self._load_pairs_dialog)
         self.solve_button.clicked.connect(
             lambda: controller.solve_manual(self.focal_check.isChecked()))
         controller.pairs_changed.connect(self.refresh)
@@ -1516,6 +1534,45 @@ class ManualPanel(QWidget):
         rows = self.table.selectionModel().selectedRows() if self.table.selectionModel() else []
         if rows:
             self.ctrl.delete_pair(rows[0].row())
+
+    def _pairs_file(self) -> str:
+        """Where the current photo's pairs go by default: PHOTO.pairs.csv beside it."""
+        ps = self.ws.current
+        path = ps.photo.path if ps is not None else None
+        return str(path.with_suffix(".pairs.csv")) if path is not None else "pairs.csv"
+
+    def _save_pairs_dialog(self) -> None:
+        path, _ = QFileDialog.getSaveFileName(self, "Save pairs", self._pairs_file(),
+                                              _PAIRS_FILTER)
+        if path:
+            self.save_pairs(path)
+
+    def _load_pairs_dialog(self) -> None:
+        path, _ = QFileDialog.getOpenFileName(self, "Load pairs", self._pairs_file(),
+                                              _PAIRS_FILTER)
+        if path:
+            self.load_pairs(path)
+
+    def save_pairs(self, path: str | Path) -> None:
+        """Save the pairs to a control-point CSV; a problem is one notification."""
+        try:
+            written, left_out = self.ws.save_pairs(path)
+        except (WorkbenchError, InputError, OSError) as exc:
+            self.ctrl.notify_error(f"Could not save the pairs: {one_line(exc)}")
+            return
+        skipped = f" ({left_out} off the model left out)" if left_out else ""
+        self.ctrl.status.emit(f"saved {written} pairs to {Path(path).name}{skipped}")
+
+    def load_pairs(self, path: str | Path) -> None:
+        """Replace the pairs by a control-point CSV's; a bad file is one notification."""
+        try:
+            n = self.ws.load_pairs(path)
+        except (WorkbenchError, InputError) as exc:
+            self.ctrl.notify_error(one_line(exc))
+            return
+        self._residuals = None  # of the pairs before
+        self.ctrl.status.emit(f"loaded {n} pairs from {Path(path).name}: each keeps its "
+                              "model point, on the reference or not")
 
     def _photo_changed(self) -> None:
         self._focal_choice_by_user = False  # another photo: its own camera decides again
@@ -1543,6 +1600,7 @@ class ManualPanel(QWidget):
         ref_px = np.asarray(ps.reference_points_px if ps is not None else np.zeros((0, 2)), float)
         n_photo, n_ref = len(photo_px), len(ref_px)
         valid = self.ws.pair_points_3d()[1]
+        own = self.ws.pairs_with_own_point()
         n = max(n_photo, n_ref)
         self.table.setRowCount(n)
         res = self._residuals
@@ -1552,7 +1610,8 @@ class ManualPanel(QWidget):
                      "click the photo",
                      f"{ref_px[i, 0]:.1f}, {ref_px[i, 1]:.1f}" if i < n_ref else
                      "click the reference",
-                     ("✓" if valid[i] else "✗ off the model") if i < len(valid) else "",
+                     ("✓ from file" if i < len(own) and own[i] else "✓" if valid[i]
+                      else "✗ off the model") if i < len(valid) else "",
                      f"{res[i]:.2f} px" if res is not None and i < len(res)
                      and np.isfinite(res[i]) else ""]
             for j, text in enumerate(items):
@@ -1577,6 +1636,8 @@ class ManualPanel(QWidget):
         busy = self.ctrl.is_running("manual")
         self.solve_button.setEnabled(has_ref and int(valid.sum()) >= MIN_PAIRS and not busy)
         self.pick_button.setEnabled(has_ref)
+        self.load_pairs_button.setEnabled(has_ref and not busy)
+        self.save_pairs_button.setEnabled(bool(valid.any()))
         enough = int(valid.sum()) >= MIN_PAIRS_FOCAL
         self.focal_check.setEnabled(enough)
         unknown = ps is not None and not ps.intrinsics.focal_known
