@@ -1,7 +1,9 @@
 """Dock widget: orient a model from phone camera attitudes (backend: :mod:`napari_imgreg.orient`).
 
 Load the model's camera orientations (ESTIMATED) and the phone's (MEASURED),
-choose the estimator, Run (in a napari thread worker, the viewer stays
+choose the estimator and the declination (a number, or *Auto (WMM)*: the
+World Magnetic Model's at the model's georeferenced origin on the photos'
+capture day, computed by the backend), Run (in a napari thread worker, the viewer stays
 responsive), read the rotation, the three estimators side by side, the
 quality flags and the Δξ/Δρ plots, then rotate a Surface layer.
 """
@@ -18,6 +20,7 @@ from matplotlib.figure import Figure
 from qtpy.QtCore import Qt, Signal
 from qtpy.QtWidgets import (
     QApplication,
+    QCheckBox,
     QComboBox,
     QDoubleSpinBox,
     QFileDialog,
@@ -35,11 +38,12 @@ from qtpy.QtWidgets import (
 )
 
 from ..scene import Scene
-from ._jobs import JobRunner
+from ._jobs import JobRunner, in_python_thread
 from ._layers import napari_from_world, world_from_napari
 from ..orient import (
     METHODS,
     OrientationResult,
+    default_georef_path,
     lower_hemisphere_axis,
     draw_residual_plots,
     orient_files,
@@ -102,6 +106,21 @@ class OrientWidget(QWidget):
         self.declination_spin.setToolTip(
             "Magnetic declination added to the measured trends (0 if the phone logged true north)"
         )
+        self.declination_auto = QCheckBox("Auto (WMM)")
+        self.declination_auto.setToolTip(
+            "The World Magnetic Model's declination at the model's georeferenced origin on the "
+            "photos' median capture day (a time column, or the photos' EXIF); needs georef.json"
+        )
+        self.georef_edit = QLineEdit()
+        self.georef_edit.setPlaceholderText("georef.json (default: beside the estimated table)")
+        self.georef_edit.setToolTip("The model's georeference: its origin places the site "
+                                    "for the automatic declination")
+        self.georef_edit.setEnabled(False)
+        declination_row = QWidget()
+        declination_box = QHBoxLayout(declination_row)
+        declination_box.setContentsMargins(0, 0, 0, 0)
+        declination_box.addWidget(self.declination_spin, 1)
+        declination_box.addWidget(self.declination_auto)
         self.run_button = QPushButton("Run")
         self.run_button.setToolTip("Estimate the rotation (runs in the background)")
 
@@ -109,7 +128,8 @@ class OrientWidget(QWidget):
         form.addRow("Estimated", self._with_browse(self.estimated_edit, folder=False))
         form.addRow("Measured", self._with_browse(self.measured_edit, folder=True))
         form.addRow("Estimator", self.method_combo)
-        form.addRow("Declination", self.declination_spin)
+        form.addRow("Declination", declination_row)
+        form.addRow("Georef", self.georef_edit)
 
         # ---- results
         self.status_label = QLabel("Load the two tables and press Run.")
@@ -170,6 +190,7 @@ class OrientWidget(QWidget):
         layout.addWidget(self.save_button)
 
         self.run_button.clicked.connect(self.run)
+        self.declination_auto.toggled.connect(self._declination_mode_changed)
         self.method_combo.currentIndexChanged.connect(self._method_changed)
         self.apply_button.clicked.connect(lambda: self.apply_to_layer())
         self.save_button.clicked.connect(self._save_dialog)
@@ -208,6 +229,23 @@ class OrientWidget(QWidget):
     def method(self) -> str:
         return self.method_combo.currentData()
 
+    def _declination_mode_changed(self, auto: bool) -> None:
+        # The spin box shows the computed value after a run; it is not an input then.
+        self.declination_spin.setEnabled(not auto)
+        self.georef_edit.setEnabled(auto)
+
+    def _declination_inputs(self, estimated: str) -> dict | None:
+        """``declination_deg`` (and ``georef``) for the backend; None (and a
+        message) when Auto has no georef.json to place the site."""
+        if not self.declination_auto.isChecked():
+            return {"declination_deg": self.declination_spin.value()}
+        georef = self.georef_edit.text().strip() or default_georef_path(estimated)
+        if not georef:
+            self._fail("Auto declination needs the model's georef.json (its origin places the "
+                       "site): choose one, or give the declination as a number.")
+            return None
+        return {"declination_deg": "auto", "georef": str(georef)}
+
     def _method_changed(self) -> None:
         if self.result is not None and not self.jobs.is_running("orientation"):
             self.run()
@@ -219,13 +257,18 @@ class OrientWidget(QWidget):
         if not estimated or not measured:
             self._fail("Choose both tables first.")
             return None
+        declination = self._declination_inputs(estimated)
+        if declination is None:
+            return None
         self.run_button.setEnabled(False)
         self.status_label.setText("Estimating…")
         self.status_label.setStyleSheet("")
         # Errors are shown in the widget as one line (bugs are logged with their traceback).
+        # Auto reads georef.json with pyproj: in a thread Python owns (see in_python_thread).
+        job = (in_python_thread, orient_files) if declination["declination_deg"] == "auto" \
+            else (orient_files,)
         return self.jobs.start(
-            "orientation", orient_files, estimated, measured, method=self.method,
-            declination_deg=self.declination_spin.value(),
+            "orientation", *job, estimated, measured, method=self.method, **declination,
             on_returned=self._on_result, on_failed=self._fail, on_finished=self._on_finished,
         )
 
@@ -241,6 +284,8 @@ class OrientWidget(QWidget):
         if result is None:  # cancelled
             return
         self.result = result
+        if self.declination_auto.isChecked():  # show the value the model gave
+            self.declination_spin.setValue(float(result.inputs.get("declination_deg", 0.0)))
         n_warn = len(result.warnings)
         n_untested = sum(flag.status == "n/a" for flag in result.flags)
         # A flag the data cannot test is no pass: say so rather than "all flags pass".
