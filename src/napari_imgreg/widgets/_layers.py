@@ -34,6 +34,8 @@ __all__ = [
     "frustum_segments",
     "NAPARI_AXIS_LABELS",
     "INTERPRETATION_OF",
+    "REDUCED_BY",
+    "photo_pixel_frame",
 ]
 
 LayerDataTuple = tuple[Any, dict[str, Any], str]
@@ -44,6 +46,21 @@ NAPARI_AXIS_LABELS = ("z (up)", "x (east)", "y (north)")
 #: Metadata key of an interpretation Shapes layer: the name of the photo layer
 #: it is drawn on (made by the interpretation dock, followed by the workbench).
 INTERPRETATION_OF = "imgreg_interpretation_of"
+#: Photo layer metadata key: the layer holds every this-many-th pixel of its
+#: photo, scaled up to the photo's extent (a workbench photo not shown); 0 or
+#: absent: all of them.
+REDUCED_BY = "imgreg_reduced_by"
+
+
+def photo_pixel_frame(photo_layer) -> tuple[np.ndarray, np.ndarray]:
+    """Where a photo's own pixels lie on the canvas: (row, col) scale and
+    translation, whether its layer holds all of them or a reduced copy
+    (:data:`REDUCED_BY`). Layers drawn over the photo take these."""
+    scale = np.asarray(photo_layer.scale[-2:], float)
+    reduced_by = float(photo_layer.metadata.get(REDUCED_BY) or 0)
+    if reduced_by > 0:
+        scale = scale / reduced_by
+    return scale, np.asarray(photo_layer.translate[-2:], float)
 
 
 def napari_from_world(xyz: np.ndarray) -> np.ndarray:

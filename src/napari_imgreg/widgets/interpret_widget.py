@@ -76,14 +76,17 @@ from ..interpret.structural import (  # the three-point plane moved there (issue
     draw_stereonet,
     plane_from_three_points,
 )
+from ..io.photos import load_photo
 from ..io.records import read_json
 from ..prior import load_camera_and_pose
 from ..workspace import PhotoState, Workspace, one_line, project_interpretation_sets
 from ._jobs import JobRunner
 from ._layers import (
     INTERPRETATION_OF,
+    REDUCED_BY,
     napari_from_pixels,
     napari_from_world,
+    photo_pixel_frame,
     pixels_from_napari,
 )
 
@@ -512,11 +515,12 @@ class InterpretWidget(QWidget):
     def _add_interpretation_layer(self, photo_layer, items: list[Interpretation] = ()):
         """A Shapes layer over the photo holding ``items``, wired to this widget."""
         label = self.current_label
+        pixel_scale, pixel_translate = photo_pixel_frame(photo_layer)
         layer = self.viewer.add_shapes(
             ndim=2,
             name=f"{photo_layer.name} interpretation",
-            scale=photo_layer.scale[-2:],
-            translate=photo_layer.translate[-2:],
+            scale=pixel_scale,
+            translate=pixel_translate,
             edge_width=3,
             face_color="transparent",
             features={"label": np.array([], dtype=object),
@@ -734,7 +738,17 @@ class InterpretWidget(QWidget):
         photo_name = layer.metadata.get(INTERP_KEY)
         if photo_name not in self.viewer.layers:
             return False
-        image = np.asarray(self.viewer.layers[photo_name].data)
+        photo_layer = self.viewer.layers[photo_name]
+        image = np.asarray(photo_layer.data)
+        if photo_layer.metadata.get(REDUCED_BY):
+            # A workbench photo not shown keeps a reduced copy: the trace is
+            # snapped on the photo's own pixels.
+            try:
+                image = load_photo(photo_layer.metadata["photo_path"]).image
+            except (InputError, KeyError) as exc:
+                self._fail(f"Not snapped: the photo's pixels cannot be read ({exc}); "
+                           "show the photo and snap again.")
+                return False
         clicks = pixels_from_napari(np.asarray(layer.data[index])[:, -2:])
         try:
             px = snap_trace(image, clicks, self.snap_params())
