@@ -616,7 +616,7 @@ def prior_for_photo(
     # record's own may (orientation.heading_reference). The photo's EXIF date
     # dates a magnetic one when the record gives no time.
     record = _heading_to_grid_north(record, georef, notes,
-                                    exif_date=capture_date(photo.exif or {}))
+                                    exif_date=capture_date(getattr(photo, "exif", None) or {}))
     if "position" in from_metadata and not _is_drone_photo(photo):
         _phone_altitude_from_dem(record, georef, getattr(scene, "dem", None),
                                  height_above_ground_m, notes)
@@ -719,8 +719,9 @@ def _heading_to_grid_north(record: SensorRecord, georef: Georef | None, notes: l
         return record
     reference = orientation["heading_reference"]
     if reference not in HEADING_REFERENCES:
+        known = ", ".join(repr(r) for r in HEADING_REFERENCES)
         raise input_error(record.source, "field 'orientation.heading_reference' must be one of "
-                          f"{', '.join(repr(r) for r in HEADING_REFERENCES)}, got {reference!r:.40}")
+                                         f"{known}, got {reference!r:.40}")
     orientation = {k: v for k, v in orientation.items() if k != "heading_reference"}
     record = replace(record, orientation=orientation)
     if reference == "grid" or orientation.get("trend_deg") is None:
@@ -732,9 +733,10 @@ def _heading_to_grid_north(record: SensorRecord, georef: Georef | None, notes: l
     if where is not None:
         convergence = float(meridian_convergence_deg(georef, (where[0], where[1], 0.0)))
         if math.isfinite(convergence) and abs(convergence) >= 0.005:
-            notes.append(f"trend {trend:.2f}° from true north is {(trend - convergence) % 360.0:.2f}° "
-                         f"from the grid north of {georef.crs} (meridian convergence "
-                         f"{convergence:+.2f}° at the camera)")
+            grid = (trend - convergence) % 360.0
+            notes.append(f"trend {trend:.2f}° from true north is {grid:.2f}° from the grid "
+                         f"north of {georef.crs} (meridian convergence {convergence:+.2f}° at "
+                         "the camera)")
             trend -= convergence
     record.orientation = {**orientation, "trend_deg": trend % 360.0}
     return record
