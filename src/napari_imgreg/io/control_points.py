@@ -27,7 +27,6 @@ and the problem.
 from __future__ import annotations
 
 import csv
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +36,7 @@ import numpy as np
 
 from .._atomic import atomic_write
 from ..errors import input_error
+from ._table_csv import cell_number, read_table_rows
 
 if TYPE_CHECKING:  # only the georeference's crs_to_local is used
     from ..geo import Georef
@@ -148,20 +148,8 @@ def read_control_points(path: str | os.PathLike, min_pairs: int = 0) -> ControlP
         cell; a row repeated or a name used twice; fewer than ``min_pairs`` pairs.
     """
     path = Path(path)
-    if not path.exists():
-        raise input_error(path, "no such file")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise input_error(path, f"cannot read ({exc})") from None
     expected = "expected photo_x,photo_y,x,y,z[,name] or photo_x,photo_y,easting,northing,elevation"
-    lines = [(number, line) for number, line in enumerate(text.splitlines(), start=1)
-             if line.strip() and not line.lstrip().startswith("#")]
-    if not lines:
-        raise input_error(path, f"empty file ({expected})")
-    delimiter = next((d for d in (",", ";", "\t") if d in lines[0][1]), ",")
-    rows = list(csv.reader((line for _, line in lines), delimiter=delimiter))
-    header = [h.strip().lower() for h in rows[0]]
+    header, rows = read_table_rows(path, expected)
     point_columns = _point_columns(path, header, expected)
     frame = "model" if point_columns == MODEL_COLUMNS else "crs"
     numeric = PIXEL_COLUMNS + point_columns
@@ -173,9 +161,8 @@ def read_control_points(path: str | os.PathLike, min_pairs: int = 0) -> ControlP
     row_numbers: list[int] = []
     first_of_values: dict[tuple[float, ...], int] = {}
     first_of_name: dict[str, int] = {}
-    for (row_number, _), row in zip(lines[1:], rows[1:]):
-        cells = [c.strip() for c in row] + [""] * max(0, len(header) - len(row))
-        record = [_number(path, row_number, name, cells[col[name]]) for name in numeric]
+    for row_number, cells in rows:
+        record = [cell_number(path, row_number, name, cells[col[name]]) for name in numeric]
         key = tuple(record)
         if key in first_of_values:
             raise input_error(path, f"row {row_number}: repeats row {first_of_values[key]}")
@@ -224,18 +211,6 @@ def _point_columns(path: Path, header: list[str], expected: str) -> tuple[str, .
         missing = list(MODEL_COLUMNS)
     raise input_error(path, f"missing column{'s' if len(missing) > 1 else ''} "
                       f"{', '.join(missing)} (header is: {','.join(header)}; {expected})")
-
-
-def _number(path: Path, row: int, column: str, cell: str) -> float:
-    if cell == "":
-        raise input_error(path, f"row {row}: {column} is empty")
-    try:
-        value = float(cell)
-    except ValueError:
-        raise input_error(path, f"row {row}: {column} is not a number ({cell!r})") from None
-    if not math.isfinite(value):
-        raise input_error(path, f"row {row}: {column} is not a finite number ({cell!r})")
-    return value
 
 
 def write_control_points(path: str | os.PathLike, photo_px: np.ndarray, xyz: np.ndarray,

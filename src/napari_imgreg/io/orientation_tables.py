@@ -36,6 +36,7 @@ from .._deprecated import forward_moved_names
 from ..camera import attitude_from_rotation, rotation_from_attitude
 from ..errors import InputError, input_error
 from . import exif
+from ._table_csv import cell_number, read_table_rows
 
 __all__ = [
     "OrientationTable",
@@ -271,26 +272,8 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
         name, or no data rows.
     """
     path = Path(path)
-    if not path.exists():
-        raise input_error(path, "no such file")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise input_error(path, f"cannot read ({exc})") from None
-
-    lines = [
-        (number, line)
-        for number, line in enumerate(text.splitlines(), start=1)
-        if line.strip() and not line.lstrip().startswith("#")
-    ]
-    if not lines:
-        raise input_error(
-            path, "empty file (expected a header photo,trend_deg,plunge_deg,roll_deg)"
-        )
-    header_line = lines[0][1]
-    delimiter = next((d for d in (",", ";", "\t") if d in header_line), ",")
-    rows = list(csv.reader((line for _, line in lines), delimiter=delimiter))
-    header = [h.strip().lower() for h in rows[0]]
+    header, rows = read_table_rows(
+        path, "expected a header photo,trend_deg,plunge_deg,roll_deg")
     missing = [c for c in CSV_COLUMNS if c not in header]
     if missing:
         raise input_error(
@@ -309,10 +292,7 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
     values: list[list[float]] = []
     dates: list[date | None] = []
     first_row: dict[str, int] = {}
-    for (row_number, _), row in zip(lines[1:], rows[1:]):
-        cells = [c.strip() for c in row]
-        if len(cells) < len(header):
-            cells += [""] * (len(header) - len(cells))
+    for row_number, cells in rows:
         photo = cells[col["photo"]]
         if not photo:
             raise input_error(path, f"row {row_number}: empty photo name")
@@ -326,7 +306,7 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
         record = []
         for name in ("trend_deg", "plunge_deg", "roll_deg") + tuple(present_xyz):
             optional = name in ("plunge_deg", "roll_deg") or name in _POSITION_COLUMNS
-            record.append(_cell_number(path, row_number, name, cells[col[name]], optional))
+            record.append(cell_number(path, row_number, name, cells[col[name]], optional))
         if abs(record[1]) > 90:
             raise input_error(
                 path, f"row {row_number}: plunge_deg must be in [-90, 90], got {record[1]:g}"
@@ -348,20 +328,6 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
     if incomplete:
         table.notes.append(f"{incomplete} photo(s) have no plunge or roll (trend only)")
     return table
-
-
-def _cell_number(path: Path, row: int, column: str, cell: str, optional: bool) -> float:
-    if cell == "":
-        if optional:
-            return math.nan
-        raise input_error(path, f"row {row}: {column} is empty")
-    try:
-        value = float(cell)
-    except ValueError:
-        raise input_error(path, f"row {row}: {column} is not a number ({cell!r})") from None
-    if not math.isfinite(value):
-        raise input_error(path, f"row {row}: {column} is not a finite number ({cell!r})")
-    return value
 
 
 def _cell_date(path: Path, row: int, cell: str) -> date | None:

@@ -1,0 +1,85 @@
+"""The small CSV tables users write by hand or export from a spreadsheet
+(orientation tables, control points): one way to read them and their numbers.
+
+Commas, semicolons or tabs separate fields (the header line says which);
+blank lines and lines starting with ``#`` are skipped; a byte-order mark is
+ignored. Rows are numbered by their line in the file (the header being row 1
+when it is the first line), so that a message names the line a user sees.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+from ..errors import input_error
+
+__all__ = ["read_table_rows", "cell_number"]
+
+_DELIMITERS = (",", ";", "\t")
+
+
+def read_table_rows(path: Path, expected: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """The header and the data rows of a hand-written CSV table.
+
+    Parameters
+    ----------
+    path : Path
+    expected : str
+        What the header should be, for the message of an empty file
+        (``"expected photo,trend_deg,..."``).
+
+    Returns
+    -------
+    header : list of str
+        Column names, stripped and lower-cased.
+    rows : list of (int, list of str)
+        Each data row's line number and its cells, stripped, padded with
+        empty cells to the header's length.
+
+    Raises
+    ------
+    InputError
+        A missing, unreadable or empty file.
+    """
+    if not path.exists():
+        raise input_error(path, "no such file")
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise input_error(path, f"cannot read ({exc})") from None
+    lines = [(number, line) for number, line in enumerate(text.splitlines(), start=1)
+             if line.strip() and not line.lstrip().startswith("#")]
+    if not lines:
+        raise input_error(path, f"empty file ({expected})")
+    delimiter = next((d for d in _DELIMITERS if d in lines[0][1]), ",")
+    parsed = list(csv.reader((line for _, line in lines), delimiter=delimiter))
+    header = [h.strip().lower() for h in parsed[0]]
+    rows = []
+    for (number, _), row in zip(lines[1:], parsed[1:]):
+        cells = [c.strip() for c in row]
+        rows.append((number, cells + [""] * max(0, len(header) - len(cells))))
+    return header, rows
+
+
+def cell_number(path: Path, row: int, column: str, cell: str, optional: bool = False) -> float:
+    """A cell's finite number (an empty optional cell: NaN).
+
+    Raises
+    ------
+    InputError
+        ``"<file>: row N: <column> is empty / is not a number / is not a
+        finite number"``.
+    """
+    if cell == "":
+        if optional:
+            return math.nan
+        raise input_error(path, f"row {row}: {column} is empty")
+    try:
+        value = float(cell)
+    except ValueError:
+        raise input_error(path, f"row {row}: {column} is not a number ({cell!r})") from None
+    if not math.isfinite(value):
+        raise input_error(path, f"row {row}: {column} is not a finite number ({cell!r})")
+    return value
