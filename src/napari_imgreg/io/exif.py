@@ -333,17 +333,21 @@ def read_photo_capture_date(path: str | os.PathLike) -> date | None:
     InputError
         The file cannot be read as an image.
     """
+    return capture_date(_read_header(Path(path), exif_of_image))
+
+
+def _read_header(path: Path, read: Any) -> Any:
+    """``read(image)`` on a photo file opened by PIL (its header and tags,
+    no pixels decoded); a file PIL cannot open is one InputError."""
     from PIL import Image, UnidentifiedImageError
 
-    path = Path(path)
     if path.suffix.lower() in HEIF_SUFFIXES:
         ensure_heif_opener()
     try:
         with Image.open(path) as im:
-            tags = exif_of_image(im)
+            return read(im)
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise input_error(path, f"cannot read photo metadata ({exc})") from None
-    return capture_date(tags)
 
 
 # ---------------------------------------------------------------------------
@@ -451,17 +455,12 @@ def read_photo_xmp_and_gps(path: str | os.PathLike) -> tuple[str | None, dict[st
     InputError
         The file cannot be read as an image.
     """
-    from PIL import ExifTags, Image, UnidentifiedImageError
+    from PIL import ExifTags
 
     path = Path(path)
-    if path.suffix.lower() in HEIF_SUFFIXES:
-        ensure_heif_opener()
-    try:
-        with Image.open(path) as im:
-            xmp = im.info.get("xmp") or im.info.get("XML:com.adobe.xmp")
-            gps = im.getexif().get_ifd(ExifTags.IFD.GPSInfo)
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise input_error(path, f"cannot read photo metadata ({exc})") from None
+    xmp, gps = _read_header(path, lambda im: (
+        im.info.get("xmp") or im.info.get("XML:com.adobe.xmp"),
+        im.getexif().get_ifd(ExifTags.IFD.GPSInfo)))
     xmp_text = xmp.decode("utf-8", "replace") if isinstance(xmp, bytes) else xmp
     if not xmp_text:
         xmp_text = raw_xmp(path)
