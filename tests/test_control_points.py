@@ -304,3 +304,41 @@ def test_loaded_pairs_keep_their_points_in_a_saved_workspace(tmp_path):
                                    atol=1e-5)
     finally:
         again.detach()
+
+
+def test_pair_names_follow_their_pairs_through_edits_and_a_saved_workspace(tmp_path):
+    from napari_imgreg.sample import sample_scene
+    from napari_imgreg.workspace import Workspace
+
+    folder = sample_scene("small")
+    ws = Workspace()
+    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
+    ws.add_photos([folder / "IMG_0001.jpg"])
+    ws.make_reference()
+    truth = load_truth(folder / "IMG_0001.jpg")
+    xyz = truth.check_xyz[:6]
+    names = [f"GCP{k}" for k in (3, 5, 8, 11, 12, 20)]
+    pairs = tmp_path / "pairs.csv"
+    write_control_points(pairs, truth.pose.project(truth.intrinsics, xyz), xyz, names)
+    ws.load_pairs(pairs)
+    assert ws.pair_names() == names
+    ws.remove_pair(1)  # GCP5 goes, with its name
+    assert ws.pair_names() == ["GCP3", "GCP8", "GCP11", "GCP12", "GCP20"]
+    photo, ref = ws.current.photo_points_px.copy(), ws.current.reference_points_px.copy()
+    ref[0] += 3.0  # its reference point dragged: the model point under it, the same name
+    ws.set_pair_points(photo, ref)
+    assert ws.pair_names()[0] == "GCP3" and not ws.pairs_with_own_point()[0]
+    ws.add_pair([100.0, 100.0], [120.0, 110.0])  # a clicked pair has no name
+    assert ws.pair_names() == ["GCP3", "GCP8", "GCP11", "GCP12", "GCP20", ""]
+    ws.save(tmp_path / "campaign.imgreg")
+    ws.detach()
+    again = Workspace.open(tmp_path / "campaign.imgreg")
+    try:
+        assert again.pair_names() == ["GCP3", "GCP8", "GCP11", "GCP12", "GCP20", ""]
+        again.save_pairs(tmp_path / "again.csv")
+        written = read_control_points(tmp_path / "again.csv").names
+        # A clicked pair (the 6th, when it is on the model) has no name.
+        assert written[:5] == ["GCP3", "GCP8", "GCP11", "GCP12", "GCP20"]
+        assert written[5:] in ([], [""])
+    finally:
+        again.detach()

@@ -214,6 +214,10 @@ class PhotoState:
         carries its own, loaded from a control-point file
         (:meth:`Workspace.load_pairs`); NaN rows take theirs from the
         reference pick. Aligned with ``photo_points_px``.
+    pair_names : list of str
+        Each photo pick's name from a control-point file (``"GCP12"``; ""
+        for a clicked one), kept when the pairs are saved again. Aligned
+        with ``photo_points_px``.
     selected_trial : int or None
         Index into ``trials`` of the trial shown.
     runs : int
@@ -250,6 +254,7 @@ class PhotoState:
     photo_points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     reference_points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     pair_points_xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    pair_names: list[str] = field(default_factory=list)
     selected_trial: int | None = None
     runs: int = 0
     sun_override: np.ndarray | None = None
@@ -320,6 +325,7 @@ class PhotoState:
             "pairs": {"photo_px": np.asarray(self.photo_points_px).tolist(),
                       "reference_px": np.asarray(self.reference_points_px).tolist(),
                       "xyz": _xyz_to_list(self.pair_points_xyz),
+                      "names": list(self.pair_names),
                       "reference_source": self.reference_source,
                       "reference_pose": (None if self.reference is None
                                          else self.reference.cam_from_world.to_dict())},
@@ -1078,6 +1084,8 @@ class Workspace:
         order = np.r_[np.flatnonzero(own), np.flatnonzero(~own)]
         ps.photo_points_px = np.asarray(ps.photo_points_px, float)[order].reshape(-1, 2)
         ps.pair_points_xyz = xyz[order]
+        names = self._pair_names(ps)
+        ps.pair_names = [names[k] for k in order]
         ps.reference_points_px = _reference_pixels(reference, xyz[own])
         self.reference_changed.emit()
         self.pairs_changed.emit()
@@ -1088,16 +1096,23 @@ class Workspace:
 
         A pair loaded with its own model point keeps it through the edit
         (points added, deleted or dragged on the photo) unless its reference
-        point was dragged: it then takes the model point under it.
+        point was dragged: it then takes the model point under it. Its name
+        stays either way (the same target, picked better).
         """
         ps = self.current
         if ps is None:
             return
         photo = np.asarray(photo_px, float).reshape(-1, 2).copy()
         ref = np.asarray(reference_px, float).reshape(-1, 2).copy()
-        xyz = _carried_xyz(ps.photo_points_px, ps.reference_points_px, self._pair_xyz(ps),
-                           photo, ref)
-        ps.photo_points_px, ps.reference_points_px, ps.pair_points_xyz = photo, ref, xyz
+        rows = _carried_rows(ps.photo_points_px, photo)
+        xyz = _rows_of(self._pair_xyz(ps), rows, np.full(3, np.nan))
+        m = min(len(ref), len(ps.reference_points_px))
+        if len(photo) >= len(ps.photo_points_px) and m:
+            dragged = np.abs(ref[:m] - ps.reference_points_px[:m]).max(axis=1) > _SAME_PICK_PX
+            xyz[:m][dragged] = np.nan
+        names = [str(v) for v in _rows_of(np.array(self._pair_names(ps), object), rows, "")]
+        ps.photo_points_px, ps.reference_points_px = photo, ref
+        ps.pair_points_xyz, ps.pair_names = xyz, names
         self.pairs_changed.emit()
 
     def add_pair(self, photo_xy, reference_xy) -> int:
@@ -1118,11 +1133,14 @@ class Workspace:
         if ps is None:
             return
         photo, ref, xyz = ps.photo_points_px, ps.reference_points_px, self._pair_xyz(ps)
+        names = self._pair_names(ps)
         if index < len(photo):
             photo, xyz = np.delete(photo, index, axis=0), np.delete(xyz, index, axis=0)
+            names = names[:index] + names[index + 1:]
         if index < len(ref):
             ref = np.delete(ref, index, axis=0)
         ps.photo_points_px, ps.reference_points_px, ps.pair_points_xyz = photo, ref, xyz
+        ps.pair_names = names
         self.pairs_changed.emit()
 
     def clear_pairs(self) -> None:
@@ -1166,6 +1184,18 @@ class Workspace:
         xyz = np.asarray(ps.pair_points_xyz, float).reshape(-1, 3)[:n]
         return np.vstack([xyz, np.full((n - len(xyz), 3), np.nan)])
 
+    @staticmethod
+    def _pair_names(ps: PhotoState) -> list[str]:
+        """``ps.pair_names`` aligned with its photo picks ("" for none)."""
+        n = len(ps.photo_points_px)
+        names = [str(name) for name in ps.pair_names][:n]
+        return names + [""] * (n - len(names))
+
+    def pair_names(self, ps: PhotoState | None = None) -> list[str]:
+        """Each photo pick's name from a control-point file ("" for a clicked one)."""
+        ps = ps if ps is not None else self.current
+        return [] if ps is None else self._pair_names(ps)
+
     def load_pairs(self, path: str | os.PathLike) -> int:
         """Replace the current photo's pairs by those of a control-point file.
 
@@ -1190,6 +1220,7 @@ class Workspace:
         xyz = points.model_xyz(scene.georef)
         ps.photo_points_px = points.photo_px.copy()
         ps.pair_points_xyz = xyz
+        ps.pair_names = list(points.names)
         ps.reference_points_px = _reference_pixels(ps.reference, xyz)
         self.pairs_changed.emit()
         return len(points)
@@ -1216,8 +1247,12 @@ class Workspace:
         xyz, valid = self.pair_points_3d(ps)
         if not valid.any():
             raise WorkbenchError("No pair with a point on the model to save.")
-        numbers = [str(k + 1) for k in np.flatnonzero(valid)]  # the pairs table's numbers
-        write_control_points(path, photo_px[valid], xyz[valid], numbers)
+        # Names loaded from a file go back out; clicked pairs have none (their
+        # numbers in the table change as pairs are deleted: no name to keep).
+        names = self._pair_names(ps)
+        labels = [names[k] for k in np.flatnonzero(valid)]
+        write_control_points(path, photo_px[valid], xyz[valid],
+                             labels if any(labels) else None)
         return int(valid.sum()), int((~valid).sum())
 
     def manual_job(self, solve_focal: bool = False,
@@ -1990,34 +2025,39 @@ def _reference_pixels(reference: RenderResult, xyz: np.ndarray) -> np.ndarray:
     return px.reshape(-1, 2)
 
 
-def _carried_xyz(old_photo: np.ndarray, old_ref: np.ndarray, old_xyz: np.ndarray,
-                 photo: np.ndarray, ref: np.ndarray, tol_px: float = 0.01) -> np.ndarray:
-    """The pairs' own model points after a view's edit of the picks.
+#: Pixels within which a pick is the same pick after a view's edit.
+_SAME_PICK_PX = 0.01
 
-    An edit adds points at the end, deletes a pair from both lists, or drags
-    one point: the same count keeps the points in place (a dragged reference
-    point drops its pair's own point: it takes the one under it); fewer
-    follows the photo picks that remain, in order; more adds pairs without one.
+
+def _carried_rows(old_photo: np.ndarray, photo: np.ndarray) -> np.ndarray:
+    """Which old photo pick each pick is after a view's edit, (N,) int (-1: new).
+
+    An edit adds points at the end, deletes a pair, or drags one point: the
+    same count or more keeps the picks in place (the added ones new); fewer
+    follows the picks that remain, in order (a subsequence of the old ones).
     """
-    n = len(photo)
-    out = np.full((n, 3), np.nan)
-    if not np.isfinite(old_xyz).any():
-        return out
-    if n >= len(old_photo):
-        out[:len(old_xyz)] = old_xyz
-        m = min(len(ref), len(old_ref))
-        moved = np.zeros(n, bool)
-        moved[:m] = np.abs(ref[:m] - old_ref[:m]).max(axis=1, initial=0.0) > tol_px
-        out[moved] = np.nan
-        return out
+    n, n_old = len(photo), len(old_photo)
+    rows = np.full(n, -1)
+    if n >= n_old:
+        rows[:n_old] = np.arange(n_old)
+        return rows
     i = 0
-    for j in range(n):  # the remaining picks are a subsequence of the old ones
-        while i < len(old_photo) and np.abs(old_photo[i] - photo[j]).max() > tol_px:
+    for j in range(n):
+        while i < n_old and np.abs(old_photo[i] - photo[j]).max() > _SAME_PICK_PX:
             i += 1
-        if i == len(old_photo):
+        if i == n_old:
             break
-        out[j] = old_xyz[i]
+        rows[j] = i
         i += 1
+    return rows
+
+
+def _rows_of(values: np.ndarray, rows: np.ndarray, missing) -> np.ndarray:
+    """``values[rows]``, with ``missing`` where a row is -1 (a new pick)."""
+    out = np.empty((len(rows), *np.shape(values)[1:]), dtype=np.asarray(values).dtype)
+    out[...] = missing
+    kept = rows >= 0
+    out[kept] = np.asarray(values)[rows[kept]]
     return out
 
 
@@ -2089,6 +2129,7 @@ def _photo_doc(ps: PhotoState, folder: Path, has_matches: bool) -> dict:
         "pairs": {"photo_px": np.asarray(ps.photo_points_px, float).tolist(),
                   "reference_px": np.asarray(ps.reference_points_px, float).tolist(),
                   "xyz": _xyz_to_list(ps.pair_points_xyz),
+                  "names": list(ps.pair_names),
                   "reference_source": ps.reference_source,
                   "reference_pose": None if ref is None else ref.cam_from_world.to_dict(),
                   "reference_camera": None if ref is None else ref.intrinsics.to_dict()},
@@ -2447,6 +2488,7 @@ def _read_photo(folder: Path, entry: dict, inline: dict | None,
     ps.reference_points_px = np.asarray(pairs.get("reference_px") or [], float).reshape(-1, 2)
     ps.pair_points_xyz = np.array([[math.nan if v is None else v for v in row]
                                    for row in pairs.get("xyz") or []], float).reshape(-1, 3)
+    ps.pair_names = [str(name) for name in pairs.get("names") or []]
     ps.reference_source = str(pairs.get("reference_source", ""))
     if pairs.get("reference_pose"):
         # Renders are not kept: the reference is rendered again from its camera.

@@ -44,7 +44,7 @@ def test_saved_pairs_load_back_into_the_table_and_layers(workbench, qtbot, monke
     saved = read_control_points(path)
     np.testing.assert_allclose(saved.photo_px, photo_px[idx], atol=1e-5)
     np.testing.assert_allclose(saved.xyz, picked_xyz, atol=1e-5)
-    assert saved.names == [str(k) for k in range(1, 7)]
+    assert saved.names == [""] * 6  # clicked pairs have no names
 
     panel.clear_button.click()
     assert panel.table.rowCount() == 0
@@ -60,6 +60,7 @@ def test_saved_pairs_load_back_into_the_table_and_layers(workbench, qtbot, monke
                                atol=0.05)
     assert list(ref_layer.features["pair"]) == [1, 2, 3, 4, 5, 6]
     assert panel.table.rowCount() == 6 and panel.table.item(0, 3).text() == "✓ from file"
+    assert panel.table.item(0, 0).text() == "1"
 
     # Dragging a loaded pair's photo point keeps its model point; deleting a
     # pair keeps the others'.
@@ -87,10 +88,11 @@ def test_loaded_pairs_off_the_reference_keep_their_points_and_solve(
     inside = np.all((photo_px > 5) & (photo_px < np.array(ps.size) - 5), axis=1)
     xyz, photo_px = xyz[inside][:10], photo_px[inside][:10]
     path = tmp_path / "targets.csv"
-    write_control_points(path, photo_px, xyz)
+    write_control_points(path, photo_px, xyz, [f"T{k + 1}" for k in range(len(xyz))])
     monkeypatch.setattr(f"{_DIALOGS}.getOpenFileName", lambda *a, **k: (str(path), ""))
     panel.load_pairs_button.click()
     assert panel.table.rowCount() == 10
+    assert panel.table.item(0, 0).text() == "1 T1"  # the table names the surveyed targets
     lifted, on_model = ref.lift(ref.cam_from_world.project(ref.intrinsics, xyz))
     assert not np.allclose(lifted[on_model], xyz[on_model], atol=0.5)  # not the model's points
     np.testing.assert_allclose(ctrl.workspace.pair_points_3d()[0], xyz, atol=1e-5)

@@ -1601,11 +1601,12 @@ class ManualPanel(QWidget):
         n_photo, n_ref = len(photo_px), len(ref_px)
         valid = self.ws.pair_points_3d()[1]
         own = self.ws.pairs_with_own_point()
+        names = self.ws.pair_names()
         n = max(n_photo, n_ref)
         self.table.setRowCount(n)
         res = self._residuals
         for i in range(n):
-            items = [str(i + 1),
+            items = [f"{i + 1} {names[i]}" if i < len(names) and names[i] else str(i + 1),
                      f"{photo_px[i, 0]:.1f}, {photo_px[i, 1]:.1f}" if i < n_photo else
                      "click the photo",
                      f"{ref_px[i, 0]:.1f}, {ref_px[i, 1]:.1f}" if i < n_ref else
