@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -35,8 +35,8 @@ from ..camera import Intrinsics, Pose
 from .pose import reprojection_errors
 from .resection import refine_camera
 
-__all__ = ["diagnose", "photo_exposure", "focal_refit", "focal_retry_start", "match_spread",
-           "nothing_in_common", "prior_offset_hint"]
+__all__ = ["diagnose", "photo_exposure", "focal_refit", "FocalRetry", "focal_retry_start",
+           "match_spread", "nothing_in_common", "prior_offset_hint"]
 
 #: A photo with this share of pure-white pixels (luminance ≥ 250) is overexposed.
 OVEREXPOSED_SHARE = 0.25
@@ -92,7 +92,20 @@ def focal_refit(corr, pose: Pose, intrinsics: Intrinsics,
     return (float(f[0]), e0, e1, pose1) if with_pose else (float(f[0]), e0, e1)
 
 
-def focal_retry_start(trials: Sequence, intrinsics: Intrinsics):
+class FocalRetry(NamedTuple):
+    """What :func:`focal_retry_start` found: the trial whose matches fit
+    another focal length far better, that focal length and the pose refitted
+    with it, and the median reprojection errors (pixels) with the record's
+    camera and with the refitted one."""
+
+    trial: Any
+    fx: float
+    pose: Pose
+    error_given_px: float
+    error_free_px: float
+
+
+def focal_retry_start(trials: Sequence, intrinsics: Intrinsics) -> FocalRetry | None:
     """The trial to estimate the focal length from, and the focal length to
     start with, when the record's looks wrong; None otherwise.
 
@@ -104,10 +117,11 @@ def focal_retry_start(trials: Sequence, intrinsics: Intrinsics):
 
     Returns
     -------
-    (Trial, float, Pose) or None
-        The trial, the refitted fx (pixels) and the pose refitted with it (a
+    FocalRetry or None
+        The trial, the refitted fx (pixels), the pose refitted with it (a
         focal length that wrong puts the trial's own camera tens of metres off
-        along its view: the start for the focal length's trial).
+        along its view: the start for the focal length's trial) and the two
+        fits' errors.
     """
     fits = []
     for t in trials:
@@ -123,7 +137,7 @@ def focal_retry_start(trials: Sequence, intrinsics: Intrinsics):
         return None
     _, (fx, e0, e1, pose), t, camera = max(fits, key=lambda x: x[0])
     if abs(fx / camera.fx - 1.0) >= FOCAL_OFF and e1 <= FOCAL_GAIN * e0:
-        return t, fx, pose
+        return FocalRetry(t, fx, pose, e0, e1)
     return None
 
 
@@ -286,9 +300,8 @@ def _diagnose(trials: Sequence, best, status: str, prior, camera: Intrinsics,
     if "fx" not in (camera.estimated or ()) and getattr(intr, "focal_known", True):
         refit = focal_retry_start(keypoint, camera)
         if refit is not None:
-            t, fx, _ = refit
-            given = (t.intrinsics or camera).fx
-            _, e0, e1 = focal_refit(t.correspondences, t.pose, t.intrinsics or camera)
+            fx, e0, e1 = refit.fx, refit.error_given_px, refit.error_free_px
+            given = (refit.trial.intrinsics or camera).fx
             out.append(
                 f"The focal length looks wrong: the matches fit fx ≈ {fx:.0f} px (a "
                 f"{_hfov(fx, w):.0f}° horizontal view) far better than the given "

@@ -838,7 +838,7 @@ def register_photo(
         # five trials, a record without one registers), one trial estimates it.
         refit = focal_retry_start(trials, intr)
         if refit is not None:
-            _, fx, start = refit
+            fx, start = refit.fx, refit.pose
             guess = replace(intr, fx=fx, fy=fx * intr.fy / intr.fx, estimated=("fx", "fy"))
             trial = yield from rounds_of(
                 _run_trial(ctx, len(trials), start, params, "focal length",
