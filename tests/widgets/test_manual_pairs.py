@@ -92,3 +92,29 @@ def test_pairs_stay_matched_through_deletes_and_a_new_reference(workbench, qtbot
         assert panel.table.item(i, 1).text() == f"{kept[i, 0]:.1f}, {kept[i, 1]:.1f}"
         assert panel.table.item(i, 2).text() == "click the reference"
     assert len(ref_layer.data) == 0 and len(photo_layer.data) == 7
+
+
+def test_ctrl_v_on_a_pair_layer_pastes_no_pick(workbench, qtbot):
+    """napari's paste adds points without telling anyone (no data event): on
+    the pair layers it is refused, so the picks and the pairs never part."""
+    wb = workbench
+    ctrl = wb.controller
+    wb.scene_panel.sample_button.click()
+    qtbot.waitUntil(lambda: ctrl.current is not None, timeout=LOAD_S)
+    _idle(wb, qtbot)
+    wb.show_tab("Manual")
+    with qtbot.waitSignal(ctrl.reference_ready, timeout=20_000):
+        wb.manual_panel.ref_pose_button.click()
+    _idle(wb, qtbot)
+    for k in range(3):
+        ctrl.workspace.add_pair([100.0 + 50 * k, 200.0], [110.0 + 50 * k, 210.0])
+    photo, _ = ctrl.pair_layers()
+    ctrl.viewer.layers.selection.active = photo
+    photo.mode = "select"
+    photo.selected_data = {1}
+    photo._copy_data()
+    with qtbot.waitSignal(ctrl.status, timeout=2_000) as said:
+        ctrl.viewer.window._qt_viewer._key_map_handler.press_key("Control-V")
+    assert "not pasted" in said.args[0]
+    assert len(photo.data) == 3 and len(ctrl.workspace.current.photo_points_px) == 3
+    assert wb.manual_panel.table.rowCount() == 3

@@ -1519,8 +1519,20 @@ class WorkbenchController(QObject):
         for layer in (photo, ref):
             if not layer.metadata.get("imgreg_connected"):
                 layer.events.data.connect(self._on_pairs_data)
+                # napari's paste adds points without a data event: the picks
+                # and the workspace would part. A pasted pick means nothing
+                # (the same pixel again, or a photo pixel on the reference).
+                from app_model.types import KeyCode, KeyMod
+
+                layer.bind_key(KeyMod.CtrlCmd | KeyCode.KeyV, self._refuse_paste,
+                               overwrite=True)
                 layer.metadata["imgreg_connected"] = True
         return photo, ref
+
+    def _refuse_paste(self, layer=None) -> None:
+        """Ctrl+V on a pair layer: say how pairs are made instead of pasting."""
+        self.status.emit("Pairs are not pasted: click the point on the photo, then the same "
+                         "point on the reference (drag a point to move it).")
 
     def start_picking(self) -> None:
         """Put the photo's pair layer in add mode; clicks alternate photo → reference."""
