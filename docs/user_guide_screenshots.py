@@ -27,7 +27,7 @@ def main() -> None:
 
     from _screenshot_session import open_workbench, quality_height
 
-    from napari_imgreg.sample import load_truth
+    from napari_imgreg.sample import load_truth, truth_pairs
     from napari_imgreg.widgets._layers import napari_from_pixels
 
     _app, viewer, wb, pump, wait = open_workbench(wait_timeout_s=120.0)
@@ -135,19 +135,12 @@ def main() -> None:
     wb.manual_panel.ref_pose_button.click()
     wait(lambda: ctrl.current.reference is not None)
     ps = ctrl.current
-    truth = load_truth(ps.photo.path)
-    ref = ps.reference
-    ref_px = ref.cam_from_world.project(ref.intrinsics, truth.check_xyz)
-    xyz, valid = ref.lift(ref_px)
-    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
-    inside = np.all((photo_px > 20) & (photo_px < [ps.size[0] - 20, ps.size[1] - 20]), axis=1)
-    idx = np.flatnonzero(valid & inside & (np.linalg.norm(xyz - truth.check_xyz, axis=1) < 0.05))
-    idx = idx[np.linspace(0, len(idx) - 1, 8).round().astype(int)]
+    photo_px, ref_px, _ = truth_pairs(load_truth(ps.photo.path), ps.reference, ps.size)
     wb.manual_panel.pick_button.click()
     photo_layer, ref_layer = ctrl.pair_layers()
-    for k in idx:
-        photo_layer.add(napari_from_pixels(photo_px[k]))
-        ref_layer.add(napari_from_pixels(ref_px[k]))
+    for p, r in zip(photo_px, ref_px):
+        photo_layer.add(napari_from_pixels(p))
+        ref_layer.add(napari_from_pixels(r))
     viewer.layers.selection.active = ref_layer
     ref_layer.mode = "pan_zoom"
     pump(0.5)

@@ -723,3 +723,27 @@ def test_rough_scene_model_true_surface_and_check_points_over_the_frame(cheap_pa
     img = rough.photo(truth.intrinsics, truth.pose, PhotoConditions(sun_azimuth_deg=250.0,
                                                                    sun_elevation_deg=20.0), 1.0)
     assert img.shape == (h, w, 3) and img.std() > 10
+
+
+def test_truth_pairs_are_check_points_both_images_show(tmp_path):
+    from napari_imgreg.sample import load_truth, sample_scene, truth_pairs
+    from napari_imgreg.workspace import Workspace
+
+    folder = sample_scene("small")
+    ws = Workspace()
+    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
+    ws.add_photos([folder / "IMG_0002.jpg"])
+    ws.make_reference()
+    ps = ws.current
+    truth = load_truth(ps.photo.path)
+    photo_px, ref_px, xyz = truth_pairs(truth, ps.reference, ps.size, n=8, margin_px=20.0)
+    assert photo_px.shape == ref_px.shape == (8, 2) and xyz.shape == (8, 3)
+    # Each is where the true pose puts its check point, inside the margin ...
+    np.testing.assert_allclose(photo_px, truth.pose.project(truth.intrinsics, xyz), atol=1e-9)
+    assert np.all(photo_px >= 20) and np.all(photo_px <= np.array(ps.size) - 21)
+    # ... and the reference shows that very point (not one in front of it).
+    lifted, valid = ps.reference.lift(ref_px)
+    assert valid.all() and np.linalg.norm(lifted - xyz, axis=1).max() < 0.05
+    with pytest.raises(ValueError, match="wanted"):
+        truth_pairs(truth, ps.reference, ps.size, n=10_000)
+    ws.detach()

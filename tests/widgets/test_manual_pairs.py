@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from napari_imgreg.sample import load_truth
+from napari_imgreg.sample import load_truth, truth_pairs
 from napari_imgreg.widgets._layers import napari_from_pixels
 
 from ._workbench import LOAD_S, idle as _idle
@@ -26,16 +26,10 @@ def test_pairs_stay_matched_through_deletes_and_a_new_reference(workbench, qtbot
     _idle(wb, qtbot)
     ps = ctrl.current
     truth = load_truth(ps.photo.path)
-    ref = ps.reference
-    ref_px = ref.cam_from_world.project(ref.intrinsics, truth.check_xyz)
-    xyz, valid = ref.lift(ref_px)
-    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
-    inside = np.all((photo_px > 20) & (photo_px < [ps.size[0] - 20, ps.size[1] - 20]), axis=1)
-    idx = np.flatnonzero(valid & inside & (np.linalg.norm(xyz - truth.check_xyz, axis=1) < 0.05))
-    idx = idx[np.linspace(0, len(idx) - 1, 8).round().astype(int)]
+    photo_px, ref_px, _ = truth_pairs(truth, ps.reference, ps.size)
     rng = np.random.default_rng(0)
-    P = photo_px[idx] + rng.normal(0, 1.0, (8, 2))  # clicks, about a pixel off
-    R = ref_px[idx] + rng.normal(0, 1.0, (8, 2))
+    P = photo_px + rng.normal(0, 1.0, (8, 2))  # clicks, about a pixel off
+    R = ref_px + rng.normal(0, 1.0, (8, 2))
 
     panel.pick_button.click()
     photo_layer, ref_layer = ctrl.pair_layers()

@@ -22,7 +22,7 @@ from napari_imgreg.registration.filters import filtered_for_matching
 from napari_imgreg.io.records import load_sensor_record
 from napari_imgreg.prior import prior_for_photo, prior_from_record
 from napari_imgreg.registration.quality import GRADES, METRICS
-from napari_imgreg.sample import load_truth
+from napari_imgreg.sample import load_truth, truth_pairs
 from napari_imgreg.widgets._controller import GAP, controller_for
 from napari_imgreg.widgets._quality import CLASS_COLORS
 from napari_imgreg.widgets.workbench import INTERPRET_TAB, QUALITY_NAME, WORKBENCH_NAME, Workbench
@@ -602,19 +602,11 @@ def test_trial_history_says_where_each_pose_came_from_and_how_the_render_was_lit
 
 # ----------------------------------------------------------------- manual
 def _truth_pairs(ctrl, n=8):
-    """Check points seen in both images: the photo's pixels by the true pose, the
-    reference's by the reference render's own pose."""
+    """Check points seen in both images (see :func:`~napari_imgreg.sample.truth_pairs`)."""
     ps = ctrl.current
     truth = load_truth(ps.photo.path)
-    ref = ps.reference
-    ref_px = ref.cam_from_world.project(ref.intrinsics, truth.check_xyz)
-    xyz, valid = ref.lift(ref_px)
-    seen = valid & (np.linalg.norm(xyz - truth.check_xyz, axis=1) < 0.05)
-    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
-    inside = np.all((photo_px >= 0) & (photo_px < [ps.size[0] - 1, ps.size[1] - 1]), axis=1)
-    idx = np.flatnonzero(seen & inside)[:n]
-    assert len(idx) == n
-    return truth, photo_px[idx], ref_px[idx]
+    photo_px, ref_px, _ = truth_pairs(truth, ps.reference, ps.size, n=n, margin_px=0.0)
+    return truth, photo_px, ref_px
 
 
 def test_manual_pairs_from_the_truth_recover_the_pose(workbench, qtbot):

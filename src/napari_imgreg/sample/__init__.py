@@ -94,6 +94,7 @@ __all__ = [
     "write_cache_manifest",
     "CACHE_MANIFEST",
     "load_truth",
+    "truth_pairs",
     "write_survey",
     "plane_normal",
     "dip_from_normal",
@@ -837,6 +838,55 @@ def load_truth(path: str | os.PathLike) -> PhotoTruth | SceneTruth:
     if not truth_path.is_file():
         raise input_error(p, f"no ground truth beside it ({truth_path.name} missing)")
     return _photo_truth(truth_path)
+
+
+def truth_pairs(truth: PhotoTruth, reference, photo_size: tuple[int, int], n: int = 8,
+                margin_px: float = 20.0, max_lift_error_m: float = 0.05
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Control-point pairs as a careful user would click them, from a sample
+    photo's ground truth (tests, demos, screenshots of manual registration).
+
+    The photo's check points that a reference render shows (the model point
+    under the pixel within ``max_lift_error_m`` of the check point: not
+    hidden, not off the model) and that lie at least ``margin_px`` inside
+    the photo; ``n`` of them, spread over the list.
+
+    Parameters
+    ----------
+    truth : PhotoTruth
+    reference : RenderResult
+        The reference render (its ``cam_from_world``, ``intrinsics``, ``lift``).
+    photo_size : (int, int)
+        The photo's (width, height), pixels.
+    n : int
+    margin_px, max_lift_error_m : float
+
+    Returns
+    -------
+    photo_px, reference_px : (n, 2) float arrays
+        Exact pixels (x, y) of each pair: by the true pose in the photo, by
+        the reference's own camera in the render.
+    xyz : (n, 3) float array
+        The check points, model frame, metres.
+
+    Raises
+    ------
+    ValueError
+        Fewer than ``n`` such check points.
+    """
+    xyz = np.asarray(truth.check_xyz, float)
+    ref_px = reference.cam_from_world.project(reference.intrinsics, xyz)
+    lifted, valid = reference.lift(ref_px)
+    seen = valid & (np.linalg.norm(lifted - xyz, axis=1) < max_lift_error_m)
+    photo_px = truth.pose.project(truth.intrinsics, xyz)
+    width, height = photo_size
+    inside = np.all((photo_px >= margin_px)
+                    & (photo_px <= [width - 1 - margin_px, height - 1 - margin_px]), axis=1)
+    idx = np.flatnonzero(seen & inside)
+    if len(idx) < n:
+        raise ValueError(f"{len(idx)} check points in both images, {n} wanted")
+    idx = idx[np.linspace(0, len(idx) - 1, n).round().astype(int)]
+    return photo_px[idx], ref_px[idx], xyz[idx]
 
 
 def _read_json(path: Path) -> Any:
