@@ -685,7 +685,8 @@ def register_from_pairs(
     -------
     registration : Registration
         Status ``"registered"`` or ``"failed"``; ``uncertainty`` the pairs'
-        own (basis ``"control points"``); ``camera.estimated`` holds ``fx,
+        own (basis ``"control points"``), or the photo's matches' where they
+        verify the pose; ``camera.estimated`` holds ``fx,
         fy`` when the focal length was solved; one trial (origin ``manual``),
         none when no pose was solved (then the prior's pose, grade
         ``failed`` and the reason as the hint). ``metrics`` adds
@@ -738,5 +739,7 @@ def register_from_pairs(
         intrinsics=sol.intrinsics, pose=sol.pose, prior=prior,
         metrics={**trial.metrics, **counts}, q=trial.q, grade=trial.grade, hints=hints,
         trials=[trial], timings_s=timings, best_trial=0, assumptions=assumptions,
-        uncertainty=sol.uncertainty)
+        # The workbench's estimate of this pose: the photo's matches' own when
+        # they verify it, else the pairs'.
+        uncertainty=trial.uncertainty)
     return registration, sol
