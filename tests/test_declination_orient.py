@@ -89,8 +89,8 @@ def test_a_given_declination_is_recorded_as_given(survey):
     assert rotation_error_deg(result.rotation, survey.rotation) < 1e-6
 
 
-def test_auto_needs_a_georef_and_dates(survey):
-    with pytest.raises(InputError, match="needs the model's georef.json"):
+def test_auto_needs_a_site_and_dates(survey):
+    with pytest.raises(InputError, match="needs the site: the model's georef.json"):
         orient(survey.estimated, survey.measured, declination_deg="auto")
     with pytest.raises(InputError, match="no capture dates for an automatic declination"):
         orient(survey.estimated, survey.measured, declination_deg="auto", georef=SITE_GEOREF)
@@ -98,14 +98,20 @@ def test_auto_needs_a_georef_and_dates(survey):
         orient(survey.estimated, survey.measured, declination_deg="automatic")
 
 
-def _jpeg(path, taken=None, direction=None, ref="M"):
+def _jpeg(path, taken=None, direction=None, ref="M", lat_lon=None):
     exif = Image.Exif()
     if taken is not None:
         exif.get_ifd(ExifTags.IFD.Exif)[ExifTags.Base.DateTimeOriginal] = taken
+    gps = exif.get_ifd(ExifTags.IFD.GPSInfo) if direction is not None or lat_lon else None
     if direction is not None:
-        gps = exif.get_ifd(ExifTags.IFD.GPSInfo)
         gps[ExifTags.GPS.GPSImgDirectionRef] = ref
         gps[ExifTags.GPS.GPSImgDirection] = direction
+    if lat_lon is not None:
+        (lat, lon) = lat_lon
+        gps[ExifTags.GPS.GPSLatitudeRef] = "S" if lat < 0 else "N"
+        gps[ExifTags.GPS.GPSLatitude] = (abs(lat), 0.0, 0.0)
+        gps[ExifTags.GPS.GPSLongitudeRef] = "W" if lon < 0 else "E"
+        gps[ExifTags.GPS.GPSLongitude] = (abs(lon), 0.0, 0.0)
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(path, exif=exif)
 
 
@@ -122,6 +128,25 @@ def test_without_a_time_column_the_photos_exif_dates_the_survey(tmp_path, survey
     assert day.isoformat() == "2027-07-02"
     assert source == f"median of 3 capture dates in EXIF DateTimeOriginal of the photos in " \
                      f"{tmp_path}, over 5 days"
+
+
+def test_without_a_georef_the_photos_gps_places_the_site(tmp_path, survey):
+    """A photogrammetry model without a georeference (what orient is for): the
+    MEASURED photos' own GPS places the site."""
+    estimated, measured = _write_tables(tmp_path, survey, times=False, georef=False)
+    table = read_orientation_table(measured)
+    for k, name in enumerate(table.photos[:5]):
+        # A few metres apart (1e-5° ≈ 1 m); one phone without a fix (0, 0) is not a site.
+        where = (0.0, 0.0) if k == 4 else (-13.0 + 1e-5 * k, -59.0 - 1e-5 * k)
+        _jpeg(tmp_path / name, f"2027:07:0{1 + k % 3} 10:00:00", lat_lon=where)
+    result = orient(read_orientation_table(estimated), table, declination_deg="auto")
+    assert result.inputs["declination_deg"] == pytest.approx(NOAA_DECLINATION, abs=0.05)
+    assert rotation_error_deg(result.rotation, survey.rotation) < 0.05
+    block = result.inputs["declination"]
+    assert block["georef"] is None
+    assert block["place"] == f"the median GPS position of 4 photos in {tmp_path}"
+    assert block["latitude_deg"] == pytest.approx(-13.0, abs=1e-4)
+    assert any("the median GPS position of 4 photos" in n for n in result.notes)
 
 
 def test_a_folder_of_photos_keeps_dates_and_heading_references(tmp_path):
@@ -178,12 +203,13 @@ def test_cli_numeric_declination_is_unchanged(tmp_path, survey, run_cli):
     assert "declination" not in " ".join(data["notes"])
 
 
-def test_cli_auto_without_a_georef_is_one_line(tmp_path, survey, run_cli):
+def test_cli_auto_without_a_georef_or_gps_is_one_line(tmp_path, survey, run_cli):
     estimated, measured = _write_tables(tmp_path, survey, georef=False)
     run = run_cli(["orient", estimated, measured, "--out", tmp_path / "o.json",
                    "--declination", "auto"])
     assert run.code == 2
-    assert f"{estimated}: --declination auto needs the model's georef.json" in run.line
+    assert f"{measured}: an automatic declination needs the site: the model's georef.json" \
+        in run.line
     assert not (tmp_path / "o.json").exists()
 
 

@@ -67,13 +67,13 @@ def test_auto_declination_is_computed_in_the_backend(widget, magnetic_tables, tm
     assert rotation_error_deg(blocker.args[0].rotation, survey.rotation) > 15.0
 
 
-def test_auto_without_a_georef_says_so(widget, magnetic_tables, qtbot):
+def test_auto_without_a_georef_or_gps_says_so(widget, magnetic_tables, qtbot):
     est, meas, _ = magnetic_tables
     widget.set_tables(est, meas)
     widget.declination_auto.setChecked(True)
-    with qtbot.waitSignal(widget.orientation_failed, timeout=2000) as blocker:
-        assert widget.run() is None
-    assert "needs the model's georef.json" in blocker.args[0]
+    with qtbot.waitSignal(widget.orientation_failed, timeout=15000) as blocker:
+        widget.run()
+    assert "needs the site: the model's georef.json" in blocker.args[0]
     assert widget.run_button.isEnabled()
 
 

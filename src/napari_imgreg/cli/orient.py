@@ -54,7 +54,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--declination", type=_declination, default=0.0, metavar="DEG|auto",
         help="magnetic declination, degrees east in [-180, 180], added to MEASURED trends "
         "(default 0: the phone logged true north); 'auto': the World Magnetic Model's at the "
-        "model's georeferenced origin on the photos' median capture day (needs georef.json)",
+        "model's georeferenced origin (without georef.json: the MEASURED photos' median GPS "
+        "position) on the photos' median capture day",
     )
     p.add_argument(
         "--georef", metavar="georef.json",
@@ -77,21 +78,16 @@ def _declination(text: str) -> float | str:
             f"expected degrees east (e.g. 3.0) or 'auto', got {text!r}") from None
 
 
-def _georef_for_auto(args: argparse.Namespace) -> Path:
-    """The georef.json that places the site for ``--declination auto``."""
+def _georef_for_auto(args: argparse.Namespace) -> Path | None:
+    """The georef.json that places the site for ``--declination auto``; None
+    when there is none (the MEASURED photos' GPS places it then)."""
     from ..orient import default_georef_path
 
     if args.georef:
         if not Path(args.georef).is_file():
             raise input_error(args.georef, "no such file")
         return Path(args.georef)
-    found = default_georef_path(args.apply, args.estimated)
-    if found is None:
-        raise input_error(
-            args.estimated, "--declination auto needs the model's georef.json (its origin "
-            "places the site): give --georef FILE, put georef.json beside the mesh or this "
-            "table, or give the declination as a number")
-    return found
+    return default_georef_path(args.apply, args.estimated)
 
 
 def cmd_orient(args: argparse.Namespace) -> int:

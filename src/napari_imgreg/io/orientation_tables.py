@@ -49,6 +49,7 @@ __all__ = [
     "pair_tables",
     "write_orientation_csv",
     "photo_capture_dates",
+    "photo_gps_sites",
     "CSV_COLUMNS",
 ]
 
@@ -344,17 +345,12 @@ def _cell_date(path: Path, row: int, cell: str) -> date | None:
                                 "2026-06-01 or 2026-06-01T10:21:00+02:00)") from None
 
 
-def photo_capture_dates(photos: Sequence[str], folder: str | os.PathLike
-                        ) -> list[date | None] | None:
-    """The EXIF day of each photo found in ``folder`` by its name.
+def _photo_files(photos: Sequence[str], folder: str | os.PathLike) -> list[Path | None] | None:
+    """The file of each photo found in ``folder`` by its name (None: not
+    found); None when the folder cannot be read or holds none of them.
 
     A name matches the file of that name, or of that stem with a photo
-    suffix (``IMG_0001`` → ``IMG_0001.JPG``), case aside. Unreadable
-    files and photos without a date give None.
-
-    Returns
-    -------
-    list of (datetime.date or None), or None when no photo was found.
+    suffix (``IMG_0001`` → ``IMG_0001.JPG``), case aside.
     """
     folder = Path(folder)
     try:
@@ -363,21 +359,63 @@ def photo_capture_dates(photos: Sequence[str], folder: str | os.PathLike
     except OSError:
         return None
     by_stem = {Path(name).stem: p for name, p in files.items()}
-    dates: list[date | None] = []
-    found = False
+    found = []
     for photo in photos:
         name = Path(photo).name.lower()
-        path = files.get(name) or by_stem.get(Path(name).stem if Path(name).suffix.lower()
-                                              in _PHOTO_SUFFIXES else name)
-        day = None
+        found.append(files.get(name) or by_stem.get(Path(name).stem if Path(name).suffix.lower()
+                                                    in _PHOTO_SUFFIXES else name))
+    return found if any(path is not None for path in found) else None
+
+
+def photo_capture_dates(photos: Sequence[str], folder: str | os.PathLike
+                        ) -> list[date | None] | None:
+    """The EXIF day of each photo found in ``folder`` by its name
+    (:func:`_photo_files`). Unreadable files and photos without a date give None.
+
+    Returns
+    -------
+    list of (datetime.date or None), or None when no photo was found.
+    """
+    files = _photo_files(photos, folder)
+    if files is None:
+        return None
+    dates: list[date | None] = []
+    for path in files:
+        try:  # a damaged photo dates nothing; the others still do
+            dates.append(exif.read_photo_capture_date(path) if path is not None else None)
+        except InputError:
+            dates.append(None)
+    return dates
+
+
+def photo_gps_sites(photos: Sequence[str], folder: str | os.PathLike
+                    ) -> list[tuple[float, float] | None] | None:
+    """The EXIF GPS latitude and longitude (degrees, WGS84) of each photo
+    found in ``folder`` by its name (:func:`_photo_files`); None for a photo
+    without them or unreadable.
+
+    Returns
+    -------
+    list of ((lat_deg, lon_deg) or None), or None when no photo was found.
+    """
+    files = _photo_files(photos, folder)
+    if files is None:
+        return None
+    sites: list[tuple[float, float] | None] = []
+    for path in files:
+        site = None
         if path is not None:
-            found = True
             try:
-                day = exif.read_photo_capture_date(path)
-            except InputError:  # a damaged photo dates nothing; the others still do
-                day = None
-        dates.append(day)
-    return dates if found else None
+                _, gps = exif.read_photo_xmp_and_gps(path)
+            except InputError:
+                gps = {}
+            lat = exif.gps_degrees(gps.get("GPSLatitude"), gps.get("GPSLatitudeRef", "N"))
+            lon = exif.gps_degrees(gps.get("GPSLongitude"), gps.get("GPSLongitudeRef", "E"))
+            if lat is not None and lon is not None and abs(lat) <= 90 and abs(lon) <= 180 \
+                    and (lat, lon) != (0.0, 0.0):  # 0, 0: a phone without a fix
+                site = (lat, lon)
+        sites.append(site)
+    return sites
 
 
 def write_orientation_csv(path: str | os.PathLike, table: OrientationTable) -> None:

@@ -2,7 +2,9 @@
 
 :func:`survey_declination` gives the World Magnetic Model's declination
 (:func:`napari_imgreg.geo.magnetic_declination`) at the model's
-georeferenced origin on the survey's date: the median day of the MEASURED
+georeferenced origin — or, for a model without a georeference (what
+``orient`` is for), at the median GPS position of the MEASURED photos —
+on the survey's date: the median day of the MEASURED
 table's capture dates (a CSV's ``time`` column, the EXIF of a folder of
 photos), else of the EXIF ``DateTimeOriginal`` of its photos found beside
 it. Over a survey's few hundred metres and few days the declination varies
@@ -27,9 +29,9 @@ from ..geo import (
     magnetic_declination,
     site_latitude_longitude,
 )
-from ..io.orientation_tables import OrientationTable, photo_capture_dates
+from ..io.orientation_tables import OrientationTable, photo_capture_dates, photo_gps_sites
 
-__all__ = ["AUTO", "SurveyDeclination", "survey_date", "survey_declination",
+__all__ = ["AUTO", "SurveyDeclination", "survey_date", "survey_site", "survey_declination",
            "default_georef_path"]
 
 #: What the command line and the widget take for "compute it".
@@ -48,12 +50,17 @@ class SurveyDeclination:
         How the date was found ("median of 51 capture dates in the MEASURED
         table's time column", ...).
     georef_source : str
-        The ``georef.json`` that placed the site (or ``"given"``).
+        The ``georef.json`` that placed the site (or ``"given"``); "" when
+        the photos' GPS did.
+    place_source : str
+        What placed the site, in words ("the origin of georef.json", "the
+        median GPS position of 12 photos in ...").
     """
 
     declination: MagneticDeclination
     date_source: str
     georef_source: str
+    place_source: str = ""
 
     @property
     def declination_deg(self) -> float:
@@ -63,7 +70,9 @@ class SurveyDeclination:
     def to_dict(self) -> dict[str, Any]:
         """The ``inputs.declination`` block of ORIENTATION.json."""
         return {**self.declination.to_dict(), "date_from": self.date_source,
-                "place": "the georeferenced model origin", "georef": self.georef_source}
+                "place": ("the georeferenced model origin" if self.georef_source
+                          else self.place_source),
+                "georef": self.georef_source or None}
 
     def note(self) -> str:
         """One line for the result's notes."""
@@ -73,8 +82,9 @@ class SurveyDeclination:
             "; extrapolated past the model's years" if d.extrapolated else ""))
         return (f"declination {d.label()} added to the measured trends: World Magnetic Model "
                 f"at {abs(d.latitude_deg):.4f}° {'N' if d.latitude_deg >= 0 else 'S'}, "
-                f"{abs(d.longitude_deg):.4f}° {'E' if d.longitude_deg >= 0 else 'W'} (the "
-                f"origin of {self.georef_source}) on the {self.date_source}{extra}")
+                f"{abs(d.longitude_deg):.4f}° {'E' if d.longitude_deg >= 0 else 'W'} ("
+                f"{self.place_source or 'the origin of ' + self.georef_source}) on the "
+                f"{self.date_source}{extra}")
 
 
 def survey_date(measured: OrientationTable) -> tuple[date, str]:
@@ -115,17 +125,45 @@ def _any(dates) -> bool:
     return bool(dates) and any(d is not None for d in dates)
 
 
+def survey_site(measured: OrientationTable) -> tuple[float, float, str]:
+    """The median EXIF GPS position of the MEASURED photos (a folder of
+    photos, or the photos found beside a table): (lat_deg, lon_deg, where).
+
+    Raises
+    ------
+    InputError
+        No photo with a GPS position: the message asks for the model's
+        georef.json or the declination as a number.
+    """
+    sites, where = None, ""
+    if measured.source is not None:
+        folder = measured.source if measured.source.is_dir() else measured.source.parent
+        sites = photo_gps_sites(measured.photos, folder)
+        where = str(folder)
+    known = [site for site in (sites or []) if site is not None]
+    if not known:
+        raise input_error(
+            measured.source, "an automatic declination needs the site: the model's "
+            "georef.json (its origin), or MEASURED photos with EXIF GPS beside the table; "
+            "give --georef FILE, or the declination as a number (--declination DEG)")
+    lat = statistics.median(site[0] for site in known)
+    lon = statistics.median(site[1] for site in known)  # a survey spans metres, not 180°
+    count = f"{len(known)} photo{'s' if len(known) > 1 else ''}"
+    return lat, lon, f"the median GPS position of {count} in {where}"
+
+
 def survey_declination(
-    measured: OrientationTable, georef: Georef | str | os.PathLike
+    measured: OrientationTable, georef: Georef | str | os.PathLike | None = None
 ) -> SurveyDeclination:
-    """The WMM declination at the model's georeferenced origin on the survey's date.
+    """The WMM declination at the site on the survey's date.
 
     Parameters
     ----------
     measured : OrientationTable
         The phone's table; its capture dates date the survey
-        (:func:`survey_date`).
-    georef : Georef or path-like
+        (:func:`survey_date`), and without ``georef`` its photos' GPS
+        places it (:func:`survey_site`).
+    georef : Georef or path-like, optional
         The model's ``georef.json`` (or the object): its origin is the site.
 
     Returns
@@ -139,19 +177,23 @@ def survey_declination(
         a site in a magnetic pole's blackout zone (the message names the
         georef.json or the table and asks for a number).
     """
-    if isinstance(georef, Georef):
-        georef_source = "the georeference given"
+    if georef is None:
+        lat, lon, place = survey_site(measured)
+        height, georef_source, blame = 0.0, "", measured.source  # immaterial to a declination
     else:
-        georef_source = str(georef)
-        georef = Georef.load(georef)
+        if isinstance(georef, Georef):
+            georef_source, blame = "the georeference given", None
+        else:
+            georef_source = blame = str(georef)
+            georef = Georef.load(georef)
+        lat, lon, height = site_latitude_longitude(georef)
+        place = f"the origin of {georef_source}"
     when, date_source = survey_date(measured)
-    lat, lon, height = site_latitude_longitude(georef)
     try:
         declination = magnetic_declination(lat, lon, height, when)
     except GeoError as exc:
-        raise input_error(georef_source if georef_source != "the georeference given" else None,
-                          f"{exc} (--declination DEG)") from None
-    return SurveyDeclination(declination, date_source, georef_source)
+        raise input_error(blame, f"{exc} (--declination DEG)") from None
+    return SurveyDeclination(declination, date_source, georef_source, place)
 
 
 def default_georef_path(*near: str | os.PathLike | None) -> Path | None:

@@ -319,13 +319,14 @@ def orient(
     declination_deg : float or "auto"
         Magnetic declination, degrees east of true north, added to the
         measured trends (for a phone that logs magnetic headings). ``"auto"``:
-        the World Magnetic Model's at the origin of ``georef`` on the median
-        capture day of the measured photos
+        the World Magnetic Model's at the origin of ``georef`` (without it:
+        the measured photos' median GPS position) on the median capture day
+        of the measured photos
         (:func:`~napari_imgreg.orient.declination.survey_declination`).
         ORIENTATION.json's ``inputs.declination`` says which was used and
         where it came from.
     georef : Georef or path-like, optional
-        The model's ``georef.json``; needed (only) for ``"auto"``.
+        The model's ``georef.json``; read (only) for ``"auto"``.
 
     Returns
     -------
@@ -462,10 +463,7 @@ def _auto_declination(word: str, measured: OrientationTable | None,
     if not isinstance(measured, OrientationTable):
         raise ValueError("an automatic declination needs the measured table (its capture "
                          "dates), not tables already paired")
-    if georef is None:
-        raise input_error(None, "an automatic declination needs the model's georef.json (its "
-                                "origin places the site): give one, or the declination as a "
-                                "number")
+    # Without a georeference the MEASURED photos' GPS places the site.
     return survey_declination(measured, georef)
 
 

@@ -108,13 +108,15 @@ class OrientWidget(QWidget):
         )
         self.declination_auto = QCheckBox("Auto (WMM)")
         self.declination_auto.setToolTip(
-            "The World Magnetic Model's declination at the model's georeferenced origin on the "
-            "photos' median capture day (a time column, or the photos' EXIF); needs georef.json"
+            "The World Magnetic Model's declination at the model's georeferenced origin (without "
+            "a georef.json: the measured photos' GPS) on the photos' median capture day (a time "
+            "column, or the photos' EXIF)"
         )
         self.georef_edit = QLineEdit()
         self.georef_edit.setPlaceholderText("georef.json (default: beside the estimated table)")
         self.georef_edit.setToolTip("The model's georeference: its origin places the site "
-                                    "for the automatic declination")
+                                    "for the automatic declination (optional: the measured "
+                                    "photos' GPS otherwise)")
         self.georef_edit.setEnabled(False)
         declination_row = QWidget()
         declination_box = QHBoxLayout(declination_row)
@@ -235,16 +237,12 @@ class OrientWidget(QWidget):
         self.georef_edit.setEnabled(auto)
 
     def _declination_inputs(self, estimated: str) -> dict | None:
-        """``declination_deg`` (and ``georef``) for the backend; None (and a
-        message) when Auto has no georef.json to place the site."""
+        """``declination_deg`` (and ``georef``) for the backend. Without a
+        georef.json the backend places the site by the measured photos' GPS."""
         if not self.declination_auto.isChecked():
             return {"declination_deg": self.declination_spin.value()}
         georef = self.georef_edit.text().strip() or default_georef_path(estimated)
-        if not georef:
-            self._fail("Auto declination needs the model's georef.json (its origin places the "
-                       "site): choose one, or give the declination as a number.")
-            return None
-        return {"declination_deg": "auto", "georef": str(georef)}
+        return {"declination_deg": "auto", "georef": str(georef) if georef else None}
 
     def _method_changed(self) -> None:
         if self.result is not None and not self.jobs.is_running("orientation"):
