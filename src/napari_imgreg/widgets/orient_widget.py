@@ -113,7 +113,8 @@ class OrientWidget(QWidget):
             "column, or the photos' EXIF)"
         )
         self.georef_edit = QLineEdit()
-        self.georef_edit.setPlaceholderText("georef.json (default: beside the estimated table)")
+        self.georef_edit.setPlaceholderText(
+            "georef.json (optional: beside the table, or the photos' GPS)")
         self.georef_edit.setToolTip("The model's georeference: its origin places the site "
                                     "for the automatic declination (optional: the measured "
                                     "photos' GPS otherwise)")
