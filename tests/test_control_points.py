@@ -342,3 +342,47 @@ def test_pair_names_follow_their_pairs_through_edits_and_a_saved_workspace(tmp_p
         assert written[5:] in ([], [""])
     finally:
         again.detach()
+
+
+def test_workspace_pairs_registers_a_campaign_photo_from_control_points(tmp_path, run_cli):
+    """``workspace pairs``: the Manual tab's Load pairs… and Solve on the command line;
+    the pose and the pairs are saved in the workspace."""
+    import shutil
+
+    from napari_imgreg.sample import load_truth, sample_scene
+    from napari_imgreg.workspace import Workspace
+
+    folder = sample_scene("small")
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for name in ("outcrop.obj", "outcrop.mtl", "outcrop_texture.jpg", "dem.tif", "georef.json",
+                 "IMG_0001.jpg", "IMG_0001.json", "IMG_0002.jpg", "IMG_0002.json"):
+        shutil.copy(folder / name, scene / name)
+    ws_folder = tmp_path / "campaign.imgreg"
+    assert run_cli(["workspace", "create", ws_folder, scene], max_seconds=None).code == 0
+    truth = load_truth(folder / "IMG_0002.jpg")
+    rng = np.random.default_rng(4)
+    px = truth.pose.project(truth.intrinsics, truth.check_xyz)
+    inside = np.flatnonzero(np.all((px > 10) & (px < [1014, 758]), axis=1))
+    pick = inside[np.linspace(0, len(inside) - 1, 10).round().astype(int)]
+    xyz = truth.check_xyz[pick]
+    clicked = px[pick] + rng.normal(0, 1.0, (10, 2))
+    pairs = tmp_path / "targets.csv"
+    write_control_points(pairs, clicked, xyz, [f"T{k}" for k in range(len(xyz))])
+
+    run = run_cli(["workspace", "pairs", ws_folder, "IMG_0002.jpg", pairs], max_seconds=None)
+    assert run.code == 0, run.out + run.err
+    assert "IMG_0002.jpg: registered from 10 of 10 control points" in run.out
+    again = Workspace.open(ws_folder, autosave=False)
+    try:
+        ps = next(p for p in again.photos if p.name == "IMG_0002.jpg")
+        assert again.photo_status(ps) == "registered"
+        assert ps.pose.rotation_error_deg(truth.pose) < 0.1
+        assert again.pair_names(ps) == [f"T{k}" for k in range(len(xyz))]
+    finally:
+        again.detach()
+    # A bad file: one line, exit 2, nothing changed.
+    bad = tmp_path / "bad.csv"
+    bad.write_text("photo_x,photo_y,x,y\n1,2,3,4\n")
+    run = run_cli(["workspace", "pairs", ws_folder, "IMG_0001.jpg", bad])
+    assert run.code == 2 and "bad.csv: missing column z" in run.line, run.err

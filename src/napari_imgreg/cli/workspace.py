@@ -97,6 +97,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "its folder name under photos/ or its path)")
     li.add_argument("lines", metavar="LINES.geojson", help="pixel GeoJSON (docs/formats.md §7)")
 
+    pa = sub.add_parser("pairs", help="register a photo from control points (a PAIRS.csv), as "
+                        "the workbench's Manual tab does")
+    pa.add_argument("folder", metavar="WORKSPACE")
+    pa.add_argument("photo", metavar="PHOTO_NAME",
+                    help="the photo's file name in the workspace (where two photos share one, "
+                    "its folder name under photos/)")
+    pa.add_argument("pairs", metavar="PAIRS.csv",
+                    help="control points: photo_x,photo_y and x,y,z or easting,northing,"
+                    "elevation (docs/formats.md, Control points)")
+    pa.add_argument("--solve-focal", action="store_true",
+                    help="also solve the focal length (6 or more pairs)")
+
     sub.add_parser("project", help="project every photo's drawings onto the model and measure "
                    "them").add_argument("folder", metavar="WORKSPACE")
 
@@ -144,7 +156,7 @@ _OPENED: list[Workspace] = []
 
 
 #: The sub-commands that save into the workspace folder as they go.
-_WRITE_INTO_FOLDER = ("create", "add", "register", "lines", "project")
+_WRITE_INTO_FOLDER = ("create", "add", "register", "lines", "pairs", "project")
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
@@ -356,6 +368,39 @@ def _lines(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _pairs(args: argparse.Namespace) -> int:
+    from ..io.control_points import read_control_points
+    from ..registration import manual
+    from ..workspace import WorkbenchError
+
+    # A bad file is refused before anything is rendered or saved.
+    points = read_control_points(args.pairs, min_pairs=manual.MIN_PAIRS)
+    if args.solve_focal and len(points) < manual.MIN_PAIRS_FOCAL:
+        raise input_error(args.pairs, f"{len(points)} pairs: --solve-focal needs at least "
+                                      f"{manual.MIN_PAIRS_FOCAL}")
+    ws = _open(args.folder)
+    ps = _photo_named(ws, args.folder, args.photo)
+    ws.select_photo(ws.photos.index(ps))
+    try:
+        if ps.reference is None:  # the pairs are shown on one in the workbench
+            ws.make_reference()
+        ws.load_pairs(args.pairs)
+        sol = ws.solve_manual(solve_focal=args.solve_focal)
+    except WorkbenchError as exc:
+        raise input_error(args.pairs, str(exc)) from None
+    status = ws.photo_status(ps)
+    if not sol.ok:
+        say(f"{_label(ws, ps)}: not registered: no pose from the control points: {sol.reason}")
+        return EXIT_FAILED
+    unc = sol.uncertainty
+    expected = ("" if unc is None else f"; expected error {unc.reprojection_px:.1f} px, "
+                f"{unc.position_m:.2f} m, {unc.rotation_deg:.2f}°")
+    focal = f", focal length {sol.intrinsics.fx:.1f} px" if sol.focal_solved else ""
+    say(f"{_label(ws, ps)}: {status} from {sol.n_inliers} of {len(sol.inliers)} control "
+        f"points (RMS {sol.rms_px:.2f} px{focal}){expected}")
+    return EXIT_OK if status in ("registered", "accepted") else EXIT_FAILED
+
+
 def _project(args: argparse.Namespace) -> int:
     from ..workspace import WorkbenchError
     ws = _open(args.folder)
@@ -429,4 +474,5 @@ def _info(args: argparse.Namespace) -> int:
 
 
 _ACTIONS = {"create": _create, "add": _add, "register": _register, "lines": _lines,
+            "pairs": _pairs,
             "project": _project, "export": _export, "info": _info}
