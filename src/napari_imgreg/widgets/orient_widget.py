@@ -2,8 +2,8 @@
 
 Load the model's camera orientations (ESTIMATED) and the phone's (MEASURED),
 choose the estimator and the declination (a number, or *Auto (WMM)*: the
-World Magnetic Model's at the model's georeferenced origin on the photos'
-capture day, computed by the backend), Run (in a napari thread worker, the viewer stays
+World Magnetic Model's at the model's georeferenced origin, or the photos'
+GPS position, on their capture day, computed by the backend), Run (in a napari thread worker, the viewer stays
 responsive), read the rotation, the three estimators side by side, the
 quality flags and the Δξ/Δρ plots, then rotate a Surface layer.
 """
@@ -237,7 +237,7 @@ class OrientWidget(QWidget):
         self.declination_spin.setEnabled(not auto)
         self.georef_edit.setEnabled(auto)
 
-    def _declination_inputs(self, estimated: str) -> dict | None:
+    def _declination_inputs(self, estimated: str) -> dict:
         """``declination_deg`` (and ``georef``) for the backend. Without a
         georef.json the backend places the site by the measured photos' GPS."""
         if not self.declination_auto.isChecked():
@@ -257,8 +257,6 @@ class OrientWidget(QWidget):
             self._fail("Choose both tables first.")
             return None
         declination = self._declination_inputs(estimated)
-        if declination is None:
-            return None
         self.run_button.setEnabled(False)
         self.status_label.setText("Estimating…")
         self.status_label.setStyleSheet("")
