@@ -338,8 +338,8 @@ def orient(
         The tables do not pair (see ``pair_tables``), or their angles fit far
         better read in radians or with plunge or roll negated (a table in
         another convention: the message says which); with ``"auto"``: no
-        georeference, no capture date, or a date or place the World Magnetic
-        Model does not cover.
+        place (neither a georeference nor photos with GPS), no capture date,
+        or a date or place the World Magnetic Model does not cover.
     ValueError
         Unknown ``method``, an unknown declination word, or ``"auto"``
         without the measured table (already paired tables carry no dates).
