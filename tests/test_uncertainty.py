@@ -192,6 +192,10 @@ def test_quality_panel_line_says_the_estimate():
     synthetic = uncertainty_text(Uncertainty(4.6, 0.8, 0.3, 4, halves_px=2.0, shared_px=4.4), W)
     assert "4.4 px of it from the render's synthetic light" in synthetic and "#ff8a80" in synthetic
     assert "unknown" in uncertainty_text(Uncertainty(math.inf, math.inf, math.inf), W)
+    # An estimate from control points says whether the photo's matches confirmed the pose.
+    pairs = Uncertainty(1.9, 0.26, 0.18, basis="control points")
+    assert "did not confirm the pose" in uncertainty_text(pairs, W)
+    assert "the photo's matches confirm the pose" in uncertainty_text(pairs, W, verified=True)
 
 
 # ------------------------------------------------------------ reproducibility

@@ -86,11 +86,13 @@ def origin_text(rec) -> tuple[str, str]:
     return (cell if origin == "sun-lit render" else f"{cell} {SUNLIT_MARK}"), tip
 
 
-def uncertainty_text(unc, width: int) -> str:
+def uncertainty_text(unc, width: int, verified: bool = False) -> str:
     """The quality panel's line for a trial's error estimate (rich text).
 
     Green when the estimate is below :data:`UNCERTAIN_PX` (scaled to the
     photo's ``width``), red when it is not, grey when it was not estimated.
+    ``verified``: the photo's matches confirmed the pose (said of an
+    estimate from control points, which the matches did not make).
     """
     if unc is None:
         return ("<span style='color:#aaa'>Expected error: not estimated "
@@ -103,7 +105,9 @@ def uncertainty_text(unc, width: int) -> str:
                 "separate halves of the photo to check the pose independently</span>")
     colour = "#b9f6ca" if unc.is_small(width) else "#ff8a80"
     if getattr(unc, "basis", "") == "control points":
-        why = "from the control points' spread and click noise: the photo's matches did not check it"
+        why = ("from the control points' spread and click noise; the photo's matches confirm "
+               "the pose" if verified else "from the control points' spread and click noise: "
+               "the photo's matches did not confirm the pose")
     elif unc.halves_disagree(width):
         why = "the photo's halves disagree: the matches share a bias"
     elif unc.shared_px > 0 and unc.shared_px >= 0.5 * unc.reprojection_px:
@@ -380,7 +384,8 @@ class QualityPanel(QWidget):
         for chip, g in zip(self.legend_labels, GRADES):
             chip.setStyleSheet(f"background:{g.color}; color:#111; padding:2px; border-radius:3px;"
                                + (" border:3px solid white;" if g is grade else ""))
-        self.uncertainty_label.setText(uncertainty_text(getattr(t, "uncertainty", None), width))
+        self.uncertainty_label.setText(uncertainty_text(
+            getattr(t, "uncertainty", None), width, verified=bool(getattr(t, "verified", False))))
         self.uncertainty_label.show()
         for r, m in enumerate(METRICS):
             value = t.metrics.get(m.key)
