@@ -386,3 +386,39 @@ def test_workspace_pairs_registers_a_campaign_photo_from_control_points(tmp_path
     bad.write_text("photo_x,photo_y,x,y\n1,2,3,4\n")
     run = run_cli(["workspace", "pairs", ws_folder, "IMG_0001.jpg", bad])
     assert run.code == 2 and "bad.csv: missing column z" in run.line, run.err
+
+
+def test_points_far_from_the_model_are_refused_as_swapped_or_another_crs(tmp_path, run_cli):
+    """Northing and easting swapped, or latitude and longitude given as easting and
+    northing: thousands of km from the model, which no pose fits. One line, exit 2."""
+    from napari_imgreg.geo import Georef
+    from napari_imgreg.sample import load_truth, sample_scene
+    from napari_imgreg.workspace import Workspace
+
+    folder = sample_scene("small")
+    truth = load_truth(folder / "IMG_0002.jpg")
+    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz[:8])
+    enh = Georef.load(folder / "georef.json").local_to_crs(truth.check_xyz[:8])
+    swapped = tmp_path / "swapped.csv"
+    swapped.write_text("photo_x,photo_y,easting,northing,elevation\n" + "".join(
+        f"{x:.3f},{y:.3f},{n:.3f},{e:.3f},{h:.3f}\n" for (x, y), (e, n, h) in zip(photo_px, enh)))
+    run = run_cli(["register", folder / "outcrop.obj", folder / "IMG_0002.jpg",
+                   "--pairs", swapped, "--out", tmp_path / "R.json"], max_seconds=None)
+    assert run.code == 2 and not (tmp_path / "R.json").exists()
+    assert "swapped.csv: the control points lie a median 75" in run.line
+    assert "are columns swapped, or the coordinates of another system?" in run.line
+    assert "in EPSG:32630's coordinates (not latitude and longitude)" in run.line
+    # Points a few metres off the model (targets on poles) are not far.
+    near = tmp_path / "near.csv"
+    write_control_points(near, photo_px, truth.check_xyz[:8] + [0.0, -3.0, 0.0])
+    ws = Workspace()
+    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
+    ws.add_photos([folder / "IMG_0002.jpg"])
+    ws.make_reference()
+    try:
+        assert ws.load_pairs(near) == 8
+        with pytest.raises(InputError, match="lie a median 75.. km from the model"):
+            ws.load_pairs(swapped)
+        assert len(ws.current.photo_points_px) == 8  # the pairs stay as they were
+    finally:
+        ws.detach()

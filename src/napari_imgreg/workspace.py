@@ -1218,6 +1218,8 @@ class Workspace:
         points = read_control_points(path)
         points.check_inside(*ps.size)
         xyz = points.model_xyz(scene.georef)
+        points.check_near_model(xyz, scene.bounds,
+                                scene.georef.crs if scene.georef is not None else None)
         ps.photo_points_px = points.photo_px.copy()
         ps.pair_points_xyz = xyz
         ps.pair_names = list(points.names)

@@ -105,6 +105,8 @@ def run(args: argparse.Namespace) -> int:
                                           f"{manual.MIN_PAIRS_FOCAL}")
         pairs.check_inside(prior.intrinsics.width, prior.intrinsics.height)
         xyz = pairs.model_xyz(scene.georef)
+        pairs.check_near_model(xyz, scene.bounds,
+                               scene.georef.crs if scene.georef is not None else None)
         if args.verbose:
             print(f"  solving the pose from {len(pairs)} control points, then scoring it",
                   flush=True)

@@ -106,6 +106,45 @@ class ControlPoints:
                               "--georef): give x,y,z in the model frame instead")
         return np.asarray(georef.crs_to_local(self.xyz), np.float64).reshape(-1, 3)
 
+    def check_near_model(self, model_xyz: np.ndarray, bounds: np.ndarray,
+                         crs: str | None = None) -> None:
+        """Refuse control points far beyond the model: swapped or mislabelled
+        columns, or coordinates of another CRS (latitude and longitude given
+        as easting and northing), which no pose fits.
+
+        Far is more than 1 km and ten times the model's diagonal from its
+        bounding box, for the median point (a target on a pole, or on a hill
+        behind the outcrop, is not far).
+
+        Parameters
+        ----------
+        model_xyz : (N, 3) array
+            The points in the model frame (:meth:`model_xyz`), metres.
+        bounds : (2, 3) array
+            The model's bounding box (min, max corners), model frame, metres.
+        crs : str, optional
+            The georeference's CRS, named in the message for CRS coordinates.
+
+        Raises
+        ------
+        InputError
+            ``"<file>: the control points lie a median 5333 km from the model ..."``.
+        """
+        lo, hi = np.asarray(bounds, float)
+        outside = np.maximum(np.maximum(lo - model_xyz, model_xyz - hi), 0.0)
+        distance = float(np.median(np.linalg.norm(outside, axis=1)))
+        diagonal = float(np.linalg.norm(hi - lo))
+        if distance <= max(1000.0, 10.0 * diagonal):
+            return
+        given = (f"easting,northing,elevation in {crs or 'the georeference'}'s coordinates "
+                 "(not latitude and longitude)" if self.frame == "crs"
+                 else "x,y,z in the model frame (easting,northing,elevation for map "
+                      "coordinates)")
+        far = f"{distance / 1000.0:.0f} km" if distance >= 10_000 else f"{distance:.0f} m"
+        raise input_error(self.source, f"the control points lie a median {far} from the model "
+                          f"({diagonal:.0f} m across): are columns swapped, or the coordinates "
+                          f"of another system? They must be {given}")
+
     def check_inside(self, width: int, height: int) -> None:
         """Refuse a photo pixel outside a ``width`` × ``height`` photo.
 
