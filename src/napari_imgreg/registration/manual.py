@@ -530,7 +530,9 @@ def solve_manual(
     if not (pose.transform(q3[inliers[valid]])[:, 2] > 0).all():
         return fail("the pose puts picked points behind the camera")
     if inliers.sum() < MIN_PAIRS:
-        return fail(f"only {int(inliers.sum())} pairs agree with any pose within {thr:.0f} px")
+        agree = int(inliers.sum())
+        return fail(f"only {agree} pair{'' if agree == 1 else 's'} agree{'s' if agree == 1 else ''} "
+                    f"with any pose within {thr:.0f} px")
     # An assumed focal length (none in the photo's record) is as uncertain as a solved one.
     focal_free = focal_solved or not intr.focal_known
     unc = pair_uncertainty(intr, pose, p3[inliers], p2[inliers], focal_free)
