@@ -1106,7 +1106,7 @@ class Workspace:
         ref = np.asarray(reference_px, float).reshape(-1, 2).copy()
         rows = _carried_rows(ps.photo_points_px, photo)
         xyz = _rows_of(self._pair_xyz(ps), rows, np.full(3, np.nan))
-        m = min(len(ref), len(ps.reference_points_px))
+        m = min(len(ref), len(ps.reference_points_px), len(photo))
         if len(photo) >= len(ps.photo_points_px) and m:
             dragged = np.abs(ref[:m] - ps.reference_points_px[:m]).max(axis=1) > _SAME_PICK_PX
             xyz[:m][dragged] = np.nan
