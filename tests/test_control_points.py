@@ -213,6 +213,8 @@ def test_the_sample_photo_registers_from_its_check_points(tmp_path, run_cli):
     assert pose.rotation_error_deg(truth.pose) < 0.01
     assert np.linalg.norm(pose.center - truth.pose.center) < 0.01
     assert result["trials"][0]["verified"] and result["quality"]["grade"] in ("excellent", "good")
+    # The photo's matches agree with the pose: the hint says how to refine it with them.
+    assert "one Run from it" in result["quality"]["hints"][0]
 
 
 def test_pairs_on_a_line_fail_with_the_reason_exit_1(wall_mesh, wall_photo, tmp_path, run_cli):
