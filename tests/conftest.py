@@ -125,3 +125,27 @@ def run_cli(capsys):
         return CliRun(code, captured.out, captured.err, elapsed)
 
     return run
+
+
+@pytest.fixture
+def sample_reference():
+    """``sample_reference(photo_name) -> (workspace, truth)``: the small sample
+    scene with one photo, its reference render made from its pose (the Manual
+    tab's starting point); the workspace is detached afterwards."""
+    from napari_imgreg.sample import load_truth, sample_scene
+    from napari_imgreg.workspace import Workspace
+
+    made = []
+
+    def make(photo_name: str = "IMG_0001.jpg"):
+        folder = sample_scene("small")
+        ws = Workspace()
+        made.append(ws)
+        ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
+        ws.add_photos([folder / photo_name])
+        ws.make_reference()
+        return ws, load_truth(folder / photo_name)
+
+    yield make
+    for ws in made:
+        ws.detach()

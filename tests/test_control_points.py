@@ -279,16 +279,10 @@ def test_registers_is_the_rule_the_workspace_applies():
     assert not registers(loose)
 
 
-def test_loaded_pairs_keep_their_points_in_a_saved_workspace(tmp_path):
-    from napari_imgreg.sample import sample_scene
+def test_loaded_pairs_keep_their_points_in_a_saved_workspace(tmp_path, sample_reference):
     from napari_imgreg.workspace import Workspace
 
-    folder = sample_scene("small")
-    ws = Workspace()
-    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
-    ws.add_photos([folder / "IMG_0001.jpg"])
-    ws.make_reference()
-    truth = load_truth(folder / "IMG_0001.jpg")
+    ws, truth = sample_reference("IMG_0001.jpg")
     xyz = truth.check_xyz[:6] + [0.0, -2.0, 0.0]  # 2 m in front of the rock: off the model
     pairs = tmp_path / "pairs.csv"
     write_control_points(pairs, truth.pose.project(truth.intrinsics, xyz), xyz)
@@ -308,16 +302,11 @@ def test_loaded_pairs_keep_their_points_in_a_saved_workspace(tmp_path):
         again.detach()
 
 
-def test_pair_names_follow_their_pairs_through_edits_and_a_saved_workspace(tmp_path):
-    from napari_imgreg.sample import sample_scene
+def test_pair_names_follow_their_pairs_through_edits_and_a_saved_workspace(
+        tmp_path, sample_reference):
     from napari_imgreg.workspace import Workspace
 
-    folder = sample_scene("small")
-    ws = Workspace()
-    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
-    ws.add_photos([folder / "IMG_0001.jpg"])
-    ws.make_reference()
-    truth = load_truth(folder / "IMG_0001.jpg")
+    ws, truth = sample_reference("IMG_0001.jpg")
     xyz = truth.check_xyz[:6]
     names = [f"GCP{k}" for k in (3, 5, 8, 11, 12, 20)]
     pairs = tmp_path / "pairs.csv"
@@ -390,15 +379,15 @@ def test_workspace_pairs_registers_a_campaign_photo_from_control_points(tmp_path
     assert run.code == 2 and "bad.csv: missing column z" in run.line, run.err
 
 
-def test_points_far_from_the_model_are_refused_as_swapped_or_another_crs(tmp_path, run_cli):
+def test_points_far_from_the_model_are_refused_as_swapped_or_another_crs(
+        tmp_path, run_cli, sample_reference):
     """Northing and easting swapped, or latitude and longitude given as easting and
     northing: thousands of km from the model, which no pose fits. One line, exit 2."""
     from napari_imgreg.geo import Georef
-    from napari_imgreg.sample import load_truth, sample_scene
-    from napari_imgreg.workspace import Workspace
+    from napari_imgreg.sample import sample_scene
 
     folder = sample_scene("small")
-    truth = load_truth(folder / "IMG_0002.jpg")
+    ws, truth = sample_reference("IMG_0002.jpg")
     photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz[:8])
     enh = Georef.load(folder / "georef.json").local_to_crs(truth.check_xyz[:8])
     swapped = tmp_path / "swapped.csv"
@@ -413,14 +402,7 @@ def test_points_far_from_the_model_are_refused_as_swapped_or_another_crs(tmp_pat
     # Points a few metres off the model (targets on poles) are not far.
     near = tmp_path / "near.csv"
     write_control_points(near, photo_px, truth.check_xyz[:8] + [0.0, -3.0, 0.0])
-    ws = Workspace()
-    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
-    ws.add_photos([folder / "IMG_0002.jpg"])
-    ws.make_reference()
-    try:
-        assert ws.load_pairs(near) == 8
-        with pytest.raises(InputError, match="lie a median 75.. km from the model"):
-            ws.load_pairs(swapped)
-        assert len(ws.current.photo_points_px) == 8  # the pairs stay as they were
-    finally:
-        ws.detach()
+    assert ws.load_pairs(near) == 8
+    with pytest.raises(InputError, match="lie a median 75.. km from the model"):
+        ws.load_pairs(swapped)
+    assert len(ws.current.photo_points_px) == 8  # the pairs stay as they were

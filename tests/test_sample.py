@@ -725,17 +725,11 @@ def test_rough_scene_model_true_surface_and_check_points_over_the_frame(cheap_pa
     assert img.shape == (h, w, 3) and img.std() > 10
 
 
-def test_truth_pairs_are_check_points_both_images_show(tmp_path):
-    from napari_imgreg.sample import load_truth, sample_scene, truth_pairs
-    from napari_imgreg.workspace import Workspace
+def test_truth_pairs_are_check_points_both_images_show(sample_reference):
+    from napari_imgreg.sample import truth_pairs
 
-    folder = sample_scene("small")
-    ws = Workspace()
-    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
-    ws.add_photos([folder / "IMG_0002.jpg"])
-    ws.make_reference()
+    ws, truth = sample_reference("IMG_0002.jpg")
     ps = ws.current
-    truth = load_truth(ps.photo.path)
     photo_px, ref_px, xyz = truth_pairs(truth, ps.reference, ps.size, n=8, margin_px=20.0)
     assert photo_px.shape == ref_px.shape == (8, 2) and xyz.shape == (8, 3)
     # Each is where the true pose puts its check point, inside the margin ...
@@ -746,4 +740,3 @@ def test_truth_pairs_are_check_points_both_images_show(tmp_path):
     assert valid.all() and np.linalg.norm(lifted - xyz, axis=1).max() < 0.05
     with pytest.raises(ValueError, match="wanted"):
         truth_pairs(truth, ps.reference, ps.size, n=10_000)
-    ws.detach()

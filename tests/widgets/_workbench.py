@@ -17,3 +17,20 @@ def load_sample(wb, qtbot):
     qtbot.waitUntil(lambda: wb.controller.current is not None, timeout=LOAD_S)
     idle(wb, qtbot)
     return wb.controller
+
+
+def save_and_reopen(wb, qtbot, folder):
+    """Save the workbench's workspace as ``folder`` (``.imgreg`` added), let
+    it go and open it again in the same window; returns the workspace opened."""
+    from pathlib import Path
+
+    ctrl = wb.controller
+    ctrl.save_workspace(folder)
+    saved = Path(str(folder) + ".imgreg")
+    idle(wb, qtbot)
+    ctrl.workspace.detach()
+    ctrl.open_workspace(saved)
+    qtbot.waitUntil(lambda: ctrl.workspace_folder is not None and ctrl.current is not None,
+                    timeout=LOAD_S)
+    idle(wb, qtbot)
+    return ctrl.workspace

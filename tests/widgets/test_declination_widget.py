@@ -14,7 +14,6 @@ from napari_imgreg.geo import Georef
 from napari_imgreg.io.orientation_tables import OrientationTable, write_orientation_csv
 from napari_imgreg.orient import rotation_error_deg
 from napari_imgreg.sample.survey import simulate_survey
-from napari_imgreg.widgets.orient_widget import OrientWidget
 
 NOAA_DECLINATION = -17.49
 SITE_GEOREF = Georef("EPSG:32721", [283_077.411822, 8_562_012.355651, 0.0])
@@ -36,11 +35,8 @@ def magnetic_tables(tmp_path):
 
 
 @pytest.fixture
-def widget(make_napari_viewer):
-    viewer = make_napari_viewer()
-    widget = OrientWidget(viewer)
-    viewer.window.add_dock_widget(widget, name="Orient model")
-    return widget
+def widget(orient_widget):
+    return orient_widget
 
 
 def test_auto_declination_is_computed_in_the_backend(widget, magnetic_tables, tmp_path, qtbot):

@@ -21,7 +21,7 @@ from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._layers import napari_from_pixels
 from napari_imgreg.widgets.interpret_widget import INTERP_KEY
 
-from ._workbench import LOAD_S, idle as _idle
+from ._workbench import LOAD_S, idle as _idle, save_and_reopen
 
 
 def _registered(ps) -> Registration:
@@ -62,17 +62,8 @@ def test_a_reopened_workspace_projects_the_photos_not_shown_too(workbench, qtbot
     # IMG_0002 drawn on after that projection: its projection is out of date.
     ws.set_interpretations(_lines(5, "two"), two)
     assert ws.projection_out_of_date() == [two]
-    ctrl.save_workspace(tmp_path / "campaign")
-    folder = tmp_path / "campaign.imgreg"
-    _idle(wb, qtbot)
-
     # Reopened: only IMG_0001 (the current photo) is shown, with its layer.
-    ws.detach()
-    ctrl.open_workspace(folder)
-    qtbot.waitUntil(lambda: ctrl.workspace_folder is not None and ctrl.current is not None,
-                    timeout=LOAD_S)
-    _idle(wb, qtbot)
-    ws = ctrl.workspace
+    ws = save_and_reopen(wb, qtbot, tmp_path / "campaign")
     iw = wb.interpret_widget
     one, two = ws.photos[0], ws.photos[1]
     assert ws.current is one

@@ -9,7 +9,7 @@ from napari_imgreg.widgets._layers import napari_from_world, world_from_napari
 from napari_imgreg.io.orientation_tables import write_orientation_csv
 from napari_imgreg.orient import rotate_points, rotation_error_deg
 from napari_imgreg.sample.survey import simulate_survey
-from napari_imgreg.widgets.orient_widget import STATUS_STYLE, OrientWidget
+from napari_imgreg.widgets.orient_widget import STATUS_STYLE
 
 
 @pytest.fixture
@@ -22,11 +22,8 @@ def tables(tmp_path):
 
 
 @pytest.fixture
-def widget(make_napari_viewer):
-    viewer = make_napari_viewer()
-    widget = OrientWidget(viewer)
-    viewer.window.add_dock_widget(widget, name="Orient model")
-    return widget
+def widget(orient_widget):
+    return orient_widget
 
 
 def _run(widget, qtbot):

@@ -35,7 +35,7 @@ from napari_imgreg.widgets.workbench import (
 )
 from napari_imgreg.workspace import Workspace
 
-from ._workbench import LOAD_S, idle as _idle, load_sample as _load_sample
+from ._workbench import LOAD_S, idle as _idle, load_sample as _load_sample, save_and_reopen
 
 
 def _true_registration(ps, q=1.4, reproj=1.2, secs=2.0) -> Registration:
@@ -491,16 +491,9 @@ def test_a_reopened_workspace_shows_its_interpretations_and_keeps_them(
     ws.project_interpretations()
     n_measured = len(ws.measurements)
     assert n_measured == 4
-    ctrl.save_workspace(tmp_path / "drawn")
-    folder = tmp_path / "drawn.imgreg"
-    _idle(wb, qtbot)
-
     # Opened again in this window (the workspace adopted, its photos replaced).
-    ws.detach()
-    ctrl.open_workspace(folder)
-    qtbot.waitUntil(lambda: ctrl.workspace_folder is not None and ctrl.current is not None,
-                    timeout=LOAD_S)
-    _idle(wb, qtbot)
+    save_and_reopen(wb, qtbot, tmp_path / "drawn")
+    folder = ctrl.workspace_folder
     iw = wb.interpret_widget
     ps = ctrl.current
     assert ps.name == "IMG_0002.jpg" and len(ps.interpretations) == 4

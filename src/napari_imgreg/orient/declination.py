@@ -104,7 +104,7 @@ def survey_date(measured: OrientationTable) -> tuple[date, str]:
     if measured.kind == "photos":
         where = "the photos' EXIF"
     if not _any(dates) and measured.source is not None:
-        folder = measured.source if measured.source.is_dir() else measured.source.parent
+        folder = _photo_folder(measured)
         dates = photo_capture_dates(measured.photos, folder)
         where = f"EXIF DateTimeOriginal of the photos in {folder}"
     known = [d for d in (dates or []) if d is not None]
@@ -125,6 +125,11 @@ def _any(dates) -> bool:
     return bool(dates) and any(d is not None for d in dates)
 
 
+def _photo_folder(measured: OrientationTable) -> Path:
+    """Where the MEASURED photos are: the folder read, or the table's own folder."""
+    return measured.source if measured.source.is_dir() else measured.source.parent
+
+
 def survey_site(measured: OrientationTable) -> tuple[float, float, str]:
     """The median EXIF GPS position of the MEASURED photos (a folder of
     photos, or the photos found beside a table): (lat_deg, lon_deg, where).
@@ -137,7 +142,7 @@ def survey_site(measured: OrientationTable) -> tuple[float, float, str]:
     """
     sites, where = None, ""
     if measured.source is not None:
-        folder = measured.source if measured.source.is_dir() else measured.source.parent
+        folder = _photo_folder(measured)
         sites = photo_gps_sites(measured.photos, folder)
         where = str(folder)
     known = [site for site in (sites or []) if site is not None]
