@@ -82,6 +82,48 @@ def test_crs_coordinates_are_taken_into_the_model_frame_by_the_georeference(tmp_
         cp.model_xyz(None)
 
 
+def test_latitude_longitude_are_projected_and_the_elevation_kept(tmp_path):
+    """WGS84 degrees through the georeference's CRS: the known answer is the
+    projection pyproj gives for the same points the other way round."""
+    from napari_imgreg.geo import Georef
+
+    georef = Georef("EPSG:32630", np.array([579000.0, 5912000.0, 350.0]))
+    local = np.array([[1.0, 2.0, 3.0], [40.0, 5.0, 6.0], [-70.0, 80.0, 9.0], [10.0, -50.5, 1.0]])
+    lat, lon, elevation = georef.local_to_geodetic(local)
+    path = tmp_path / "gnss.csv"
+    path.write_text("Name,Photo_X,Photo_Y,Latitude,Longitude,Elevation\n" + "".join(
+        f"T{k},{10 * k},{20 + k},{la:.9f},{lo:.9f},{h:.4f}\n"
+        for k, (la, lo, h) in enumerate(zip(lat, lon, elevation))))
+    cp = read_control_points(path)
+    assert cp.frame == "geodetic" and cp.names == ["T0", "T1", "T2", "T3"]
+    # 1e-9 degrees is 0.1 mm.
+    np.testing.assert_allclose(cp.model_xyz(georef), local, atol=1e-3)
+    with pytest.raises(InputError, match="gnss.csv: points are given as "
+                                         "latitude,longitude,elevation but the model has no"):
+        cp.model_xyz(None)
+
+
+def test_heights_in_another_datum_are_refused(tmp_path):
+    """Points tens of metres straight above the surface (ellipsoidal heights)
+    are refused; a target on a pole, or on the ground beside the model, is not."""
+    rng = np.random.default_rng(4)
+    surface = np.c_[rng.uniform(0, 100, 20000), rng.uniform(0, 100, 20000), np.zeros(20000)]
+    on = np.c_[rng.uniform(10, 90, 6), rng.uniform(10, 90, 6), rng.uniform(0, 3, 6)]
+    path = tmp_path / "pairs.csv"
+    write_control_points(path, rng.uniform(0, 600, (6, 2)), on)
+    cp = read_control_points(path)
+    cp.check_heights(on, surface)  # on the surface, or up to 3 m above it
+    cp.check_heights(on + [150.0, 0.0, 0.0], surface)  # beside the model: far sideways
+    with pytest.raises(InputError, match=r"pairs.csv: the control points lie a median 4[7-9] m "
+                                         r"above the model's surface \(6 of 6\): is their height "
+                                         r"in another system \(GNSS ellipsoidal heights\)\? "
+                                         r"The z column must be in the model's vertical datum"):
+        cp.check_heights(on + [0.0, 0.0, 47.0], surface)
+    cp.check_heights(on + [0.0, 0.0, 9.0], surface)  # within 10 m: not refused
+    corners = np.array([[0.0, 0, 0], [100, 0, 0], [0, 100, 0], [100, 100, 0]])
+    cp.check_heights(on + [0.0, 0.0, 47.0], corners)  # too sparse to stand for the surface
+
+
 GOOD = "photo_x,photo_y,x,y,z\n1,2,3,4,5\n6,7,8,9,10\n11,12,13,14,15\n16,17,18,19,20\n"
 
 
@@ -94,6 +136,14 @@ GOOD = "photo_x,photo_y,x,y,z\n1,2,3,4,5\n6,7,8,9,10\n11,12,13,14,15\n16,17,18,1
                                                      "are not read"),
     ("photo_x,photo_y,x,y,z,easting,northing,elevation\n1,2,3,4,5,6,7,8\n",
      "both x,y,z and easting,northing,elevation"),
+    ("photo_x,photo_y,easting,northing\n1,2,3,4\n", "missing column elevation"),
+    ("photo_x,photo_y,latitude,longitude,ellipsoidal_height\n1,2,3,4,5\n",
+     "latitude,longitude need an elevation column: the height in the model's vertical datum"),
+    ("photo_x,photo_y,latitude,longitude,elevation\n1,2,579012.5,5911859.5,381\n",
+     "row 2: latitude 579012 is outside [-90, 90] (latitude,longitude are WGS84 degrees; map "
+     "coordinates go in easting,northing,elevation)"),
+    ("photo_x,photo_y,latitude,longitude,elevation\n1,2,53.3,-181.5,381\n",
+     "row 2: longitude -181.5 is outside [-180, 180]"),
     (GOOD + "21,22,abc,24,25\n", "row 6: x is not a number ('abc')"),
     (GOOD + "21,22,23,nan,25\n", "row 6: y is not a finite number ('nan')"),
     (GOOD + "21,22,23,24\n", "row 6: z is empty"),
@@ -215,6 +265,31 @@ def test_the_sample_photo_registers_from_its_check_points(tmp_path, run_cli):
     assert result["trials"][0]["verified"] and result["quality"]["grade"] in ("excellent", "good")
     # The photo's matches agree with the pose: the hint says how to refine it with them.
     assert "one Run from it" in result["quality"]["hints"][0]
+
+
+def test_pairs_in_one_corner_are_uncertain_and_never_graded_good(tmp_path, run_cli):
+    """Exact pairs bunched in a corner of the photo: the photo's matches agree
+    with the pose, but the pairs' expected error is large, so the result is
+    not registered and its grade is not good or excellent (issue 13)."""
+    from napari_imgreg.sample import sample_scene
+
+    folder = sample_scene("small")
+    truth = load_truth(folder / "IMG_0002.jpg")
+    photo_px = truth.pose.project(truth.intrinsics, truth.check_xyz)
+    corner = np.argsort(np.hypot(*photo_px.T))[:6]
+    pairs = tmp_path / "corner.csv"
+    write_control_points(pairs, photo_px[corner], truth.check_xyz[corner])
+    out = tmp_path / "R.json"
+    run = run_cli(["register", folder / "outcrop.obj", folder / "IMG_0002.jpg",
+                   "--dem", folder / "dem.tif", "--pairs", pairs, "--out", out],
+                  max_seconds=None)
+    result, _ = _result(out)
+    limit = 4.0 * truth.intrinsics.width / 1632.0
+    assert result["uncertainty"]["basis"] == "control points"
+    assert result["uncertainty"]["reprojection_px"] >= limit
+    assert run.code == 1 and result["status"] == "failed"
+    assert result["quality"]["grade"] not in ("good", "excellent"), result["quality"]
+    assert "leave the pose uncertain" in result["quality"]["hints"][0]
 
 
 def test_pairs_on_a_line_fail_with_the_reason_exit_1(wall_mesh, wall_photo, tmp_path, run_cli):
@@ -405,4 +480,10 @@ def test_points_far_from_the_model_are_refused_as_swapped_or_another_crs(
     assert ws.load_pairs(near) == 8
     with pytest.raises(InputError, match="lie a median 75.. km from the model"):
         ws.load_pairs(swapped)
+    # Heights in another datum (ellipsoidal, ~45 m above the model's here).
+    ellipsoidal = tmp_path / "ellipsoidal.csv"
+    write_control_points(ellipsoidal, photo_px, truth.check_xyz[:8] + [0.0, 0.0, 45.0])
+    with pytest.raises(InputError, match=r"ellipsoidal.csv: the control points lie a median "
+                                         r"\d\d m above the model's surface \(8 of 8\)"):
+        ws.load_pairs(ellipsoidal)
     assert len(ws.current.photo_points_px) == 8  # the pairs stay as they were

@@ -1200,7 +1200,8 @@ class Workspace:
         """Replace the current photo's pairs by those of a control-point file.
 
         Each pair keeps its model point (``x,y,z``, or the CRS's ``easting,
-        northing, elevation`` through the scene's georeference), whether or
+        northing, elevation`` or WGS84 ``latitude, longitude, elevation``
+        through the scene's georeference), whether or
         not the reference render shows it; its reference point is where that
         model point projects in the reference. Returns the number of pairs.
 
@@ -1217,9 +1218,7 @@ class Workspace:
             raise WorkbenchError("Make a reference render first: loaded pairs are shown on it.")
         points = read_control_points(path)
         points.check_inside(*ps.size)
-        xyz = points.model_xyz(scene.georef)
-        points.check_near_model(xyz, scene.bounds,
-                                scene.georef.crs if scene.georef is not None else None)
+        xyz = points.model_points_for(scene)
         ps.photo_points_px = points.photo_px.copy()
         ps.pair_points_xyz = xyz
         ps.pair_names = list(points.names)
@@ -1309,10 +1308,8 @@ class Workspace:
         if solution.focal_solved:
             ps.intrinsics = solution.intrinsics
         ps.registered_on = self._fingerprints_now(ps)
-        if trial is not None and trial.uncertainty is None and solution.uncertainty is not None:
-            # A scored manual pose has no estimate of the photo's matches (none
-            # verify it): the pairs' own is its error, shown and projected with.
-            trial.uncertainty = solution.uncertainty
+        if trial is not None:
+            manual.adopt_pair_uncertainty(trial, solution)
         ps.trials.append(TrialRecord(trial, ps.runs, "Manual"))
         ps.selected_trial = len(ps.trials) - 1
         if ps is self.current:

@@ -54,7 +54,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--params", metavar="PARAMS.json", help="registration parameters (any subset)")
     p.add_argument("--pairs", metavar="PAIRS.csv",
                    help="control points (photo_x,photo_y,x,y,z[,name], or easting,northing,"
-                        "elevation in the georeference's CRS): solve the pose from them "
+                        "elevation in the georeference's CRS, or latitude,longitude,elevation): "
+                        "solve the pose from them "
                         "instead of matching; the prior gives the camera and the start")
     p.add_argument("--solve-focal", action="store_true",
                    help="with --pairs: also solve the focal length (6 or more pairs)")
@@ -104,9 +105,7 @@ def run(args: argparse.Namespace) -> int:
             raise input_error(pairs_path, f"{len(pairs)} pairs: --solve-focal needs at least "
                                           f"{manual.MIN_PAIRS_FOCAL}")
         pairs.check_inside(prior.intrinsics.width, prior.intrinsics.height)
-        xyz = pairs.model_xyz(scene.georef)
-        pairs.check_near_model(xyz, scene.bounds,
-                               scene.georef.crs if scene.georef is not None else None)
+        xyz = pairs.model_points_for(scene)
         if args.verbose:
             print(f"  solving the pose from {len(pairs)} control points, then scoring it",
                   flush=True)

@@ -104,8 +104,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     help="the photo's file name in the workspace (where two photos share one, "
                     "its folder name under photos/)")
     pa.add_argument("pairs", metavar="PAIRS.csv",
-                    help="control points: photo_x,photo_y and x,y,z or easting,northing,"
-                    "elevation (docs/formats.md, Control points)")
+                    help="control points: photo_x,photo_y and x,y,z, easting,northing,elevation "
+                    "or latitude,longitude,elevation (docs/formats.md, Control points)")
     pa.add_argument("--solve-focal", action="store_true",
                     help="also solve the focal length (6 or more pairs)")
 

@@ -10,8 +10,13 @@ The file behind manual registration from a file (``napari-imgreg register
 ``photo_x, photo_y``: the photo pixel (x = column, y = row), the first
 pixel's centre at (0, 0). ``x, y, z``: the model point, model frame, metres.
 Instead of ``x, y, z`` the point may be given in the georeference's CRS as
-``easting, northing, elevation`` (a GNSS survey of targets); it is taken into
+``easting, northing, elevation`` (a GNSS survey of targets), or as WGS84
+``latitude, longitude`` (degrees) with ``elevation``; either is taken into
 the model frame with the scene's georeference (:meth:`ControlPoints.model_xyz`).
+``elevation`` is a height in the model's vertical datum (the DEM's and the
+georeference origin's), as the sensor record's altitude is: a GNSS receiver's
+ellipsoidal heights must be converted first (:meth:`ControlPoints.check_heights`
+refuses points tens of metres above or below the surface).
 ``name`` is optional. Commas, semicolons or tabs separate fields; blank lines
 and lines starting with ``#`` are skipped; other columns are ignored.
 
@@ -48,6 +53,7 @@ __all__ = [
     "PIXEL_COLUMNS",
     "MODEL_COLUMNS",
     "CRS_COLUMNS",
+    "GEODETIC_COLUMNS",
 ]
 
 #: The photo pixel of each pair.
@@ -56,6 +62,14 @@ PIXEL_COLUMNS = ("photo_x", "photo_y")
 MODEL_COLUMNS = ("x", "y", "z")
 #: The model point in the georeference's CRS (``crs = local + origin``), metres.
 CRS_COLUMNS = ("easting", "northing", "elevation")
+#: The model point as WGS84 latitude and longitude (degrees) and a height in
+#: the georeference's vertical datum (metres).
+GEODETIC_COLUMNS = ("latitude", "longitude", "elevation")
+#: Each way of giving the model point, and the frame it is in.
+_POINT_COLUMNS = {"model": MODEL_COLUMNS, "crs": CRS_COLUMNS, "geodetic": GEODETIC_COLUMNS}
+#: A point whose nearest model vertex is more than this far (metres), mostly
+#: straight above or below it, is not on the model (:meth:`ControlPoints.check_heights`).
+HEIGHT_OFFSET_M = 10.0
 _RENDER_COLUMNS = ("render_x", "render_y")
 
 
@@ -69,13 +83,15 @@ class ControlPoints:
         Photo pixels (x, y), pixel-centre convention (first centre at (0, 0)).
     xyz : (N, 3) float array
         The model points as the file gives them: model frame (``frame ==
-        "model"``) or the georeference's CRS (``frame == "crs"``), metres.
-        :meth:`model_xyz` gives them in the model frame either way.
+        "model"``, metres), the georeference's CRS (``frame == "crs"``,
+        metres) or WGS84 latitude, longitude (degrees) and elevation (metres)
+        (``frame == "geodetic"``). :meth:`model_xyz` gives them in the model
+        frame either way.
     names : list of str
         Each pair's ``name`` ("" when the file has none).
     rows : list of int
         Each pair's line number in the file, for messages.
-    frame : {"model", "crs"}
+    frame : {"model", "crs", "geodetic"}
     source : Path or None
         The file read.
     """
@@ -101,10 +117,45 @@ class ControlPoints:
         if self.frame == "model":
             return self.xyz.copy()
         if georef is None:
-            raise input_error(self.source, "points are given as easting,northing,elevation "
+            columns = ",".join(_POINT_COLUMNS[self.frame])
+            raise input_error(self.source, f"points are given as {columns} "
                               "but the model has no georeference (georef.json beside it, or "
                               "--georef): give x,y,z in the model frame instead")
-        return np.asarray(georef.crs_to_local(self.xyz), np.float64).reshape(-1, 3)
+        if self.frame == "crs":
+            return np.asarray(georef.crs_to_local(self.xyz), np.float64).reshape(-1, 3)
+        from ..geo import GeoError
+
+        lat, lon, elevation = self.xyz.T
+        try:
+            return np.asarray(georef.geodetic_to_local(lat, lon, elevation),
+                              np.float64).reshape(-1, 3)
+        except GeoError as exc:
+            raise input_error(self.source, str(exc)) from None
+
+    def model_points_for(self, scene) -> np.ndarray:
+        """The model points in ``scene``'s model frame, checked to be the model's.
+
+        :meth:`model_xyz` through the scene's georeference, then
+        :meth:`check_near_model` and :meth:`check_heights`.
+
+        Parameters
+        ----------
+        scene : Scene or CloudScene
+
+        Returns
+        -------
+        (N, 3) float array, model frame, metres.
+
+        Raises
+        ------
+        InputError
+            As those three methods.
+        """
+        georef = scene.georef
+        xyz = self.model_xyz(georef)
+        self.check_near_model(xyz, scene.bounds, georef.crs if georef is not None else None)
+        self.check_heights(xyz, scene.vertices)
+        return xyz
 
     def check_near_model(self, model_xyz: np.ndarray, bounds: np.ndarray,
                          crs: str | None = None) -> None:
@@ -136,14 +187,74 @@ class ControlPoints:
         diagonal = float(np.linalg.norm(hi - lo))
         if distance <= max(1000.0, 10.0 * diagonal):
             return
-        given = (f"easting,northing,elevation in {crs or 'the georeference'}'s coordinates "
-                 "(not latitude and longitude)" if self.frame == "crs"
-                 else "x,y,z in the model frame (easting,northing,elevation for map "
-                      "coordinates)")
+        given = {
+            "crs": f"easting,northing,elevation in {crs or 'the georeference'}'s coordinates "
+                   "(not latitude and longitude)",
+            "geodetic": "WGS84 latitude,longitude in degrees with the elevation in metres",
+            "model": "x,y,z in the model frame (easting,northing,elevation for map "
+                     "coordinates)",
+        }[self.frame]
         far = f"{distance / 1000.0:.0f} km" if distance >= 10_000 else f"{distance:.0f} m"
         raise input_error(self.source, f"the control points lie a median {far} from the model "
                           f"({diagonal:.0f} m across): are columns swapped, or the coordinates "
                           f"of another system? They must be {given}")
+
+    def check_heights(self, model_xyz: np.ndarray, surface_xyz: np.ndarray) -> None:
+        """Refuse control points that float above or sink below the model:
+        elevations in another height system than the model's (a GNSS
+        receiver's ellipsoidal heights differ from the DEM's by up to ~100 m).
+        A pose fits such points as well as the right ones, with the camera
+        that far off, and lines mapped from it would miss the rock.
+
+        Refused when the median point is more than :data:`HEIGHT_OFFSET_M`
+        from its nearest model vertex, and three quarters of the points are
+        that far on the same side, most of it (70 %) vertical. A target on
+        the ground in front of a cliff the model does not cover is far from
+        it sideways, not vertically, and passes. A model whose vertices are
+        sparse (more than 2.5 m apart on average: a few large triangles) is
+        not checked.
+
+        Parameters
+        ----------
+        model_xyz : (N, 3) array
+            The points in the model frame (:meth:`model_xyz`), metres.
+        surface_xyz : (M, 3) array
+            The model's vertices (or a scan's points), model frame, metres.
+
+        Raises
+        ------
+        InputError
+            ``"<file>: the control points lie a median 41 m above the model's surface ..."``.
+        """
+        from scipy.spatial import cKDTree
+
+        surface = np.asarray(surface_xyz, np.float64).reshape(-1, 3)
+        if len(surface) == 0 or len(model_xyz) == 0:
+            return
+        # Its vertices stand for the surface only where they are dense: a
+        # model of a few large triangles (a DEM, a test wall) is not checked.
+        diagonal = float(np.linalg.norm(np.ptp(surface, axis=0)))
+        if diagonal / np.sqrt(len(surface)) > HEIGHT_OFFSET_M / 4:
+            return
+        # A million vertices locate a point to well within the 10 m asked.
+        surface = surface[::max(len(surface) // 1_000_000, 1)]
+        distance, nearest = cKDTree(surface).query(model_xyz)
+        if float(np.median(distance)) <= HEIGHT_OFFSET_M:
+            return
+        dz = model_xyz[:, 2] - surface[nearest, 2]
+        far = distance > HEIGHT_OFFSET_M
+        vertical = far & (np.abs(dz) >= 0.7 * distance)
+        above, below = int((vertical & (dz > 0)).sum()), int((vertical & (dz < 0)).sum())
+        if max(above, below) < 0.75 * len(model_xyz):
+            return
+        side = "above" if above >= below else "below"
+        columns = ",".join(_POINT_COLUMNS[self.frame])
+        raise input_error(self.source, f"the control points lie a median "
+                          f"{float(np.median(distance)):.0f} m {side} the model's surface "
+                          f"({max(above, below)} of {len(model_xyz)}): is their height in "
+                          "another system (GNSS ellipsoidal heights)? The "
+                          f"{columns.rsplit(',', 1)[1]} column must be in the model's vertical "
+                          "datum, that of its DEM and georef.json origin")
 
     def check_inside(self, width: int, height: int) -> None:
         """Refuse a photo pixel outside a ``width`` × ``height`` photo.
@@ -187,10 +298,11 @@ def read_control_points(path: str | os.PathLike, min_pairs: int = 0) -> ControlP
         cell; a row repeated or a name used twice; fewer than ``min_pairs`` pairs.
     """
     path = Path(path)
-    expected = "expected photo_x,photo_y,x,y,z[,name] or photo_x,photo_y,easting,northing,elevation"
+    expected = ("expected photo_x,photo_y,x,y,z[,name], photo_x,photo_y,easting,northing,"
+                "elevation or photo_x,photo_y,latitude,longitude,elevation")
     header, rows = read_table_rows(path, expected)
-    point_columns = _point_columns(path, header, expected)
-    frame = "model" if point_columns == MODEL_COLUMNS else "crs"
+    frame = _point_frame(path, header, expected)
+    point_columns = _POINT_COLUMNS[frame]
     numeric = PIXEL_COLUMNS + point_columns
     col = {name: header.index(name) for name in numeric}
     name_col = header.index("name") if "name" in header else None
@@ -202,6 +314,8 @@ def read_control_points(path: str | os.PathLike, min_pairs: int = 0) -> ControlP
     first_of_name: dict[str, int] = {}
     for row_number, cells in rows:
         record = [cell_number(path, row_number, name, cells[col[name]]) for name in numeric]
+        if frame == "geodetic":
+            _check_degrees(path, row_number, record[2], record[3])
         key = tuple(record)
         if key in first_of_values:
             raise input_error(path, f"row {row_number}: repeats row {first_of_values[key]}")
@@ -223,33 +337,49 @@ def read_control_points(path: str | os.PathLike, min_pairs: int = 0) -> ControlP
                          rows=row_numbers, frame=frame, source=path)
 
 
-def _point_columns(path: Path, header: list[str], expected: str) -> tuple[str, ...]:
-    """Which columns hold the model point: x,y,z or easting,northing,elevation."""
+def _point_frame(path: Path, header: list[str], expected: str) -> str:
+    """How the file gives the model point: ``"model"`` (x,y,z), ``"crs"``
+    (easting,northing,elevation) or ``"geodetic"`` (latitude,longitude,elevation)."""
     missing = [c for c in PIXEL_COLUMNS if c not in header]
     if missing:
         raise input_error(path, f"missing column{'s' if len(missing) > 1 else ''} "
                           f"{', '.join(missing)} (header is: {','.join(header)}; {expected})")
-    has_model = [c for c in MODEL_COLUMNS if c in header]
-    has_crs = [c for c in CRS_COLUMNS if c in header]
-    if len(has_model) == 3 and len(has_crs) == 3:
-        raise input_error(path, "both x,y,z and easting,northing,elevation: give the model "
-                          "point one way")
-    if len(has_model) == 3:
-        return MODEL_COLUMNS
-    if len(has_crs) == 3:
-        return CRS_COLUMNS
-    if has_crs:
-        missing = [c for c in CRS_COLUMNS if c not in header]
-    elif has_model:
-        missing = [c for c in MODEL_COLUMNS if c not in header]
-    elif all(c in header for c in _RENDER_COLUMNS):
-        raise input_error(path, "render_x,render_y (pixels of a render) are not read: give "
-                          "each pair's model point as x,y,z (the workbench's Save pairs… "
-                          "writes them)")
-    else:
-        missing = list(MODEL_COLUMNS)
+    complete = [frame for frame, columns in _POINT_COLUMNS.items()
+                if all(c in header for c in columns)]
+    if len(complete) > 1:
+        ways = " and ".join(",".join(_POINT_COLUMNS[f]) for f in complete)
+        raise input_error(path, f"both {ways}: give the model point one way")
+    if complete:
+        return complete[0]
+    # The way the header half-gives: the one whose own columns (not the shared
+    # elevation) it has most of.
+    partial = max(_POINT_COLUMNS, key=lambda f: sum(c in header for c in _POINT_COLUMNS[f][:2]))
+    if not any(c in header for f in _POINT_COLUMNS for c in _POINT_COLUMNS[f]):
+        if all(c in header for c in _RENDER_COLUMNS):
+            raise input_error(path, "render_x,render_y (pixels of a render) are not read: give "
+                              "each pair's model point as x,y,z (the workbench's Save pairs… "
+                              "writes them)")
+        partial = "model"
+    if partial == "geodetic" and "elevation" not in header and any(
+            h in header for h in ("ellipsoidal_height", "height", "h", "altitude")):
+        raise input_error(path, "latitude,longitude need an elevation column: the height in "
+                          "the model's vertical datum (that of its DEM), not a GNSS "
+                          "receiver's ellipsoidal height")
+    missing = [c for c in _POINT_COLUMNS[partial] if c not in header]
     raise input_error(path, f"missing column{'s' if len(missing) > 1 else ''} "
                       f"{', '.join(missing)} (header is: {','.join(header)}; {expected})")
+
+
+def _check_degrees(path: Path, row_number: int, latitude: float, longitude: float) -> None:
+    """Refuse a latitude or longitude that cannot be WGS84 degrees (map metres, swapped)."""
+    if abs(latitude) > 90:
+        raise input_error(path, f"row {row_number}: latitude {latitude:g} is outside [-90, 90] "
+                          "(latitude,longitude are WGS84 degrees; map coordinates go in "
+                          "easting,northing,elevation)")
+    if abs(longitude) > 180:
+        raise input_error(path, f"row {row_number}: longitude {longitude:g} is outside "
+                          "[-180, 180] (latitude,longitude are WGS84 degrees; map coordinates "
+                          "go in easting,northing,elevation)")
 
 
 def write_control_points(path: str | os.PathLike, photo_px: np.ndarray, xyz: np.ndarray,

@@ -53,6 +53,7 @@ __all__ = [
     "solve_manual",
     "score_pose",
     "registers",
+    "adopt_pair_uncertainty",
     "register_from_pairs",
 ]
 
@@ -638,6 +639,33 @@ def score_pose(
 
 
 # ====================================================== a manual result
+def adopt_pair_uncertainty(trial: Trial, solution: ManualSolution) -> None:
+    """Give a scored manual pose the pairs' expected error, and a grade that agrees with it.
+
+    :func:`score_pose` estimates no error of its own (its matches test the
+    given pose, they do not solve one), so the pairs' estimate
+    (:func:`pair_uncertainty`) is the pose's: shown, written as RESULT.json's
+    ``uncertainty`` and projected with. A grade above "fair" is not kept
+    when that estimate is not small (as for an automatic trial,
+    :func:`~napari_imgreg.registration.round.trial_from_round`): the photo's
+    matches may agree with the pose, but "good" must not stand beside an
+    expected error of 4 px.
+
+    Parameters
+    ----------
+    trial : Trial
+        From :func:`score_pose`; changed in place.
+    solution : ManualSolution
+    """
+    if trial.uncertainty is not None or solution.uncertainty is None:
+        return
+    trial.uncertainty = solution.uncertainty
+    if not solution.uncertainty.is_small(solution.intrinsics.width):
+        capped = grade_pose(trial.q, pose_found=True, verified=False)
+        if GRADE_NAMES.index(capped.name) > GRADE_NAMES.index(trial.grade):
+            trial.grade = capped.name
+
+
 def registers(solution: ManualSolution) -> bool:
     """Whether a manual pose registers its photo: solved, and its pairs'
     expected error (:func:`pair_uncertainty`) small.
@@ -722,10 +750,7 @@ def register_from_pairs(
         return registration, sol
     trial = score_pose(scene, photo_rgb, sol.intrinsics, sol.pose, params, cancelled=cancelled)
     trial.index = 0
-    if trial.uncertainty is None:
-        # As the workbench records it: no match verifies a manual pose, so the
-        # pairs' own estimate is its error.
-        trial.uncertainty = sol.uncertainty
+    adopt_pair_uncertainty(trial, sol)  # as the workbench records it
     registered = registers(sol)
     hints = list(trial.hints)
     if sol.warning:

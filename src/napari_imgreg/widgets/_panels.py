@@ -1463,7 +1463,8 @@ class ManualPanel(QWidget):
         self.load_pairs_button = QPushButton("Load pairs…")
         self.load_pairs_button.setToolTip(
             "Replace the pairs by a CSV's (saved here, clicked in another tool, or surveyed "
-            "targets): photo_x, photo_y and x, y, z or easting, northing, elevation")
+            "targets): photo_x, photo_y and x, y, z, easting, northing, elevation or "
+            "latitude, longitude, elevation")
         file_row = QHBoxLayout()
         for b in (self.save_pairs_button, self.load_pairs_button):
             file_row.addWidget(b)
