@@ -123,7 +123,7 @@ class ControlPoints:
                               "--georef): give x,y,z in the model frame instead")
         if self.frame == "crs":
             return np.asarray(georef.crs_to_local(self.xyz), np.float64).reshape(-1, 3)
-        from ..geo import GeoError
+        from .rasters import GeoError  # geo's, defined beside the raster readers
 
         lat, lon, elevation = self.xyz.T
         try:
