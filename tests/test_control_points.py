@@ -265,6 +265,8 @@ def test_the_sample_photo_registers_from_its_check_points(tmp_path, run_cli):
     assert result["trials"][0]["verified"] and result["quality"]["grade"] in ("excellent", "good")
     # The photo's matches agree with the pose: the hint says how to refine it with them.
     assert "one Run from it" in result["quality"]["hints"][0]
+    # and gives no advice meant for an automatic trial (stricter matching, ...).
+    assert len(result["quality"]["hints"]) == 1, result["quality"]["hints"]
 
 
 def test_pairs_in_one_corner_are_uncertain_and_never_graded_good(tmp_path, run_cli):

@@ -143,6 +143,18 @@ def test_csv_round_trip_recovers_rotation(survey, tmp_path):
     np.testing.assert_allclose(estimated.positions, survey.estimated.positions, rtol=1e-9)
     result = orient(estimated, measured, method="lsq")
     assert rotation_error_deg(result.rotation, survey.rotation) < 1e-5
+    assert measured.capture_dates is None  # no time column written without dates
+
+
+def test_csv_writes_capture_days_as_a_time_column(survey, tmp_path):
+    from dataclasses import replace
+    from datetime import date
+
+    days = [date(2026, 6, 12)] * (len(survey.measured) - 1) + [None]
+    path = tmp_path / "phone.csv"
+    write_orientation_csv(path, replace(survey.measured, capture_dates=days))
+    assert path.read_text().splitlines()[0].endswith(",time")
+    assert read_orientation_table(path).capture_dates == days
 
 
 @pytest.mark.parametrize("component", [False, True], ids=["chunk", "component"])

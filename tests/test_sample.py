@@ -95,6 +95,7 @@ def test_manifest_lists_the_files(small):
         for name in ph.values():
             assert (small / name).is_file(), name
         assert ph["drawing"] == ph["image"].replace(".jpg", ".lines.geojson")
+        assert ph["pairs"] == ph["image"].replace(".jpg", ".pairs.csv")
     assert m["examples"]["orient"] == {"estimated": "orient/cameras.xml",
                                        "measured": "orient/phone.csv",
                                        "model": "orient/model.obj", "truth": "orient/truth.json"}
@@ -740,3 +741,25 @@ def test_truth_pairs_are_check_points_both_images_show(sample_reference):
     assert valid.all() and np.linalg.norm(lifted - xyz, axis=1).max() < 0.05
     with pytest.raises(ValueError, match="wanted"):
         truth_pairs(truth, ps.reference, ps.size, n=10_000)
+
+
+def test_each_photo_has_control_points_a_gnss_survey_would_give(small):
+    """IMG_xxxx.pairs.csv: eight check points spread over the photo, in the
+    georeference's map coordinates (to the mm), clicked within a few pixels
+    of where the true pose puts them."""
+    from napari_imgreg.io.control_points import read_control_points
+
+    georef = Georef.load(small / "georef.json")
+    for name in ("IMG_0001", "IMG_0002", "IMG_0003"):
+        pairs = read_control_points(small / f"{name}.pairs.csv", min_pairs=8)
+        truth = load_truth(small / f"{name}.jpg")
+        assert pairs.frame == "crs" and pairs.names == [f"GCP{k}" for k in range(1, 9)]
+        xyz = pairs.model_xyz(georef)
+        # Each is one of the photo's check points ...
+        gap = np.linalg.norm(xyz[:, None] - np.asarray(truth.check_xyz)[None], axis=2).min(axis=1)
+        assert gap.max() < 0.002
+        # ... clicked ±1 px off its true pixel, and spread over the frame.
+        true_px = truth.pose.project(truth.intrinsics, xyz)
+        assert np.linalg.norm(pairs.photo_px - true_px, axis=1).max() < 5.0
+        spread = np.ptp(pairs.photo_px, axis=0) / [truth.intrinsics.width, truth.intrinsics.height]
+        assert (spread > 0.6).all(), spread

@@ -421,13 +421,16 @@ def photo_gps_sites(photos: Sequence[str], folder: str | os.PathLike
 def write_orientation_csv(path: str | os.PathLike, table: OrientationTable) -> None:
     """Write a table as the contract's CSV (atomically).
 
-    Positions are written as ``x,y,z`` when the table has them; unknown
+    Positions are written as ``x,y,z`` when the table has them, capture
+    dates as a ``time`` column (ISO 8601 days) when it has those; unknown
     values are empty cells.
     """
     from .._atomic import atomic_write
 
     attitudes = table.attitudes
-    columns = list(CSV_COLUMNS) + (list(_POSITION_COLUMNS) if table.positions is not None else [])
+    dates = table.capture_dates
+    columns = (list(CSV_COLUMNS) + (list(_POSITION_COLUMNS) if table.positions is not None else [])
+               + (["time"] if dates is not None else []))
 
     def fmt(v: float) -> str:
         return "" if not np.isfinite(v) else f"{v:.10g}"
@@ -439,6 +442,8 @@ def write_orientation_csv(path: str | os.PathLike, table: OrientationTable) -> N
             row = [photo] + [fmt(v) for v in attitudes[i]]
             if table.positions is not None:
                 row += [fmt(v) for v in table.positions[i]]
+            if dates is not None:
+                row.append(dates[i].isoformat() if dates[i] is not None else "")
             writer.writerow(row)
 
 

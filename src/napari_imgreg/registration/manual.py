@@ -596,8 +596,10 @@ def score_pose(
     Returns
     -------
     Trial
-        With ``pose`` set to the given pose, ``rounds`` 0 and the
-        correspondences for drawing.
+        With ``pose`` set to the given pose, ``rounds`` 0, the
+        correspondences for drawing and, first among its hints, how far
+        the photo's features confirm the pose and what to do next (a
+        verified pose has no other).
     """
     t_start = time.perf_counter()
     params = (params or RegistrationParams()).copy()
@@ -616,6 +618,11 @@ def score_pose(
         last, index=-1, params=params, pose=pose, start_pose=pose, rounds=0, converged=True,
         origin=origin, seconds=time.perf_counter() - t_start, image_width=w)
     inliers = int(trial.metrics.get("inliers_3d") or 0)
+    # A verified pose keeps no advice of the six rules (stricter matching,
+    # other filters): it is for the next automatic trial, and a given pose is
+    # improved by better pairs or by a Run from it. An unverified one keeps
+    # them after its own hint: they say why the matches do not confirm it.
+    rule_hints = [] if trial.verified else trial.hints
     if inliers < MIN_VERIFIED_INLIERS:
         # An automatic round whose matches agree with no pose has none and
         # fails; a given pose that they do not support either must not read
@@ -623,18 +630,18 @@ def score_pose(
         capped = grade_pose(trial.q, pose_found=True, verified=False, ceiling=STAGE_Q_CEILING)
         if GRADE_NAMES.index(capped.name) > GRADE_NAMES.index(trial.grade):
             trial.grade = capped.name
-        trial.hints.insert(0, (
+        trial.hints = [(
             f"The photo's features confirm this pose at only {inliers} points (need "
             f"{MIN_VERIFIED_INLIERS}): it rests on the control points alone, so it is "
-            "graded \"poor\" at best — check the overlay at the pairs."))
+            "graded \"poor\" at best — check the overlay at the pairs.")] + rule_hints
     else:
         # Clicks are a pixel or two off, the photo's matches a few tenths: on
         # the sample's photos one Run from a pose of 8 pairs clicked 1.5 px off
         # took it from 0.7-1.6 px to 0.1-0.4 px at the check points.
-        trial.hints.insert(0, (
+        trial.hints = [(
             f"{inliers} of the photo's features agree with this pose: one Run from it (the "
             "workbench's Run, or register --prior with this result) refines it with them, "
-            "from the clicks' pixel or two to a few tenths of a pixel."))
+            "from the clicks' pixel or two to a few tenths of a pixel.")] + rule_hints
     return trial
 
 

@@ -25,6 +25,9 @@ Folder layout (see :func:`generate_outcrop`)::
     IMG_0001.truth.json        true camera and pose, conditions, check points
     IMG_0001.lines.geojson     an example drawing: the visible true contacts and
                                fault as a geologist draws them (pixel GeoJSON, :mod:`.drawing`)
+    IMG_0001.pairs.csv         example control points: eight surveyed targets
+                               (easting, northing, elevation) and where they were
+                               clicked in the photo (±1 px), for ``register --pairs``
     orient/                    an example survey for ``napari-imgreg orient``
                                (cameras.xml, phone.csv, model.obj, truth.json; :mod:`.survey`)
     scan.laz, scan.json        optional (``generate_outcrop(..., scan=ScanSpec())``):
@@ -105,7 +108,8 @@ log = logging.getLogger(__name__)
 
 #: Bump when the generated content changes: cached scenes are keyed by it.
 #: 6: an example drawing per photo and the orientation example (``orient/``).
-GENERATOR_VERSION = "6"
+#: 7: example control points per photo (``IMG_0001.pairs.csv``).
+GENERATOR_VERSION = "7"
 #: Version of the model (mesh, texture, cameras, priors, check points) alone:
 #: the benchmark, which re-makes the photos, keys its cache on it.
 MODEL_VERSION = "3"
@@ -113,6 +117,9 @@ MODEL_VERSION = "3"
 # Random stream ids (see noise.rng_for).
 _S_POSES, _S_PHOTO = 4, 100
 _S_DRAWING, _S_ORIENT_SURVEY = 300, 301
+_S_PAIRS = 302
+#: The example control points: how many, and the click error (Gaussian σ, pixels).
+EXAMPLE_PAIRS, EXAMPLE_PAIR_CLICK_PX = 8, 1.0
 #: Sub-folder of the orientation example (see :func:`.survey.write_orientation_example`).
 ORIENT_EXAMPLE_DIR = "orient"
 
@@ -359,8 +366,11 @@ def generate_outcrop(
         drawing = drawing_geojson(visible_stretches(scene, intr, pose, true_lines),
                                   rng_for(seed, _S_DRAWING, k))
         _write_json(out / f"{name}.lines.geojson", drawing, indent=None)
+        # What a field team's GNSS survey of targets would give.
+        _write_example_pairs(out / f"{name}.pairs.csv", checks, intr, georef,
+                             rng_for(seed, _S_PAIRS, k))
         return {"image": f"{name}.jpg", "sensor": f"{name}.json", "truth": f"{name}.truth.json",
-                "drawing": f"{name}.lines.geojson"}
+                "drawing": f"{name}.lines.geojson", "pairs": f"{name}.pairs.csv"}
 
     # Two photos at a time keep both cores busy through the numpy stages
     # (the ray casts are threaded already).
@@ -437,6 +447,35 @@ def _sensor_record(spec: OutcropSpec, intr: Intrinsics, pose: Pose, dem, georef,
     }
     prior = {"position": position, "trend_deg": trend, "plunge_deg": plunge, "roll_deg": roll}
     return record, prior
+
+
+def _write_example_pairs(path: Path, checks: list[dict[str, Any]], intr: Intrinsics,
+                         georef, rng: np.random.Generator) -> None:
+    """A control-point file (``docs/formats.md``) of :data:`EXAMPLE_PAIRS` check
+    points spread over the photo: their map coordinates as surveyed (mm) and
+    their pixels as clicked (± :data:`EXAMPLE_PAIR_CLICK_PX`).
+
+    The points are picked farthest-first over the photo from the one nearest
+    its centre, at least 20 px inside the frame.
+    """
+    import csv
+
+    px = np.array([c["pixel"] for c in checks], np.float64)
+    xyz = np.array([c["xyz"] for c in checks], np.float64)
+    inside = np.flatnonzero(np.all((px >= 20) & (px <= [intr.width - 21, intr.height - 21]),
+                                   axis=1))
+    chosen = [int(inside[np.argmin(np.linalg.norm(px[inside] - [intr.cx, intr.cy], axis=1))])]
+    while len(chosen) < min(EXAMPLE_PAIRS, len(inside)):
+        gap = np.min(np.linalg.norm(px[inside, None] - px[chosen][None], axis=2), axis=1)
+        chosen.append(int(inside[np.argmax(gap)]))
+    clicked = px[chosen] + rng.normal(0.0, EXAMPLE_PAIR_CLICK_PX, (len(chosen), 2))
+    enh = georef.local_to_crs(xyz[chosen])
+    with atomic_write(path, newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["name", "photo_x", "photo_y", "easting", "northing", "elevation"])
+        for k, ((x, y), (e, n, h)) in enumerate(zip(clicked, enh), start=1):
+            writer.writerow([f"GCP{k}", f"{x:.2f}", f"{y:.2f}", f"{e:.3f}", f"{n:.3f}",
+                             f"{h:.3f}"])
 
 
 def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: int = 0) -> Path:

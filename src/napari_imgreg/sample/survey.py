@@ -9,8 +9,10 @@ estimate (its own frame), with the true rotation between the two
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
+from datetime import date
 from typing import Sequence
 
 import numpy as np
@@ -271,6 +273,9 @@ def _write_obj(path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
 
 
 #: The files of the orientation example (:func:`write_orientation_example`).
+#: The day the example survey's phone photos were taken (``phone.csv``'s ``time``).
+EXAMPLE_SURVEY_DATE = date(2026, 6, 12)
+
 ORIENTATION_EXAMPLE_FILES = {
     "estimated": "cameras.xml",
     "measured": "phone.csv",
@@ -287,7 +292,8 @@ def write_orientation_example(folder, rng: np.random.Generator,
     200 m wall) with phone errors of ``noise_deg`` on trend, plunge and roll:
 
     * ``cameras.xml`` — the model's camera orientations, as Metashape exports them;
-    * ``phone.csv`` — the phone's attitudes (the contract's CSV);
+    * ``phone.csv`` — the phone's attitudes (the contract's CSV), each with
+      its capture day (:data:`EXAMPLE_SURVEY_DATE`, a ``time`` column);
     * ``model.obj`` — the wall in the model's frame (:func:`wall_model`);
     * ``truth.json`` — the true rotation ``world_from_model`` (matrix, axis
       and angle; and as ``orient`` reports it: the axis pointing down, the
@@ -317,7 +323,10 @@ def write_orientation_example(folder, rng: np.random.Generator,
     survey = simulate_survey(rng, noise_deg=noise_deg)
     files = ORIENTATION_EXAMPLE_FILES
     write_metashape_xml(folder / files["estimated"], survey.estimated)
-    write_orientation_csv(folder / files["measured"], survey.measured)
+    # The day of the field survey: what `orient --declination auto` needs.
+    measured = dataclasses.replace(survey.measured,
+                                   capture_dates=[EXAMPLE_SURVEY_DATE] * len(survey.measured))
+    write_orientation_csv(folder / files["measured"], measured)
     vertices, faces, colors = wall_model(survey)
     _write_obj(folder / files["model"], vertices, faces, colors,
                "the surveyed wall, in the model frame of cameras.xml (not yet oriented)")
