@@ -534,3 +534,23 @@ def test_a_raster_larger_than_the_limit_is_refused_before_decoding(tmp_path, mon
     monkeypatch.setattr(rasters, "MAX_RASTER_CELLS", 19)
     with pytest.raises(rasters.GeoError, match=r"dem.tif: 5×4 cells is more than 19"):
         DEM.load(path)
+
+
+@pytest.mark.parametrize("origin", [[53.35, -1.81, 350.0], [-1.81, 53.35, 350.0]])
+def test_an_origin_in_degrees_is_refused(origin):
+    """Latitude and longitude written as the origin: read as UTM metres they
+    lie outside the zone, on the equator. One line saying what was expected."""
+    with pytest.raises(GeoError) as err:
+        Georef.from_dict({"crs": "EPSG:32630", "origin": origin}, source="georef.json")
+    message = str(err.value)
+    assert "\n" not in message and message.startswith("georef.json: field 'origin' [")
+    assert "looks like latitude and longitude, not EPSG:32630's easting and northing" in message
+
+
+@pytest.mark.parametrize("crs, origin", [
+    ("EPSG:32630", [579000.0, 5912000.0, 350.0]),
+    ("EPSG:32630", [0.0, 0.0, 0.0]),      # a model already in map coordinates
+    ("EPSG:27700", [10.0, 20.0, 0.0]),    # near the British grid's false origin: inside its area
+])
+def test_an_origin_the_crs_is_used_for_is_accepted(crs, origin):
+    assert Georef.from_dict({"crs": crs, "origin": origin}).crs == crs

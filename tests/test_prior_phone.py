@@ -284,3 +284,35 @@ def test_a_camera_block_in_the_wrong_units_is_refused_naming_the_file(camera, vi
     hfov = 2 * math.degrees(math.atan2(800.0, prior_from_record(good, image_size=(1600, 1200))
                                        .intrinsics.fx))
     assert hfov == pytest.approx(2 * math.degrees(math.atan(2.8 / 4.25)), abs=1e-6)
+
+
+def test_map_coordinates_given_as_the_model_frame_are_refused(tmp_path):
+    """A record whose x, y are the georeference's easting and northing (not
+    minus its origin) is refused in one line that gives the local values;
+    a camera far off for another reason keeps the note."""
+    import json
+
+    from napari_imgreg.errors import InputError
+    from napari_imgreg.prior import load_camera_and_pose
+
+    bounds = np.array([[-100.0, -100.0, 0.0], [100.0, 100.0, 50.0]])
+    scene = SimpleNamespace(georef=GEOREF, dem=None, terrain_height=None, bounds=bounds)
+    photo = write_photo(tmp_path / "IMG_0012.jpg", lat=MAM_TOR[0], lon=MAM_TOR[1], alt=300.0,
+                        direction=10.0, focal35=26)
+    east, north = GEOREF.origin[0] + 20.0, GEOREF.origin[1] - 80.0
+    record = tmp_path / "IMG_0012.json"
+    record.write_text(json.dumps({"position": {"x": east, "y": north, "z": 2.0},
+                                  "orientation": {"trend_deg": 10.0, "plunge_deg": 0.0}}))
+    for load in (lambda: prior_for_photo(photo, scene=scene, record_path=record),
+                 lambda: load_camera_and_pose(record, GEOREF, model_bounds=bounds)):
+        with pytest.raises(InputError) as err:
+            load()
+        message = str(err.value)
+        assert "\n" not in message and message.startswith(f"{record}: position x,y (")
+        assert f"are map coordinates of {GEOREF.crs}" in message
+        assert "(here (20.0, -80.0)); or give lat,lon" in message
+    # 30 km off in the model frame: not map coordinates, a note as before.
+    record.write_text(json.dumps({"position": {"x": 30000.0, "y": 0.0, "z": 2.0},
+                                  "orientation": {"trend_deg": 10.0, "plunge_deg": 0.0}}))
+    prior = prior_for_photo(photo, scene=scene, record_path=record)
+    assert any(n.startswith("camera is 30 km from the model") for n in prior.assumptions)

@@ -404,12 +404,38 @@ def test_cli_sample_writes_the_drawings_and_the_orientation_example(tmp_path, mo
     assert run_cli(["sample", "--out", out]).code == 0
     assert (out / "IMG_0001.lines.geojson").is_file()
     assert (out / "orient" / "cameras.xml").is_file()
-    (out / "orient" / "cameras.xml").write_text("edited")
     (out / "orient" / "ORIENTATION.json").write_text("mine")
+    assert run_cli(["sample", "--out", out]).code == 0
+    assert (out / "orient" / "ORIENTATION.json").read_text() == "mine"
+    # A file of the sample's that the user changed is not overwritten: refused.
+    (out / "orient" / "cameras.xml").write_text("edited")
+    run = run_cli(["sample", "--out", out])
+    assert run.code == 2 and "orient/cameras.xml changed since the sample wrote it: " \
+                              "refusing to overwrite your edits" in run.line, run.line
+    assert (out / "orient" / "cameras.xml").read_text() == "edited"
+    # Moved away, it is written again.
+    (out / "orient" / "cameras.xml").rename(tmp_path / "my_cameras.xml")
     assert run_cli(["sample", "--out", out]).code == 0
     assert (out / "orient" / "cameras.xml").read_text() == "<document seed='0'/>"
     assert (out / "orient" / "ORIENTATION.json").read_text() == "mine"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["my_cameras.xml", "scene"]
+
+
+def test_a_copy_without_a_manifest_is_compared_with_the_fresh_scene(tmp_path):
+    """A copy written before the manifest was kept: its files are compared with
+    the new generation's; the one the user changed is named, new files are not."""
+    from napari_imgreg.sample import _edited_sample_files
+
+    old, fresh = tmp_path / "old", tmp_path / "fresh"
+    for folder in (old, fresh):
+        (folder / "orient").mkdir(parents=True)
+        (folder / "IMG_0001.json").write_text('{"trend_deg": 345.3}')
+        (folder / "orient" / "phone.csv").write_text("photo,trend_deg\n")
+    (fresh / "IMG_0001.pairs.csv").write_text("name\n")  # new in this version
+    assert _edited_sample_files(old, fresh) == []
+    (old / "IMG_0001.json").write_text('{"trend_deg": 340.0}')
+    assert _edited_sample_files(old, fresh) == ["IMG_0001.json"]
+    assert _edited_sample_files(old) == []  # nothing to judge by
 
 
 def test_the_cache_manifest_covers_the_files_of_sub_folders(tmp_path):

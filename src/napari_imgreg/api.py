@@ -203,7 +203,8 @@ def project(
         from .io.records import read_json
 
         intrinsics, pose, _, _ = load_camera_and_pose(
-            registration, scene.georef, scene.dem, scene.terrain_height)
+            registration, scene.georef, scene.dem, scene.terrain_height,
+            model_bounds=scene.bounds)
         data = read_json(registration)
         source = source or str(data.get("photo") or "")
         unc = unc or PoseUncertainty.from_result(data, intrinsics.fx)

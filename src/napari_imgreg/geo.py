@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from datetime import date as date_type
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -110,6 +110,39 @@ def _check_crs(
             "the model frame is in metres"
         )
     return crs
+
+
+def _refuse_degrees_as_origin(crs: str, origin: Sequence[float], source: str) -> None:
+    """Refuse an origin that is latitude and longitude, not easting and northing.
+
+    Refused when both of its horizontal numbers could be degrees (|value| ≤
+    180) *and*, read as map coordinates, they lie more than a degree outside
+    the area the CRS is made for (pyproj's ``area_of_use``): a UTM zone's
+    eastings are hundreds of kilometres, so ``[53.35, -1.81, 350]`` in
+    EPSG:32630 sits 1.5° west of its zone, on the equator. Any origin the CRS
+    is used for passes, and so does ``(0, 0)``: a model already in map
+    coordinates.
+    """
+    east, north = float(origin[0]), float(origin[1])
+    # (0, 0): a model already in map coordinates, shifted by nothing.
+    if abs(east) > 180 or abs(north) > 180 or east == north == 0.0:
+        return
+    import pyproj
+
+    area = pyproj.CRS.from_user_input(crs).area_of_use
+    if area is None:
+        return
+    lon, lat = _transformer(crs, "EPSG:4326").transform(east, north)
+    margin = 1.0
+    inside = (area.west - margin <= lon <= area.east + margin
+              and area.south - margin <= lat <= area.north + margin)
+    if math.isfinite(lon) and math.isfinite(lat) and inside:
+        return
+    raise GeoError(
+        f"{source}: field 'origin' [{_fmt(east)}, {_fmt(north)}, {_fmt(float(origin[2]))}] looks "
+        f"like latitude and longitude, not {crs}'s easting and northing (read as map "
+        f"coordinates it lies outside the area {crs} is for): give the map coordinates, "
+        "in metres, of the model's (0, 0, 0)")
 
 
 # pyproj Transformers are not guaranteed to be safe to share between threads
@@ -213,6 +246,7 @@ class Georef:
             or not all(_is_number(v) and math.isfinite(v) for v in origin)
         ):
             raise GeoError(f"{source}: field 'origin' must be a list of 3 numbers")
+        _refuse_degrees_as_origin(crs, origin, source)
         return cls(crs=crs, origin=np.array(origin, dtype=np.float64))
 
     @classmethod

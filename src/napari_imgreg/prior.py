@@ -445,8 +445,13 @@ def load_camera_and_pose(
     georef: Georef | None = None,
     dem: DEM | None = None,
     terrain_height=None,
+    model_bounds=None,
 ) -> tuple[Intrinsics, Pose, str, list[str]]:
     """Camera and pose from either a RESULT.json or a sensor record.
+
+    ``model_bounds`` (the scene's ``bounds``), given: a record whose
+    ``position.x, y`` are the georeference's map coordinates is refused
+    (:func:`_refuse_map_coordinates_as_local`).
 
     Returns
     -------
@@ -476,6 +481,7 @@ def load_camera_and_pose(
             raise input_error(path, "field 'pose.R' is not a rotation matrix")
         return intr, pose, "result", []
     record = parse_sensor_record(data, path)
+    _refuse_map_coordinates_as_local(record, path, georef, model_bounds)
     prior = prior_from_record(record, georef, dem, terrain_height)
     return prior.intrinsics, prior.pose, "prior", prior.assumptions
 
@@ -630,6 +636,9 @@ def prior_for_photo(
         exif_orientation=orientation,
     )
     prior.assumptions = notes + prior.assumptions
+    if "position" not in from_metadata:
+        _refuse_map_coordinates_as_local(record, record_path, georef,
+                                         getattr(scene, "bounds", None))
     _say_if_far_from_the_model(prior, scene)
     _attach_sun(prior, record, photo, getattr(scene, "georef", None))
     return prior
@@ -640,6 +649,54 @@ def prior_for_photo(
 _FAR_FROM_MODEL_M = 10_000.0
 
 
+def _model_xy_bounds(bounds) -> tuple[np.ndarray, np.ndarray] | None:
+    """The horizontal part (low, high corners) of a model's ``bounds``, or None without a model."""
+    try:
+        low, high = (np.asarray(corner, np.float64)[:2] for corner in bounds)
+    except (TypeError, ValueError):  # no model (a scene stand-in)
+        return None
+    return low, high
+
+
+def _distance_to_box(xy: np.ndarray, low: np.ndarray, high: np.ndarray) -> float:
+    return float(np.linalg.norm(xy - np.clip(xy, low, high)))
+
+
+def _refuse_map_coordinates_as_local(record: SensorRecord, record_path,
+                                     georef: Georef | None, bounds) -> None:
+    """Refuse a record whose ``position.x, y`` are the georeference's map
+    coordinates (easting, northing), not the model frame's.
+
+    A common slip when a record is written from a GNSS log: the camera then
+    lies thousands of kilometres from the model, and the registration would
+    search in vain. Refused only when subtracting georef.json's origin puts
+    the camera near the model (the diagnosis is sure); other far cameras get
+    :func:`_say_if_far_from_the_model`'s note.
+
+    Raises
+    ------
+    InputError
+        ``"<record>: position x,y (578979.2, 5911918.5) are map coordinates ..."``.
+    """
+    box = _model_xy_bounds(bounds)
+    pos = record.position or {}
+    if georef is None or box is None or "x" not in pos:
+        return
+    try:
+        xy = np.array([float(pos["x"]), float(pos["y"])])
+    except (KeyError, TypeError, ValueError):
+        return  # refused by the record's own checks
+    low, high = box
+    near = max(_FAR_FROM_MODEL_M, 10.0 * float(np.linalg.norm(high - low)))
+    shifted = xy - georef.origin[:2]
+    if _distance_to_box(xy, low, high) > near and _distance_to_box(shifted, low, high) <= near:
+        raise input_error(record_path, (
+            f"position x,y ({xy[0]:.1f}, {xy[1]:.1f}) are map coordinates of {georef.crs}, "
+            f"{_distance_to_box(xy, low, high) / 1000.0:,.0f} km from the model: x,y,z are "
+            "model-frame metres, the map coordinates minus georef.json's origin "
+            f"(here ({shifted[0]:.1f}, {shifted[1]:.1f})); or give lat,lon"))
+
+
 def _say_if_far_from_the_model(prior: Prior, scene) -> None:
     """Add a note when the prior's camera is kilometres away from the model.
 
@@ -647,13 +704,11 @@ def _say_if_far_from_the_model(prior: Prior, scene) -> None:
     UTM zone or another photo's record put the camera hundreds of kilometres
     away; the registration then fails for no reason its hints could name.
     """
-    bounds = getattr(scene, "bounds", None)
-    try:
-        low, high = (np.asarray(corner, np.float64)[:2] for corner in bounds)
-    except (TypeError, ValueError):  # no model (a scene stand-in)
+    box = _model_xy_bounds(getattr(scene, "bounds", None))
+    if box is None:
         return
-    centre = prior.pose.center[:2]
-    distance = float(np.linalg.norm(centre - np.clip(centre, low, high)))
+    low, high = box
+    distance = _distance_to_box(prior.pose.center[:2], low, high)
     if distance > max(_FAR_FROM_MODEL_M, 10.0 * float(np.linalg.norm(high - low))):
         prior.assumptions.append(
             f"camera is {distance / 1000.0:,.0f} km from the model: its position is likely "

@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``project``: cast the drawn lines onto the mesh, write LINES3D."""
     from ..interpret.files import (
         EXPORT_SUFFIXES,
+        check_gis_outputs,
         export_features,
         export_in_crs,
         read_interpretations,
@@ -109,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
         ("mesh", args.mesh), ("georeference", args.georef), ("DEM", args.dem),
     ])
     check_writable(out)  # before the mesh loads and the rays are cast
+    if out.suffix.lower() == ".shp":  # and every other file of the shapefile set
+        check_gis_outputs(out)
     from ..interpret.project import MIN_STEP_PX, check_drawing
     from ..interpret.uncertainty import PoseUncertainty, UncertaintyParams
 
@@ -148,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
     sets = []
     for (result, lines), items in zip(pairs, drawn):
         intr, pose, kind, notes = load_camera_and_pose(
-            result, scene.georef, scene.dem, scene.terrain_height)
+            result, scene.georef, scene.dem, scene.terrain_height, model_bounds=scene.bounds)
         data = read_json(result)
         photo = str(data.get("photo") or Path(result).stem) if isinstance(data, dict) else ""
         for k, item in enumerate(items):  # before any ray: bounded work

@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         raise input_error(pose_file, "no such file")
     scene = load_scene(args.mesh, args.georef, args.dem)
     intr, pose, kind, notes = load_camera_and_pose(
-        pose_file, scene.georef, scene.dem, scene.terrain_height
+        pose_file, scene.georef, scene.dem, scene.terrain_height, model_bounds=scene.bounds
     )
     t0 = time.perf_counter()
     result = render(scene, intr, pose, scale=args.scale, mode=args.mode)
@@ -151,12 +151,14 @@ def _far_from_origin_warning(scene, pose) -> str | None:
     ray casting and the float32 xyz lose centimetres or more."""
     import numpy as np
 
-    reach = float(max(np.abs(np.asarray(scene.bounds, np.float64)).max(),
-                      np.abs(pose.center).max()))
+    model_reach = float(np.abs(np.asarray(scene.bounds, np.float64)).max())
+    camera_reach = float(np.abs(pose.center).max())
+    reach = max(model_reach, camera_reach)
     if not reach > FAR_FROM_ORIGIN_M:
         return None
     step = float(np.spacing(np.float32(reach)))
-    return (f"the model's coordinates reach {reach:,.0f} m from the origin: single-precision "
+    what = "the model's coordinates reach" if model_reach >= camera_reach else "the camera lies"
+    return (f"{what} {reach:,.0f} m from the origin: single-precision "
             f"ray casting resolves only ~{step:.2g} m there, so xyz and depth may be off "
             f"by that much or more; use a local frame (coordinates minus an origin, the "
             f"origin in georef.json)")

@@ -485,8 +485,9 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
     and moved into place when complete, so an interrupted run leaves no half
     scene. A folder holding anything but this size and seed's scene is
     refused before the generation, so no file of the user's is overwritten;
-    an earlier run's scene is replaced by the same files, and files the user
-    put beside it stay.
+    an earlier run's scene is replaced by the same files (refused when one
+    of them was changed since: the folder's hidden manifest records their
+    hashes), and files the user put beside it stay.
 
     Parameters
     ----------
@@ -512,7 +513,11 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
         generate_outcrop(tmp, size=size, seed=seed)
+        # The hashes of what was written: the next run into the folder tells
+        # the user's edits from the sample's own files by them.
+        write_cache_manifest(tmp)
         if earlier:
+            _refuse_edited_files(out, target, fresh=tmp)
             # File by file: whatever else the user keeps in the folder stays.
             _move_files_into(tmp, target)
         else:
@@ -554,7 +559,8 @@ def check_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
     Raises
     ------
     InputError
-        ``out_dir`` is not a folder, or holds other files.
+        ``out_dir`` is not a folder, holds other files, or holds the sample
+        with files changed since it was written.
     """
     from ..errors import input_error
 
@@ -566,7 +572,40 @@ def check_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
     if earlier and not _is_sample_scene_of(target, size, seed):
         raise input_error(out, f"is not empty and does not hold the {size} sample scene of "
                                f"seed {seed}: choose a new or empty folder")
+    if earlier:
+        _refuse_edited_files(out, target)  # by the recorded hashes, before generating
     return earlier
+
+
+def _edited_sample_files(folder: Path, fresh: Path | None = None) -> list[str]:
+    """The sample's files in ``folder`` that were changed after it was written.
+
+    Judged by the hashes its :data:`CACHE_MANIFEST` recorded; a folder
+    without one (written before napari-imgreg kept it) by the ``fresh``
+    generation's files instead, when given: any difference counts. Files
+    the sample did not write are not listed (they stay anyway).
+    """
+    try:
+        recorded = json.loads((folder / CACHE_MANIFEST).read_text(encoding="utf-8"))["files"]
+        expected = {name: entry["blake2b"] for name, entry in recorded.items()}
+    except (OSError, ValueError, KeyError, TypeError):
+        if fresh is None:
+            return []
+        expected = {p.relative_to(fresh).as_posix(): _file_hash(p) for p in _scene_files(fresh)}
+    return [name for name, digest in sorted(expected.items())
+            if (folder / name).is_file() and _file_hash(folder / name) != digest]
+
+
+def _refuse_edited_files(out: Path, folder: Path, fresh: Path | None = None) -> None:
+    """Refuse to write the sample over files the user changed (:func:`_edited_sample_files`)."""
+    from ..errors import input_error
+
+    edited = _edited_sample_files(folder, fresh)
+    if edited:
+        more = f" and {len(edited) - 3} more" if len(edited) > 3 else ""
+        raise input_error(out, f"{', '.join(edited[:3])}{more} changed since the sample wrote "
+                          f"{'them' if len(edited) > 1 else 'it'}: refusing to overwrite "
+                          "your edits (move them away, or write the sample to a new folder)")
 
 
 def _is_sample_scene_of(folder: Path, size: str, seed: int) -> bool:
