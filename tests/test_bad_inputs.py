@@ -1017,3 +1017,45 @@ def test_project_of_lines_without_features_is_bad_input(wall, tmp_path, run_cli)
     line = run.line
     assert run.code == 2 and str(lines) in line and "no features to project" in line, line
     assert not out.exists()
+
+
+@pytest.mark.parametrize("given, needle", [
+    ("lines", "is GeoJSON (a drawing or projected lines), not a sensor record"),
+    ("georef", "is a georef.json, not a sensor record"),
+    ("photo", "is not a JSON file: binary content (PNG), not text"),
+    ("folder", "is a folder, not a JSON file"),
+])
+def test_another_file_given_as_the_record_is_named_for_what_it_is(wall, tmp_path, run_cli,
+                                                                  given, needle):
+    """A drawing, a georef.json, a photo or a folder where the sensor record
+    belongs: one line saying what the file is, not a missing heading or a
+    decoder's error."""
+    path = {"lines": tmp_path / "IMG_0001.lines.geojson", "georef": tmp_path / "georef.json",
+            "photo": tmp_path / "IMG_0002.png", "folder": tmp_path / "records"}[given]
+    if given == "lines":
+        path.write_text('{"type": "FeatureCollection", "features": []}')
+    elif given == "georef":
+        path.write_text('{"crs": "EPSG:32630", "origin": [579000, 5912000, 350]}')
+    elif given == "photo":
+        Image.fromarray(np.zeros((12, 16, 3), np.uint8)).save(path)
+    else:
+        path.mkdir()
+    run = run_cli(["render", wall, path, "--out", tmp_path / "r.png"])
+    assert run.code == 2 and f"{path}: {needle}" in run.line, run.line
+    assert not (tmp_path / "r.png").exists()
+
+
+def test_a_truncated_mesh_says_so(tmp_path, run_cli):
+    """A PLY cut short (an interrupted copy): one line saying the file is
+    damaged or truncated, with the reader's own words after it."""
+    import trimesh
+
+    grid = trimesh.creation.box(extents=(10.0, 10.0, 10.0)).subdivide().subdivide()
+    whole = tmp_path / "whole.ply"
+    grid.export(whole)
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(whole.read_bytes()[:len(whole.read_bytes()) // 2])
+    record = _write_record(tmp_path, _record())
+    run = run_cli(["render", cut, record, "--out", tmp_path / "r.png"])
+    assert run.code == 2
+    assert f"{cut}: cannot read mesh: damaged, truncated or not a PLY file (" in run.line, run.line

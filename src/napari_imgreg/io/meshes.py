@@ -183,6 +183,14 @@ def check_mesh_arrays(vertices, faces, uv=None, texture=None, vertex_colors=None
     return None
 
 
+def _unreadable_mesh(path: Path, exc: Exception):
+    """The one-line error of a mesh file the reader fails on: what it likely
+    is, then the reader's own words (for a bug report)."""
+    kind = path.suffix.lstrip(".").upper() or "mesh"
+    return input_error(path, f"cannot read mesh: damaged, truncated or not a {kind} file "
+                             f"({type(exc).__name__}: {exc})")
+
+
 def _parse(path: Path) -> MeshData:
     import trimesh
 
@@ -191,12 +199,12 @@ def _parse(path: Path) -> MeshData:
             warnings.simplefilter("ignore")
             loaded = trimesh.load(path, process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
-        raise input_error(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from None
+        raise _unreadable_mesh(path, exc) from None
 
     try:
         meshes = _triangle_meshes(loaded)
     except Exception as exc:  # e.g. face indices past the vertex buffer
-        raise input_error(path, f"cannot read mesh ({type(exc).__name__}: {exc})") from None
+        raise _unreadable_mesh(path, exc) from None
     if not meshes:
         raise input_error(path, "contains no triangles (corrupt or empty mesh)")
     notes: list[str] = []

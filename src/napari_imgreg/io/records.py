@@ -145,6 +145,8 @@ def read_json(path: str | os.PathLike) -> Any:
     path = Path(path)
     if not path.exists():
         raise input_error(path, "no such file")
+    if path.is_dir():
+        raise input_error(path, "is a folder, not a JSON file")
     try:
         with open(path, encoding="utf-8") as fh:
             return json.load(fh)
@@ -153,8 +155,12 @@ def read_json(path: str | os.PathLike) -> Any:
         problem = exc.msg.removesuffix(" at")
         raise input_error(path, f"invalid JSON at line {exc.lineno} column {exc.colno}: "
                                 f"{problem}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise input_error(path, f"cannot read ({exc})") from None
+    except UnicodeDecodeError:
+        # A photo, a GeoPackage or another binary file given for a JSON one.
+        kind = f" ({path.suffix.lstrip('.').upper()})" if path.suffix else ""
+        raise input_error(path, f"is not a JSON file: binary content{kind}, not text") from None
+    except OSError as exc:
+        raise input_error(path, f"cannot read ({exc.strerror or exc})") from None
 
 
 #: The declared range of every number of a sensor record, by block and field:
@@ -238,6 +244,13 @@ def parse_sensor_record(data: Any, source: str | os.PathLike | None = None) -> S
     src = Path(source) if source is not None else None
     if not isinstance(data, dict):
         raise input_error(src, "a sensor record must be a JSON object")
+    # Other files of a scene folder, given where a record belongs (--prior).
+    if data.get("type") in ("FeatureCollection", "Feature"):
+        raise input_error(src, "is GeoJSON (a drawing or projected lines), not a sensor record "
+                               "(camera, position, orientation) or RESULT.json")
+    if "crs" in data and "origin" in data:
+        raise input_error(src, "is a georef.json, not a sensor record (camera, position, "
+                               "orientation) or RESULT.json")
     blocks: dict[str, dict | None] = {}
     for key in ("camera", "position", "orientation", "sigma"):
         block = data.get(key)
