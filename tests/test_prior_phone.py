@@ -311,6 +311,16 @@ def test_map_coordinates_given_as_the_model_frame_are_refused(tmp_path):
         assert "\n" not in message and message.startswith(f"{record}: position x,y (")
         assert f"are map coordinates of {GEOREF.crs}" in message
         assert "(here (20.0, -80.0)); or give lat,lon" in message
+    # Latitude and longitude swapped.
+    lat, lon, _ = GEOREF.local_to_geodetic([20.0, -80.0, 0.0])
+    record.write_text(json.dumps({"position": {"lat": lon, "lon": lat, "alt": 300.0},
+                                  "orientation": {"trend_deg": 10.0, "plunge_deg": 0.0}}))
+    for load in (lambda: prior_for_photo(photo, scene=scene, record_path=record),
+                 lambda: load_camera_and_pose(record, GEOREF, model_bounds=bounds)):
+        with pytest.raises(InputError, match=rf"position lat {lon:g}, lon {lat:g} look swapped: "
+                                             r"read that way the camera is [\d,]+ km from the "
+                                             rf"model, and at lat {lat:g}, lon {lon:g} it is at"):
+            load()
     # 30 km off in the model frame: not map coordinates, a note as before.
     record.write_text(json.dumps({"position": {"x": 30000.0, "y": 0.0, "z": 2.0},
                                   "orientation": {"trend_deg": 10.0, "plunge_deg": 0.0}}))

@@ -189,7 +189,15 @@ def prior_from_record(
                                  ) from None
             notes.append(f"altitude from DEM + {height_above_ground_m:g} m")
         elif terrain_height is not None:
-            ground = float(terrain_height(x, y))
+            try:
+                ground = float(terrain_height(x, y))
+            except InputError as exc:
+                # The model is not under the camera: the record's position is
+                # what to check (swapped lat/lon, another photo's record).
+                raise input_error(src, f"no altitude in 'position' and the model is not under "
+                                       f"the camera at ({x:.1f}, {y:.1f}) m ({exc}): is the "
+                                       "position right? Give the camera's 'z' (or 'alt'), or "
+                                       "a DEM") from None
             notes.append(f"altitude from the model surface + {height_above_ground_m:g} m")
         else:
             raise input_error(src, "no altitude in 'position' and no DEM to take it from")
@@ -451,7 +459,7 @@ def load_camera_and_pose(
 
     ``model_bounds`` (the scene's ``bounds``), given: a record whose
     ``position.x, y`` are the georeference's map coordinates is refused
-    (:func:`_refuse_map_coordinates_as_local`).
+    (:func:`_refuse_misplaced_position`).
 
     Returns
     -------
@@ -481,7 +489,7 @@ def load_camera_and_pose(
             raise input_error(path, "field 'pose.R' is not a rotation matrix")
         return intr, pose, "result", []
     record = parse_sensor_record(data, path)
-    _refuse_map_coordinates_as_local(record, path, georef, model_bounds)
+    _refuse_misplaced_position(record, path, georef, model_bounds)
     prior = prior_from_record(record, georef, dem, terrain_height)
     return prior.intrinsics, prior.pose, "prior", prior.assumptions
 
@@ -626,6 +634,8 @@ def prior_for_photo(
     if "position" in from_metadata and not _is_drone_photo(photo):
         _phone_altitude_from_dem(record, georef, getattr(scene, "dem", None),
                                  height_above_ground_m, notes)
+    if "position" not in from_metadata:
+        _refuse_misplaced_position(record, record_path, georef, getattr(scene, "bounds", None))
     prior = prior_from_record(
         record,
         georef=georef,
@@ -636,9 +646,6 @@ def prior_for_photo(
         exif_orientation=orientation,
     )
     prior.assumptions = notes + prior.assumptions
-    if "position" not in from_metadata:
-        _refuse_map_coordinates_as_local(record, record_path, georef,
-                                         getattr(scene, "bounds", None))
     _say_if_far_from_the_model(prior, scene)
     _attach_sun(prior, record, photo, getattr(scene, "georef", None))
     return prior
@@ -662,39 +669,60 @@ def _distance_to_box(xy: np.ndarray, low: np.ndarray, high: np.ndarray) -> float
     return float(np.linalg.norm(xy - np.clip(xy, low, high)))
 
 
-def _refuse_map_coordinates_as_local(record: SensorRecord, record_path,
-                                     georef: Georef | None, bounds) -> None:
-    """Refuse a record whose ``position.x, y`` are the georeference's map
-    coordinates (easting, northing), not the model frame's.
+def _refuse_misplaced_position(record: SensorRecord, record_path,
+                               georef: Georef | None, bounds) -> None:
+    """Refuse a record whose position is the right place written the wrong way:
+    ``position.x, y`` that are the georeference's map coordinates (easting,
+    northing) rather than the model frame's, or ``lat`` and ``lon`` swapped.
 
-    A common slip when a record is written from a GNSS log: the camera then
+    Common slips when a record is written from a GNSS log: the camera then
     lies thousands of kilometres from the model, and the registration would
-    search in vain. Refused only when subtracting georef.json's origin puts
-    the camera near the model (the diagnosis is sure); other far cameras get
+    search in vain. Refused only when the corrected position (minus
+    georef.json's origin; lat and lon exchanged) lies near the model, so the
+    diagnosis is sure; other far cameras get
     :func:`_say_if_far_from_the_model`'s note.
 
     Raises
     ------
     InputError
-        ``"<record>: position x,y (578979.2, 5911918.5) are map coordinates ..."``.
+        ``"<record>: position x,y (578979.2, 5911918.5) are map coordinates ..."``,
+        ``"<record>: position lat -1.81, lon 53.35 look swapped ..."``.
     """
     box = _model_xy_bounds(bounds)
     pos = record.position or {}
-    if georef is None or box is None or "x" not in pos:
+    if georef is None or box is None:
         return
-    try:
-        xy = np.array([float(pos["x"]), float(pos["y"])])
-    except (KeyError, TypeError, ValueError):
-        return  # refused by the record's own checks
     low, high = box
     near = max(_FAR_FROM_MODEL_M, 10.0 * float(np.linalg.norm(high - low)))
-    shifted = xy - georef.origin[:2]
-    if _distance_to_box(xy, low, high) > near and _distance_to_box(shifted, low, high) <= near:
-        raise input_error(record_path, (
-            f"position x,y ({xy[0]:.1f}, {xy[1]:.1f}) are map coordinates of {georef.crs}, "
-            f"{_distance_to_box(xy, low, high) / 1000.0:,.0f} km from the model: x,y,z are "
-            "model-frame metres, the map coordinates minus georef.json's origin "
-            f"(here ({shifted[0]:.1f}, {shifted[1]:.1f})); or give lat,lon"))
+
+    def far(xy) -> float:
+        return _distance_to_box(np.asarray(xy, np.float64), low, high)
+
+    problem = None
+    try:
+        if "x" in pos:
+            xy = np.array([float(pos["x"]), float(pos["y"])])
+            shifted = xy - georef.origin[:2]
+            if far(xy) > near and far(shifted) <= near:
+                problem = (
+                    f"position x,y ({xy[0]:.1f}, {xy[1]:.1f}) are map coordinates of "
+                    f"{georef.crs}, {far(xy) / 1000.0:,.0f} km from the model: x,y,z are "
+                    "model-frame metres, the map coordinates minus georef.json's origin "
+                    f"(here ({shifted[0]:.1f}, {shifted[1]:.1f})); or give lat,lon")
+        elif "lat" in pos:
+            lat, lon = float(pos["lat"]), float(pos["lon"])
+            if abs(lon) <= 90:  # else it cannot be a latitude: not swapped
+                given = georef.geodetic_to_local(lat, lon)[:2]
+                swapped = georef.geodetic_to_local(lon, lat)[:2]
+                if far(given) > near and far(swapped) <= near:
+                    problem = (
+                        f"position lat {lat:g}, lon {lon:g} look swapped: read that way the "
+                        f"camera is {far(given) / 1000.0:,.0f} km from the model, and at lat "
+                        f"{lon:g}, lon {lat:g} it is at the model")
+    except (KeyError, TypeError, ValueError, OverflowError):
+        return  # refused by the record's own checks, with the field named
+    if problem:
+        raise input_error(record_path, problem)
 
 
 def _say_if_far_from_the_model(prior: Prior, scene) -> None:
