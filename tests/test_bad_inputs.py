@@ -1059,3 +1059,25 @@ def test_a_truncated_mesh_says_so(tmp_path, run_cli):
     run = run_cli(["render", cut, record, "--out", tmp_path / "r.png"])
     assert run.code == 2
     assert f"{cut}: cannot read mesh: damaged, truncated or not a PLY file (" in run.line, run.line
+
+
+@pytest.mark.parametrize("case, needle", [
+    ("degrees", "coordinates in longitude and latitude (urn:ogc:def:crs:OGC:1.3:CRS84): "
+                "measure needs metres"),
+    ("empty", "no features to measure (an empty FeatureCollection)"),
+])
+def test_measure_refuses_degrees_and_nothing(tmp_path, run_cli, case, needle):
+    """Lines in longitude/latitude (a GIS's export) would fit planes to degrees
+    and metres together (every trace vertical); an empty file has nothing."""
+    doc = {"type": "FeatureCollection", "features": []}
+    if case == "degrees":
+        doc["crs"] = {"type": "name", "properties": {"name": "urn:ogc:def:crs:OGC:1.3:CRS84"}}
+        doc["features"] = [{"type": "Feature", "properties": {"label": "bed"}, "geometry": {
+            "type": "LineString",
+            "coordinates": [[-1.8132, 53.3512, 390.1], [-1.8128, 53.3511, 391.0],
+                            [-1.8125, 53.3509, 390.4]]}}]
+    path = tmp_path / "lines3d.geojson"
+    path.write_text(json.dumps(doc))
+    run = run_cli(["measure", path, "--out", tmp_path / "m.csv"])
+    assert run.code == 2 and f"{path}: {needle}" in run.line, run.line
+    assert not (tmp_path / "m.csv").exists()

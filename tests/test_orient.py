@@ -398,6 +398,22 @@ def test_cli_orient_bad_input_raises_input_error(domed_tables, tmp_path):
     assert not (tmp_path / "o.json").exists()
 
 
+def test_cli_orient_refuses_one_table_twice_and_warns_of_swapped_tables(tmp_path, capsys):
+    from napari_imgreg.sample.survey import write_metashape_xml
+
+    survey = simulate_survey(np.random.default_rng(5), noise_deg=1.0)
+    xml, phone = tmp_path / "cameras.xml", tmp_path / "phone.csv"
+    write_metashape_xml(xml, survey.estimated)
+    write_orientation_csv(phone, survey.measured)
+    with pytest.raises(InputError, match=r"phone.csv: is the ESTIMATED table too"):
+        _run_cli(["orient", str(phone), str(phone), "--out", str(tmp_path / "o.json")])
+    assert _run_cli(["orient", str(xml), str(phone), "--out", str(tmp_path / "o.json")]) == 0
+    assert "swapped" not in capsys.readouterr().err
+    # Swapped: the inverse rotation, and a warning saying why.
+    assert _run_cli(["orient", str(phone), str(xml), "--out", str(tmp_path / "o.json")]) == 0
+    assert "are they swapped? ESTIMATED comes first" in capsys.readouterr().err
+
+
 def test_plot_file(tmp_path):
     survey = simulate_survey(np.random.default_rng(1), noise_deg=1.0, outlier_fraction=0.1)
     result = orient(survey.estimated, survey.measured)

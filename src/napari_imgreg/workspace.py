@@ -67,6 +67,7 @@ from .interpret import files as interpret_files
 from .interpret.project import (
     Feature3D,
     Interpretation,
+    check_drawing,
     label_color,
     measure_features,
     merge_interpretations,
@@ -112,6 +113,7 @@ __all__ = [
     "read_scene",
     "read_photos",
     "project_interpretation_sets",
+    "check_drawings",
     "SUN_ESTIMATE_WIDTH",
     "RUN_SETTINGS",
 ]
@@ -544,11 +546,39 @@ def project_interpretation_sets(
         As ``measure`` writes them: one per feature that reached the surface,
         then one per contact drawn on two or more photos (``contact:<id>``).
     """
+    for job in jobs:  # every photo's drawings, before any ray: the error names the photo
+        check_drawings(job[2], job[0], job[3])
     sets = [project_interpretations(scene, job[0], job[1], job[2], source=job[3],
                                     pose_uncertainty=job[4] if len(job) > 4 else None)
             for job in jobs]
     features = merge_interpretations(*sets)
     return features, measure_features(features)
+
+
+def check_drawings(items: list[Interpretation], intrinsics: Intrinsics, photo: str) -> None:
+    """Refuse drawings that cannot be projected from a photo, naming it.
+
+    What projecting them checks (:func:`~napari_imgreg.interpret.project.check_drawing`),
+    done where they are set, so that a bad drawing is refused before it is
+    saved instead of blocking every later projection.
+
+    Parameters
+    ----------
+    items : list of Interpretation
+    intrinsics : Intrinsics
+        The photo's camera (its size).
+    photo : str
+        The photo's name, for the message.
+
+    Raises
+    ------
+    InputError
+        A vertex is not finite or lies far outside the photo (one line:
+        ``feature <n> on <photo>: ...``).
+    """
+    for k, item in enumerate(items):
+        check_drawing(item.pixels, intrinsics.width, intrinsics.height,
+                      f"feature {k + 1} on {photo}")
 
 
 def _resolved(path: Path | None) -> Path | None:
@@ -592,6 +622,10 @@ class Workspace:
         :meth:`open`); None: not saved.
     open_problems : list of str
         What :meth:`open` could not restore, one line each.
+    drawn_not_opened : dict of str to str
+        The photos :meth:`open` could not read that were drawn on or have
+        projected features, by file name: the line of ``open_problems``
+        saying why. :meth:`projection_job` refuses while there are any.
     """
 
     #: A scene was loaded (the photos were cleared).
@@ -636,6 +670,8 @@ class Workspace:
         self.measurements: list[Measurement] = []
         #: What could not be restored when the workspace was opened (one line each).
         self.open_problems: list[str] = []
+        #: Photos not opened whose drawings a projection now would drop.
+        self.drawn_not_opened: dict[str, str] = {}
         self._store: _FolderStore | None = None
         #: The folder names of the photos read by :meth:`open` (kept without autosave too).
         self._opened_keys: dict[PhotoState, str] = {}
@@ -1426,6 +1462,20 @@ class Workspace:
             del ps.interpretations[index]
             self.interpretations_changed.emit(ps)
 
+    def unopened_drawings(self) -> str | None:
+        """Why a projection must wait, or None: a photo drawn on (or with
+        projected features) could not be opened (:attr:`drawn_not_opened`),
+        and a projection now would drop its features from the one saved."""
+        if not self.drawn_not_opened:
+            return None
+        name, problem = next(iter(self.drawn_not_opened.items()))
+        more = len(self.drawn_not_opened) - 1
+        return (f"{name} could not be opened ({problem})"
+                + (f", nor {more} other photo(s) drawn on" if more else "")
+                + ": a projection now would leave its drawings out"
+                + ("; the saved projection is kept" if self.features_3d else "")
+                + ". Mend or restore its files, then project again.")
+
     def projection_job(self) -> Job:
         """Project every photo's interpretations onto the scene, each from its
         current camera and pose; ``apply`` records the features and their
@@ -1434,9 +1484,14 @@ class Workspace:
         Raises
         ------
         WorkbenchError
-            No scene, or nothing drawn.
+            No scene, nothing drawn, or a photo drawn on could not be opened
+            (:attr:`drawn_not_opened`): its features would be dropped from
+            the projection saved, so the last one is kept instead.
         """
         scene = self.require_scene()
+        unopened = self.unopened_drawings()
+        if unopened:
+            raise WorkbenchError(unopened)
         drawn = [ps for ps in self.photos if ps.interpretations]
         jobs = [(ps.intrinsics, ps.pose, list(ps.interpretations), ps.name,
                  self.pose_uncertainty(ps)) for ps in drawn]
@@ -1761,6 +1816,7 @@ class Workspace:
         self.features_3d, self.measurements = other.features_3d, other.measurements
         self._projected_from = other._projected_from
         self.open_problems = list(other.open_problems)
+        self.drawn_not_opened = dict(other.drawn_not_opened)
         self.open_warnings = list(other.open_warnings)
         self._opened_keys = dict(other._opened_keys)
         self._mesh_fingerprint = other._mesh_fingerprint
@@ -2523,6 +2579,29 @@ def _read_photo(folder: Path, entry: dict, inline: dict | None,
     return ps
 
 
+def _photo_file_name(folder: Path, entry: dict) -> str:
+    """The file name of a manifest entry's photo (what its features name as
+    their source), else its folder name."""
+    try:
+        path = wsfiles.resolve_ref(entry.get("photo"), folder)
+    except InputError:
+        path = None
+    return path.name if path is not None else str(entry.get("key") or "photo")
+
+
+def _drawn_on(folder: Path, entry: dict, inline: dict | None) -> bool:
+    """Whether a photo that could not be opened holds drawings (its
+    ``LINES.geojson``; ``inline``: a migrated version-0 photo's); a file that
+    cannot be read counts as drawn, as it may be."""
+    if inline is not None:
+        return bool(inline.get("interpretations"))
+    lines = folder / wsfiles.PHOTOS_DIR / str(entry.get("key", "")) / wsfiles.PHOTO_LINES
+    try:
+        return lines.exists() and bool(interpret_files.read_interpretations(lines))
+    except (InputError, OSError):
+        return True
+
+
 def _changed_since_registered(ws: Workspace) -> list[str]:
     """One line per photo file, and one for the model, replaced since a photo
     was registered on it: its pose may no longer fit, and nothing else would say so."""
@@ -2608,7 +2687,7 @@ def _read_workspace(cls, folder: Path, data: dict, version: int, scene: Scene | 
     if scene is not None:  # (a workspace saved before any model was opened has none)
         ws.load_scene(scene, terrain, files)
 
-    keys, unavailable, unavailable_at, problems = {}, [], [], []
+    keys, unavailable, unavailable_at, problems, not_read = {}, [], [], [], []
     for k, entry in enumerate(entries):
         try:
             ps = _read_photo(folder, entry, None if migrated is None else migrated[k], scene)
@@ -2622,11 +2701,11 @@ def _read_workspace(cls, folder: Path, data: dict, version: int, scene: Scene | 
                                 f"napari-imgreg cannot read ({one_line(exc)})")
             unavailable.append(entry)
             unavailable_at.append(k)
+            not_read.append((entry, None if migrated is None else migrated[k], problems[-1]))
             continue
         keys[ps] = str(entry.get("key", ""))
     ws.photos = list(keys)
     ws.open_warnings = _changed_since_registered(ws)
-    ws.open_problems = problems + ws.open_warnings
     ws._opened_keys = dict(keys)
     projection = manifest.get("projection")
     if projection:
@@ -2643,6 +2722,13 @@ def _read_workspace(cls, folder: Path, data: dict, version: int, scene: Scene | 
         except (InputError, OSError, KeyError, TypeError, ValueError) as exc:
             ws.features_3d, ws.measurements = [], []
             problems.append(f"projected interpretations: {one_line(exc)}")
+    # After the projection is read: a damaged one is a problem to report too.
+    ws.open_problems = problems + ws.open_warnings
+    sources = {f.source for f in ws.features_3d}
+    for entry, inline, problem in not_read:
+        name = _photo_file_name(folder, entry)
+        if name in sources or _drawn_on(folder, entry, inline):
+            ws.drawn_not_opened[name] = problem
     ws.photos_changed.emit()
     current = manifest.get("current")
     index = next((i for i, ps in enumerate(ws.photos) if keys[ps] == current), 0)

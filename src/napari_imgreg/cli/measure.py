@@ -81,6 +81,26 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
+#: GeoJSON ``crs`` names of longitude/latitude in degrees (RFC 7946's
+#: default, and the old GeoJSON spelling of WGS84).
+_DEGREE_CRS = ("CRS84", "EPSG::4326", "EPSG:4326", "EPSG::4979", "EPSG:4979", "CRS:84")
+
+
+def _refuse_degrees(path) -> None:
+    """Refuse projected lines whose coordinates are longitude and latitude:
+    planes fitted to degrees and metres together are meaningless (every
+    trace comes out vertical)."""
+    from ..io.records import read_json
+
+    data = read_json(path)
+    crs = data.get("crs") if isinstance(data, dict) else None
+    name = ((crs or {}).get("properties") or {}).get("name") if isinstance(crs, dict) else None
+    if isinstance(name, str) and name.upper().endswith(_DEGREE_CRS):
+        raise input_error(path, f"coordinates in longitude and latitude ({name}): measure needs "
+                                "metres, the model frame (project's default) or a projected "
+                                "CRS (project --georeferenced)")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``measure``: fit lines and planes, write MEASUREMENTS.csv (and a stereonet)."""
     from ..interpret.structural import (
@@ -118,6 +138,9 @@ def run(args: argparse.Namespace) -> int:
             raise input_error(None, f"{name} must be in [{lo:g}, {hi:g}] (got {value:g})")
     check_option(args.seed, "--seed", 0, 2**32 - 1)  # NumPy's seed range, as for `sample`
     features, frame = read_features_geojson(args.lines3d)
+    _refuse_degrees(args.lines3d)
+    if not features:
+        raise input_error(args.lines3d, "no features to measure (an empty FeatureCollection)")
     thresholds = FitThresholds(
         min_planarity=args.min_planarity, surface_effect_deg=args.surface_effect,
         min_relief=args.min_relief, min_view_spread=args.min_view_spread,

@@ -131,8 +131,15 @@ def cmd_orient(args: argparse.Namespace) -> int:
     if args.plots:
         check_writable(args.plots, folder=True)
 
+    if Path(args.estimated).resolve() == Path(args.measured).resolve():
+        raise input_error(args.measured, "is the ESTIMATED table too: MEASURED is the phone's "
+                                         "attitudes, ESTIMATED the model's cameras")
     estimated = read_orientation_table(args.estimated)
     measured = read_orientation_table(args.measured)
+    # The model's cameras come from photogrammetry, the phone's attitudes
+    # from a log; the other way round the rotation is the inverse.
+    swapped = (measured.kind in ("metashape", "colmap")
+               and estimated.kind in ("csv", "photos") and estimated.positions is None)
     if args.about == "cameras" and (estimated.positions is None
                                     or not np.isfinite(estimated.positions).all(axis=1).any()):
         raise input_error(args.estimated, "no camera centres (x, y, z) to rotate about: "
@@ -157,6 +164,11 @@ def cmd_orient(args: argparse.Namespace) -> int:
         print(line)
     for note in result.notes:
         print(f"  note: {note}")
+    if swapped:
+        print(f"warning: the MEASURED table {args.measured} is a photogrammetry export and "
+              f"the ESTIMATED table {args.estimated} has no camera centres: are they swapped? "
+              "ESTIMATED comes first (the model's cameras), then MEASURED (the phone's)",
+              file=sys.stderr)
     if args.apply:
         print(f"rotated {args.apply} ({written}) -> {args.mesh_out}")
         if any("geocentric" in note for note in estimated.notes):

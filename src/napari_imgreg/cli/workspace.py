@@ -24,6 +24,7 @@ writability first, before the scene or the workspace is read.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -39,8 +40,17 @@ from ._common import (
     same_file,
     say,
 )
-from .batch import add_cluster_arguments, cluster_params, find_scene_files
-from ..errors import input_error
+from .batch import (
+    _DEM_NAMES,
+    SceneFiles,
+    _resolve,
+    add_cluster_arguments,
+    cluster_params,
+    find_scene_files,
+)
+from ..errors import InputError, input_error
+from ..io.meshes import MESH_SUFFIXES
+from ..io.pointclouds import POINT_CLOUD_SUFFIXES
 from ..io import workspace_files as wsfiles
 from ..validate import check_writable
 
@@ -130,6 +140,8 @@ def run(args: argparse.Namespace) -> int:
     """Run ``workspace ACTION``."""
     if args.action == "create":
         args.folder = str(workspace_folder_name(args.folder))
+    elif Path(args.folder).is_file():  # before "cannot write here" or "no such workspace"
+        raise input_error(args.folder, "is a file, not a workspace folder")
     _check_outputs(args)
     try:
         return _ACTIONS[args.action](args)
@@ -163,10 +175,17 @@ def _check_outputs(args: argparse.Namespace) -> None:
     """Refuse, before any work, an output that cannot be written: the
     workspace folder of a sub-command that saves into it (read-only, under
     /proc, inside a file), ``export``'s ``--out`` and ``--measurements`` (which
-    must be a .csv file, and not the ``--out`` file)."""
+    must be a .csv file, and not the ``--out`` file, and neither may be in the
+    workspace folder)."""
     if args.action in _WRITE_INTO_FOLDER:
         check_writable(args.folder, folder=True)
     elif args.action == "export":
+        for output in (args.out, args.measurements):
+            # Its own LINES3D.geojson or MEASUREMENTS.csv overwritten by an
+            # export (georeferenced, say) would corrupt every later export.
+            if output and _inside(output, args.folder):
+                raise input_error(output, f"is inside the workspace folder {args.folder}: "
+                                          "write exports outside it")
         if args.measurements:
             if Path(args.measurements).suffix.lower() != ".csv":
                 raise input_error(args.measurements, "output must be a .csv file")  # as `measure`
@@ -177,6 +196,11 @@ def _check_outputs(args: argparse.Namespace) -> None:
         check_writable(args.out)
         if args.measurements:
             check_writable(args.measurements)
+
+
+def _inside(path: str | Path, folder: str | Path) -> bool:
+    """``path`` is ``folder`` or lies in it (links and ``..`` resolved)."""
+    return Path(os.path.realpath(path)).is_relative_to(os.path.realpath(folder))
 
 
 def _open(folder: str) -> Workspace:
@@ -235,7 +259,7 @@ def _create(args: argparse.Namespace) -> int:
         raise input_error(folder, "already holds a workspace (add photos with 'workspace add')")
     if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
         raise input_error(folder, "exists and is not an empty folder: choose a new one")
-    files = find_scene_files(args.scene, args.mesh, args.dem, args.georef)
+    files = _scene_files(args)
     ws = Workspace(read_params(args.params))  # a bad file is refused before the scene loads
     ws.open_scene(files.mesh, files.dem, files.georef)
     if args.params:  # the file's fields over the scene's defaults (a point cloud's)
@@ -252,6 +276,42 @@ def _create(args: argparse.Namespace) -> int:
     say(f"{folder}: workspace with {files.mesh.name} and {len(ws.photos)} photo(s)"
         + (f"; {len(errors)} could not be read" if errors else ""))
     return _not_added(errors, "create") if errors else EXIT_OK
+
+
+def _scene_files(args: argparse.Namespace) -> SceneFiles:
+    """The model, DEM, georeference and photos of ``create``'s scene folder.
+
+    Raises
+    ------
+    InputError
+        As :func:`~napari_imgreg.cli.batch.find_scene_files`, but a file is
+        refused as not a folder in ``create``'s words, and with
+        ``--no-photos`` a folder without photos is a scene too.
+    """
+    scene = Path(args.scene)
+    if scene.is_file():
+        raise input_error(scene, "is a file, not a scene folder: give the folder that holds "
+                                 f"the model and the photos ({scene.absolute().parent})")
+    try:
+        return find_scene_files(scene, args.mesh, args.dem, args.georef)
+    except InputError as exc:
+        # batch needs photos, --no-photos does not. find_scene_files looks for
+        # them last, so the model, DEM and georeference passed its checks: at
+        # most one of each is left to pick here, as it picks them.
+        if "no photos in the folder" not in str(exc):
+            raise
+        if not args.no_photos:
+            raise InputError(f"{exc}; --no-photos makes a workspace of the scene only") from None
+    folder = scene.absolute()
+    files = [p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")]
+    models = [p for p in files if p.suffix.lower() in {*MESH_SUFFIXES, *POINT_CLOUD_SUFFIXES}]
+    dems = [p for p in files if p.name.lower() in _DEM_NAMES or p.suffix.lower() == ".asc"]
+    georef = folder / "georef.json"
+    return SceneFiles(
+        folder,
+        _resolve(args.mesh, folder) if args.mesh else models[0],
+        _resolve(args.dem, folder) if args.dem else (dems[0] if dems else None),
+        _resolve(args.georef, folder) if args.georef else (georef if georef.is_file() else None))
 
 
 def _add(args: argparse.Namespace) -> int:
@@ -360,9 +420,16 @@ def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) ->
 
 def _lines(args: argparse.Namespace) -> int:
     from ..interpret import files as interpret_files
+    from ..workspace import check_drawings
+    items = interpret_files.read_interpretations(args.lines)  # a bad file before the scene loads
     ws = _open(args.folder)
     ps = _photo_named(ws, args.folder, args.photo)
-    items = interpret_files.read_interpretations(args.lines)
+    try:
+        # As projecting them would: refused now, nothing is saved that
+        # would block every later 'workspace project'.
+        check_drawings(items, ps.intrinsics, ps.name)
+    except InputError as exc:
+        raise input_error(args.lines, str(exc)) from None
     ws.set_interpretations(items, ps=ps)
     say(f"{_label(ws, ps)}: {len(items)} feature(s) drawn (from {args.lines})")
     return EXIT_OK
@@ -402,8 +469,15 @@ def _pairs(args: argparse.Namespace) -> int:
 
 
 def _project(args: argparse.Namespace) -> int:
-    from ..workspace import WorkbenchError
+    from ..workspace import WorkbenchError, check_drawings
     ws = _open(args.folder)
+    for ps in ws.photos:  # saved before 'lines' checked drawings: say which file to redo
+        try:
+            check_drawings(ps.interpretations, ps.intrinsics, ps.name)
+        except InputError as exc:
+            lines = Path(args.folder) / wsfiles.PHOTOS_DIR / ws.photo_key(ps) / wsfiles.PHOTO_LINES
+            raise input_error(lines, f"{exc}; set its drawings again with 'workspace lines'") \
+                from None
     try:
         features = ws.project_interpretations()
     except WorkbenchError as exc:

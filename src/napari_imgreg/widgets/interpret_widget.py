@@ -1136,6 +1136,10 @@ class InterpretWidget(QWidget):
         if scene is None:
             self._fail("Choose the model (a Surface layer opened by napari-imgreg).")
             return None
+        unopened = self.workspace.unopened_drawings() if self.workspace is not None else None
+        if unopened:  # as Workspace.projection_job: the saved projection stays whole
+            self._fail(unopened)
+            return None
         jobs = self._jobs()
         if not jobs:
             self._fail("Nothing to project: draw on a photo that has a registration "
