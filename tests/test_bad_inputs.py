@@ -221,7 +221,9 @@ def test_orient_declination(tmp_path, run_cli, value, needle):
 def test_orient_about_cameras_without_centres_names_the_option(tmp_path, run_cli):
     table = tmp_path / "cams.csv"
     table.write_text("photo,trend_deg,plunge_deg,roll_deg\na,10,5,0\nb,100,3,1\nc,200,8,-1\n")
-    run = run_cli(["orient", table, table, "--out", tmp_path / "o.json", "--about", "cameras"])
+    phone = tmp_path / "phone.csv"
+    phone.write_bytes(table.read_bytes())
+    run = run_cli(["orient", table, phone, "--out", tmp_path / "o.json", "--about", "cameras"])
     line = run.line
     assert run.code == 2 and str(table) in line and "use --about origin" in line, line
     assert not (tmp_path / "o.json").exists()
@@ -1000,7 +1002,9 @@ def test_orient_reads_the_mesh_to_apply_before_writing_anything(wall, tmp_path, 
     out.write_text('{"earlier": "orientation"}\n')
     bad = tmp_path / "bad.obj"
     bad.write_text("not a mesh\n")
-    run = run_cli(["orient", table, table, "--out", out, "--apply", bad,
+    phone = tmp_path / "phone.csv"
+    phone.write_bytes(table.read_bytes())
+    run = run_cli(["orient", table, phone, "--out", out, "--apply", bad,
                    "--mesh-out", tmp_path / "om.obj"])
     line = run.line
     assert run.code == 2 and str(bad) in line, line
@@ -1081,3 +1085,13 @@ def test_measure_refuses_degrees_and_nothing(tmp_path, run_cli, case, needle):
     run = run_cli(["measure", path, "--out", tmp_path / "m.csv"])
     assert run.code == 2 and f"{path}: {needle}" in run.line, run.line
     assert not (tmp_path / "m.csv").exists()
+
+
+def test_register_writes_only_a_json_result(wall, tmp_path, run_cli):
+    """RESULT.json under another suffix (x.csv) would be taken for a table."""
+    record = _write_record(tmp_path, _record())
+    photo = tmp_path / "IMG_0001.png"
+    Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
+    run = run_cli(["register", wall, photo, "--prior", record, "--out", tmp_path / "x.csv"])
+    assert run.code == 2 and "x.csv: output must be a .json file (the RESULT.json)" in run.line
+    assert not (tmp_path / "x.csv").exists()

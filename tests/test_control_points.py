@@ -103,6 +103,22 @@ def test_latitude_longitude_are_projected_and_the_elevation_kept(tmp_path):
         cp.model_xyz(None)
 
 
+def test_latitude_and_longitude_under_another_header_are_refused(tmp_path):
+    rows = "".join(f"{100 * k},{50 + 40 * k},{53.3512 + 1e-4 * k:.6f},{-1.8132 - 2e-4 * k:.6f},"
+                   f"{390 + k}\n" for k in range(5))
+    for header in ("photo_x,photo_y,x,y,z\n", "photo_x,photo_y,easting,northing,elevation\n"):
+        path = tmp_path / "degrees.csv"
+        path.write_text(header + rows)
+        cp = read_control_points(path)
+        with pytest.raises(InputError, match=r"degrees.csv: the control points' (x,y|easting,"
+                                             r"northing) span only 0.0004 × 0.0008: are they "
+                                             r"latitude and longitude\? Give those as latitude,"):
+            cp.check_not_degrees()
+    path.write_text(header + "".join(f"{100 * k},{50 + 40 * k},{3 + k},{-2 - k},{9}\n"
+                                     for k in range(5)))
+    read_control_points(path).check_not_degrees()  # metres: 4 m apart
+
+
 def test_heights_in_another_datum_are_refused(tmp_path):
     """Points tens of metres straight above the surface (ellipsoidal heights)
     are refused; a target on a pole, or on the ground beside the model, is not."""

@@ -83,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
         ("georeference", args.georef), ("DEM", args.dem), ("parameters", args.params),
         ("control points", pairs_path),
     ])
+    if out.suffix.lower() != ".json":  # as measure's .csv: the file is RESULT.json
+        raise input_error(out, "output must be a .json file (the RESULT.json)")
     # Checked before the registration, not found out after it.
     check_writable(out)
     if args.prior and not Path(args.prior).exists():

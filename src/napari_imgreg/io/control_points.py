@@ -135,8 +135,8 @@ class ControlPoints:
     def model_points_for(self, scene) -> np.ndarray:
         """The model points in ``scene``'s model frame, checked to be the model's.
 
-        :meth:`model_xyz` through the scene's georeference, then
-        :meth:`check_near_model` and :meth:`check_heights`.
+        :meth:`check_not_degrees`, :meth:`model_xyz` through the scene's
+        georeference, then :meth:`check_near_model` and :meth:`check_heights`.
 
         Parameters
         ----------
@@ -149,9 +149,10 @@ class ControlPoints:
         Raises
         ------
         InputError
-            As those three methods.
+            As those four methods.
         """
         georef = scene.georef
+        self.check_not_degrees()
         xyz = self.model_xyz(georef)
         self.check_near_model(xyz, scene.bounds, georef.crs if georef is not None else None)
         self.check_heights(xyz, scene.vertices)
@@ -198,6 +199,33 @@ class ControlPoints:
         raise input_error(self.source, f"the control points lie a median {far} from the model "
                           f"({diagonal:.0f} m across): are columns swapped, or the coordinates "
                           f"of another system? They must be {given}")
+
+    def check_not_degrees(self) -> None:
+        """Refuse latitude and longitude given as ``x,y`` or ``easting,northing``.
+
+        Refused when the points spread over less than a metre horizontally
+        while each could be degrees (|first| ≤ 180 and |second| ≤ 90, or the
+        other way round): a survey's targets in degrees span thousandths of
+        a unit, and the points then lie near the model's origin, where no
+        other check would catch them.
+
+        Raises
+        ------
+        InputError
+            ``"<file>: the control points' x,y span only 0.002 × 0.001: ..."``.
+        """
+        if self.frame == "geodetic" or len(self.xyz) < 2:
+            return
+        a, b = self.xyz[:, 0], self.xyz[:, 1]
+        span = np.ptp(self.xyz[:, :2], axis=0)
+        degrees = ((np.abs(a) <= 180).all() and (np.abs(b) <= 90).all()) or \
+                  ((np.abs(a) <= 90).all() and (np.abs(b) <= 180).all())
+        if span.max() >= 1.0 or not degrees:
+            return
+        names = _POINT_COLUMNS[self.frame][:2]
+        raise input_error(self.source, f"the control points' {names[0]},{names[1]} span only "
+                          f"{span[0]:.3g} × {span[1]:.3g}: are they latitude and longitude? "
+                          "Give those as latitude,longitude,elevation")
 
     def check_heights(self, model_xyz: np.ndarray, surface_xyz: np.ndarray) -> None:
         """Refuse control points that float above or sink below the model:
