@@ -1227,6 +1227,29 @@ class Workspace:
         names = [str(name) for name in ps.pair_names][:n]
         return names + [""] * (n - len(names))
 
+    def rename_pair(self, index: int, name: str) -> None:
+        """Name pair ``index`` of the current photo (``GCP12``; "" removes the
+        name). The name is saved with the pairs and written by :meth:`save_pairs`.
+
+        Raises
+        ------
+        WorkbenchError
+            No such pair, a name with a line break, or one another pair has
+            (a control-point file names each target once).
+        """
+        ps = self.current
+        names = self._pair_names(ps) if ps is not None else []
+        if not 0 <= index < len(names):
+            raise WorkbenchError(f"There is no pair {index + 1}.")
+        name = str(name).strip()
+        if "\n" in name or "\r" in name:
+            raise WorkbenchError("A pair's name is one line.")
+        if name and name in names and names.index(name) != index:
+            raise WorkbenchError(f"Pair {names.index(name) + 1} is named {name!r} already.")
+        names[index] = name
+        ps.pair_names = names
+        self.pairs_changed.emit()
+
     def pair_names(self, ps: PhotoState | None = None) -> list[str]:
         """Each photo pick's name from a control-point file ("" for a clicked one)."""
         ps = ps if ps is not None else self.current

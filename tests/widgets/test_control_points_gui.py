@@ -73,6 +73,16 @@ def test_saved_pairs_load_back_into_the_table_and_layers(workbench, qtbot, monke
     np.testing.assert_allclose(ctrl.workspace.pair_points_3d()[0],
                                np.delete(picked_xyz, 2, axis=0), atol=1e-5)
 
+    # A pair is named by double-clicking its number; the name is saved with it.
+    monkeypatch.setattr("napari_imgreg.widgets._panels.QInputDialog.getText",
+                        lambda *a, **k: ("GCP7", True))
+    panel.table.cellDoubleClicked.emit(1, 0)
+    assert panel.table.item(1, 0).text() == "2 GCP7"
+    panel.rename_pair(0, "GCP7")  # another pair's name: refused, said
+    assert ctrl.workspace.pair_names()[:2] == ["", "GCP7"]
+    panel.save_pairs_button.click()
+    assert read_control_points(path).names == ["", "GCP7", "", "", ""]
+
 
 def test_loaded_pairs_off_the_reference_keep_their_points_and_solve(
         workbench, qtbot, monkeypatch, tmp_path):

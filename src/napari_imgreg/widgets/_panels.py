@@ -35,6 +35,7 @@ from qtpy.QtWidgets import (
     QGridLayout,
     QGroupBox,
     QHBoxLayout,
+    QInputDialog,
     QLabel,
     QLineEdit,
     QListWidget,
@@ -1476,6 +1477,7 @@ class ManualPanel(QWidget):
         self.table.setSelectionBehavior(QAbstractItemView.SelectRows)
         self.table.setSelectionMode(QAbstractItemView.SingleSelection)
         self.table.setMinimumHeight(180)
+        self.table.cellDoubleClicked.connect(self._cell_double_clicked)
         self.focal_check = QCheckBox(f"also solve the focal length (≥ {MIN_PAIRS_FOCAL} pairs)")
         # Ticked for the user when the photo's focal length is not known (no
         # focal length in its record, or only an estimate), until they untick it.
@@ -1530,6 +1532,26 @@ class ManualPanel(QWidget):
         controller.busy_changed.connect(self.refresh_buttons)
         self._residuals: np.ndarray | None = None
         self.refresh()
+
+    def _cell_double_clicked(self, row: int, column: int) -> None:
+        if column == 0:
+            self.rename_pair(row)
+
+    def rename_pair(self, row: int, name: str | None = None) -> None:
+        """Name pair ``row`` (asked in a dialog when ``name`` is None)."""
+        names = self.ws.pair_names()
+        if not 0 <= row < len(names):
+            return
+        if name is None:
+            name, ok = QInputDialog.getText(
+                self, f"Name of pair {row + 1}",
+                "Name (a surveyed target's, e.g. GCP12; empty for none):", text=names[row])
+            if not ok:
+                return
+        try:
+            self.ws.rename_pair(row, name)
+        except WorkbenchError as exc:
+            self.ctrl.notify_error(str(exc))
 
     def delete_selected(self) -> None:
         rows = self.table.selectionModel().selectedRows() if self.table.selectionModel() else []
@@ -1620,6 +1642,9 @@ class ManualPanel(QWidget):
                 item = QTableWidgetItem(text)
                 if j == 0:
                     item.setBackground(_qcolor(PAIR_COLORS[i % len(PAIR_COLORS)]))
+                    if i < len(names):
+                        item.setToolTip("Double-click to name the pair (a surveyed target's "
+                                        "name is saved with it)")
                 if j == 4 and res is not None and i < len(res) and np.isfinite(res[i]):
                     sol = self.ws.current.manual_solution if self.ws.current else None
                     bad = sol is not None and not sol.inliers[i]
