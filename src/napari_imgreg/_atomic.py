@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from pathlib import Path
@@ -10,7 +11,54 @@ from typing import IO, Iterator
 
 __all__ = [
     "atomic_write", "atomic_path", "umask", "file_mode", "resolve_target", "fsync_dir", "fsync_file",
+    "OutputError",
 ]
+
+
+class OutputError(OSError):
+    """An output file could not be written (a folder in its way, no
+    permission, a full disk): its message is one line naming the file and
+    why, its ``errno`` the system's. The command line prints the line and
+    exits with 2, as for bad input.
+
+    Parameters
+    ----------
+    path : path-like
+        The output as the caller named it (a link, not its target).
+    cause : OSError
+        What the operating system said.
+    """
+
+    def __init__(self, path: str | os.PathLike, cause: OSError):
+        if isinstance(cause, IsADirectoryError):
+            reason = "it is a folder, not a file"
+        elif isinstance(cause, (FileExistsError, NotADirectoryError)):  # from making its folder
+            reason = "a file is in the way of its folder"
+        else:
+            reason = cause.strerror or " ".join(str(cause).split()) or type(cause).__name__
+        super().__init__(f"{os.fspath(path)}: cannot write ({reason})")
+        # errno only: with strerror or filename set, OSError's str() would
+        # become "[Errno n] ..." instead of the one line above.
+        self.errno = cause.errno
+        self.path = Path(path)
+
+    def __reduce__(self):
+        # Rebuilt from its message (a batch worker sends it to the client):
+        # the default would call __init__ with the message alone.
+        return _output_error_from, (self.args[0], self.errno, os.fspath(self.path))
+
+
+#: Errors of writing itself (not of what the writer reads): no space, no
+#: quota, a file too large, the drive failing, a read-only file system.
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS}
+
+
+def _output_error_from(message: str, errno: int | None, path: str) -> OutputError:
+    """An :class:`OutputError` with ``message`` as is (for unpickling)."""
+    error = OutputError.__new__(OutputError)
+    OSError.__init__(error, message)
+    error.errno, error.path = errno, Path(path)
+    return error
 
 
 def umask() -> int:
@@ -79,29 +127,63 @@ def fsync_file(path: str | os.PathLike) -> None:
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it over ``path`` on success.
 
-    The temporary file keeps the target's extension (so writers that choose a
-    format by extension, such as OpenCV or tifffile, still work). On any error
-    the temporary file is removed and ``path`` is untouched.
+    Parameters
+    ----------
+    path : path-like
+        The file to write. A symlink is followed: the file it points to is
+        replaced (the temporary file sits beside it, so the rename stays on
+        one file system) and the link is kept.
+    suffix : str, optional
+        The temporary file's extension; default: that of ``path`` *as given*.
 
-    Durability: the temporary file is fsynced before the rename and its
-    folder after it, so once this returns the new content survives a power
-    cut (never an empty file under the new name). A symlinked ``path`` is
-    followed: the file it points to is replaced and the link is kept.
+    Yields
+    ------
+    Path
+        The temporary file to write, which ends with ``path``'s extension.
+
+    Notes
+    -----
+    The temporary file takes its extension from the name the caller gave,
+    not from a link's target: writers choose the format from it (OpenCV,
+    matplotlib) or append their own when it is missing (``np.save`` adds
+    ``.npy``), so with ``d.npy -> store/abc123`` the temporary must still end
+    in ``.npy``, else the data would go to a stray ``<temporary>.npy`` and the
+    target would be replaced by an empty file.
+
+    On any error the temporary file is removed and ``path`` is untouched; an
+    :class:`OSError` of making the temporary file or of the rename is raised
+    as an :class:`OutputError` naming ``path``. Durability: the temporary file is
+    fsynced before the rename and its folder after it, so once this returns
+    the new content survives a power cut (never an empty file under the new
+    name).
     """
     target = resolve_target(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        prefix=f".{target.name}.", suffix=suffix if suffix is not None else target.suffix,
-        dir=target.parent,
-    )
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{target.name}.", suffix=suffix if suffix is not None else Path(path).suffix,
+            dir=target.parent,
+        )
+    except OSError as exc:
+        raise OutputError(path, exc) from exc
     os.close(fd)
     tmp_path = Path(tmp)
     try:
-        yield tmp_path
-        # mkstemp makes the file private (0600): give it the target's mode.
-        os.chmod(tmp_path, file_mode(target))
-        fsync_file(tmp_path)
-        os.replace(tmp_path, target)
+        try:
+            yield tmp_path
+            # mkstemp makes the file private (0600): give it the target's mode.
+            os.chmod(tmp_path, file_mode(target))
+            fsync_file(tmp_path)
+        except OSError as exc:
+            # A full disk (or quota, or a dying drive) while writing names no
+            # file: say which output it was. Other errors are the writer's.
+            if exc.errno in _WRITE_ERRNOS and not isinstance(exc, OutputError):
+                raise OutputError(path, exc) from exc
+            raise
+        try:
+            os.replace(tmp_path, target)  # a folder in the way, an immutable file: refused
+        except OSError as exc:
+            raise OutputError(path, exc) from exc
     except BaseException:
         with contextlib.suppress(OSError):
             tmp_path.unlink()

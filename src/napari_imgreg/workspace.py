@@ -60,6 +60,7 @@ import numpy as np
 from psygnal import Signal
 
 from . import adjust
+from ._atomic import OutputError
 from .camera import Intrinsics, Pose, match_scale
 from .errors import InputError, input_error
 from .geo import DEM, Georef
@@ -134,7 +135,7 @@ def one_line(exc: BaseException) -> str:
     """The first line of an error's message, naming its type unless it is bad input."""
     text = str(exc).strip()
     first = text.splitlines()[0] if text else ""
-    if isinstance(exc, (InputError, WorkbenchError)):
+    if isinstance(exc, (InputError, WorkbenchError, OutputError)):  # already say what
         return first or type(exc).__name__
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
@@ -2323,7 +2324,8 @@ class _FolderStore:
             # The manifest is written after the files it names: it waited too.
             self._unsaved["manifest"] = None
             message = one_line(failed)
-            if isinstance(failed, OSError) and not failed.filename:  # a full disk's names no file
+            if isinstance(failed, OSError) and not failed.filename \
+                    and not isinstance(failed, OutputError):  # which names its file
                 message = f"{self.folder}: {message}"
             self.ws.autosave_failed.emit(message)
 

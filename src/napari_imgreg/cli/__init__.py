@@ -16,9 +16,11 @@ exit code 2. The command line is Qt-free but for ``demo --gui``.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from .. import __version__
+from .._atomic import OutputError
 from .._allocator import tune_allocator
 from .._deprecated import forward_moved_names
 from . import (
@@ -32,7 +34,7 @@ from . import (
     sample,
     workspace,
 )
-from ._common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, print_error
+from ._common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, one_line, print_error
 from ..errors import InputError
 from ..validate import FieldValueError
 
@@ -73,6 +75,19 @@ def main(argv: list[str] | None = None) -> int:
         # FieldValueError: a value checked where no file is known (an API
         # object built from an option); still bad input, still one line.
         print_error(_command_name(args), exc)
+        return EXIT_BAD_INPUT
+    except OutputError as exc:  # its message names the output already
+        print_error(_command_name(args), exc)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        # A file the system refused (no permission, a folder in the way)
+        # outside the atomic writers. Without a file name (a broken pipe)
+        # there is no file to name: a traceback is the only useful report.
+        where = exc.filename2 if exc.filename2 is not None else exc.filename
+        if where is None:
+            raise
+        print_error(_command_name(args), f"{os.fsdecode(where)}: "
+                                         f"{exc.strerror or one_line(exc)}")
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

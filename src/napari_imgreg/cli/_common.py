@@ -101,8 +101,10 @@ def silence_stdout() -> None:
 
 def write_npy(path: str | os.PathLike, array: np.ndarray) -> None:
     """Write ``array`` as a NumPy ``.npy`` file, atomically."""
-    with atomic_path(path) as tmp:
-        np.save(tmp, array)
+    # Through an open file: given a name, np.save appends ".npy" to any name
+    # not ending in it exactly (``D.NPY``), and would write a stray file.
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.save(fh, array)
 
 
 def read_params(path: str | os.PathLike | None, scene: Scene | None = None) -> RegistrationParams:

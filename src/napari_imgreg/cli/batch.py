@@ -264,7 +264,9 @@ def _is_geotiff(path: Path) -> bool:
     try:
         import tifffile
 
-        with tifffile.TiffFile(path) as tif:
+        from ..io.rasters import quiet_tifffile
+
+        with quiet_tifffile(), tifffile.TiffFile(path) as tif:
             tags = tif.pages[0].tags
             return any(tags.get(code) is not None for code in _GEOTIFF_TAGS)
     except Exception:  # not readable as TIFF: load_photo will say so
@@ -276,14 +278,18 @@ def find_scene_files(
     mesh: str | None = None,
     dem: str | None = None,
     georef: str | None = None,
+    photos_required: bool = True,
 ) -> SceneFiles:
     """Find the mesh, DEM, georeference and photos of a scene folder.
+
+    ``photos_required=False``: a folder of the scene alone is one too
+    (``workspace create --no-photos``).
 
     Raises
     ------
     InputError
         No such folder, no mesh or several (without ``mesh``), several DEMs
-        (without ``dem``), a given file missing, or no photos.
+        (without ``dem``), a given file missing, or no photos (when required).
     """
     folder = Path(folder).absolute()  # the workers' own working folder may differ
     if not folder.exists():
@@ -344,7 +350,7 @@ def find_scene_files(
             scene.ignored[p.name] = "a GeoTIFF raster (DEM or orthophoto), not a photo"
         else:
             scene.photos.append(p)
-    if not scene.photos:
+    if not scene.photos and photos_required:
         raise input_error(folder, "no photos in the folder (expected JPEG, PNG, TIFF or HEIC files)")
     return scene
 
@@ -442,6 +448,22 @@ def _error_row(photo: str, status: str, message: str, seconds: float) -> dict[st
     return row
 
 
+def _refuse_unwritable_outputs(out: Path, result_names) -> None:
+    """Refuse, before the scene loads and any photo is registered, a folder
+    (or a link to one) where summary.csv, summary.json or a photo's
+    RESULT.json goes: found only at the first write, it would end the run
+    after its work (a summary) or fail every photo (a result).
+
+    Raises
+    ------
+    InputError
+        ``"<file>: cannot write here: it is a folder, not a file"``.
+    """
+    for name in ("summary.csv", "summary.json", *result_names):
+        if (out / name).is_dir():  # a link to a folder too: its target is replaced
+            raise input_error(out / name, "cannot write here: it is a folder, not a file")
+
+
 def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
     """Write summary.csv and summary.json atomically (csv first, json last)."""
     with atomic_write(out / "summary.csv", newline="", encoding="utf-8") as fh:
@@ -485,6 +507,7 @@ def run(args: argparse.Namespace) -> int:
     # Everything about the scene is checked here, before anything is written
     # (and the mesh cache the workers load from is made once).
     files = find_scene_files(args.scene_dir, args.mesh, args.dem, args.georef)
+    _refuse_unwritable_outputs(out, _result_names(files.photos).values())
     read_params(args.params)  # a bad file is refused before the scene loads
     scene = load_scene(files.mesh, georef=files.georef, dem=files.dem)
     params = read_params(args.params, scene)  # a point cloud's defaults under the file's

@@ -40,17 +40,8 @@ from ._common import (
     same_file,
     say,
 )
-from .batch import (
-    _DEM_NAMES,
-    SceneFiles,
-    _resolve,
-    add_cluster_arguments,
-    cluster_params,
-    find_scene_files,
-)
+from .batch import SceneFiles, add_cluster_arguments, cluster_params, find_scene_files
 from ..errors import InputError, input_error
-from ..io.meshes import MESH_SUFFIXES
-from ..io.pointclouds import POINT_CLOUD_SUFFIXES
 from ..io import workspace_files as wsfiles
 from ..validate import check_writable
 
@@ -284,34 +275,21 @@ def _scene_files(args: argparse.Namespace) -> SceneFiles:
     Raises
     ------
     InputError
-        As :func:`~napari_imgreg.cli.batch.find_scene_files`, but a file is
-        refused as not a folder in ``create``'s words, and with
-        ``--no-photos`` a folder without photos is a scene too.
+        As :func:`~napari_imgreg.cli.batch.find_scene_files` (with
+        ``--no-photos`` a folder without photos is a scene too), a file given
+        for the folder said in ``create``'s words.
     """
     scene = Path(args.scene)
     if scene.is_file():
         raise input_error(scene, "is a file, not a scene folder: give the folder that holds "
                                  f"the model and the photos ({scene.absolute().parent})")
     try:
-        return find_scene_files(scene, args.mesh, args.dem, args.georef)
+        return find_scene_files(scene, args.mesh, args.dem, args.georef,
+                                photos_required=not args.no_photos)
     except InputError as exc:
-        # batch needs photos, --no-photos does not. find_scene_files looks for
-        # them last, so the model, DEM and georeference passed its checks: at
-        # most one of each is left to pick here, as it picks them.
-        if "no photos in the folder" not in str(exc):
-            raise
-        if not args.no_photos:
+        if "no photos in the folder" in str(exc):
             raise InputError(f"{exc}; --no-photos makes a workspace of the scene only") from None
-    folder = scene.absolute()
-    files = [p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")]
-    models = [p for p in files if p.suffix.lower() in {*MESH_SUFFIXES, *POINT_CLOUD_SUFFIXES}]
-    dems = [p for p in files if p.name.lower() in _DEM_NAMES or p.suffix.lower() == ".asc"]
-    georef = folder / "georef.json"
-    return SceneFiles(
-        folder,
-        _resolve(args.mesh, folder) if args.mesh else models[0],
-        _resolve(args.dem, folder) if args.dem else (dems[0] if dems else None),
-        _resolve(args.georef, folder) if args.georef else (georef if georef.is_file() else None))
+        raise
 
 
 def _add(args: argparse.Namespace) -> int:

@@ -29,6 +29,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -38,7 +39,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from .._atomic import atomic_write
+from .._atomic import OutputError, atomic_write, fsync_dir, fsync_file, resolve_target
 from .._json import dump as strict_json_dump
 from ..errors import InputError, input_error
 from .project import Feature3D, Interpretation
@@ -62,6 +63,8 @@ __all__ = [
     "export_features",
     "write_measurements_csv",
     "write_features_gis",
+    "gis_output_files",
+    "check_gis_outputs",
     "read_gis_layers",
     "local_crs_wkt",
     "GIS_LAYERS",
@@ -79,6 +82,8 @@ EXPORT_SUFFIXES = (".geojson", ".json", ".csv", ".obj", ".ply", ".gpkg", ".shp")
 #: The layers of a GeoPackage (a shapefile set: ``OUT.shp`` holds the traces,
 #: ``OUT_<layer>.shp`` the others).
 GIS_LAYERS = ("traces", "facets", "measurements", "cameras")
+#: The files of one shapefile layer (``.cpg``: its text encoding).
+SHAPEFILE_PARTS = (".shp", ".shx", ".dbf", ".prj", ".cpg")
 #: Facet patch points written per feature (an even subsample).
 PATCH_POINTS_IN_FILE = 5000
 _DECIMALS = 4  # 0.1 mm
@@ -669,7 +674,17 @@ def write_features_gis(
     Notes
     -----
     Written beside the target and renamed into place: an existing file is
-    replaced only once the new one is complete.
+    replaced only once the new one is complete. A shapefile set's files are
+    all checked first (:func:`check_gis_outputs`) and replaced one right
+    after the other once every layer is written; a rename refused half-way
+    puts the replaced ones back (see :func:`_replace_together`).
+
+    Raises
+    ------
+    InputError
+        A folder where one of the files goes (nothing written).
+    OutputError
+        A file could not be replaced (:func:`_replace_together`).
     """
     import tempfile
 
@@ -685,6 +700,7 @@ def write_features_gis(
     frame = {"napari_imgreg_frame": "crs" if georef is not None else "local",
              "napari_imgreg_crs": georef.crs if georef is not None else "local",
              "napari_imgreg_origin": json.dumps([float(v) for v in shift])}
+    check_gis_outputs(path)  # before the layers are built and written
     layers = _gis_layers(features, shift, measurements, cameras)
     notes: list[str] = []
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -713,9 +729,104 @@ def write_features_gis(
                 written += [(p, path.parent / p.name) for p in tmp_dir.glob(f"{stem}.*")]
         if suffix != ".shp":
             written = [(tmp_dir / path.name, path)]
-        for src, dst in written:
-            os.replace(src, dst)
+        _replace_together(written, tmp_dir / ".replaced")
     return notes
+
+
+def gis_output_files(path: str | os.PathLike) -> list[Path]:
+    """Every file :func:`write_features_gis` writes for ``path``.
+
+    Parameters
+    ----------
+    path : path-like
+        ``OUT.gpkg`` or ``OUT.shp``.
+
+    Returns
+    -------
+    list of Path
+        ``[OUT.gpkg]``, or for a shapefile set each of
+        :data:`SHAPEFILE_PARTS` of ``OUT`` (traces) and of ``OUT_<layer>``
+        for the other :data:`GIS_LAYERS`.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".shp":
+        return [path]
+    stems = [path.stem] + [f"{path.stem}_{layer}" for layer in GIS_LAYERS[1:]]
+    return [path.with_name(stem + part) for stem in stems for part in SHAPEFILE_PARTS]
+
+
+def check_gis_outputs(path: str | os.PathLike) -> None:
+    """Refuse, before anything is written, a GIS export one of whose files
+    cannot be replaced because a folder is in its way.
+
+    Raises
+    ------
+    InputError
+        ``"<file>: cannot write here: it is a folder, not a file"``.
+    """
+    _refuse_folders(gis_output_files(path))
+
+
+def _refuse_folders(paths: Sequence[Path]) -> None:
+    """Raise an InputError for the first of ``paths`` (followed when a link)
+    that is a folder: a rename over it would fail half-way through a set."""
+    for p in paths:
+        if p.is_dir():  # a link to one too: a link's target is replaced
+            raise input_error(p, "cannot write here: it is a folder, not a file "
+                                 "(no file of the set was replaced)")
+
+
+def _replace_together(moves: Sequence[tuple[Path, Path]], backups: Path) -> None:
+    """Rename each new file over its destination, one right after the other.
+
+    Every destination is checked first (:func:`_refuse_folders`), so a folder
+    in the way replaces nothing. Should a rename still be refused (an
+    immutable file, a link to another disk), the files already replaced are
+    put back from hard links made in ``backups``: the set stays the old one
+    whole, never a mix of old and new layers.
+
+    Parameters
+    ----------
+    moves : sequence of (Path, Path)
+        (new file, destination as named); a symlinked destination is
+        followed, as :func:`~napari_imgreg._atomic.atomic_path` does.
+    backups : Path
+        A new folder on the destinations' file system for the old files.
+
+    Raises
+    ------
+    InputError
+        A folder in the way (nothing replaced).
+    OutputError
+        A rename was refused; names that file (the set is as it was before).
+    """
+    _refuse_folders([dst for _, dst in moves])
+    for src, _ in moves:  # the new content on the disk before any name points at it
+        fsync_file(src)
+    backups.mkdir()
+    done: list[tuple[Path, Path | None, bool]] = []  # (target, its backup, it existed)
+    for k, (src, dst) in enumerate(moves):
+        target = resolve_target(dst)
+        existed = os.path.lexists(target)
+        backup: Path | None = backups / str(k) if existed else None
+        if backup is not None:
+            try:
+                os.link(target, backup, follow_symlinks=False)
+            except OSError:  # no hard links here: this one cannot be put back
+                backup = None
+        try:
+            os.replace(src, target)
+        except OSError as exc:
+            for done_target, done_backup, done_existed in reversed(done):
+                with contextlib.suppress(OSError):
+                    if done_backup is not None:
+                        os.replace(done_backup, done_target)
+                    elif not done_existed:
+                        os.unlink(done_target)
+            raise OutputError(dst, exc) from exc
+        done.append((target, backup, existed))
+    for folder in {target.parent for target, _, _ in done}:
+        fsync_dir(folder)
 
 
 #: Longest text a shapefile's (dBASE) field holds, characters.

@@ -509,5 +509,9 @@ def save_image(path: str | os.PathLike, rgb: np.ndarray, quality: int = 92) -> N
         arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
     with atomic_path(path) as tmp:
         params = [cv2.IMWRITE_JPEG_QUALITY, quality] if tmp.suffix.lower() in (".jpg", ".jpeg") else []
-        if not cv2.imwrite(str(tmp), arr, params):
+        try:
+            written = cv2.imwrite(str(tmp), arr, params)
+        except cv2.error:  # OpenCV 4.x raises for an extension it has no writer for
+            written = False
+        if not written:
             raise input_error(path, "cannot write image (unsupported extension?)")

@@ -22,12 +22,15 @@ This module is backend only: no Qt or napari imports.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import os
 import re
+import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -42,7 +45,10 @@ __all__ = [
     "read_dem_raster",
     "write_dem_geotiff",
     "write_dem_asc",
+    "quiet_tifffile",
 ]
+
+log = logging.getLogger(__name__)
 
 #: Value written for NaN cells in GeoTIFF / ASCII grid files.
 NODATA_WRITE = -9999.0
@@ -67,6 +73,43 @@ _DEM_EXTENSIONS = (".tif", ".tiff", ".asc")
 
 #: Largest raster read, cells × bands (250 M: a 15,800² DEM, 1 GB as float32).
 MAX_RASTER_CELLS = 250_000_000
+
+
+class _TifffileToDebug(logging.Filter):
+    """Turns tifffile's log records into debug records of ours while the
+    thread that logs them is inside :func:`quiet_tifffile`."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.depth = threading.local()  # other threads' tifffile logs are theirs
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not getattr(self.depth, "n", 0):
+            return True
+        log.debug("tifffile: %s", record.getMessage())
+        return False
+
+
+_TIFFFILE_TO_DEBUG = _TifffileToDebug()
+
+
+@contextlib.contextmanager
+def quiet_tifffile() -> Iterator[None]:
+    """Keep tifffile's own log lines (``<TiffTag.fromfile> raised ...``, one
+    per bad tag of a corrupt file) off stderr while reading a raster here.
+
+    The reader turns a file it cannot use into one error that names it; the
+    lines tifffile logs on the way there would come first and bury it. They
+    are kept as debug records of this module. Only the calling thread's
+    records are held back.
+    """
+    logging.getLogger("tifffile").addFilter(_TIFFFILE_TO_DEBUG)  # once: addFilter ignores repeats
+    depth = _TIFFFILE_TO_DEBUG.depth
+    depth.n = getattr(depth, "n", 0) + 1
+    try:
+        yield
+    finally:
+        depth.n -= 1
 
 
 class _TooLarge(Exception):
@@ -204,7 +247,7 @@ def read_geotiff(path: str | os.PathLike[str]) -> GeoRaster:
     if not p.is_file():
         raise GeoError(f"{p}: file not found")
     try:
-        with tifffile.TiffFile(p) as tf:
+        with quiet_tifffile(), tifffile.TiffFile(p) as tf:
             page = tf.pages[0]
             # Checked before decoding: a corrupt header can claim any size.
             cells = int(page.imagelength) * int(page.imagewidth) * int(page.samplesperpixel)

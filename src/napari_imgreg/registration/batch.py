@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from .._allocator import allocator_environment, tune_allocator
-from .._atomic import atomic_write
+from .._atomic import OutputError, atomic_write
 from .._json import dumps as strict_dumps
 from ..errors import InputError, input_error
 from ..io.photos import Photo, load_photo
@@ -315,7 +315,11 @@ def register_photo_file(
         # on: the summary has been written without it, so the folder must be too.
         return {"photo": name, "status": "error", "error": "interrupted: result not written",
                 "seconds": time.perf_counter() - t0}
-    _write_json(Path(result_path), result)
+    try:
+        _write_json(Path(result_path), result)
+    except OutputError as exc:  # refused (an immutable file): this photo's outcome, not the batch's
+        return {"photo": name, "status": "bad_input", "error": _one_line(exc),
+                "seconds": time.perf_counter() - t0}
     return {"photo": name, "status": reg.status, "error": "", "result": result,
             "hints": list(reg.hints), "assumptions": list(reg.assumptions),
             "seconds": time.perf_counter() - t0, "scene_load_s": scene_s, "pid": os.getpid()}
