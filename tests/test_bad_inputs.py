@@ -1095,3 +1095,17 @@ def test_register_writes_only_a_json_result(wall, tmp_path, run_cli):
     run = run_cli(["register", wall, photo, "--prior", record, "--out", tmp_path / "x.csv"])
     assert run.code == 2 and "x.csv: output must be a .json file (the RESULT.json)" in run.line
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_text_coordinates_and_a_folder_as_dem_are_named(wall, tmp_path, run_cli):
+    """"100" where a number belongs is refused, not read as 100; a folder
+    given as the DEM is said to be one."""
+    lines = tmp_path / "lines.geojson"
+    lines.write_text(json.dumps({"type": "FeatureCollection", "features": [{
+        "type": "Feature", "properties": {},
+        "geometry": {"type": "LineString", "coordinates": [["100", "200"], ["300", "400"]]}}]}))
+    record = _write_record(tmp_path, _record())
+    run = run_cli(["project", record, wall, lines, "--out", tmp_path / "l3.geojson"])
+    assert run.code == 2 and f"{lines}: feature 1: coordinates are text, not numbers" in run.line
+    run = run_cli(["render", wall, record, "--out", tmp_path / "r.png", "--dem", tmp_path])
+    assert run.code == 2 and f"{tmp_path}: is a folder, not a DEM file" in run.line, run.line

@@ -108,6 +108,10 @@ def _features_of(data: Any, path: Path) -> list[dict]:
 
 
 def _coords(raw: Any, dims: int, path: Path, where: str) -> np.ndarray:
+    # numpy would read "100" as 100: GeoJSON positions are numbers, and text
+    # there means the file was written by something that got them wrong.
+    if any(isinstance(v, str) for v in np.asarray(raw, dtype=object).ravel()):
+        raise input_error(path, f"{where}: coordinates are text, not numbers")
     try:
         arr = np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError):

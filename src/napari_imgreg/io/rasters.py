@@ -369,6 +369,8 @@ def read_dem_raster(path: str | os.PathLike[str]) -> GeoRaster:
     """
     p = Path(path)
     ext = p.suffix.lower()
+    if p.is_dir():
+        raise GeoError(f"{p}: is a folder, not a DEM file ({', '.join(_DEM_EXTENSIONS)})")
     if ext not in _DEM_EXTENSIONS:
         raise GeoError(
             f"{p}: unknown DEM file type {p.suffix!r}; expected one of "
