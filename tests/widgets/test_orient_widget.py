@@ -79,6 +79,21 @@ def test_apply_rotates_the_surface_layer_once(widget, tables, qtbot):
     assert "imgreg_orientation" in layer.metadata
 
 
+def test_the_workbench_model_is_not_offered_for_rotation(widget, tables, qtbot):
+    """The workbench's model stays as its photos were registered to it; other
+    Surface layers are offered."""
+    from napari_imgreg.widgets._layers import WORKBENCH_MODEL
+
+    viewer = widget.viewer
+    faces = np.array([[0, 1, 2]])
+    vertices = np.eye(3)
+    viewer.add_surface((vertices, faces), name="outcrop", metadata={WORKBENCH_MODEL: True})
+    viewer.add_surface((vertices, faces), name="to orient")
+    names = [widget.layer_combo.itemText(k) for k in range(widget.layer_combo.count())]
+    assert names == ["to orient"]
+    assert "the workbench's model is not offered" in widget.apply_button.toolTip()
+
+
 def test_bad_table_is_reported_not_raised(widget, tmp_path, qtbot):
     bad = tmp_path / "measured.csv"
     bad.write_text("photo,trend_deg\nIMG_1,3\n")

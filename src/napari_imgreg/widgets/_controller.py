@@ -54,6 +54,7 @@ from ._jobs import JobRunner, in_python_thread
 from ._layers import (
     INTERPRETATION_OF,
     REDUCED_BY,
+    WORKBENCH_MODEL,
     camera_from_view,
     cloud_layer_data,
     frustum_segments,
@@ -496,6 +497,7 @@ class _Layers:
         if old is not None:
             self.viewer.layers.remove(old)
         kwargs["visible"] = self.viewer.dims.ndisplay == 3
+        kwargs["metadata"] = {**kwargs.get("metadata", {}), WORKBENCH_MODEL: True}
         self._put("surface", self._add("add_points" if cloud else "add_surface", data, **kwargs))
 
     def show_cameras(self, centers: np.ndarray, segments: np.ndarray, current: int,

@@ -50,6 +50,9 @@ INTERPRETATION_OF = "imgreg_interpretation_of"
 #: photo, scaled up to the photo's extent (a workbench photo not shown); 0 or
 #: absent: all of them.
 REDUCED_BY = "imgreg_reduced_by"
+#: Model layer metadata key: True on the workbench's own model, the one its
+#: photos are registered to (the Orient dock does not rotate it).
+WORKBENCH_MODEL = "imgreg_workbench_model"
 
 
 def photo_pixel_frame(photo_layer) -> tuple[np.ndarray, np.ndarray]:

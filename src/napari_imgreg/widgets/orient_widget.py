@@ -39,7 +39,7 @@ from qtpy.QtWidgets import (
 
 from ..scene import Scene
 from ._jobs import JobRunner, in_python_thread
-from ._layers import napari_from_world, world_from_napari
+from ._layers import WORKBENCH_MODEL, napari_from_world, world_from_napari
 from ..orient import (
     METHODS,
     OrientationResult,
@@ -154,7 +154,9 @@ class OrientWidget(QWidget):
         self.flag_labels: list[QLabel] = []
         self.figure = Figure(figsize=(4.5, 5.5))
         self.canvas = FigureCanvasQTAgg(self.figure)
-        self.canvas.setMinimumHeight(420)
+        # Small enough to dock beside the workbench on a 1000 px screen; the
+        # plots tab grows with the dock.
+        self.canvas.setMinimumHeight(240)
 
         # Summary and flags / estimators / plots as tabs: a dock stays compact.
         summary_page = QWidget()
@@ -358,9 +360,13 @@ class OrientWidget(QWidget):
 
     # ------------------------------------------------------------- apply
     def _surface_layers(self) -> list:
+        """The Surface layers the result may rotate: not the workbench's model,
+        whose photos are registered to it as it is (rotating it would leave
+        every pose and mapped line in another frame than the model shown)."""
         from napari.layers import Surface
 
-        return [layer for layer in self.viewer.layers if isinstance(layer, Surface)]
+        return [layer for layer in self.viewer.layers if isinstance(layer, Surface)
+                and not layer.metadata.get(WORKBENCH_MODEL)]
 
     def _refresh_layers(self, event=None) -> None:
         current = self.layer_combo.currentText()
@@ -370,6 +376,12 @@ class OrientWidget(QWidget):
         if current in names:
             self.layer_combo.setCurrentText(current)
         self.apply_button.setEnabled(self.result is not None and bool(names))
+        workbench_model = any(layer.metadata.get(WORKBENCH_MODEL) for layer in self.viewer.layers)
+        self.apply_button.setToolTip(
+            "Rotate the chosen Surface layer (again from its original pose)"
+            + ("; the workbench's model is not offered: its photos are registered to it as it "
+               "is — orient the model file (orient --apply) and make the workspace with it"
+               if workbench_model else ""))
 
     def apply_to_layer(self, layer=None) -> None:
         """Rotate a Surface layer by the result, about the result's centre.
