@@ -1379,6 +1379,38 @@ class Workspace:
             self.select_trial(ps.selected_trial)
         return solution
 
+    def manual_solution_of_pairs(self, ps: PhotoState | None = None
+                                 ) -> manual.ManualSolution | None:
+        """The photo's manual solution when it was solved from the pairs it has
+        now (its residuals are then theirs to show), else None: pairs edited,
+        loaded or cleared since, or no reference render to put them in 3D.
+
+        A pose's pairs are told by their reprojection errors: under the
+        solution's camera and pose, each complete pair errs by what the
+        solution recorded for it.
+        """
+        ps = ps if ps is not None else self.current
+        sol = ps.manual_solution if ps is not None else None
+        if sol is None:
+            return None
+        photo_px, _ = self.pairs(ps)
+        errors = np.asarray(sol.errors_px, float).reshape(-1)
+        if len(errors) != len(photo_px) or not len(photo_px):
+            return None
+        if not sol.ok or sol.pose is None:  # no pose to check against: as many pairs
+            return sol
+        xyz, valid = self.pair_points_3d(ps)
+        if not valid.any():
+            return None
+        with np.errstate(invalid="ignore"):
+            now = np.full(len(photo_px), np.nan)
+            now[valid] = np.linalg.norm(
+                sol.pose.project(sol.intrinsics, xyz[valid]) - photo_px[valid], axis=1)
+        same_nan = np.array_equal(np.isnan(now), np.isnan(errors))
+        both = np.isfinite(now) & np.isfinite(errors)
+        close = np.allclose(now[both], errors[both], rtol=1e-3, atol=_SAME_RESIDUAL_PX)
+        return sol if same_nan and close else None
+
     # ----------------------------------------------------------------- sun
     def convergence_deg(self, ps: PhotoState | None = None) -> float:
         """Meridian convergence at the photo's prior camera, degrees: grid
@@ -2106,6 +2138,9 @@ def _reference_pixels(reference: RenderResult, xyz: np.ndarray) -> np.ndarray:
 
 #: Pixels within which a pick is the same pick after a view's edit.
 _SAME_PICK_PX = 0.01
+#: Pixels within which a pair's reprojection error is the one its manual
+#: solution recorded (a reference rendered again lifts the same points).
+_SAME_RESIDUAL_PX = 0.02
 
 
 def _carried_rows(old_photo: np.ndarray, photo: np.ndarray) -> np.ndarray:
@@ -2652,10 +2687,28 @@ def _changed_since_registered(ws: Workspace) -> list[str]:
     return lines
 
 
+#: Drawing properties left out of :func:`_projection_input`: how a line is shown,
+#: not what it measures.
+_NOT_PROJECTED = frozenset({"color"})
+
+
 def _projection_input(ps: PhotoState) -> str:
     """A digest of what a photo's projection is made from: its drawings, its
-    camera and its pose (equal digests: projecting it again gives the same)."""
-    drawn = [(item.geometry, np.asarray(item.pixels, float).tolist(), dict(item.properties))
+    camera and its pose (equal digests: projecting it again gives the same).
+
+    A drawing counts as it is saved (``LINES.geojson``), so that a workspace
+    opened again matches what it recorded: its kind, its pixels to the saved
+    precision (a line drawn in napari has more digits), and its properties
+    but the colour. The label, note, units, contact and id all reach the
+    projected features and measurements (the label and contact choose which
+    traces are measured together); the colour only shows them, and is no
+    stable part of a drawing either: napari's layer gives every line its
+    label's colour, the saved file fills it in, reading it back drops it.
+    Properties count whatever their order.
+    """
+    drawn = [(item.geometry,
+              np.round(np.asarray(item.pixels, float), interpret_files.PIXEL_DECIMALS).tolist(),
+              {k: v for k, v in sorted(item.properties.items()) if k not in _NOT_PROJECTED})
              for item in ps.interpretations]
     text = wsfiles.json_text([ps.pose.R.tolist(), ps.pose.t.tolist(), ps.intrinsics.to_dict(),
                               drawn], compact=True)

@@ -167,7 +167,14 @@ def test_project_without_registration_says_why(widget, qtbot):
     shapes.add(napari_from_pixels(np.array([[100.0, 100.0], [200.0, 200.0]])), shape_type="path")
     with qtbot.waitSignal(widget.projection_failed, timeout=5000) as blocker:
         assert widget.project() is None
-    assert "registration" in blocker.args[0]
+    assert "drawings are on photos without a registration" in blocker.args[0]
+
+
+def test_project_with_nothing_drawn_says_to_draw(widget, qtbot):
+    """A registered photo, nothing drawn: the next step, not a registration."""
+    with qtbot.waitSignal(widget.projection_failed, timeout=5000) as blocker:
+        assert widget.project() is None
+    assert "nothing is drawn yet. Press New interpretation layer" in blocker.args[0]
 
 
 def test_attach_result(widget, tmp_path, sample):

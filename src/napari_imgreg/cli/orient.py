@@ -60,7 +60,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument(
         "--georef", metavar="georef.json",
         help="the model's georeference, whose origin places the site for --declination auto "
-        "(default: a georef.json beside the --apply mesh or the ESTIMATED table)",
+        "(default: a georef.json beside the --apply mesh or the ESTIMATED table, else one "
+        "folder up from them)",
     )
     p.add_argument("--plots", metavar="DIR", help="write the Δξ/Δρ plots (PNG) into DIR")
     p.set_defaults(func=cmd_orient)
@@ -164,6 +165,12 @@ def cmd_orient(args: argparse.Namespace) -> int:
         print(line)
     for note in result.notes:
         print(f"  note: {note}")
+    if auto and georef is not None and not args.georef:
+        from ..orient.declination import georef_found_above
+
+        if georef_found_above(georef, args.apply, args.estimated):
+            print(f"  note: {georef} was found one folder up from the tables and placed the "
+                  "site of the declination (--georef FILE names another)")
     if swapped:
         print(f"warning: the MEASURED table {args.measured} is a photogrammetry export and "
               f"the ESTIMATED table {args.estimated} has no camera centres: are they swapped? "

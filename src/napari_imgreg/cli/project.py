@@ -83,6 +83,9 @@ def _load_surface(mesh: str, georef: str | None, dem: str | None) -> Scene:
         raise input_error(path, "no such file")
     if path.suffix.lower() in _DEM_SUFFIXES:
         return Scene.from_dem(path, georef=georef or None)  # else the georef.json beside it
+    from ..io.meshes import check_model_suffix
+
+    check_model_suffix(path, dsm=True)  # a DSM is taken here: the message says so
     return load_scene(path, georef, dem)
 
 

@@ -87,6 +87,8 @@ SHAPEFILE_PARTS = (".shp", ".shx", ".dbf", ".prj", ".cpg")
 #: Facet patch points written per feature (an even subsample).
 PATCH_POINTS_IN_FILE = 5000
 _DECIMALS = 4  # 0.1 mm
+#: Decimals of the pixel coordinates a photo's drawings are saved with (1/1000 px).
+PIXEL_DECIMALS = 3
 
 
 # ------------------------------------------------------------- pixel GeoJSON
@@ -189,7 +191,7 @@ def interpretations_to_geojson(items: Sequence[Interpretation]) -> dict[str, Any
     """A pixel GeoJSON FeatureCollection (contract §5) of drawn interpretations."""
     features = []
     for item in items:
-        px = np.round(np.asarray(item.pixels, np.float64), 3)
+        px = np.round(np.asarray(item.pixels, np.float64), PIXEL_DECIMALS)
         if item.geometry == "Polygon":
             ring = np.vstack([px, px[:1]]).tolist()
             geometry = {"type": "Polygon", "coordinates": [ring]}

@@ -15,9 +15,30 @@ from pathlib import Path
 
 from ..errors import input_error
 
-__all__ = ["read_table_rows", "cell_number"]
+__all__ = ["read_table_rows", "cell_number", "header_excerpt"]
 
 _DELIMITERS = (",", ";", "\t")
+#: Characters of a header quoted in a message, at most.
+HEADER_EXCERPT_CHARS = 80
+
+
+def header_excerpt(header: list[str], limit: int = HEADER_EXCERPT_CHARS) -> str:
+    """The header as a message quotes it: its names joined by commas, cut to
+    ``limit`` characters (with "…")."""
+    text = ",".join(header)
+    return text if len(text) <= limit else text[: limit - 1].rstrip(",") + "…"
+
+
+def _not_a_table(text: str) -> str | None:
+    """What a file clearly not a CSV table is ("a GeoJSON file", "a JSON
+    file"), from its first character; None for anything else."""
+    head = text.lstrip()[:1]
+    if head not in ("{", "["):
+        return None
+    start = text.lstrip()[:2000].lower()
+    if '"featurecollection"' in start.replace(" ", "") or '"feature"' in start.replace(" ", ""):
+        return "a GeoJSON file"
+    return "a JSON file"
 
 
 def read_table_rows(path: Path, expected: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
@@ -41,7 +62,8 @@ def read_table_rows(path: Path, expected: str) -> tuple[list[str], list[tuple[in
     Raises
     ------
     InputError
-        A missing, unreadable or empty file.
+        A missing, unreadable or empty file; a JSON or GeoJSON file
+        (``"<file>: a GeoJSON file, not a CSV table"``).
     """
     if not path.exists():
         raise input_error(path, "no such file")
@@ -49,6 +71,9 @@ def read_table_rows(path: Path, expected: str) -> tuple[list[str], list[tuple[in
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise input_error(path, f"cannot read ({exc})") from None
+    kind = _not_a_table(text)
+    if kind is not None:
+        raise input_error(path, f"{kind}, not a CSV table")
     lines = [(number, line) for number, line in enumerate(text.splitlines(), start=1)
              if line.strip() and not line.lstrip().startswith("#")]
     if not lines:

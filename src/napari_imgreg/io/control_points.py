@@ -41,7 +41,7 @@ import numpy as np
 
 from .._atomic import atomic_write
 from ..errors import input_error
-from ._table_csv import cell_number, read_table_rows
+from ._table_csv import cell_number, header_excerpt, read_table_rows
 
 if TYPE_CHECKING:  # only the georeference's crs_to_local is used
     from ..geo import Georef
@@ -371,7 +371,7 @@ def _point_frame(path: Path, header: list[str], expected: str) -> str:
     missing = [c for c in PIXEL_COLUMNS if c not in header]
     if missing:
         raise input_error(path, f"missing column{'s' if len(missing) > 1 else ''} "
-                          f"{', '.join(missing)} (header is: {','.join(header)}; {expected})")
+                          f"{', '.join(missing)} (header is: {header_excerpt(header)}; {expected})")
     complete = [frame for frame, columns in _POINT_COLUMNS.items()
                 if all(c in header for c in columns)]
     if len(complete) > 1:
@@ -395,7 +395,7 @@ def _point_frame(path: Path, header: list[str], expected: str) -> str:
                           "receiver's ellipsoidal height")
     missing = [c for c in _POINT_COLUMNS[partial] if c not in header]
     raise input_error(path, f"missing column{'s' if len(missing) > 1 else ''} "
-                      f"{', '.join(missing)} (header is: {','.join(header)}; {expected})")
+                      f"{', '.join(missing)} (header is: {header_excerpt(header)}; {expected})")
 
 
 def _check_degrees(path: Path, row_number: int, latitude: float, longitude: float) -> None:

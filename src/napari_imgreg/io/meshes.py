@@ -20,13 +20,48 @@ import numpy as np
 from ..errors import input_error
 
 __all__ = [
-    "MeshData", "load_mesh", "MESH_SUFFIXES", "mesh_cache_dir", "mesh_cache_limit_bytes",
+    "MeshData", "load_mesh", "MESH_SUFFIXES", "DSM_SUFFIXES", "model_formats_text",
+    "check_model_suffix", "mesh_cache_dir", "mesh_cache_limit_bytes",
     "check_mesh_arrays", "evict_mesh_cache", "MESH_CACHE_LIMIT_BYTES",
 ]
 
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
+#: A DSM given as the model (GeoTIFF or ESRI ASCII grid), which the workbench's
+#: Model field and ``project`` turn into a surface (:meth:`Scene.from_dem`).
+DSM_SUFFIXES = (".tif", ".tiff", ".asc")
+
+
+def model_formats_text(dsm: bool = False) -> str:
+    """The model formats a reader takes, for a message: meshes and point
+    clouds, and with ``dsm`` a DSM too."""
+    from .pointclouds import POINT_CLOUD_SUFFIXES
+
+    clouds = [s for s in POINT_CLOUD_SUFFIXES if s not in MESH_SUFFIXES]
+    text = f"a mesh: {', '.join(MESH_SUFFIXES)}; a point cloud: {', '.join(clouds)}"
+    return text + (f"; a DSM: {', '.join(DSM_SUFFIXES)}" if dsm else "")
+
+
+def check_model_suffix(path: str | os.PathLike, dsm: bool = False) -> None:
+    """Refuse a file whose suffix is no model format, naming those taken.
+
+    ``dsm``: a DSM (:data:`DSM_SUFFIXES`) is taken too, as by the workbench's
+    Model field. A missing file or a folder is left to the reader.
+
+    Raises
+    ------
+    InputError
+        ``"<file>: not a model format (a mesh: ...; a point cloud: ...[; a DSM: ...])"``.
+    """
+    from .pointclouds import POINT_CLOUD_SUFFIXES
+
+    path = Path(path)
+    if not path.is_file():
+        return
+    accepted = MESH_SUFFIXES + POINT_CLOUD_SUFFIXES + (DSM_SUFFIXES if dsm else ())
+    if path.suffix.lower() not in accepted:
+        raise input_error(path, f"not a model format ({model_formats_text(dsm)})")
 
 # Bump when what the loader produces changes: old cache entries are ignored.
 # 2: content keys, entries checked on read, eviction by size.
@@ -127,13 +162,7 @@ def load_mesh(path: str | os.PathLike, cache: bool = True) -> MeshData:
     if path.is_dir():
         raise input_error(path, "is a folder, not a mesh file")
     if path.suffix.lower() not in MESH_SUFFIXES:
-        from .pointclouds import POINT_CLOUD_SUFFIXES
-
-        clouds = [s for s in POINT_CLOUD_SUFFIXES if s not in MESH_SUFFIXES]
-        raise input_error(
-            path, f"not a model format (a mesh: {', '.join(MESH_SUFFIXES)}; a point cloud: "
-                  f"{', '.join(clouds)})"
-        )
+        raise input_error(path, f"not a model format ({model_formats_text()})")
     use_cache = cache and path.stat().st_size >= _CACHE_MIN_BYTES and mesh_cache_limit_bytes() > 0
     key = _cache_key(path) if use_cache else None
     if key is not None:

@@ -36,7 +36,7 @@ from .._deprecated import forward_moved_names
 from ..camera import attitude_from_rotation, rotation_from_attitude
 from ..errors import InputError, input_error
 from . import exif
-from ._table_csv import cell_number, read_table_rows
+from ._table_csv import cell_number, header_excerpt, read_table_rows
 
 __all__ = [
     "OrientationTable",
@@ -280,7 +280,7 @@ def read_orientation_csv(path: str | os.PathLike) -> OrientationTable:
         raise input_error(
             path,
             f"missing column{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
-            f"(header is: {','.join(header)}; "
+            f"(header is: {header_excerpt(header)}; "
             "expected photo,trend_deg,plunge_deg,roll_deg[,x,y,z])",
         )
     present_xyz = [c for c in _POSITION_COLUMNS if c in header]

@@ -32,10 +32,30 @@ from ..geo import (
 from ..io.orientation_tables import OrientationTable, photo_capture_dates, photo_gps_sites
 
 __all__ = ["AUTO", "SurveyDeclination", "survey_date", "survey_site", "survey_declination",
-           "default_georef_path"]
+           "default_georef_path", "georef_found_above", "gui_wording", "GIVE_GEOREF",
+           "GIVE_DECLINATION"]
 
 #: What the command line and the widget take for "compute it".
 AUTO = "auto"
+
+#: How a message asks for the inputs of a declination, in the command line's
+#: words; :func:`gui_wording` gives the Orient model dock's.
+GIVE_GEOREF = "give --georef FILE, or the declination as a number (--declination DEG)"
+GIVE_DECLINATION = "(--declination DEG)"
+_GUI_WORDS = (
+    (GIVE_GEOREF, "choose the model's georef.json in the Georef field, or untick Auto (WMM) "
+                  "and type the declination in the Declination box"),
+    (GIVE_DECLINATION, "(untick Auto (WMM) and type it in the Declination box)"),
+)
+
+
+def gui_wording(message: str) -> str:
+    """A declination message in the Orient model dock's words: its Georef
+    field and declination box instead of ``--georef`` and ``--declination``
+    (the command line keeps its own)."""
+    for cli, gui in _GUI_WORDS:
+        message = message.replace(cli, gui)
+    return message
 
 
 @dataclass(frozen=True)
@@ -111,8 +131,8 @@ def survey_date(measured: OrientationTable) -> tuple[date, str]:
     if not known:
         raise input_error(
             measured.source, "no capture dates for an automatic declination (no time column, "
-            "no photos with EXIF DateTimeOriginal beside it): give the declination as a "
-            "number (--declination DEG)")
+            f"no photos with EXIF DateTimeOriginal beside it): give the declination as a "
+            f"number {GIVE_DECLINATION}")
     # The median day: a survey over a few days is dated by its middle.
     middle = date.fromordinal(int(statistics.median_low(d.toordinal() for d in known)))
     count = f"{len(known)} capture date{'s' if len(known) > 1 else ''}"
@@ -150,7 +170,7 @@ def survey_site(measured: OrientationTable) -> tuple[float, float, str]:
         raise input_error(
             measured.source, "an automatic declination needs the site: the model's "
             "georef.json (its origin), or MEASURED photos with EXIF GPS beside the table; "
-            "give --georef FILE, or the declination as a number (--declination DEG)")
+            f"{GIVE_GEOREF}")
     lat = statistics.median(site[0] for site in known)
     lon = statistics.median(site[1] for site in known)  # a survey spans metres, not 180°
     count = f"{len(known)} photo{'s' if len(known) > 1 else ''}"
@@ -197,12 +217,21 @@ def survey_declination(
     try:
         declination = magnetic_declination(lat, lon, height, when)
     except GeoError as exc:
-        raise input_error(blame, f"{exc} (--declination DEG)") from None
+        raise input_error(blame, f"{exc} {GIVE_DECLINATION}") from None
     return SurveyDeclination(declination, date_source, georef_source, place)
 
 
 def default_georef_path(*near: str | os.PathLike | None) -> Path | None:
-    """The first ``georef.json`` beside (or inside, for a folder) the given files.
+    """The first ``georef.json`` beside (or inside, for a folder) the given
+    files; else the first one folder up from them.
+
+    One folder up: a survey's tables are often kept in a folder of their own
+    beside the model (the sample's ``orient/``, with the scene's
+    ``georef.json`` above it). The georeference only places the site of an
+    automatic declination, which changes by about 0.1° in 10 km, so the
+    project's own is as good; the note of the result names the file used
+    (:meth:`SurveyDeclination.note`), and :func:`georef_found_above` says
+    when it was found up there.
 
     Parameters
     ----------
@@ -214,12 +243,29 @@ def default_georef_path(*near: str | os.PathLike | None) -> Path | None:
     -------
     Path or None
     """
+    folders = []
     for item in near:
         if item is None or str(item) == "":
             continue
         path = Path(item)
-        folder = path if path.is_dir() else path.parent
+        folders.append(path if path.is_dir() else path.parent)
+    for folder in [*folders, *(f.parent for f in folders)]:
         candidate = folder / "georef.json"
         if candidate.is_file():
             return candidate
     return None
+
+
+def georef_found_above(georef: str | os.PathLike | None,
+                       *near: str | os.PathLike | None) -> bool:
+    """Whether :func:`default_georef_path` found ``georef`` one folder up
+    from the given files (not beside any of them)."""
+    if not georef:
+        return False
+    folders = []
+    for item in near:
+        if item is None or str(item) == "":
+            continue
+        path = Path(item)
+        folders.append((path if path.is_dir() else path.parent).resolve())
+    return Path(georef).resolve().parent not in folders

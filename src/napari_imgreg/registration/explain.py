@@ -13,7 +13,9 @@ Each check needs clear evidence; none says more than it measured:
 
 - the photo's exposure (share of pure white or near-black pixels);
 - blur or low contrast: the photo has far fewer distinct points than the
-  render of the model from the same pose;
+  render of the model from the same pose (named after the settings changed
+  from their defaults that thin out its points, a raised detection
+  threshold first, when there are any);
 - the sensor pose far off: from it, photo and render have almost nothing in
   common although the photo has plenty of distinct points;
 - the focal length of the record: the matched 2D-3D pairs, refitted with the
@@ -36,7 +38,7 @@ from .pose import reprojection_errors
 from .resection import refine_camera
 
 __all__ = ["diagnose", "photo_exposure", "focal_refit", "FocalRetry", "focal_retry_start",
-           "match_spread", "nothing_in_common", "prior_offset_hint"]
+           "match_spread", "nothing_in_common", "prior_offset_hint", "fewer_points_settings"]
 
 #: A photo with this share of pure-white pixels (luminance ≥ 250) is overexposed.
 OVEREXPOSED_SHARE = 0.25
@@ -225,6 +227,65 @@ def prior_offset_hint(pose: Pose, prior, registered: bool) -> str | None:
             "off, this pose is wrong — do not map on it.")
 
 
+#: Names of the filters' switches in a hint (the others: their field name).
+_FILTER_LABELS = {"wallis": "Wallis filter", "clahe": "CLAHE",
+                  "gradient": "gradient magnitude"}
+
+
+def _filter_changes(filters, default) -> list[str]:
+    """The fields of one image's filters that differ from ``default``, in words
+    ("Wallis off", "gamma 2.5"); a sub-filter's settings only when it is on."""
+    changes = []
+    for name, value in filters.to_dict().items():
+        base = getattr(default, name)
+        if value == base:
+            continue
+        group = name.split("_")[0]
+        if group in ("wallis", "clahe", "gradient") and name != group \
+                and not getattr(filters, group):
+            continue
+        label = _FILTER_LABELS.get(name, name.replace("_", " "))
+        if isinstance(value, bool):
+            changes.append(f"{label} {'on' if value else 'off'}")
+        else:
+            changes.append(f"{label} {value:g}")
+    return changes
+
+
+def fewer_points_settings(params) -> list[str]:
+    """The settings of a registration, changed from their defaults, that leave
+    the photo fewer distinct points: a raised detection threshold, a smaller
+    matching width, the photo's filters (each a short phrase; empty when
+    none is changed or ``params`` is unknown).
+
+    A higher threshold drops the weak points of a soft or low-contrast photo
+    far more than those of a crisp render, so it can make a sound photo look
+    blurred: the hint says so before it blames the photo.
+    """
+    from .params import RegistrationParams
+
+    if not isinstance(params, RegistrationParams):
+        return []
+    default = RegistrationParams()
+    out = []
+    scale = params.features.threshold_scale
+    base = default.features.threshold_scale
+    if scale > base:
+        out.append(f"the feature detection threshold is ×{scale:g} (default ×{base:g}), which "
+                   "keeps only the strongest points")
+    if params.match_width < default.match_width:
+        out.append(f"images are matched {params.match_width} px wide (default "
+                   f"{default.match_width} px)")
+    defaults = [RegistrationParams.default_filters("photo"),
+                RegistrationParams.for_cloud().photo_filters]
+    if params.photo_filters not in defaults:
+        # Against the default it differs least from (a point cloud's has gradient on).
+        changes = min((_filter_changes(params.photo_filters, d) for d in defaults), key=len)
+        if changes:
+            out.append(f"the photo's filters differ from the defaults ({', '.join(changes)})")
+    return out
+
+
 def diagnose(trials: Sequence, best, status: str, prior, camera: Intrinsics,
              photo_rgb: np.ndarray, appearance: bool = True) -> list[str]:
     """:func:`_diagnose`, never raising: advice must not break a registration."""
@@ -291,10 +352,21 @@ def _diagnose(trials: Sequence, best, status: str, prior, camera: Intrinsics,
         pts_render = int(first.metrics.get("points_render") or 0)
     if (appearance and not exposure_bad and pts_render > 0 and pts_photo < 1000
             and pts_photo < BLUR_POINT_RATIO * pts_render):
-        out.append(f"The photo has far fewer distinct points than the render of the model "
-                   f"({pts_photo} against {pts_render}): it is probably blurred (camera shake, "
-                   "out of focus), hazy or low in contrast. A sharp photo of the same view "
-                   "registers best; otherwise add control points by hand.")
+        own = fewer_points_settings(getattr(first, "params", None))
+        if own:
+            # The user's own setting is the first suspect: a photo is not
+            # blamed for what a raised threshold or a filter took from it.
+            out.append(f"The photo has far fewer distinct points than the render of the model "
+                       f"({pts_photo} against {pts_render}), and settings changed from their "
+                       f"defaults explain part of it: {'; '.join(own)}. Set them back and run "
+                       "again; if the photo still has far fewer points, it is probably blurred "
+                       "(camera shake, out of focus), hazy or low in contrast — a sharp photo "
+                       "of the same view registers best, otherwise add control points by hand.")
+        else:
+            out.append(f"The photo has far fewer distinct points than the render of the model "
+                       f"({pts_photo} against {pts_render}): it is probably blurred (camera "
+                       "shake, out of focus), hazy or low in contrast. A sharp photo of the same "
+                       "view registers best; otherwise add control points by hand.")
 
     # The focal length of the sensor record.
     if "fx" not in (camera.estimated or ()) and getattr(intr, "focal_known", True):

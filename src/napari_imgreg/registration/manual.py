@@ -55,6 +55,9 @@ __all__ = [
     "registers",
     "adopt_pair_uncertainty",
     "register_from_pairs",
+    "gui_hint",
+    "RUN_FROM_IT",
+    "RUN_FROM_IT_GUI",
 ]
 
 #: Pairs needed for a pose (EPnP's minimum).
@@ -68,6 +71,12 @@ CLICK_SIGMA_PX = 1.5
 #: is no pose: the pairs lie nearly on a line, and fit a pose 20–90° off to a
 #: fraction of a pixel.
 MAX_EXPECTED_ROTATION_DEG = 10.0
+
+#: How the hint of a manual pose the photo's features confirm names the next
+#: step (a Run from it): for RESULT.json and the command line, which reach it
+#: both ways, and for the workbench (:func:`gui_hint`), which shows its own.
+RUN_FROM_IT = "(the workbench's Run, or register --prior with this result)"
+RUN_FROM_IT_GUI = "(Register tab → Run)"
 
 #: Names that moved out of this module in 0.2 -> their new module. The old
 #: name keeps working with a DeprecationWarning (:func:`__getattr__`).
@@ -639,10 +648,17 @@ def score_pose(
         # the sample's photos one Run from a pose of 8 pairs clicked 1.5 px off
         # took it from 0.7-1.6 px to 0.1-0.4 px at the check points.
         trial.hints = [(
-            f"{inliers} of the photo's features agree with this pose: one Run from it (the "
-            "workbench's Run, or register --prior with this result) refines it with them, "
+            f"{inliers} of the photo's features agree with this pose: one Run from it "
+            f"{RUN_FROM_IT} refines it with them, "
             "from the clicks' pixel or two to a few tenths of a pixel.")] + rule_hints
     return trial
+
+
+def gui_hint(hint: str) -> str:
+    """A trial's hint in the workbench's words: the command-line way to the
+    next step (:data:`RUN_FROM_IT`) left out. Other hints are returned as
+    they are; RESULT.json and the command line keep the hint as made."""
+    return hint.replace(RUN_FROM_IT, RUN_FROM_IT_GUI)
 
 
 # ====================================================== a manual result

@@ -51,6 +51,19 @@ def _registration_dense() -> DenseParams:
     return DenseParams(max_seconds=6.0)
 
 
+def _registration_filters() -> FilterParams:
+    """The filters a registration applies to each image by default: Wallis.
+
+    It pulls the photo's and the render's local contrast together, and near
+    the right pose it doubled the correct matches on changed-light photos
+    (first-trial successes 18 → 22 of 24 in the registration benchmark) at
+    no cost on same-light ones. The one place these defaults are made: a new
+    session's parameters and the workbench's Reset
+    (:meth:`RegistrationParams.default_filters`) both come from here.
+    """
+    return FilterParams(wallis=True)
+
+
 @dataclass
 class RegistrationParams:
     """Parameters of one registration trial and of the search around it.
@@ -131,12 +144,9 @@ class RegistrationParams:
         Default 0.
     """
 
-    # Wallis on both images by default: it pulls the photo's and the render's
-    # local contrast together, and near the right pose it doubled the correct
-    # matches on changed-light photos (first-trial successes 18 → 22 of 24 in
-    # the registration benchmark) at no cost on same-light ones.
-    photo_filters: FilterParams = field(default_factory=lambda: FilterParams(wallis=True))
-    render_filters: FilterParams = field(default_factory=lambda: FilterParams(wallis=True))
+    # Wallis on both images by default (_registration_filters says why).
+    photo_filters: FilterParams = field(default_factory=_registration_filters)
+    render_filters: FilterParams = field(default_factory=_registration_filters)
     features: FeatureParams = field(default_factory=lambda: _registration_features())
     pose: PoseParams = field(default_factory=PoseParams)
     # 768 px: as many correct matches across light as 1024 px (the micro-relief
@@ -248,8 +258,8 @@ class RegistrationParams:
         a point cloud unless given others (:meth:`for_scene`).
         """
         params = cls()
-        params.photo_filters = FilterParams(gradient=True, wallis=True)
-        params.render_filters = FilterParams(gradient=True, wallis=True)
+        params.photo_filters = replace(_registration_filters(), gradient=True)
+        params.render_filters = replace(_registration_filters(), gradient=True)
         params.features = replace(params.features, invariant_channel=False)
         params.max_trials = 1
         params.search_prior = False
@@ -261,6 +271,22 @@ class RegistrationParams:
         """The default settings for a scene: :meth:`for_cloud` for a point
         cloud (a scene with a true ``is_cloud``), else the defaults."""
         return cls.for_cloud() if bool(getattr(scene, "is_cloud", False)) else cls()
+
+    @classmethod
+    def default_filters(cls, which: str, scene: object | None = None) -> FilterParams:
+        """A fresh copy of the filters a new session starts with on ``scene``
+        for one image: what the workbench's Reset returns to.
+
+        Parameters
+        ----------
+        which : {"photo", "render"}
+        scene : Scene, optional
+            A point cloud's defaults differ (:meth:`for_scene`).
+        """
+        if which not in ("photo", "render"):
+            raise ValueError(f"which must be 'photo' or 'render', got {which!r}")
+        own = cls.for_scene(scene)
+        return replace(own.photo_filters if which == "photo" else own.render_filters)
 
     def is_scene_default(self) -> bool:
         """True when these are one of the untouched per-scene defaults

@@ -42,6 +42,7 @@ from .._deprecated import forward_moved_names
 from ..adjust import TerrainMap
 from ..camera import Intrinsics, Pose, match_scale
 from ..errors import InputError
+from ..io.meshes import check_model_suffix
 from ..prior import Prior
 from ..registration.filters import apply_filters, reduce_for_matching
 from ..registration.params import RegistrationParams
@@ -90,6 +91,7 @@ __all__ = [
     "real_viewer",
     "warm_napari",
     "overview_direction",
+    "outcome_text",
     "one_line",
     "PREVIEW_WIDTH",
     "RENDER_NAMES",
@@ -223,10 +225,36 @@ def _open_workspace_warm(folder: Path) -> Workspace:
     return opened
 
 
-def _read_scene_warm(*args):
-    value = read_scene(*args)
+def _read_scene_warm(mesh, *args):
+    check_model_suffix(mesh, dsm=True)  # what the Model field takes, a DSM too
+    value = read_scene(mesh, *args)
     warm_napari()
     return value
+
+
+#: How an unregistered photo's best grade reads beside "not registered".
+_UNREGISTERED_GRADE = {"fair": "uncertain", "poor": "doubtful"}
+
+
+def outcome_text(status: str, grade: str, q: float, rich: bool = False) -> str:
+    """A registration's outcome in words whose status and grade agree.
+
+    ``"registered — grade good, Q = 0.90"``; a photo that did not register
+    says so and that its grade is its best trial's: ``"not registered — best
+    trial fair (uncertain), Q = 0.40"`` (RESULT.json's ``status`` stays
+    ``"failed"`` and its ``grade`` ``"fair"``: only the words shown change).
+    ``rich``: the status in bold (Qt rich text).
+    """
+    registered = status == "registered"
+    head = "registered" if registered else "not registered"
+    if registered:
+        tail = f"grade {grade}, Q = {q:.2f}"
+    elif grade == "failed":
+        tail = f"best trial failed, Q = {q:.2f}"
+    else:
+        why = _UNREGISTERED_GRADE.get(grade, "not verified")
+        tail = f"best trial {grade} ({why}), Q = {q:.2f}"
+    return f"<b>{head}</b> — {tail}" if rich else f"{head} — {tail}"
 
 
 def overview_direction(poses, dip_deg: float = OVERVIEW_DIP_DEG) -> np.ndarray | None:
@@ -741,10 +769,12 @@ class WorkbenchController(QObject):
         self.layers.set_camera(ps)
         self._shown_full_pose = None
         self.last_render = None
-        if (ref := self.layers.get("reference")) is not None:
-            ref.visible = ps.reference is not None
-            if ps.reference is not None:
-                self.layers.show_reference(ps.reference)
+        if ps.reference is not None:
+            # Made when missing: a workspace just opened brings its reference
+            # (rendered again from its saved camera as it was read, in the worker).
+            self.layers.show_reference(ps.reference)
+        elif (ref := self.layers.get("reference")) is not None:
+            ref.visible = False
         self._write_pair_layers()
         self._restyle_pairs()
         self.pairs_changed.emit()
@@ -1064,7 +1094,7 @@ class WorkbenchController(QObject):
             if isinstance(item, BatchStep):
                 self.workspace.record_batch_step(item)
                 reg = item.registration
-                what = (f"{reg.status} ({reg.grade}, Q = {reg.q:.2f})" if reg is not None
+                what = (outcome_text(reg.status, reg.grade, reg.q) if reg is not None
                         else f"failed: {item.error}")
                 self.status.emit(f"{item.photo.name} ({item.index + 1}/{item.total}): {what}")
                 self.batch_photo_done.emit(item)
@@ -1331,9 +1361,9 @@ class WorkbenchController(QObject):
                 self.set_blend(visible=True)  # the docks see it with the new pose
             job.apply(reg)
             secs = reg.timings_s.get("total", 0.0)
-            self.status.emit(f"{ps.name}: {reg.status} ({reg.grade}, Q = {reg.q:.2f}) "
+            self.status.emit(f"{ps.name}: {outcome_text(reg.status, reg.grade, reg.q)}, "
                              f"after {len(reg.trials)} trial(s) in {secs:.1f} s")
-            self.registration_progress.emit(1.0, f"{reg.status} ({reg.grade})")
+            self.registration_progress.emit(1.0, outcome_text(reg.status, reg.grade, reg.q))
             self.registration_finished.emit(reg)
 
         self.registration_started.emit(kind)
@@ -1618,6 +1648,15 @@ class WorkbenchController(QObject):
             ref.data = np.ascontiguousarray(napari_from_pixels(ps.reference_points_px))
         finally:
             self._pairs_busy = False
+        # Without its reference render (not made again since an older workspace
+        # was opened) a reference pick has no image to sit on: kept, not drawn
+        # over the render from the pose. (Hidden, not emptied: an edit of the
+        # photo's picks keeps them.)
+        shown = ps.reference is not None
+        if self.viewer.dims.ndisplay == 3:
+            ref.metadata["imgreg_visible_2d"] = shown
+        elif ref.visible != shown:
+            ref.visible = shown
 
     def _restyle_pairs(self) -> None:
         """Number and colour the picks: pair k alike on the photo and the reference."""

@@ -63,7 +63,8 @@ from ..registration.features import FeatureParams
 from ..validate import param_range
 from ..workspace import WorkbenchError, one_line
 from ..errors import InputError
-from ._controller import CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController
+from ._controller import (CORRESPONDENCE_COLORS, PAIR_COLORS, WorkbenchController,
+                          outcome_text)
 from ._shortcuts import key_of
 
 __all__ = ["ScenePanel", "PosePanel", "FiltersPanel", "RegisterPanel", "SunBox", "ManualPanel",
@@ -823,6 +824,8 @@ class FilterEditor(QWidget):
         self.gradient_check.toggled.connect(lambda v: self._changed("gradient", v))
         self.clahe_check.toggled.connect(lambda v: self._changed("clahe", v))
         self.reset_button = QPushButton("Reset")
+        self.reset_button.setToolTip("Back to the filters a new session starts with "
+                                     "(the Wallis filter on)")
         self.reset_button.clicked.connect(self.reset)
         layout = QVBoxLayout(self)
         layout.addLayout(forms["basic"])
@@ -871,7 +874,9 @@ class FilterEditor(QWidget):
         self.on_edit(self.which)
 
     def reset(self) -> None:
-        fresh = FilterParams()
+        """Back to the filters a new session starts with on this model (Wallis
+        on; a point cloud's gradient too): :meth:`RegistrationParams.default_filters`."""
+        fresh = RegistrationParams.default_filters(self.which, self.ws.scene)
         for name in fresh.to_dict():
             setattr(self.params, name, getattr(fresh, name))
         self.refresh()
@@ -1253,7 +1258,7 @@ class RegisterPanel(QWidget):
         self.progress.setValue(100)
         t = reg.timings_s.get("total", 0.0)
         self.status_label.setText(
-            f"<b>{reg.status}</b> — {reg.grade}, Q = {reg.q:.2f}, "
+            f"{outcome_text(reg.status, reg.grade, reg.q, rich=True)}, "
             f"{len(reg.trials)} trial(s), {t:.1f} s")
 
     def _busy(self) -> None:
@@ -1600,10 +1605,24 @@ class ManualPanel(QWidget):
     def _photo_changed(self) -> None:
         self._focal_choice_by_user = False  # another photo: its own camera decides again
         self._reference_ready()
+        # Its last solve (a workspace opened again, a photo visited again): its
+        # residuals and result, while the pairs are still those it was solved from.
+        sol = self.ws.manual_solution_of_pairs()
+        if sol is not None:
+            self._solved(sol)
+        else:
+            self.result_label.setText("")
 
     def _reference_ready(self) -> None:
         ps = self.ws.current
-        if ps is None or ps.reference is None:
+        if ps is not None and ps.reference is None and len(ps.photo_points_px):
+            # Pairs whose reference was not saved with them (an older workspace).
+            self.reference_label.setText(
+                f"<span style='color:#ffb74d'>The {len(ps.photo_points_px)} pairs are kept, "
+                "but not the reference render they were picked on: make a reference again "
+                "(pairs loaded from a file come back on it; clicked ones are clicked again "
+                "on it).</span>")
+        elif ps is None or ps.reference is None:
             self.reference_label.setText("No reference render yet.")
         else:
             t, p, r = ps.reference.cam_from_world.attitude
@@ -1635,6 +1654,7 @@ class ManualPanel(QWidget):
                      f"{ref_px[i, 0]:.1f}, {ref_px[i, 1]:.1f}" if i < n_ref else
                      "click the reference",
                      ("✓ from file" if i < len(own) and own[i] else "✓" if valid[i]
+                      else "no reference" if ps.reference is None
                       else "✗ off the model") if i < len(valid) else "",
                      f"{res[i]:.2f} px" if res is not None and i < len(res)
                      and np.isfinite(res[i]) else ""]
@@ -1688,7 +1708,9 @@ class ManualPanel(QWidget):
             return
         self._residuals = sol.errors_px
         ps = self.ws.current
-        trial = ps.trials[-1].trial if ps is not None and ps.trials else None
+        # The solve's scored trial: the latest manual one (runs may follow it).
+        trial = next((rec.trial for rec in reversed(ps.trials) if rec.kind == "Manual"),
+                     None) if ps is not None else None
         focal = (f"; focal length {sol.intrinsics.fx:.1f} px ({sol.intrinsics.hfov_deg:.1f}° wide)"
                  if sol.focal_solved else "")
         t, p, r = sol.pose.attitude

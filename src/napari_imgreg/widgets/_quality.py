@@ -17,6 +17,8 @@ from qtpy.QtWidgets import (
     QHeaderView,
     QLabel,
     QPushButton,
+    QScrollArea,
+    QSizePolicy,
     QTableWidget,
     QTableWidgetItem,
     QVBoxLayout,
@@ -31,6 +33,7 @@ from ..registration.quality import (
     grade_of,
     metric_trend,
 )
+from ..registration.manual import gui_hint
 from ..registration.uncertainty import UNCERTAIN_PX
 from ._controller import WorkbenchController
 
@@ -49,6 +52,17 @@ SHORT_LABELS = {
 }
 #: Arrow and colour of a metric's trend against the previous trial.
 TREND_ARROWS = {1: ("▲", "#00e676"), -1: ("▼", "#ff5252"), 0: ("=", "#bdbdbd")}
+#: Height of a metric's row, pixels: the eight rows and the header fit a
+#: bottom dock of 1600 × 1000 px (with the banner, error and legend above).
+METRIC_ROW_PX = 20
+#: Lines of hints shown at most before they scroll: the suggestion, its
+#: button and the Trials list stay in view under them.
+HINT_LINES = 7
+
+#: Why an unverified pose reads no better than fair (the legend's tooltip).
+CAP_NOTE = ("Only a verified pose can be good or excellent: an unverified one is graded at most "
+            "fair (keypoints) or poor (blocks, edges, MI).")
+
 #: Trial history columns.
 #: The trial's run number is in its name and its grade is the colour of its Q cell
 #: (the legend's colours, the grade in the tooltip): the name keeps the width.
@@ -168,7 +182,8 @@ class QualityPanel(QWidget):
         self.table = QTableWidget(len(METRICS), 4)
         self.table.setHorizontalHeaderLabels(["metric", "value", "", "inferior | superior"])
         self.table.setWordWrap(False)
-        self.table.verticalHeader().setDefaultSectionSize(24)
+        self.table.verticalHeader().setMinimumSectionSize(METRIC_ROW_PX)
+        self.table.verticalHeader().setDefaultSectionSize(METRIC_ROW_PX)
         self.table.verticalHeader().setVisible(False)
         self.table.setEditTriggers(QAbstractItemView.NoEditTriggers)
         self.table.setSelectionMode(QAbstractItemView.NoSelection)
@@ -181,9 +196,7 @@ class QualityPanel(QWidget):
             self.table.setItem(r, 0, item)
         self.table.setVerticalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
         self.table.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-        self.table.setFixedHeight(self.table.verticalHeader().length()
-                                  + self.table.horizontalHeader().sizeHint().height()
-                                  + 2 * self.table.frameWidth() + 2)
+        self._fit_table()
 
         # The pose's independent error estimate (RESULT.json "uncertainty"):
         # what the geologist may expect, not a fit residual.
@@ -207,6 +220,20 @@ class QualityPanel(QWidget):
             label.setTextFormat(Qt.TextFormat.RichText)
         self.adapt_label.setStyleSheet(
             "background:#006064; color:#e0f7fa; padding:6px; border-radius:4px;")
+        # The hints and the suggestion scroll within a bounded height: long
+        # hints never push the button and the Trials list out of the dock.
+        hints = QWidget()
+        hints_layout = QVBoxLayout(hints)
+        hints_layout.setContentsMargins(0, 0, 0, 0)
+        hints_layout.setSpacing(4)
+        hints_layout.addWidget(self.hint_label)
+        hints_layout.addWidget(self.adapt_label)
+        self.hint_scroll = QScrollArea()
+        self.hint_scroll.setWidgetResizable(True)
+        self.hint_scroll.setFrameShape(QScrollArea.Shape.NoFrame)
+        self.hint_scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.hint_scroll.setSizePolicy(QSizePolicy.Policy.Preferred, QSizePolicy.Policy.Fixed)
+        self.hint_scroll.setWidget(hints)
         self.apply_button = QPushButton("Apply suggested parameters")
         self.apply_button.setEnabled(False)
 
@@ -230,7 +257,10 @@ class QualityPanel(QWidget):
         self.history.setWordWrap(True)
         self.history.horizontalHeader().sectionResized.connect(
             lambda *_: self.history.resizeRowsToContents())
-        self.history.setMinimumHeight(120)
+        self.history.setMinimumHeight(90)
+        # Its height is what the dock leaves (its size hint, ~ 200 px, would
+        # make the panel taller than a bottom dock and scroll it).
+        self.history.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Ignored)
         self.restore_button = QPushButton("Restore trial (pose and parameters)")
         self.restore_button.setEnabled(False)
 
@@ -242,15 +272,14 @@ class QualityPanel(QWidget):
         ll.addWidget(self.banner)
         ll.addWidget(self.uncertainty_label)
         ll.addLayout(legend)
-        cap_note = QLabel("Only a verified pose can be good or excellent: an unverified one is "
-                          "graded at most fair (keypoints) or poor (blocks, edges, MI).")
-        cap_note.setWordWrap(True)
-        cap_note.setStyleSheet("font-size:10px; color:#aaa;")
-        ll.addWidget(cap_note)
+        # On the chips and the banner, not a line of its own: the metrics'
+        # eight rows keep the room (the banner says when a grade is capped).
+        for widget in (*self.legend_labels, self.banner):
+            widget.setToolTip((widget.toolTip() + "\n" if widget.toolTip() else "")
+                              + CAP_NOTE)
         ll.addWidget(self.table)
         ll.addStretch(1)
-        rl.addWidget(self.hint_label)
-        rl.addWidget(self.adapt_label)
+        rl.addWidget(self.hint_scroll)
         rl.addWidget(self.apply_button)
         hist_box = QGroupBox("Trials")
         hl = QVBoxLayout(hist_box)
@@ -264,6 +293,7 @@ class QualityPanel(QWidget):
         self._columns.addWidget(right, 1)
         self.hint_label.hide()
         self.adapt_label.hide()
+        self._fit_hints()
 
         self.apply_button.clicked.connect(lambda: controller.apply_suggestion())
         self.restore_button.clicked.connect(self.restore_selected)
@@ -279,6 +309,34 @@ class QualityPanel(QWidget):
         self._columns.setDirection(QBoxLayout.Direction.LeftToRight if wide
                                    else QBoxLayout.Direction.TopToBottom)
         super().resizeEvent(event)
+        self._fit_table()
+        self._fit_hints()
+
+    def showEvent(self, event) -> None:  # noqa: N802 (Qt)
+        super().showEvent(event)
+        self._fit_table()
+
+    def _fit_table(self) -> None:
+        """The metrics' table exactly as high as its header and eight rows (the
+        header's height is known once styled: measured again when shown)."""
+        header = self.table.horizontalHeader()
+        head = max(header.height() if header.isVisible() else 0, header.sizeHint().height())
+        height = self.table.verticalHeader().length() + head + 2 * self.table.frameWidth()
+        if self.table.height() != height or self.table.minimumHeight() != height:
+            self.table.setFixedHeight(height)
+
+    def _fit_hints(self) -> None:
+        """Size the hints' scroll area to its text, up to :data:`HINT_LINES` lines."""
+        labels = [w for w in (self.hint_label, self.adapt_label) if not w.isHidden()]
+        if not labels:
+            self.hint_scroll.hide()
+            return
+        self.hint_scroll.show()
+        width = max(self.hint_scroll.viewport().width(), 100)
+        spacing = self.hint_scroll.widget().layout().spacing()
+        needed = sum(w.heightForWidth(width) for w in labels) + spacing * (len(labels) - 1)
+        cap = HINT_LINES * self.fontMetrics().lineSpacing() + 12
+        self.hint_scroll.setFixedHeight(max(1, min(needed, cap)))
 
     # ------------------------------------------------------------ history
     def refresh_history(self) -> None:
@@ -360,6 +418,7 @@ class QualityPanel(QWidget):
                     self.table.setItem(r, c, QTableWidgetItem(""))
             self.hint_label.hide()
             self.adapt_label.hide()
+            self._fit_hints()
             self.uncertainty_label.hide()
             self.apply_button.setEnabled(False)
             for chip in self.legend_labels:
@@ -419,7 +478,8 @@ class QualityPanel(QWidget):
                 limits = f"< {lo:,.0f} | ≥ {hi:,.0f}"
             self.table.setItem(r, 3, QTableWidgetItem(limits))
         if t.hints:
-            self.hint_label.setText("<br>".join(f"• {html.escape(h)}" for h in t.hints))
+            self.hint_label.setText("<br>".join(f"• {html.escape(gui_hint(h))}"
+                                                for h in t.hints))
             self.hint_label.show()
         else:
             self.hint_label.hide()
@@ -430,6 +490,8 @@ class QualityPanel(QWidget):
             self.adapt_label.show()
         else:
             self.adapt_label.hide()
+        self._fit_hints()
+        self.hint_scroll.verticalScrollBar().setValue(0)  # the first hint, the likely cause
         self.apply_button.setEnabled(hit is not None)
         self.history.blockSignals(True)
         self.history.selectRow(index)

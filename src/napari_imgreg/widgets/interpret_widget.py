@@ -1142,8 +1142,7 @@ class InterpretWidget(QWidget):
             return None
         jobs = self._jobs()
         if not jobs:
-            self._fail("Nothing to project: draw on a photo that has a registration "
-                       "(Attach RESULT.json…).")
+            self._fail(self._nothing_to_project())
             return None
         for warning in self.projection_warnings:
             _notify(warning, "warning")
@@ -1157,6 +1156,15 @@ class InterpretWidget(QWidget):
         return self.jobs.start("projection", project_interpretation_sets, scene, jobs,
                                on_returned=self._on_result, on_failed=self._fail,
                                on_finished=self._on_finished, notify=False)
+
+    def _nothing_to_project(self) -> str:
+        """Why Project has nothing to do, and the next step (:meth:`_jobs`
+        lists drawings on photos without a registration among its warnings)."""
+        if any("not projected (no registration" in w for w in self.projection_warnings):
+            return ("Nothing to project: the drawings are on photos without a registration "
+                    "(register the photo in the workbench, or Attach RESULT.json…).")
+        return ("Nothing to project: nothing is drawn yet. Press New interpretation layer, "
+                "trace the contacts on the photo, then Project onto the model.")
 
     def _on_finished(self) -> None:
         self.project_button.setEnabled(True)

@@ -51,6 +51,7 @@ from ..orient import (
     rotation_error_deg,
     save_orientation,
 )
+from ..orient.declination import georef_found_above, gui_wording
 
 if TYPE_CHECKING:
     import napari
@@ -87,6 +88,8 @@ class OrientWidget(QWidget):
         super().__init__(parent)
         self.viewer = napari_viewer
         self.result: OrientationResult | None = None
+        #: Where the georef.json of the last Run was found when not chosen ("": chosen, none).
+        self.georef_note = ""
         self.jobs = JobRunner(self)
 
         # ---- inputs
@@ -114,10 +117,11 @@ class OrientWidget(QWidget):
         )
         self.georef_edit = QLineEdit()
         self.georef_edit.setPlaceholderText(
-            "georef.json (optional: beside the table, or the photos' GPS)")
+            "georef.json (optional: beside the table or a folder up, or the photos' GPS)")
         self.georef_edit.setToolTip("The model's georeference: its origin places the site "
-                                    "for the automatic declination (optional: the measured "
-                                    "photos' GPS otherwise)")
+                                    "for the automatic declination (optional: a georef.json "
+                                    "beside the estimated table or one folder up, else the "
+                                    "measured photos' GPS)")
         self.georef_edit.setEnabled(False)
         declination_row = QWidget()
         declination_box = QHBoxLayout(declination_row)
@@ -242,9 +246,17 @@ class OrientWidget(QWidget):
     def _declination_inputs(self, estimated: str) -> dict:
         """``declination_deg`` (and ``georef``) for the backend. Without a
         georef.json the backend places the site by the measured photos' GPS."""
+        self.georef_note = ""
         if not self.declination_auto.isChecked():
             return {"declination_deg": self.declination_spin.value()}
-        georef = self.georef_edit.text().strip() or default_georef_path(estimated)
+        georef = self.georef_edit.text().strip()
+        if not georef:
+            georef = default_georef_path(estimated)
+            if georef is not None:
+                where = ("one folder up from" if georef_found_above(georef, estimated)
+                         else "beside")
+                self.georef_note = (f"The declination's site is the origin of {georef}, found "
+                                    f"{where} the estimated table (Georef chooses another).")
         return {"declination_deg": "auto", "georef": str(georef) if georef else None}
 
     def _method_changed(self) -> None:
@@ -268,13 +280,23 @@ class OrientWidget(QWidget):
             else (orient_files,)
         return self.jobs.start(
             "orientation", *job, estimated, measured, method=self.method, **declination,
-            on_returned=self._on_result, on_failed=self._fail, on_finished=self._on_finished,
+            on_returned=self._on_result, on_failed=self._job_failed,
+            on_finished=self._on_finished, notify=False,
         )
 
     def _on_finished(self) -> None:
         self.run_button.setEnabled(True)
 
+    def _job_failed(self, message: str) -> None:
+        """The Run failed: a notification and the status line, in the dock's words."""
+        from napari.utils.notifications import show_error
+
+        show_error(f"orientation failed: {gui_wording(message)}")
+        self.run_button.setEnabled(True)  # the job is over (its finished signal may lag)
+        self._fail(message)
+
     def _fail(self, message: str) -> None:
+        message = gui_wording(message)  # the Georef field and the box, not --georef
         self.status_label.setText(message)
         self.status_label.setStyleSheet(f"color: {STATUS_STYLE['warn'][0]};")
         self.orientation_failed.emit(message)
@@ -294,7 +316,8 @@ class OrientWidget(QWidget):
             verdict = f", no warning but {n_untested} flag{'s' if n_untested > 1 else ''} n/a"
         else:
             verdict = ", all flags pass"
-        self.status_label.setText(f"{len(result.photos)} photos paired{verdict}.")
+        self.status_label.setText(f"{len(result.photos)} photos paired{verdict}."
+                                  + (f" {self.georef_note}" if self.georef_note else ""))
         self.status_label.setStyleSheet("")
         self._show_summary(result)
         self._show_estimators(result)
