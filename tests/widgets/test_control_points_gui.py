@@ -119,6 +119,36 @@ def test_loaded_pairs_off_the_reference_keep_their_points_and_solve(
     assert np.linalg.norm(sol.pose.center - truth.pose.center) < 0.01
 
 
+def test_a_loaded_point_out_of_the_references_view_is_said_so(workbench, qtbot, monkeypatch,
+                                                             tmp_path):
+    """A target the reference cannot show reads "out of its view", not the
+    made-up pixel it is parked at."""
+    wb = workbench
+    ctrl, ps = _with_reference(wb, qtbot)
+    truth = load_truth(ps.photo.path)
+    xyz = truth.check_xyz[:6].copy()
+    xyz[5] = truth.pose.center + [0.0, 0.0, 30.0]  # above the camera: behind the reference's view
+    photo_px = np.clip(truth.pose.project(truth.intrinsics, xyz), 10, np.array(ps.size) - 10)
+    path = tmp_path / "pairs.csv"
+    write_control_points(path, photo_px, xyz)
+    monkeypatch.setattr(f"{_DIALOGS}.getOpenFileName", lambda *a, **k: (str(path), ""))
+    wb.manual_panel.load_pairs_button.click()
+    table = wb.manual_panel.table
+    assert table.rowCount() == 6
+    assert table.item(5, 2).text() == "out of its view"
+    assert table.item(0, 2).text() != "out of its view"
+
+    # The sample's pairs of another photo, loaded on this one: said.
+    warnings = []
+    monkeypatch.setattr(ctrl, "notify_warning", warnings.append)
+    other = tmp_path / "IMG_0002.pairs.csv"
+    other.write_bytes(path.read_bytes())
+    monkeypatch.setattr(f"{_DIALOGS}.getOpenFileName", lambda *a, **k: (str(other), ""))
+    wb.manual_panel.load_pairs_button.click()
+    assert warnings and warnings[0].startswith("IMG_0002.pairs.csv is named for IMG_0002.jpg, "
+                                               f"not for {ps.name}")
+
+
 def test_a_bad_file_is_one_notification_and_keeps_the_pairs(workbench, qtbot, monkeypatch,
                                                             tmp_path):
     wb = workbench

@@ -884,6 +884,13 @@ class WorkbenchController(QObject):
 
     _notify_error = notify_error  # the 0.1 name
 
+    def notify_warning(self, message: str) -> None:
+        """Say what may be wrong: in the status line and as a napari warning."""
+        from napari.utils.notifications import show_warning
+
+        self.status.emit(message)
+        show_warning(message)
+
     @property
     def closed(self) -> bool:
         return self._closed

@@ -1601,6 +1601,21 @@ class ManualPanel(QWidget):
         self._residuals = None  # of the pairs before
         self.ctrl.status.emit(f"loaded {n} pairs from {Path(path).name}: each keeps its "
                               "model point, on the reference or not")
+        other = self._pairs_file_of_another_photo(Path(path))
+        if other is not None:
+            self.ctrl.notify_warning(
+                f"{Path(path).name} is named for {other}, not for {self.ws.current.name}: "
+                "its pairs were probably picked on that photo. Check them before solving.")
+
+    def _pairs_file_of_another_photo(self, path: Path) -> str | None:
+        """The workspace photo a control-point file is named for
+        (``IMG_0002.pairs.csv``), when that is not the current photo."""
+        stem = path.name.split(".")[0].lower()
+        current = self.ws.current
+        if current is None or Path(current.name).stem.lower() == stem:
+            return None
+        return next((ps.name for ps in self.ws.photos
+                     if ps is not current and Path(ps.name).stem.lower() == stem), None)
 
     def _photo_changed(self) -> None:
         self._focal_choice_by_user = False  # another photo: its own camera decides again
@@ -1647,11 +1662,20 @@ class ManualPanel(QWidget):
         n = max(n_photo, n_ref)
         self.table.setRowCount(n)
         res = self._residuals
+        # A loaded pair's model point out of the reference's view has no pixel
+        # there worth showing (it is put just off the render).
+        if ps is not None and ps.reference is not None and n_ref:
+            w, h = ps.reference.intrinsics.width, ps.reference.intrinsics.height
+            off_reference = ((ref_px[:, 0] < -0.5) | (ref_px[:, 1] < -0.5)
+                             | (ref_px[:, 0] > w - 0.5) | (ref_px[:, 1] > h - 0.5))
+        else:
+            off_reference = np.zeros(n_ref, bool)
         for i in range(n):
             items = [f"{i + 1} {names[i]}" if i < len(names) and names[i] else str(i + 1),
                      f"{photo_px[i, 0]:.1f}, {photo_px[i, 1]:.1f}" if i < n_photo else
                      "click the photo",
-                     f"{ref_px[i, 0]:.1f}, {ref_px[i, 1]:.1f}" if i < n_ref else
+                     ("out of its view" if off_reference[i] else
+                      f"{ref_px[i, 0]:.1f}, {ref_px[i, 1]:.1f}") if i < n_ref else
                      "click the reference",
                      ("✓ from file" if i < len(own) and own[i] else "✓" if valid[i]
                       else "no reference" if ps.reference is None
