@@ -25,18 +25,16 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", help="names of the shots to take (default: all)")
     args = parser.parse_args()
 
-    from _screenshot_session import open_workbench, quality_height
+    from _screenshot_session import open_workbench
 
     from napari_imgreg.sample import load_truth, truth_pairs
     from napari_imgreg.widgets._layers import napari_from_pixels
 
     _app, viewer, wb, pump, wait = open_workbench(wait_timeout_s=120.0)
     ctrl = wb.controller
-    # The quality panel tall enough for its banner, legend and all eight metric
-    # rows; the photo and the render, side by side, keep their size.
-    pump(0.5)  # (after the workbench's own sizing of it)
-    quality_height(viewer, 520)
-    pump(0.5)
+    # The quality panel at the height a user gets (it fits its banner, legend,
+    # all eight metric rows and the trials at 1600 × 1000).
+    pump(1.0)
 
     def idle() -> None:
         wait(lambda: not ctrl.busy)
@@ -159,6 +157,7 @@ def main() -> None:
     iw = wb.interpret_widget
     if iw is not None and (not args.only or "snap" in args.only):
         scene_truth = load_truth(Path(ps.photo.path).parent)
+        truth = scene_truth.photos[ps.name]  # the photo's true camera and pose
         photo_layer = iw.photo_layer
         image = np.asarray(photo_layer.data)
         ph, pw = image.shape[:2]
