@@ -418,6 +418,8 @@ def test_control_points_and_the_manual_solution(ws):
     assert record.trial.grade in ("excellent", "good") and ps.selected_trial == len(ps.trials) - 1
     assert rec.events == [("pose_changed", ("manual",)), ("trials_changed", ()),
                           ("trial_selected", (0,))]
+    # Verified by the photo's matches: the next step is a Run from it, no rule's advice.
+    assert record.trial.verified and ws.suggestion() is None
     # Its error is the pairs' own (no match verifies a manual pose): shown with the
     # trial, projected with, and the photo registered while it has that pose.
     unc = sol.uncertainty

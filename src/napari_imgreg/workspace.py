@@ -1062,7 +1062,8 @@ class Workspace:
         return rec
 
     def suggestion(self, index: int | None = None) -> RuleHit | None:
-        """The first rule that fires for a trial (default: the selected one), or None."""
+        """The first rule that fires for a trial (default: the selected one), or
+        None (always for a manual pose the photo's matches verify)."""
         ps = self.current
         if ps is None or not ps.trials:
             return None
@@ -1070,6 +1071,10 @@ class Workspace:
         if index is None:
             return None
         trial = ps.trials[index].trial
+        if trial.origin == "manual" and trial.verified:
+            # As its hints (manual.score_pose): the next step from a manual
+            # pose the photo confirms is a Run from it, not other matching.
+            return None
         hits = evaluate_rules(trial.metrics, trial.params, ps.intrinsics.width)
         return hits[0] if hits else None
 
