@@ -87,6 +87,42 @@ def wall_mesh(tmp_path):
     return mesh_path
 
 
+@pytest.fixture
+def wall_and_record(wall_mesh):
+    """The wall (:func:`wall_mesh`) and a sensor record ``IMG_0001.json`` of a
+    160 × 120 camera facing it from (20, −30, 10): (mesh path, record path)."""
+    import json
+
+    record = {
+        "camera": {"width": 160, "height": 120, "fx": 100.0, "fy": 100.0, "cx": 79.5, "cy": 59.5},
+        "position": {"x": 20.0, "y": -30.0, "z": 10.0},
+        "orientation": {"trend_deg": 0.0, "plunge_deg": 0.0, "roll_deg": 0.0},
+    }
+    prior_path = wall_mesh.parent / "IMG_0001.json"
+    prior_path.write_text(json.dumps(record))
+    return wall_mesh, prior_path
+
+
+@pytest.fixture
+def dated_orient_tables(tmp_path):
+    """An orientation survey's tables in ``scene/orient/`` (no georef.json, no
+    photos beside them), the phone's dated 2027-07-02: (estimated, measured)."""
+    from dataclasses import replace
+    from datetime import date
+
+    from napari_imgreg.io.orientation_tables import write_orientation_csv
+    from napari_imgreg.sample.survey import simulate_survey
+
+    survey = simulate_survey(np.random.default_rng(7))
+    folder = tmp_path / "scene" / "orient"
+    folder.mkdir(parents=True)
+    est, meas = folder / "estimated.csv", folder / "measured.csv"
+    write_orientation_csv(est, survey.estimated)
+    dated = replace(survey.measured, capture_dates=[date(2027, 7, 2)] * len(survey.measured))
+    write_orientation_csv(meas, dated)
+    return est, meas
+
+
 @dataclass
 class CliRun:
     """What one ``napari-imgreg`` command did: exit code, stdout, stderr, time."""

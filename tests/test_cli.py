@@ -14,16 +14,9 @@ from napari_imgreg import Intrinsics, Pose
 
 
 @pytest.fixture
-def wall(wall_mesh):
-    """The shared textured wall (conftest ``wall_mesh``) and a record facing it."""
-    record = {
-        "camera": {"width": 160, "height": 120, "fx": 100.0, "fy": 100.0, "cx": 79.5, "cy": 59.5},
-        "position": {"x": 20.0, "y": -30.0, "z": 10.0},
-        "orientation": {"trend_deg": 0.0, "plunge_deg": 0.0, "roll_deg": 0.0},
-    }
-    prior_path = wall_mesh.parent / "IMG_0001.json"
-    prior_path.write_text(json.dumps(record))
-    return wall_mesh, prior_path
+def wall(wall_and_record):
+    """The shared wall and a sensor record facing it (conftest ``wall_and_record``)."""
+    return wall_and_record
 
 
 def test_render_writes_image_and_depth(wall, tmp_path, run_cli):

@@ -218,20 +218,12 @@ def test_georef_json_is_found_beside_then_one_folder_up(tmp_path):
     assert not georef_found_above(None, estimated)
 
 
-def test_orient_cli_keeps_its_words_and_notes_a_georef_found_above(tmp_path, run_cli):
+def test_orient_cli_keeps_its_words_and_notes_a_georef_found_above(tmp_path, run_cli,
+                                                                   dated_orient_tables):
     from napari_imgreg.geo import Georef
-    from napari_imgreg.io.orientation_tables import write_orientation_csv
-    from napari_imgreg.sample.survey import simulate_survey
 
-    survey = simulate_survey(np.random.default_rng(7))
-    folder = tmp_path / "scene" / "orient"
-    folder.mkdir(parents=True)
-    est, meas = folder / "estimated.csv", folder / "measured.csv"
-    write_orientation_csv(est, survey.estimated)
-    write_orientation_csv(meas, survey.measured)
-    lines = meas.read_text().splitlines()
-    meas.write_text("\n".join([lines[0] + ",time"] + [f"{line},2027-07-02"
-                                                     for line in lines[1:]]) + "\n")
+    est, meas = dated_orient_tables
+    folder = est.parent
     argv = ["orient", est, meas, "--declination", "auto", "--out", tmp_path / "o.json"]
     run = run_cli(argv)
     assert run.code == 2

@@ -34,3 +34,40 @@ def save_and_reopen(wb, qtbot, folder):
                     timeout=LOAD_S)
     idle(wb, qtbot)
     return ctrl.workspace
+
+
+def registered_on_truth(ps):
+    """A registration of a sample photo that found its true pose, without
+    running the pipeline (a verified, excellent trial and a 1.2 px estimate)."""
+    from napari_imgreg.registration.params import RegistrationParams
+    from napari_imgreg.registration.pipeline import Registration, Trial
+    from napari_imgreg.registration.uncertainty import Uncertainty
+    from napari_imgreg.sample import load_truth
+
+    truth = load_truth(ps.photo.path)
+    trial = Trial(index=0, params=RegistrationParams(), metrics={"inliers_3d": 200}, q=1.4,
+                  grade="excellent", hints=[], pose=truth.pose, start_pose=ps.pose, rounds=1,
+                  converged=True, verified=True, residual_flow_px=0.4)
+    return Registration(status="registered", photo=ps.name, intrinsics=ps.intrinsics,
+                        pose=truth.pose, prior=ps.prior, metrics=trial.metrics, q=1.4,
+                        grade="excellent", hints=[], trials=[trial], timings_s={"total": 1.0},
+                        best_trial=0, uncertainty=Uncertainty(1.2, 0.12, 0.06, 4))
+
+
+def reference_and_truth_pairs(wb, qtbot, photo_row: int = 1):
+    """The sample's photo ``photo_row`` chosen (the sample opened first), a
+    reference render made from its pose on the Manual tab, and where its check
+    points lie in the photo and in the reference: (controller, photo state,
+    photo pixels (8, 2), reference pixels (8, 2))."""
+    from napari_imgreg.sample import load_truth, truth_pairs
+
+    ctrl = load_sample(wb, qtbot)
+    wb.scene_panel.photo_list.setCurrentRow(photo_row)
+    idle(wb, qtbot)
+    wb.show_tab("Manual")
+    with qtbot.waitSignal(ctrl.reference_ready, timeout=20_000):
+        wb.manual_panel.ref_pose_button.click()
+    idle(wb, qtbot)
+    ps = ctrl.current
+    photo_px, ref_px, _ = truth_pairs(load_truth(ps.photo.path), ps.reference, ps.size)
+    return ctrl, ps, photo_px, ref_px

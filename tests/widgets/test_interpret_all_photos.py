@@ -14,26 +14,12 @@ from collections import Counter
 import numpy as np
 
 from napari_imgreg.interpret.project import Interpretation
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Registration, Trial
-from napari_imgreg.registration.uncertainty import Uncertainty
-from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._layers import napari_from_pixels
 from napari_imgreg.widgets.interpret_widget import INTERP_KEY
 
-from ._workbench import LOAD_S, idle as _idle, save_and_reopen
+from ._workbench import LOAD_S, idle as _idle, registered_on_truth, save_and_reopen
 
 
-def _registered(ps) -> Registration:
-    """A registration that found the photo's true pose (no pipeline run)."""
-    truth = load_truth(ps.photo.path)
-    trial = Trial(index=0, params=RegistrationParams(), metrics={"inliers_3d": 200}, q=1.4,
-                  grade="excellent", hints=[], pose=truth.pose, start_pose=ps.pose, rounds=1,
-                  converged=True, verified=True, residual_flow_px=0.4)
-    return Registration(status="registered", photo=ps.name, intrinsics=ps.intrinsics,
-                        pose=truth.pose, prior=ps.prior, metrics=trial.metrics, q=1.4,
-                        grade="excellent", hints=[], trials=[trial], timings_s={"total": 1.0},
-                        best_trial=0, uncertainty=Uncertainty(1.2, 0.12, 0.06, 4))
 
 
 def _lines(n: int, tag: str) -> list[Interpretation]:
@@ -53,7 +39,7 @@ def test_a_reopened_workspace_projects_the_photos_not_shown_too(workbench, qtbot
     for k in (1, 0):  # each registered while current; IMG_0001 is current at the end
         ctrl.select_photo(k)
         _idle(wb, qtbot)
-        ws.record_registration(_registered(ws.photos[k]))
+        ws.record_registration(registered_on_truth(ws.photos[k]))
     assert ws.current is one
     ws.set_interpretations(_lines(3, "one"), one)
     ws.set_interpretations(_lines(4, "two"), two)

@@ -5,28 +5,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from napari_imgreg.sample import load_truth, truth_pairs
+from napari_imgreg.sample import load_truth
 from napari_imgreg.widgets._layers import napari_from_pixels
 
-from ._workbench import LOAD_S, idle as _idle
+from ._workbench import LOAD_S, idle as _idle, reference_and_truth_pairs
 
 
 def test_pairs_stay_matched_through_deletes_and_a_new_reference(workbench, qtbot):
     wb = workbench
-    ctrl = wb.controller
-    wb.scene_panel.sample_button.click()
-    qtbot.waitUntil(lambda: ctrl.current is not None, timeout=LOAD_S)
-    _idle(wb, qtbot)
-    wb.scene_panel.photo_list.setCurrentRow(1)
-    _idle(wb, qtbot)
-    panel = wb.manual_panel
-    wb.show_tab("Manual")
-    with qtbot.waitSignal(ctrl.reference_ready, timeout=20_000):
-        panel.ref_pose_button.click()
-    _idle(wb, qtbot)
-    ps = ctrl.current
+    ctrl, ps, photo_px, ref_px = reference_and_truth_pairs(wb, qtbot)
     truth = load_truth(ps.photo.path)
-    photo_px, ref_px, _ = truth_pairs(truth, ps.reference, ps.size)
+    panel = wb.manual_panel
     rng = np.random.default_rng(0)
     P = photo_px + rng.normal(0, 1.0, (8, 2))  # clicks, about a pixel off
     R = ref_px + rng.normal(0, 1.0, (8, 2))

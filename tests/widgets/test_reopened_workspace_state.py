@@ -8,25 +8,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Registration, Trial
-from napari_imgreg.registration.uncertainty import Uncertainty
-from napari_imgreg.sample import load_truth, truth_pairs
 from napari_imgreg.widgets._layers import napari_from_pixels
 
-from ._workbench import idle as _idle, load_sample as _load_sample, save_and_reopen
+from ._workbench import (
+    idle as _idle,
+    load_sample as _load_sample,
+    reference_and_truth_pairs,
+    registered_on_truth,
+    save_and_reopen,
+)
 
 
-def _registered(ps) -> Registration:
-    """A registration that found the photo's true pose (no pipeline run)."""
-    truth = load_truth(ps.photo.path)
-    trial = Trial(index=0, params=RegistrationParams(), metrics={"inliers_3d": 200}, q=1.4,
-                  grade="excellent", hints=[], pose=truth.pose, start_pose=ps.pose, rounds=1,
-                  converged=True, verified=True, residual_flow_px=0.4)
-    return Registration(status="registered", photo=ps.name, intrinsics=ps.intrinsics,
-                        pose=truth.pose, prior=ps.prior, metrics=trial.metrics, q=1.4,
-                        grade="excellent", hints=[], trials=[trial], timings_s={"total": 1.0},
-                        best_trial=0, uncertainty=Uncertainty(1.2, 0.12, 0.06, 4))
 
 
 def _project(iw, qtbot) -> None:
@@ -78,7 +70,7 @@ def test_a_projection_drawn_in_napari_is_not_out_of_date_once_reopened(
     wb = workbench
     ctrl = _load_sample(wb, qtbot)
     ws = ctrl.workspace
-    ws.record_registration(_registered(ws.current))
+    ws.record_registration(registered_on_truth(ws.current))
     _idle(wb, qtbot)
     wb.show_tab("Interpret")
     iw = wb.interpret_widget
@@ -190,17 +182,8 @@ def test_the_manual_tab_comes_back_with_its_reference_pairs_and_solution(
     from napari_imgreg import workspace as workspace_module
 
     wb = workbench
-    ctrl = _load_sample(wb, qtbot)
-    ctrl.select_photo(1)
-    _idle(wb, qtbot)
+    ctrl, ps, photo_px, ref_px = reference_and_truth_pairs(wb, qtbot)
     panel = wb.manual_panel
-    wb.show_tab("Manual")
-    with qtbot.waitSignal(ctrl.reference_ready, timeout=20_000):
-        panel.ref_pose_button.click()
-    _idle(wb, qtbot)
-    ps = ctrl.current
-    truth = load_truth(ps.photo.path)
-    photo_px, ref_px, _ = truth_pairs(truth, ps.reference, ps.size)
     rng = np.random.default_rng(1)
     ctrl.workspace.set_pair_points(photo_px + rng.normal(0, 1.0, photo_px.shape),
                                    ref_px + rng.normal(0, 1.0, ref_px.shape))

@@ -152,27 +152,9 @@ def _shot_path(name):
 
 
 # ------------------------------------------------------------ Orient model dock
-@pytest.fixture
-def plain_tables(tmp_path):
-    """A phone table without dates' GPS: no georef.json, no photos beside it."""
-    from napari_imgreg.io.orientation_tables import write_orientation_csv
-    from napari_imgreg.sample.survey import simulate_survey
-
-    survey = simulate_survey(np.random.default_rng(7))
-    folder = tmp_path / "scene" / "orient"
-    folder.mkdir(parents=True)
-    est, meas = folder / "estimated.csv", folder / "measured.csv"
-    write_orientation_csv(est, survey.estimated)
-    write_orientation_csv(meas, survey.measured)
-    lines = meas.read_text().splitlines()
-    meas.write_text("\n".join([lines[0] + ",time"] + [f"{line},2027-07-02"
-                                                     for line in lines[1:]]) + "\n")
-    return est, meas
-
-
-def test_orient_auto_without_a_site_speaks_of_the_dock(orient_widget, plain_tables, qtbot):
+def test_orient_auto_without_a_site_speaks_of_the_dock(orient_widget, dated_orient_tables, qtbot):
     widget = orient_widget
-    widget.set_tables(*plain_tables)
+    widget.set_tables(*dated_orient_tables)
     widget.declination_auto.setChecked(True)
     with qtbot.waitSignal(widget.orientation_failed, timeout=15_000) as blocker:
         widget.run()
@@ -183,15 +165,15 @@ def test_orient_auto_without_a_site_speaks_of_the_dock(orient_widget, plain_tabl
     assert "Georef field" in text and "untick Auto (WMM)" in text
 
 
-def test_orient_auto_finds_georef_one_folder_up_and_says_so(orient_widget, plain_tables,
+def test_orient_auto_finds_georef_one_folder_up_and_says_so(orient_widget, dated_orient_tables,
                                                             qtbot):
     from napari_imgreg.geo import Georef
 
-    est, _ = plain_tables
+    est, _ = dated_orient_tables
     georef = est.parent.parent / "georef.json"
     Georef("EPSG:32721", [283_077.411822, 8_562_012.355651, 0.0]).save(georef)
     widget = orient_widget
-    widget.set_tables(*plain_tables)
+    widget.set_tables(*dated_orient_tables)
     widget.declination_auto.setChecked(True)
     with qtbot.waitSignal(widget.orientation_done, timeout=15_000) as blocker:
         widget.run()
