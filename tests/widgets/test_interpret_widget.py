@@ -322,6 +322,28 @@ def test_note_and_units_per_feature_reach_the_geojson(widget, tmp_path):
     assert again is not None
 
 
+def test_a_loaded_drawings_other_properties_survive_the_layer(widget, tmp_path):
+    """Properties the layer has no column for (a formation, an observer, a
+    nested record) go back out as they came in; a line drawn after gets none."""
+    from napari_imgreg.interpret.files import read_interpretations
+
+    path = tmp_path / "field.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [{
+        "type": "Feature",
+        "properties": {"label": "sandstone", "formation": "Kinder Scout Grit", "observer": "AB",
+                       "station": {"id": 7, "gps": [53.35, -1.81]}},
+        "geometry": {"type": "LineString", "coordinates": [[100, 100], [300, 140]]}}]}))
+    layer = widget.load_geojson(path)
+    layer.add(napari_from_pixels(np.array([[100.0, 300.0], [200.0, 320.0]])), shape_type="path")
+    items = interpretations_from_shapes(layer)
+    assert items[0].properties["formation"] == "Kinder Scout Grit"
+    assert items[0].properties["station"] == {"id": 7, "gps": [53.35, -1.81]}
+    assert "formation" not in items[1].properties and "observer" not in items[1].properties
+    widget.save_geojson(tmp_path / "back.geojson", widget.photo_layer)
+    back = read_interpretations(tmp_path / "back.geojson")
+    assert back[0].properties["observer"] == "AB" and back[0].label == "sandstone"
+
+
 def test_plane_from_three_points_is_still_importable_from_the_widget():
     """Moved to interpret/structural.py (its known answers are tested there)."""
     from napari_imgreg.interpret import structural

@@ -32,6 +32,7 @@ stands alone.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -109,6 +110,12 @@ _TEXT_FEATURES = {"comment": "comment", "unit_above": "above", "unit_below": "be
                   "contact": "contact", "drawing_id": "id"}
 #: The boxes of the form, by feature column.
 _EDITABLE_TEXT = ("comment", "unit_above", "unit_below", "contact")
+#: Feature column of a shape's other properties (a loaded file's ``formation``,
+#: ``observer``, ``truth``, ...), as JSON: kept through the layer, never shown.
+_EXTRA_FEATURE = "extra_properties"
+#: Properties the layer holds in columns (or its colours) of their own.
+_OWN_PROPERTIES = frozenset({"label", "color", "measure", "three_point_px",
+                             *_TEXT_FEATURES.values()})
 #: napari's click-per-vertex line tool (napari >= 0.6; "add_path" is freehand there).
 _LINE_MODE = "add_polyline"
 _DRAW_HINT = ("click each vertex, double-click (or Enter) to finish the line; "
@@ -208,11 +215,14 @@ def interpretations_from_shapes(layer) -> list[Interpretation]:
         labels = [str(v) for v in features["label"]]
     texts = {prop: list(features[col]) for col, prop in _TEXT_FEATURES.items()
              if col in features}
+    extras = list(features[_EXTRA_FEATURE]) if _EXTRA_FEATURE in features else []
     out = []
     for k, (data, kind) in enumerate(zip(layer.data, layer.shape_type)):
         px = pixels_from_napari(np.asarray(data)[:, -2:])
         label = labels[k] if labels is not None and k < len(labels) else "unlabelled"
-        props = {"label": label, "color": to_hex(layer.edge_color[k])}
+        extra = extras[k] if k < len(extras) else ""
+        props = {**(json.loads(extra) if isinstance(extra, str) and extra else {}),
+                 "label": label, "color": to_hex(layer.edge_color[k])}
         for prop, values in texts.items():
             value = values[k] if k < len(values) else None
             if isinstance(value, str) and value.strip():
@@ -549,7 +559,7 @@ class InterpretWidget(QWidget):
         if not items:
             return
         data, types, colors = [], [], []
-        columns: dict[str, list] = {"label": [], "measure": [],
+        columns: dict[str, list] = {"label": [], "measure": [], _EXTRA_FEATURE: [],
                                     **{col: [] for col in _TEXT_FEATURES}}
         for item in items:
             data.append(napari_from_pixels(item.pixels))
@@ -557,6 +567,8 @@ class InterpretWidget(QWidget):
             colors.append(item.color)
             columns["label"].append(item.label)
             columns["measure"].append(str(item.properties.get("measure") or ""))
+            extra = {k: v for k, v in item.properties.items() if k not in _OWN_PROPERTIES}
+            columns[_EXTRA_FEATURE].append(json.dumps(extra, default=str) if extra else "")
             for col, prop in _TEXT_FEATURES.items():
                 columns[col].append(str(item.properties.get(prop) or ""))
             if item.label not in self._labels:
@@ -566,8 +578,8 @@ class InterpretWidget(QWidget):
                   edge_width=3)
         features = layer.features.copy()
         for col, values in columns.items():
-            if col == "measure" and not any(values) and col not in features:
-                continue  # no 3-point planes: no column
+            if col in ("measure", _EXTRA_FEATURE) and not any(values) and col not in features:
+                continue  # no 3-point planes, no other properties: no column
             if col not in features:
                 features[col] = ""
             features.loc[n0:, col] = values
