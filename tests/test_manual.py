@@ -145,6 +145,11 @@ def test_hillshade_of_a_map_one_cell_deep_is_flat_along_it():
     shade = tmap.hillshade(azimuth_deg=90.0, altitude_deg=45.0)
     # Lit from the east at 45° on a slope facing west at 45°: normal ⟂ light.
     assert shade.shape == (1, 5) and np.allclose(shade, 0.0, atol=1e-9)
+    # Its pixels are square, so its map has a height (matplotlib warned of a
+    # singular extent before).
+    assert tmap.spacing == (1.0, 1.0)
+    left, right, bottom, top = tmap.image_extent
+    assert (right - left, top - bottom) == (5.0, 1.0)
 
 
 def test_terrain_map_without_a_dem_samples_the_model(make_quad):

@@ -230,10 +230,14 @@ class TerrainMap:
 
     @property
     def spacing(self) -> tuple[float, float]:
-        """(dx, dy) pixel spacing, metres."""
+        """(dx, dy) pixel spacing, metres. A raster one row or column wide
+        (a model flat in plan, such as a vertical wall seen from above) has
+        square pixels: the other axis's spacing (else its map has no height)."""
         rows, cols = self.heights.shape
         xmin, xmax, ymin, ymax = self.extent
-        return (xmax - xmin) / max(cols - 1, 1), (ymax - ymin) / max(rows - 1, 1)
+        dx = (xmax - xmin) / (cols - 1) if cols > 1 else 0.0
+        dy = (ymax - ymin) / (rows - 1) if rows > 1 else 0.0
+        return (dx or dy or 1.0), (dy or dx or 1.0)
 
     @property
     def image_extent(self) -> tuple[float, float, float, float]:
