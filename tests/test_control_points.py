@@ -48,6 +48,18 @@ def wall_photo(tmp_path):
     return photo, _record(tmp_path / "IMG_0001.json", WALL_INTR, WALL_TRUTH)
 
 
+def _register_from_pairs(run_cli, mesh, photo, record, tmp_path, photo_px, xyz, *options):
+    """``register --pairs`` on the wall with these pairs (``photo_px`` None:
+    their exact projection by the true pose): (run, RESULT.json dict, pose)."""
+    px = WALL_TRUTH.project(WALL_INTR, xyz) if photo_px is None else photo_px
+    pairs = tmp_path / "pairs.csv"
+    write_control_points(pairs, px, xyz)
+    out = tmp_path / "R.json"
+    run = run_cli(["register", mesh, photo, "--prior", record, "--pairs", pairs, *options,
+                   "--out", out], max_seconds=None)
+    return (run, *_result(out))
+
+
 def _result(path) -> tuple[dict, Pose]:
     data = json.loads(path.read_text())
     return data, Pose.from_dict(data["pose"])
@@ -194,12 +206,8 @@ def test_register_from_exact_pairs_recovers_the_true_pose(wall_mesh, wall_photo,
     photo, record = wall_photo
     rng = np.random.default_rng(1)
     xyz = _wall_points(10, rng)
-    pairs = tmp_path / "pairs.csv"
-    write_control_points(pairs, WALL_TRUTH.project(WALL_INTR, xyz), xyz)
-    out = tmp_path / "R.json"
-    run = run_cli(["register", wall_mesh, photo, "--prior", record, "--pairs", pairs,
-                   "--out", out], max_seconds=None)
-    result, pose = _result(out)
+    run, result, pose = _register_from_pairs(run_cli, wall_mesh, photo, record, tmp_path,
+                                             None, xyz)
     assert pose.rotation_error_deg(WALL_TRUTH) < 0.01
     assert np.linalg.norm(pose.center - WALL_TRUTH.center) < 0.01
     # Ten exact pairs: the expected error is the click noise's alone, small.
@@ -213,7 +221,7 @@ def test_register_from_exact_pairs_recovers_the_true_pose(wall_mesh, wall_photo,
     # The file is the same contract as an automatic result's.
     from napari_imgreg.registration.result_file import load_registration
 
-    assert load_registration(out).status == "registered"
+    assert load_registration(tmp_path / "R.json").status == "registered"
 
 
 def test_noisy_pairs_give_an_error_within_twice_the_reported_uncertainty(
@@ -222,12 +230,8 @@ def test_noisy_pairs_give_an_error_within_twice_the_reported_uncertainty(
     rng = np.random.default_rng(2)
     xyz = _wall_points(12, rng)
     clicked = WALL_TRUTH.project(WALL_INTR, xyz) + rng.normal(0, 1.5, (12, 2))
-    pairs = tmp_path / "pairs.csv"
-    write_control_points(pairs, clicked, xyz)
-    out = tmp_path / "R.json"
-    run_cli(["register", wall_mesh, photo, "--prior", record, "--pairs", pairs, "--out", out],
-            max_seconds=None)
-    result, pose = _result(out)
+    _, result, pose = _register_from_pairs(run_cli, wall_mesh, photo, record, tmp_path,
+                                           clicked, xyz)
     unc = result["uncertainty"]
     rotation = pose.rotation_error_deg(WALL_TRUTH)
     position = np.linalg.norm(pose.center - WALL_TRUTH.center)
@@ -243,12 +247,8 @@ def test_the_focal_length_is_solved_and_marked_estimated(wall_mesh, tmp_path, ru
     record = _record(tmp_path / "IMG_0002.json", wrong, WALL_TRUTH)
     rng = np.random.default_rng(3)
     xyz = _wall_points(12, rng)
-    pairs = tmp_path / "pairs.csv"
-    write_control_points(pairs, WALL_TRUTH.project(WALL_INTR, xyz), xyz)
-    out = tmp_path / "R.json"
-    run = run_cli(["register", wall_mesh, photo, "--prior", record, "--pairs", pairs,
-                   "--solve-focal", "--out", out], max_seconds=None)
-    result, pose = _result(out)
+    run, result, pose = _register_from_pairs(run_cli, wall_mesh, photo, record, tmp_path,
+                                             None, xyz, "--solve-focal")
     assert result["camera"]["estimated"] == ["fx", "fy"]
     assert result["camera"]["fx"] == pytest.approx(WALL_INTR.fx, rel=1e-4)
     assert "focal_px" in result["uncertainty"]
@@ -313,12 +313,7 @@ def test_pairs_in_one_corner_are_uncertain_and_never_graded_good(tmp_path, run_c
 def test_pairs_on_a_line_fail_with_the_reason_exit_1(wall_mesh, wall_photo, tmp_path, run_cli):
     photo, record = wall_photo
     xyz = np.c_[np.linspace(5, 35, 6), np.zeros(6), np.full(6, 10.0)]
-    pairs = tmp_path / "pairs.csv"
-    write_control_points(pairs, WALL_TRUTH.project(WALL_INTR, xyz), xyz)
-    out = tmp_path / "R.json"
-    run = run_cli(["register", wall_mesh, photo, "--prior", record, "--pairs", pairs,
-                   "--out", out], max_seconds=None)
-    result, _ = _result(out)
+    run, result, _ = _register_from_pairs(run_cli, wall_mesh, photo, record, tmp_path, None, xyz)
     assert run.code == 1 and result["status"] == "failed" and result["trials"] == []
     assert "on a line" in result["quality"]["hints"][0]
 
