@@ -238,9 +238,10 @@ class ControlPoints:
         from its nearest model vertex, and three quarters of the points are
         that far on the same side, most of it (70 %) vertical. A target on
         the ground in front of a cliff the model does not cover is far from
-        it sideways, not vertically, and passes. A model whose vertices are
-        sparse (more than 2.5 m apart on average: a few large triangles) is
-        not checked.
+        it sideways, not vertically, and passes. Only the model's vertices
+        within 20 m of the points' extent in plan are searched; where they
+        are sparse (more than 2.5 m apart on average: a few large
+        triangles) the points are not checked.
 
         Parameters
         ----------
@@ -256,15 +257,23 @@ class ControlPoints:
         """
         from scipy.spatial import cKDTree
 
-        surface = np.asarray(surface_xyz, np.float64).reshape(-1, 3)
+        surface = np.asarray(surface_xyz).reshape(-1, 3)
         if len(surface) == 0 or len(model_xyz) == 0:
             return
+        # Only the model under and around the points (in plan) can be below
+        # or above them: the search is that small, not the whole model's
+        # (this runs when a file is loaded, in the workbench on its GUI thread).
+        reach = 2.0 * HEIGHT_OFFSET_M
+        low, high = model_xyz[:, :2].min(axis=0) - reach, model_xyz[:, :2].max(axis=0) + reach
+        near = np.all((surface[:, :2] >= low) & (surface[:, :2] <= high), axis=1)
+        surface = np.asarray(surface[near], np.float64)
+        if len(surface) == 0:
+            return  # nothing of the model under the points: beside it, not above it
         # Its vertices stand for the surface only where they are dense: a
         # model of a few large triangles (a DEM, a test wall) is not checked.
         diagonal = float(np.linalg.norm(np.ptp(surface, axis=0)))
         if diagonal / np.sqrt(len(surface)) > HEIGHT_OFFSET_M / 4:
             return
-        # A million vertices locate a point to well within the 10 m asked.
         surface = surface[::max(len(surface) // 1_000_000, 1)]
         distance, nearest = cKDTree(surface).query(model_xyz)
         if float(np.median(distance)) <= HEIGHT_OFFSET_M:
