@@ -236,3 +236,22 @@ def test_orient_cli_keeps_its_words_and_notes_a_georef_found_above(tmp_path, run
     assert f"note: {georef} was found one folder up from the tables" in run.out
     assert json.loads((tmp_path / "o.json").read_text())["inputs"]["declination"]["georef"] \
         == str(georef)
+
+
+def test_the_command_line_says_a_failed_photo_is_not_graded_as_registered(capsys):
+    """`register` printed "FAILED — grade fair": a grade that reads like a
+    verdict on a photo that has none. It now names the best trial's grade."""
+    from pathlib import Path
+
+    from napari_imgreg.camera import Pose
+    from napari_imgreg.cli.register import _print_summary
+    from napari_imgreg.registration.quality import outcome_words
+
+    pose = Pose.from_attitude(0.0, 0.0, 0.0, np.array([0.0, -50.0, 2.0]))
+    reg = SimpleNamespace(status="failed", grade="fair", q=0.41, pose=pose, metrics={},
+                          trials=[1, 2], timings_s={"total": 3.0}, hints=[])
+    _print_summary(reg, SimpleNamespace(pose=pose), Path("IMG_0009.jpg"), [])
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("IMG_0009.jpg: FAILED — best trial fair (uncertain) (Q = +0.41)")
+    assert outcome_words("failed", "excellent") == "best trial excellent (not verified)"
+    assert outcome_words("registered", "excellent") == "grade excellent"

@@ -19,6 +19,7 @@ from ._common import EXIT_FAILED, EXIT_OK, load_scene, write_json
 from ..io.photos import load_photo, save_image
 from ..prior import prior_for_photo
 from ..render import render
+from ..registration.quality import outcome_words
 from ..validate import check_writable
 
 __all__ = ["add_parser", "run", "open_gui"]
@@ -89,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         prior_pos_err = float(np.linalg.norm(prior.pose.center - truth.center))
         seconds = reg.timings_s["total"]
         print(
-            f"  {photo_path.name}: {reg.status.upper()} — grade {reg.grade} (Q = {reg.q:+.2f}) "
+            f"  {photo_path.name}: {reg.status.upper()} — {outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}) "
             f"in {seconds:.1f} s; off the true pose by {rot_err:.3f}° and {pos_err:.2f} m "
             f"(the prior: {prior_rot_err:.1f}° and {prior_pos_err:.1f} m)"
         )

@@ -29,6 +29,7 @@ from ..io.control_points import read_control_points
 from ..io.photos import load_photo
 from ..prior import prior_for_photo
 from ..validate import check_writable
+from ..registration.quality import outcome_words
 
 __all__ = ["add_parser", "run"]
 
@@ -129,7 +130,7 @@ def _print_summary(reg, prior, photo_path: Path, assumptions) -> None:
     x, y, z = reg.pose.center
     m = reg.metrics
     print(
-        f"{photo_path.name}: {reg.status.upper()} — grade {reg.grade} (Q = {reg.q:+.2f}) "
+        f"{photo_path.name}: {reg.status.upper()} — {outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}) "
         f"after {len(reg.trials)} trial(s) in {reg.timings_s['total']:.1f} s"
     )
     print(

@@ -44,6 +44,7 @@ from .batch import SceneFiles, add_cluster_arguments, cluster_params, find_scene
 from ..errors import InputError, input_error
 from ..io import workspace_files as wsfiles
 from ..validate import check_writable
+from ..registration.quality import outcome_words
 
 if TYPE_CHECKING:  # the commands import their backend when run: a fast --help
     from ..workspace import Workspace
@@ -349,7 +350,7 @@ def _register(args: argparse.Namespace) -> int:
             failed += 1
             continue
         failed += not reg.registered
-        say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — grade {reg.grade} "
+        say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — {outcome_words(reg.status, reg.grade)} "
             f"(Q = {reg.q:+.2f}), {len(reg.trials)} trial(s), {time.perf_counter() - start:.1f} s")
     missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered
                   for k in asked)
@@ -390,7 +391,7 @@ def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) ->
             # Its pose becomes the photo's pose though another photo is current.
             ws.record_registration(reg, kind, ps, pose_if_not_current=True)
             failed += not reg.registered
-            say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — grade {reg.grade} "
+            say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — {outcome_words(reg.status, reg.grade)} "
                 f"(Q = {reg.q:+.2f}), {len(reg.trials)} trial(s), "
                 f"{reg.timings_s.get('total', 0.0):.1f} s")
     return failed
@@ -515,7 +516,7 @@ def _info(args: argparse.Namespace) -> int:
     for ps in ws.photos:
         reg = ps.registration
         state = "not registered" if reg is None else (
-            f"{reg.status}, grade {reg.grade}, Q = {reg.q:+.2f}")
+            f"{reg.status}, {outcome_words(reg.status, reg.grade)}, Q = {reg.q:+.2f}")
         say(f"  {_label(ws, ps)}: {state}; {len(ps.trials)} trial(s), "
             f"{len(ps.interpretations)} drawn")
     _say_open_problems(ws)

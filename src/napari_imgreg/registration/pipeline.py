@@ -43,7 +43,7 @@ from .filters import apply_filters, illumination_invariant, reduce_for_matching
 from ..prior import Prior
 from .params import RegistrationParams
 from .explain import diagnose, focal_retry_start, nothing_in_common
-from .quality import GRADES, evaluate_rules
+from .quality import GRADES, evaluate_rules, outcome_words
 from .round import (  # noqa: F401  (re-exported: the names' old home)
     MIN_VERIFIED_INLIERS,
     STAGE_Q_CEILING,
@@ -936,7 +936,8 @@ def register_photo(
             "points before mapping on it.")
     timings = dict(ctx.timings)
     timings["total"] = time.perf_counter() - t_total
-    yield Progress("done", 1.0, f"{status} ({best.grade}, Q = {best.q:.2f})")
+    yield Progress("done", 1.0, f"{'registered' if status == 'registered' else 'not registered'}"
+                                f" — {outcome_words(status, best.grade)}, Q = {best.q:.2f}")
     return Registration(
         status=status,
         photo=photo_name,

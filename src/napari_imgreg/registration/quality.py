@@ -136,6 +136,32 @@ def grade_of(q: float, pose_found: bool = True) -> Grade:
     return GRADES[-1]
 
 
+#: Why a grade is not enough when the photo did not register (its error
+#: estimate, or the verification, said no).
+_UNREGISTERED_GRADE = {"fair": "uncertain", "poor": "doubtful"}
+
+
+def outcome_words(status: str, grade: str) -> str:
+    """A registration's grade in words that agree with its status.
+
+    ``"grade good"`` for a registered photo; one that did not register says
+    that its grade is its best trial's and why that is not enough: ``"best
+    trial fair (uncertain)"``, ``"best trial excellent (not verified)"``,
+    ``"best trial failed"``. RESULT.json keeps ``status`` and ``grade`` as
+    they are; this is what is printed and shown beside them.
+
+    Examples
+    --------
+    >>> outcome_words("failed", "fair")
+    'best trial fair (uncertain)'
+    """
+    if status == "registered":
+        return f"grade {grade}"
+    if grade == "failed":
+        return "best trial failed"
+    return f"best trial {grade} ({_UNREGISTERED_GRADE.get(grade, 'not verified')})"
+
+
 @dataclass(frozen=True)
 class RuleHit:
     """A rule that fired: its number (1–6 = priority), hint and adaptation."""

@@ -46,6 +46,7 @@ from ..io.meshes import check_model_suffix
 from ..prior import Prior
 from ..registration.filters import apply_filters, reduce_for_matching
 from ..registration.params import RegistrationParams
+from ..registration.quality import outcome_words
 from ..scene import size_text
 from ..registration.pipeline import Trial
 from ..registration.stages.relight import render_sunlit
@@ -233,27 +234,18 @@ def _read_scene_warm(mesh, *args):
 
 
 #: How an unregistered photo's best grade reads beside "not registered".
-_UNREGISTERED_GRADE = {"fair": "uncertain", "poor": "doubtful"}
-
-
 def outcome_text(status: str, grade: str, q: float, rich: bool = False) -> str:
     """A registration's outcome in words whose status and grade agree.
 
     ``"registered — grade good, Q = 0.90"``; a photo that did not register
     says so and that its grade is its best trial's: ``"not registered — best
     trial fair (uncertain), Q = 0.40"`` (RESULT.json's ``status`` stays
-    ``"failed"`` and its ``grade`` ``"fair"``: only the words shown change).
+    ``"failed"`` and its ``grade`` ``"fair"``: only the words shown change;
+    :func:`~napari_imgreg.registration.quality.outcome_words`).
     ``rich``: the status in bold (Qt rich text).
     """
-    registered = status == "registered"
-    head = "registered" if registered else "not registered"
-    if registered:
-        tail = f"grade {grade}, Q = {q:.2f}"
-    elif grade == "failed":
-        tail = f"best trial failed, Q = {q:.2f}"
-    else:
-        why = _UNREGISTERED_GRADE.get(grade, "not verified")
-        tail = f"best trial {grade} ({why}), Q = {q:.2f}"
+    head = "registered" if status == "registered" else "not registered"
+    tail = f"{outcome_words(status, grade)}, Q = {q:.2f}"
     return f"<b>{head}</b> — {tail}" if rich else f"{head} — {tail}"
 
 
