@@ -181,3 +181,33 @@ def test_orient_auto_finds_georef_one_folder_up_and_says_so(orient_widget, dated
     assert blocker.args[0].inputs["declination"]["georef"] == str(georef)
     text = widget.status_label.text()
     assert f"origin of {georef}, found one folder up from the estimated table" in text
+
+
+def test_no_height_slider_under_the_photos(workbench, qtbot):
+    """The model (3D) among the layers gave the 2D view of the photos a slider
+    for the model's height that moved nothing there; a user's own stack keeps
+    its slider, and the 3D view is as napari makes it."""
+    wb = workbench
+    viewer = wb.controller.viewer
+    bar = viewer.window._qt_viewer.dims
+    load_sample(wb, qtbot)
+    assert viewer.dims.ndisplay == 2 and viewer.dims.nsteps[0] > 1  # napari would show it
+    assert bar.isHidden()
+    stack = viewer.add_image(np.zeros((4, 5, 6), np.uint8), name="stack")
+    assert not bar.isHidden()
+    viewer.layers.remove(stack)
+    assert bar.isHidden()
+    wb.controller.show_3d()
+    assert not bar.isHidden()
+    wb.controller.show_2d()
+    assert bar.isHidden()
+
+
+def test_only_height_slider_is_decided_by_the_axes_and_the_visible_layers():
+    from napari_imgreg.widgets._layers import NAPARI_AXIS_LABELS, only_height_slider
+
+    assert only_height_slider(NAPARI_AXIS_LABELS, (1, 2), (60, 800, 2000), [2, 2])
+    assert not only_height_slider(NAPARI_AXIS_LABELS, (1, 2), (60, 800, 2000), [2, 3])
+    assert not only_height_slider(NAPARI_AXIS_LABELS, (0, 1, 2), (60, 800, 2000), [2])
+    assert not only_height_slider(("t", "y", "x"), (1, 2), (60, 800, 2000), [2])
+    assert not only_height_slider(("a",) + NAPARI_AXIS_LABELS, (2, 3), (5, 60, 8, 9), [2])

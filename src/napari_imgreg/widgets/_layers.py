@@ -33,6 +33,7 @@ __all__ = [
     "view_from_camera",
     "frustum_segments",
     "NAPARI_AXIS_LABELS",
+    "only_height_slider",
     "INTERPRETATION_OF",
     "REDUCED_BY",
     "photo_pixel_frame",
@@ -42,6 +43,33 @@ LayerDataTuple = tuple[Any, dict[str, Any], str]
 
 
 NAPARI_AXIS_LABELS = ("z (up)", "x (east)", "y (north)")
+
+
+def only_height_slider(axis_labels, displayed, nsteps, visible_ndims) -> bool:
+    """Whether the one slider napari would show under the canvas is the
+    model's height axis and moves nothing on it.
+
+    napari gives every axis not displayed a slider when it has more than one
+    step; with the model (3D, :data:`NAPARI_AXIS_LABELS`) among the layers, the
+    2D view of the photos gets one for the model's height in metres, though
+    the 3D layers are hidden there. A visible layer of three or more axes (a
+    user's image stack) keeps its slider, and so do more axes: False then.
+
+    Parameters
+    ----------
+    axis_labels : sequence of str
+        ``viewer.dims.axis_labels``.
+    displayed : sequence of int
+        ``viewer.dims.displayed``: the axes on the canvas.
+    nsteps : sequence of int
+        ``viewer.dims.nsteps``.
+    visible_ndims : iterable of int
+        The number of axes of each visible layer.
+    """
+    sliders = [axis for axis, n in enumerate(nsteps) if axis not in displayed and n > 1]
+    return (tuple(axis_labels) == NAPARI_AXIS_LABELS and sliders == [0]
+            and all(ndim <= 2 for ndim in visible_ndims))
+
 
 #: Metadata key of an interpretation Shapes layer: the name of the photo layer
 #: it is drawn on (made by the interpretation dock, followed by the workbench).
