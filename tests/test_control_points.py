@@ -285,6 +285,32 @@ def test_the_sample_photo_registers_from_its_check_points(tmp_path, run_cli):
     assert len(result["quality"]["hints"]) == 1, result["quality"]["hints"]
 
 
+
+def test_another_photos_pairs_are_named_and_their_pose_called_into_question(tmp_path, run_cli):
+    """IMG_0001's surveyed pairs given for IMG_0002: they solve IMG_0001's pose
+    (24 m from IMG_0002's record) and agree with themselves perfectly. The
+    command line warns by the file's name, and the result's first hint says
+    the pose is far from the record and unconfirmed by the photo."""
+    from napari_imgreg.sample import sample_scene
+
+    folder = sample_scene("small")
+    out = tmp_path / "R.json"
+    run = run_cli(["register", folder / "outcrop.obj", folder / "IMG_0002.jpg",
+                   "--dem", folder / "dem.tif", "--pairs", folder / "IMG_0001.pairs.csv",
+                   "--out", out], max_seconds=None)
+    assert run.out.startswith("warning: IMG_0001.pairs.csv is named for IMG_0001.jpg, "
+                              "not for IMG_0002.jpg"), run.out
+    result, _ = _result(out)
+    first = result["quality"]["hints"][0]
+    assert first.startswith("The control points' pose differs from the photo's sensor record "
+                            "in the camera position by 2"), first
+    assert "check that the pairs are this photo's" in first
+    # Its own pairs: no such warning or hint.
+    run = run_cli(["register", folder / "outcrop.obj", folder / "IMG_0002.jpg",
+                   "--dem", folder / "dem.tif", "--pairs", folder / "IMG_0002.pairs.csv",
+                   "--out", out], max_seconds=None)
+    assert "warning" not in run.out and "sensor record" not in run.out
+
 def test_pairs_in_one_corner_are_uncertain_and_never_graded_good(tmp_path, run_cli):
     """Exact pairs bunched in a corner of the photo: the photo's matches agree
     with the pose, but the pairs' expected error is large, so the result is

@@ -1375,6 +1375,7 @@ class Workspace:
         ps.registered_on = self._fingerprints_now(ps)
         if trial is not None:
             manual.adopt_pair_uncertainty(trial, solution)
+            manual.note_record_offset(trial, ps.prior)
         ps.trials.append(TrialRecord(trial, ps.runs, "Manual"))
         ps.selected_trial = len(ps.trials) - 1
         if ps is self.current:

@@ -26,7 +26,7 @@ from ._common import (
 )
 from ..errors import input_error
 from ..io.control_points import read_control_points
-from ..io.photos import load_photo
+from ..io.photos import PHOTO_SUFFIXES, load_photo
 from ..prior import prior_for_photo
 from ..validate import check_writable
 from ..registration.quality import outcome_words
@@ -108,6 +108,10 @@ def run(args: argparse.Namespace) -> int:
             raise input_error(pairs_path, f"{len(pairs)} pairs: --solve-focal needs at least "
                                           f"{manual.MIN_PAIRS_FOCAL}")
         pairs.check_inside(prior.intrinsics.width, prior.intrinsics.height)
+        named_for = _photo_named_by(Path(pairs_path), photo_path)
+        if named_for is not None:
+            print(f"warning: {Path(pairs_path).name} is named for {named_for}, not for "
+                  f"{photo_path.name}: its pairs were probably picked on that photo")
         xyz = pairs.model_points_for(scene)
         if args.verbose:
             print(f"  solving the pose from {len(pairs)} control points, then scoring it",
@@ -122,6 +126,19 @@ def run(args: argparse.Namespace) -> int:
         _print_pairs(sol)
     print(f"  -> {out}")
     return EXIT_OK if reg.registered else EXIT_FAILED
+
+
+def _photo_named_by(pairs_path: Path, photo_path: Path) -> str | None:
+    """The photo beside a control-point file that the file is named for
+    (``IMG_0001.pairs.csv`` beside ``IMG_0001.jpg``), when that is not the
+    photo being registered; None otherwise."""
+    stem = pairs_path.name.split(".")[0].lower()
+    if stem == photo_path.stem.lower():
+        return None
+    for sibling in pairs_path.parent.iterdir():
+        if sibling.stem.lower() == stem and sibling.suffix.lower() in PHOTO_SUFFIXES:
+            return sibling.name
+    return None
 
 
 def _print_summary(reg, prior, photo_path: Path, assumptions) -> None:

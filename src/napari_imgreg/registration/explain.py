@@ -38,7 +38,8 @@ from .pose import reprojection_errors
 from .resection import refine_camera
 
 __all__ = ["diagnose", "photo_exposure", "focal_refit", "FocalRetry", "focal_retry_start",
-           "match_spread", "nothing_in_common", "prior_offset_hint", "fewer_points_settings"]
+           "match_spread", "nothing_in_common", "prior_offset", "prior_offset_hint",
+           "fewer_points_settings"]
 
 #: A photo with this share of pure-white pixels (luminance ≥ 250) is overexposed.
 OVEREXPOSED_SHARE = 0.25
@@ -188,8 +189,16 @@ def _heading_diff(a: float, b: float) -> float:
     return 180.0 if d == -180.0 else d
 
 
-def prior_offset_hint(pose: Pose, prior, registered: bool) -> str | None:
-    """How far the pose lies from the sensor record, when far beyond its sigma."""
+def prior_offset(pose: Pose, prior) -> tuple[str, list[str]] | None:
+    """How a pose differs from the sensor record, when far beyond its sigma.
+
+    Returns
+    -------
+    (what, checks) or None
+        ``what``: the differences in words ("the camera position by 27 m and
+        the heading by 20°"); ``checks``: the sensors to check. None when
+        the pose lies within three sigma of the record.
+    """
     if pose is None:
         return None
     sig = prior.sigma
@@ -198,7 +207,6 @@ def prior_offset_hint(pose: Pose, prior, registered: bool) -> str | None:
     moved = bool(np.hypot(delta[0], delta[1]) > 3.0 * float(sig.position_m)
                  or abs(delta[2]) > 3.0 * float(sig.altitude_m))
     a = pose.rotation_error_deg(prior.pose)
-    s_pos = float(sig.position_m)
     s_ang = float(sig.angles_deg)
     if not moved and a <= 3.0 * s_ang:
         return None
@@ -217,7 +225,16 @@ def prior_offset_hint(pose: Pose, prior, registered: bool) -> str | None:
         parts.append(f"the view direction by {a:.0f}°")
     if len(checks) < len(parts):
         checks.append("the orientation sensor")
-    what = ", ".join(parts[:-1]) + (" and " if len(parts) > 1 else "") + parts[-1]
+    return ", ".join(parts[:-1]) + (" and " if len(parts) > 1 else "") + parts[-1], checks
+
+
+def prior_offset_hint(pose: Pose, prior, registered: bool) -> str | None:
+    """How far the pose lies from the sensor record, when far beyond its sigma."""
+    offset = prior_offset(pose, prior)
+    if offset is None:
+        return None
+    what, checks = offset
+    s_pos, s_ang = float(prior.sigma.position_m), float(prior.sigma.angles_deg)
     if registered:
         return (f"The sensor record was off: {what}, beyond its stated accuracy "
                 f"({s_pos:g} m, {s_ang:g}°); the registration found the pose anyway and "

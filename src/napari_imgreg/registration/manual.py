@@ -33,6 +33,7 @@ import numpy as np
 
 from .._deprecated import forward_moved_names
 from ..camera import Intrinsics, Pose
+from . import explain
 from .params import RegistrationParams
 from .pipeline import Cancelled, Registration, _Context
 from .pose import PoseParams, estimate_pose, reprojection_errors
@@ -689,6 +690,38 @@ def adopt_pair_uncertainty(trial: Trial, solution: ManualSolution) -> None:
             trial.grade = capped.name
 
 
+def note_record_offset(trial: Trial, prior: Prior) -> None:
+    """Put first among a manual pose's hints how far it lies from the photo's
+    sensor record, when far beyond the record's sigma.
+
+    Pairs are often what a photo with a bad record needs, so this is said,
+    not refused. Where the photo's own features confirm the pose, the record
+    was off; where they do not, the likelier cause is pairs of another photo
+    (they give that photo's pose, and agree with themselves perfectly).
+
+    Parameters
+    ----------
+    trial : Trial
+        From :func:`score_pose`; its ``hints`` changed in place.
+    prior : Prior
+        The photo's sensor prior (its pose and sigma).
+    """
+    offset = explain.prior_offset(trial.pose, prior)
+    if offset is None:
+        return
+    if trial.verified:
+        hint = explain.prior_offset_hint(trial.pose, prior, True)
+    else:
+        what, _ = offset
+        hint = (f"The control points' pose differs from the photo's sensor record in {what}, "
+                f"beyond the record's stated accuracy ({prior.sigma.position_m:g} m, "
+                f"{prior.sigma.angles_deg:g}°), and the photo's features do not confirm it: "
+                "check that the pairs are this photo's (another photo's pairs give that "
+                "photo's pose) before mapping on it.")
+    if hint and hint not in trial.hints:
+        trial.hints.insert(0, hint)
+
+
 def registers(solution: ManualSolution) -> bool:
     """Whether a manual pose registers its photo: solved, and its pairs'
     expected error (:func:`pair_uncertainty`) small.
@@ -774,6 +807,7 @@ def register_from_pairs(
     trial = score_pose(scene, photo_rgb, sol.intrinsics, sol.pose, params, cancelled=cancelled)
     trial.index = 0
     adopt_pair_uncertainty(trial, sol)  # as the workbench records it
+    note_record_offset(trial, prior)
     registered = registers(sol)
     hints = list(trial.hints)
     if sol.warning:
