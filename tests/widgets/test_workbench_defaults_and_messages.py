@@ -211,3 +211,21 @@ def test_only_height_slider_is_decided_by_the_axes_and_the_visible_layers():
     assert not only_height_slider(NAPARI_AXIS_LABELS, (0, 1, 2), (60, 800, 2000), [2])
     assert not only_height_slider(("t", "y", "x"), (1, 2), (60, 800, 2000), [2])
     assert not only_height_slider(("a",) + NAPARI_AXIS_LABELS, (2, 3), (5, 60, 8, 9), [2])
+
+
+def test_closing_after_the_window_is_gone_does_not_abort(workbench):
+    """At exit napari deletes its Qt widgets before the workbench shuts down:
+    touching the deleted slider bar raised RuntimeError inside a Qt slot,
+    and Python aborted."""
+
+    class Deleted:
+        def isHidden(self):
+            raise RuntimeError("wrapped C/C++ object of type QtDims has been deleted")
+
+    qt_viewer = workbench.controller.viewer.window._qt_viewer
+    bar, qt_viewer.dims = qt_viewer.dims, Deleted()
+    try:
+        workbench.controller._update_dims_bar()
+        workbench.controller._set_dims_bar_visible(True)
+    finally:
+        qt_viewer.dims = bar

@@ -1760,8 +1760,11 @@ class WorkbenchController(QObject):
         # test, a napari that moved it) keeps its bar as it is.
         qt_viewer = getattr(getattr(self.viewer, "window", None), "_qt_viewer", None)
         bar = getattr(qt_viewer, "dims", None)
-        if bar is not None and hasattr(bar, "isHidden") and bar.isHidden() == visible:
-            bar.setVisible(visible)
+        try:
+            if bar is not None and hasattr(bar, "isHidden") and bar.isHidden() == visible:
+                bar.setVisible(visible)
+        except RuntimeError:  # the window is closing: its widgets are deleted
+            pass
 
     def show_3d(self, from_pose: bool = False) -> None:
         """The model and the cameras in 3D: seen obliquely, facing the outcrop
