@@ -149,6 +149,16 @@ def main() -> None:
     ctrl.set_blend(visible=False)
     shot("manual")
 
+    # 8b. The same photo's eight surveyed targets, loaded from the sample's
+    # CSV (named GCP1..8, one beyond the reference's view) and solved.
+    wb.manual_panel.load_pairs(ps.photo.path.with_name("IMG_0002.pairs.csv"))
+    wb.manual_panel.solve_button.click()
+    wait(lambda: not ctrl.is_running("manual"))
+    idle()
+    rp.corr_check.setChecked(True)  # the photo's matches confirming the pose
+    shot("manual_loaded")
+    rp.corr_check.setChecked(False)
+
     # 9. The Interpret tab: the interpretation tools docked in the workbench.
     wb.show_tab("Interpret")
     shot("interpret")
