@@ -682,15 +682,23 @@ def test_register_all_records_every_photo_and_a_rerun_skips_them(ws, monkeypatch
     assert third is not ws.current and third.pose is third.registration.pose
     assert third.history.label == "Auto 1 (good)"
     assert second.registration is None and second.pose is second.prior.pose
-    assert [ws.photo_status(p) for p in ws.photos] == ["registered", "not registered",
-                                                      "registered"]
-    assert rec.names().count("trials_changed") == 2
+    # The one that raised was tried: failed (it read "not registered", as if
+    # never tried), and the error says why (the photos table's tooltip).
+    assert [ws.photo_status(p) for p in ws.photos] == ["registered", "failed", "registered"]
+    assert "cannot be read" in second.error and ws.needs_attention(second)
+    assert rec.names().count("trials_changed") == 3
 
     # Resume: only the one that did not register runs again.
     calls.clear()
     summary = ws.register_all()
     assert calls == ["IMG_0002.jpg"] and summary.skipped == 2 and summary.total == 1
-    assert summary.failed and ws.photo_status(second) == "not registered"
+    assert summary.failed and ws.photo_status(second) == "failed"
+    # Registered at last: the error is gone with the failure.
+    calls.clear()
+    _fake_pipeline(monkeypatch, calls=calls)[0] = ws
+    ws.register_all()
+    assert calls == ["IMG_0002.jpg"] and second.error == ""
+    assert ws.photo_status(second) == "registered"
 
 
 def test_cancelling_register_all_leaves_the_finished_photos_and_resumes(ws, monkeypatch, tmp_path):

@@ -242,6 +242,10 @@ class PhotoState:
         photo file and the model at its last registration (automatic or
         manual); None before any. A file replaced since (a re-exported model,
         another photo under the same name) is reported when the workspace is opened.
+    error : str
+        Why its registration in the last Register all raised instead of
+        ending (a photo that cannot be read, too little memory); "" once a
+        registration of it is recorded. Kept for the session, not saved.
     """
 
     photo: Photo
@@ -266,6 +270,7 @@ class PhotoState:
     interpretations: list[Interpretation] = field(default_factory=list)
     accepted: bool = False
     registered_on: dict | None = None
+    error: str = ""
     _convergence: float | None = None
 
     @property
@@ -369,6 +374,13 @@ class PhotoSummary:
         Its last registration's total time, seconds (NaN: none).
     attention : bool
         :meth:`Workspace.needs_attention`.
+    drawn : int
+        Features drawn on the photo.
+    mapped : int
+        Of the last projection, the features that came from this photo.
+    mapped_out_of_date : bool
+        Its drawings, camera or pose changed since that projection
+        (:meth:`Workspace.projection_out_of_date`).
     """
 
     name: str
@@ -378,6 +390,9 @@ class PhotoSummary:
     reprojection_px: float
     time_s: float
     attention: bool
+    drawn: int = 0
+    mapped: int = 0
+    mapped_out_of_date: bool = False
 
 
 @dataclass
@@ -996,6 +1011,7 @@ class Workspace:
         ps = ps if ps is not None else self.current
         ps.runs += 1
         ps.registration = reg
+        ps.error = ""
         if reg.registered:
             ps.registered_on = self._fingerprints_now(ps)
         first = len(ps.trials)
@@ -1648,12 +1664,15 @@ class Workspace:
         an export writes, is not what they hold now. Empty when nothing was
         projected, or when it is not known what from (a workspace projected
         before napari-imgreg recorded it)."""
-        if not (self.features_3d or self.measurements) or self._projected_from is None:
-            return []
+        return [ps for ps in self.photos if self.projection_out_of_date_for(ps)]
+
+    def projection_out_of_date_for(self, ps: PhotoState) -> bool:
+        """Whether ``ps`` is among :meth:`projection_out_of_date`."""
         before = self._projected_from
-        return [ps for ps in self.photos
-                if (ps.interpretations or ps in before)
-                and before.get(ps) != _projection_input(ps)]
+        if not (self.features_3d or self.measurements) or before is None:
+            return False
+        return bool((ps.interpretations or ps in before)
+                    and before.get(ps) != _projection_input(ps))
 
     # -------------------------------------------------------------- saving
     # ------------------------------------------------------- the campaign
@@ -1676,7 +1695,7 @@ class Workspace:
                      and (reg is None or _same_pose(sol.pose, ps.pose)))
         if (reg is not None and reg.registered) or manual_ok:
             return "registered"
-        if reg is not None or ps.manual_solution is not None or ps.runs:
+        if reg is not None or ps.manual_solution is not None or ps.runs or ps.error:
             return "failed"
         return "not registered"
 
@@ -1693,9 +1712,12 @@ class Workspace:
         unc = getattr(reg, "uncertainty", None) if reg is not None else None
         reproj = float(unc.reprojection_px) if unc is not None else math.nan
         secs = float(reg.timings_s.get("total", math.nan)) if reg is not None else math.nan
+        mapped = sum(f.source == ps.name for f in self.features_3d)
         return PhotoSummary(name=ps.name, status=self.photo_status(ps), grade=grade, q=q,
                             reprojection_px=reproj, time_s=secs,
-                            attention=self.needs_attention(ps))
+                            attention=self.needs_attention(ps),
+                            drawn=len(ps.interpretations), mapped=mapped,
+                            mapped_out_of_date=self.projection_out_of_date_for(ps))
 
     def needs_attention(self, ps: PhotoState) -> bool:
         """True while a photo waits for the user: not accepted and not
@@ -1837,9 +1859,14 @@ class Workspace:
     def record_batch_step(self, step: BatchStep) -> None:
         """Record one photo's registration of a Register all (its pose becomes
         the photo's when it registered, even when it is not current)."""
-        if step.registration is not None and step.photo in self.photos:
+        if step.photo not in self.photos:
+            return
+        if step.registration is not None:
             self.record_registration(step.registration, step.kind, step.photo,
                                      pose_if_not_current=True)
+        else:  # it raised: tried and not registered, and why
+            step.photo.error = step.error or "its registration stopped with an error"
+            self.trials_changed.emit()
 
     def register_all(self, auto: bool = True, redo: bool = False,
                      cancelled: Callable[[], bool] | None = None,

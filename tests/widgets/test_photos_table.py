@@ -98,3 +98,38 @@ def test_a_thumbnail_is_the_photo_made_small(tmp_path, from_file):
     assert (left.red(), left.green(), left.blue()) == (255, 0, 0)
     assert (right.red(), right.green(), right.blue()) == (0, 0, 0)
     assert not math.isnan(pixmap.height())
+
+
+def test_lines_column_follows_drawings_projection_and_pose(table):
+    """The table says which photos are drawn on and whether the last
+    projection mapped their drawings as they are now (it had no column for
+    them: the Interpret tab alone showed them, one photo at a time)."""
+    from napari_imgreg.interpret.project import Interpretation
+    from napari_imgreg.widgets._photos_table import LINES_COLUMN
+
+    ws = table.ws
+    first = ws.photos[0]
+    ws.record_registration(_registration(first, 1.25, 2.0), "Auto", first)
+    assert _column(table, LINES_COLUMN) == ["—", "—", "—"]
+    line = np.array([[300.0, 300.0], [500.0, 320.0], [700.0, 310.0]])
+    ws.add_interpretation(Interpretation("LineString", line, {"label": "bed"}), first)
+    assert _column(table, LINES_COLUMN)[0] == "1 · not mapped"
+    ws.project_interpretations()
+    assert _column(table, LINES_COLUMN) == ["1 ✓", "—", "—"]
+    assert ws.current is first
+    ws.nudge(d_trend=0.5)
+    assert table.table.item(table.row_of(0), LINES_COLUMN).text() == "1 · out of date"
+    assert "1 mapped onto the model" in table.table.item(table.row_of(0), LINES_COLUMN).toolTip()
+
+
+def test_a_photo_register_all_could_not_register_says_why(table):
+    from napari_imgreg.workspace import BatchStep
+
+    ws = table.ws
+    second = ws.photos[1]
+    ws.record_batch_step(BatchStep(photo=second, registration=None,
+                                   error="IMG_0002.jpg: cannot be read", kind="Auto",
+                                   index=1, total=3))
+    row = table.row_of(1)
+    assert table.table.item(row, 2).text() == "failed"
+    assert "cannot be read" in table.table.item(row, 2).toolTip()

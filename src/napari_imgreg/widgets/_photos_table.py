@@ -44,7 +44,8 @@ from ._shortcuts import key_of
 __all__ = ["PhotosTable", "COLUMNS", "THUMBNAIL_WIDTH", "STATUS_COLORS"]
 
 #: The table's columns, left to right.
-COLUMNS = ("", "photo", "status", "grade", "Q", "± px", "time")
+COLUMNS = ("", "photo", "status", "grade", "Q", "± px", "time", "lines")
+LINES_COLUMN = COLUMNS.index("lines")
 #: Thumbnail width, pixels.
 THUMBNAIL_WIDTH = 52  # with the six columns, fits the workbench's ~480 px
 #: Text colour of each status.
@@ -73,6 +74,18 @@ class _Item(QTableWidgetItem):
 def _number_key(value: float) -> float:
     # Missing values (—) sort after every number in ascending order, first in descending.
     return value if math.isfinite(value) else float("inf")
+
+
+def _lines_text(s) -> str:
+    """The photos table's "lines" cell: how many features are drawn on the
+    photo, and whether the last projection mapped them as they are now."""
+    if not s.drawn and not s.mapped:
+        return "—"
+    if s.mapped_out_of_date:
+        return f"{s.drawn} · out of date"
+    if s.drawn and not s.mapped:
+        return f"{s.drawn} · not mapped"
+    return f"{s.drawn} ✓"
 
 
 def _thumbnail(photo) -> QPixmap:
@@ -151,7 +164,10 @@ class PhotosTable(QWidget):
                        (4, "quality Q of the last registration, −1.9 … 1.9"),
                        (5, ("expected reprojection error of the pose, pixels "
                             "(RESULT.json uncertainty.reprojection_px)")),
-                       (6, "time of the last registration, seconds")):
+                       (6, "time of the last registration, seconds"),
+                       (LINES_COLUMN, ("features drawn on the photo; ✓: all mapped onto the model by "
+                            "the last projection, 'not mapped' or 'out of date': Project "
+                            "(Interpret tab) again"))):
             self.table.horizontalHeaderItem(k).setToolTip(tip)
         self.summary_label = QLabel("")
         self.summary_label.setWordWrap(True)
@@ -174,12 +190,43 @@ class PhotosTable(QWidget):
                        controller.scene_changed):
             signal.connect(self.refresh)
         controller.accepted_changed.connect(lambda _ps: self.refresh())
+        self._follow_drawings()
         controller.photo_changed.connect(self._select_current)
         controller.batch_started.connect(self._batch_started)
         controller.batch_progress.connect(self._batch_progress)
         controller.batch_finished.connect(self._batch_finished)
         controller.busy_changed.connect(self._busy)
         self.refresh()
+
+    def _follow_drawings(self) -> None:
+        """Keep the "lines" column current as drawings and projections change
+        (released with the widget: the workspace may outlive it)."""
+        ws = self.ws
+        followed = [(ws.interpretations_changed, self._drawings_changed),
+                    (ws.projection_changed, self.refresh),
+                    # a pose edit puts the photo's mapped lines out of date
+                    (ws.pose_changed, self._current_lines_changed)]
+        for signal, handler in followed:
+            signal.connect(handler)
+
+        def release(*_args) -> None:
+            for signal, handler in followed:
+                signal.disconnect(handler)
+
+        self.destroyed.connect(release)
+
+    def _drawings_changed(self, _ps=None) -> None:
+        self.refresh()
+
+    def _current_lines_changed(self, *_args) -> None:
+        """Only the current photo's "lines" cell: pose edits come often."""
+        ps, index = self.ws.current, self.ws.current_index
+        row = self.row_of(index) if ps is not None and index is not None else None
+        if row is None or not (ps.interpretations or self.ws.features_3d):
+            return
+        item = self.table.item(row, LINES_COLUMN)
+        if item is not None:
+            item.setText(_lines_text(self.ws.photo_summary(ps)))
 
     # ------------------------------------------------------------- rows
     def thumbnail(self, ps: PhotoState) -> QPixmap:
@@ -219,6 +266,8 @@ class PhotosTable(QWidget):
         status = _Item(s.status)
         status.setData(SORT_ROLE, _STATUS_ORDER.get(s.status, 0))
         status.setForeground(QColor(STATUS_COLORS.get(s.status, "#ffffff")))
+        if ps.error:  # Register all could not register it: why
+            status.setToolTip(f"Register all stopped on this photo: {ps.error}")
         grade = _Item(s.grade or "—")
         grade.setData(SORT_ROLE, _GRADE_RANK.get(s.grade, len(GRADES)))  # best first
         if s.grade in _GRADE_COLORS:
@@ -229,7 +278,13 @@ class PhotosTable(QWidget):
         unc.setData(SORT_ROLE, _number_key(s.reprojection_px))
         secs = _Item("—" if not math.isfinite(s.time_s) else f"{s.time_s:.1f}")
         secs.setData(SORT_ROLE, _number_key(s.time_s))
-        for col, item in enumerate((thumb, name, status, grade, q, unc, secs)):
+        lines = _Item(_lines_text(s))
+        lines.setData(SORT_ROLE, s.drawn)
+        lines.setToolTip(f"{s.drawn} drawn on the photo; {s.mapped} mapped onto the model by "
+                         "the last projection"
+                         + (" (its drawings or pose changed since)" if s.mapped_out_of_date
+                            else ""))
+        for col, item in enumerate((thumb, name, status, grade, q, unc, secs, lines)):
             if col >= 2:
                 item.setTextAlignment(int(Qt.AlignmentFlag.AlignCenter))
             self.table.setItem(row, col, item)
