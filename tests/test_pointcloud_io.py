@@ -374,6 +374,26 @@ def test_crs_differing_or_absent_keeps_coordinates(cloud, utm_las, written):
     assert "no CRS record: coordinates taken as the model frame" in no_record.notes
 
 
+def test_a_cloud_in_degrees_is_refused_in_one_line(cloud, folder):
+    """A LAS whose CRS record is geographic holds longitude/latitude: taken as
+    metres it was a cliff 0.0003 units wide and 6 m high, rendered as nothing
+    (\"surface covers 0 %\"). It is refused, naming the CRS to reproject to."""
+    degrees = cloud.xyz * [1e-5, 1e-5, 1.0] + [-3.5, 53.3, 350.0]
+    path = write_point_cloud(folder / "lonlat.las", PointCloud(degrees, cloud.intensity, crs_epsg=4326))
+    with pytest.raises(InputError) as exc:
+        read_point_cloud(path)
+    assert str(exc.value) == (
+        f"{path}: coordinates are longitude/latitude in degrees (CRS record EPSG:4326, geographic), "
+        "not metres: reproject the cloud to a projected CRS such as UTM first (e.g. with PDAL or "
+        "CloudCompare)")
+    with pytest.raises(InputError, match="reproject the cloud to georef.json's EPSG:32630 first"):
+        read_point_cloud(path, georef=Georef("EPSG:32630", ORIGIN))
+    # A record that says degrees over coordinates that cannot be: the CRS rule's model frame.
+    wrong = write_point_cloud(folder / "wrong_record.las", PointCloud(cloud.xyz + ORIGIN, crs_epsg=4326))
+    back = read_point_cloud(wrong, georef=Georef("EPSG:32630", ORIGIN))
+    assert back.origin_subtracted is None and any("differs from georef.json" in n for n in back.notes)
+
+
 # -- decimation ---------------------------------------------------------------------
 
 

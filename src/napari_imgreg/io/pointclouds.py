@@ -444,6 +444,44 @@ def _apply_crs_rule(
     return origin
 
 
+def _refuse_degrees(path: Path, crs, lo: np.ndarray, hi: np.ndarray, georef) -> None:
+    """Refuse a cloud whose CRS record is geographic and whose x, y are degrees.
+
+    Taken as the model frame, a 200 m outcrop would be 0.003 units wide with
+    heights in metres: nothing a camera could be registered to. Reprojecting
+    is the user's step (PDAL, CloudCompare), as it is for a mesh.
+
+    Parameters
+    ----------
+    path : Path
+        The file, for the message.
+    crs : pyproj.CRS or None
+        The file's CRS record.
+    lo, hi : ndarray, shape (3,)
+        The points' bounding box in the file's coordinates.
+    georef : Georef or None
+        Named in the message as the CRS to reproject to.
+
+    Raises
+    ------
+    InputError
+        The record is geographic (or compound on a geographic one) and x, y
+        lie within ±180°, ±90° (a record that lies about metres is left to
+        the CRS rule).
+    """
+    if crs is None:
+        return
+    horizontal = crs.sub_crs_list[0] if crs.is_compound and crs.sub_crs_list else crs
+    if not horizontal.is_geographic:
+        return
+    if not (max(abs(lo[0]), abs(hi[0])) <= 180.0 and max(abs(lo[1]), abs(hi[1])) <= 90.0):
+        return
+    target = f"georef.json's {georef.crs}" if georef is not None else "a projected CRS such as UTM"
+    raise input_error(
+        path, f"coordinates are longitude/latitude in degrees (CRS record {_crs_label(crs)}, geographic), "
+              f"not metres: reproject the cloud to {target} first (e.g. with PDAL or CloudCompare)")
+
+
 def _map_like_note(lo: np.ndarray, hi: np.ndarray, notes: list[str], crs=None) -> None:
     reach = float(np.maximum(np.abs(lo), np.abs(hi)).max())
     if reach > 100_000:
@@ -684,6 +722,7 @@ def _finish_cloud(
     if rgb_raw is not None:
         rgb = rgb_raw if rgb_raw.dtype == np.uint8 else _rgb_to_8bit(rgb_raw, int(rgb_max or 0), notes, rgb_what)
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    _refuse_degrees(path, crs, lo, hi, georef)
     origin = None
     if apply_crs:
         origin = _apply_crs_rule(crs, crs_record, georef, lo, hi, notes, rgb_what)
