@@ -249,6 +249,13 @@ def _bad_files(written, folder, cloud):
         "EVLRs beyond the file": (patched(".las", "evlrs", "<QI", 235, 375, 2**32 - 1), "EVLRs from byte"),
         "LAS points beyond the file": (patched(".las", "count", "<Q", 247, 10**6), "record length"),
         "LAZ count beyond its bytes": (patched(".laz", "count", "<Q", 247, 2**40), "compressed points"),
+        # a scale of 0 put every point on the offset: n² normals (hours at 1 M points)
+        "LAS scale factors 0": (patched(".las", "scale0", "<3d", 131, 0.0, 0.0, 0.0),
+                                "scale factors are 0, 0, 0: each must be a finite number other than 0"),
+        "LAZ scale factor NaN": (patched(".laz", "scalenan", "<3d", 131, 0.001, float("nan"), 0.001),
+                                 "scale factors are 0.001, nan, 0.001"),
+        "every point at one position": (text("one.xyz", "1 2 3\n" * 50),
+                                        "all 50 points lie at one position (1.000, 2.000, 3.000): no surface"),
         "truncated LAZ": (cut(".laz"), "truncated"),
         "truncated LAS": (cut(".las"), "truncated"),
         "LAZ chunk table moved": (shifted(".laz"), "cannot read LAZ"),
@@ -392,6 +399,23 @@ def test_a_cloud_in_degrees_is_refused_in_one_line(cloud, folder):
     wrong = write_point_cloud(folder / "wrong_record.las", PointCloud(cloud.xyz + ORIGIN, crs_epsg=4326))
     back = read_point_cloud(wrong, georef=Georef("EPSG:32630", ORIGIN))
     assert back.origin_subtracted is None and any("differs from georef.json" in n for n in back.notes)
+
+
+def test_coarse_las_scale_factors_are_said(cloud, folder):
+    """A LAS stored to 1 m rounds a scan's detail away (and stacks points):
+    read, with a note naming the scale factors."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = cloud.xyz.T
+    path = folder / "metre.las"
+    las.write(path)
+    back = read_point_cloud(path)
+    assert "coordinates stored to 1 m (its header's scale factors 1, 1, 1): detail finer than that is lost" \
+        in back.notes
+    assert not any("stored to" in note for note in read_point_cloud(folder / "cloud.las").notes)
 
 
 # -- decimation ---------------------------------------------------------------------
