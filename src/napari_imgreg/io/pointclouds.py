@@ -792,6 +792,7 @@ def _read_las_checked(path: Path, p: PointCloudParams, georef, kind: str) -> Poi
             crs = header.parse_crs()
         except Exception:  # a CRS record pyproj cannot parse
             crs = None
+        _refuse_degrees(path, crs, lo, hi, georef)  # from the header: before minutes of decoding
         crs_record = any(v.user_id == "LASF_Projection" for v in header.vlrs) or bool(
             header.evlrs and any(v.user_id == "LASF_Projection" for v in header.evlrs)
         )
