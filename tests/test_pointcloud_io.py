@@ -381,6 +381,21 @@ def test_crs_differing_or_absent_keeps_coordinates(cloud, utm_las, written):
     assert "no CRS record: coordinates taken as the model frame" in no_record.notes
 
 
+def test_a_las_in_degrees_is_refused_before_its_points_are_decoded(cloud, folder, monkeypatch):
+    """From the header's bounds: a 50 M-point LAZ is not decoded for minutes first."""
+    from napari_imgreg.io import pointclouds
+
+    degrees = cloud.xyz * [1e-5, 1e-5, 1.0] + [-3.5, 53.3, 350.0]
+    path = write_point_cloud(folder / "lonlat_early.laz", PointCloud(degrees, crs_epsg=4326))
+
+    def decoded(*args, **kwargs):
+        raise AssertionError("points decoded before the refusal")
+
+    monkeypatch.setattr(pointclouds._Accumulator, "add", decoded)
+    with pytest.raises(InputError, match="longitude/latitude in degrees"):
+        read_point_cloud(path)
+
+
 def test_a_cloud_in_degrees_is_refused_in_one_line(cloud, folder):
     """A LAS whose CRS record is geographic holds longitude/latitude: taken as
     metres it was a cliff 0.0003 units wide and 6 m high, rendered as nothing
