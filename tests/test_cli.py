@@ -120,3 +120,37 @@ def test_demo_registers_the_sample_photos(tmp_path, run_cli):
         assert f"{entry['photo']}: REGISTERED" in stdout
     assert "off the true pose by" in stdout
     assert f"registered {len(photos)} of {len(photos)} sample photos" in stdout
+
+
+def test_commands_on_a_cloud_say_which_frame_its_points_are_in(wall, tmp_path, run_cli):
+    """A lidar LAS in UTM coordinates with its CRS record and no georef.json
+    is taken as the model frame, millions of metres from a camera: register,
+    project and workspace create say so (and what georef.json to write), as
+    render and batch do, instead of leaving only "camera is 5,940 km from the
+    model" to explain a failure."""
+    from napari_imgreg.io.pointclouds import PointCloud, write_point_cloud
+
+    _, record = wall
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(0, 40, 4000), np.zeros(4000), rng.uniform(0, 20, 4000)])
+    origin = np.array([579000.0, 5912000.0, 350.0])
+    folder = tmp_path / "scan"
+    folder.mkdir()
+    cloud = write_point_cloud(folder / "scan.las", PointCloud(
+        xyz + origin, rng.uniform(0, 1, 4000).astype(np.float32), crs_epsg=32630))
+    photo = folder / "IMG_0001.png"
+    Image.fromarray(np.full((120, 160, 3), 90, np.uint8)).save(photo)
+    (folder / "IMG_0001.json").write_text(record.read_text())
+    lines = tmp_path / "L.geojson"
+    lines.write_text(json.dumps({"type": "FeatureCollection", "features": [{
+        "type": "Feature", "properties": {"label": "bed"},
+        "geometry": {"type": "LineString", "coordinates": [[10, 10], [100, 50]]}}]}))
+    said = "assumed: CRS record EPSG:32630 but no georef.json: coordinates taken as the model frame"
+    fix = 'write a georef.json beside it, e.g. {"crs": "EPSG:32630", "origin": [579000, 5912000, 0]}'
+
+    run = run_cli(["register", cloud, photo, "--out", tmp_path / "r.json"], max_seconds=None)
+    assert run.code == 1 and said in run.out and fix in run.out, run.out
+    run = run_cli(["project", record, cloud, lines, "--out", tmp_path / "L3D.geojson"])
+    assert run.code == 0 and said in run.out and fix in run.out, run.out
+    run = run_cli(["workspace", "create", tmp_path / "ws", folder, "--no-photos"])
+    assert run.code == 0 and said in run.out and fix in run.out, run.out

@@ -139,3 +139,27 @@ def test_register_command_exit_codes(sample, tmp_path, capsys):
                  "--params", str(bad)])
     err = capsys.readouterr().err
     assert code == 2 and "params.json" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_scan_that_fails_without_a_sun_says_to_give_the_capture_time():
+    """A photo without capture time on a lidar cloud: the render is unlit, and
+    failing there the first hint names the missing sun and how to give it (the
+    diagnosis alone blamed the camera position)."""
+    from napari_imgreg.camera import Intrinsics, Pose
+    from napari_imgreg.cloud import CloudScene
+    from napari_imgreg.io.pointclouds import PointCloud
+    from napari_imgreg.prior import Prior
+
+    rng = np.random.default_rng(0)
+    n = 6000
+    xyz = np.column_stack([rng.uniform(0, 40, n), rng.normal(0, 0.05, n), rng.uniform(0, 20, n)])
+    cloud = CloudScene.from_point_cloud(PointCloud(xyz, rng.uniform(0, 1, n).astype(np.float32)))
+    intr = Intrinsics(160, 120, 100.0, 100.0, 79.5, 59.5)
+    prior = Prior(intr, Pose.from_attitude(0.0, 0.0, 0.0, np.array([20.0, -30.0, 10.0])),
+                  sun_source="unknown: no capture time")
+    photo = np.full((120, 160, 3), 90, np.uint8)  # nothing to match: a failure
+    reg = register(cloud, photo, prior, RegistrationParams.for_cloud())
+    assert reg.status == "failed"
+    assert reg.hints[0].startswith("No sun is known for this photo (no capture time): a lidar scan's "
+                                   "intensity holds no light"), reg.hints
+    assert '"time"' in reg.hints[0] and "control points" in reg.hints[0]

@@ -249,6 +249,13 @@ def _bad_files(written, folder, cloud):
         "EVLRs beyond the file": (patched(".las", "evlrs", "<QI", 235, 375, 2**32 - 1), "EVLRs from byte"),
         "LAS points beyond the file": (patched(".las", "count", "<Q", 247, 10**6), "record length"),
         "LAZ count beyond its bytes": (patched(".laz", "count", "<Q", 247, 2**40), "compressed points"),
+        # a scale of 0 put every point on the offset: n² normals (hours at 1 M points)
+        "LAS scale factors 0": (patched(".las", "scale0", "<3d", 131, 0.0, 0.0, 0.0),
+                                "scale factors are 0, 0, 0: each must be a finite number other than 0"),
+        "LAZ scale factor NaN": (patched(".laz", "scalenan", "<3d", 131, 0.001, float("nan"), 0.001),
+                                 "scale factors are 0.001, nan, 0.001"),
+        "every point at one position": (text("one.xyz", "1 2 3\n" * 50),
+                                        "all 50 points lie at one position (1.000, 2.000, 3.000): no surface"),
         "truncated LAZ": (cut(".laz"), "truncated"),
         "truncated LAS": (cut(".las"), "truncated"),
         "LAZ chunk table moved": (shifted(".laz"), "cannot read LAZ"),
@@ -372,6 +379,58 @@ def test_crs_differing_or_absent_keeps_coordinates(cloud, utm_las, written):
     np.testing.assert_allclose(no_record.xyz, cloud.xyz, atol=5.1e-5)
     assert no_record.origin_subtracted is None and no_record.crs_epsg is None
     assert "no CRS record: coordinates taken as the model frame" in no_record.notes
+
+
+def test_a_las_in_degrees_is_refused_before_its_points_are_decoded(cloud, folder, monkeypatch):
+    """From the header's bounds: a 50 M-point LAZ is not decoded for minutes first."""
+    from napari_imgreg.io import pointclouds
+
+    degrees = cloud.xyz * [1e-5, 1e-5, 1.0] + [-3.5, 53.3, 350.0]
+    path = write_point_cloud(folder / "lonlat_early.laz", PointCloud(degrees, crs_epsg=4326))
+
+    def decoded(*args, **kwargs):
+        raise AssertionError("points decoded before the refusal")
+
+    monkeypatch.setattr(pointclouds._Accumulator, "add", decoded)
+    with pytest.raises(InputError, match="longitude/latitude in degrees"):
+        read_point_cloud(path)
+
+
+def test_a_cloud_in_degrees_is_refused_in_one_line(cloud, folder):
+    """A LAS whose CRS record is geographic holds longitude/latitude: taken as
+    metres it was a cliff 0.0003 units wide and 6 m high, rendered as nothing
+    (\"surface covers 0 %\"). It is refused, naming the CRS to reproject to."""
+    degrees = cloud.xyz * [1e-5, 1e-5, 1.0] + [-3.5, 53.3, 350.0]
+    path = write_point_cloud(folder / "lonlat.las", PointCloud(degrees, cloud.intensity, crs_epsg=4326))
+    with pytest.raises(InputError) as exc:
+        read_point_cloud(path)
+    assert str(exc.value) == (
+        f"{path}: coordinates are longitude/latitude in degrees (CRS record EPSG:4326, geographic), "
+        "not metres: reproject the cloud to a projected CRS such as UTM first (e.g. with PDAL or "
+        "CloudCompare)")
+    with pytest.raises(InputError, match="reproject the cloud to georef.json's EPSG:32630 first"):
+        read_point_cloud(path, georef=Georef("EPSG:32630", ORIGIN))
+    # A record that says degrees over coordinates that cannot be: the CRS rule's model frame.
+    wrong = write_point_cloud(folder / "wrong_record.las", PointCloud(cloud.xyz + ORIGIN, crs_epsg=4326))
+    back = read_point_cloud(wrong, georef=Georef("EPSG:32630", ORIGIN))
+    assert back.origin_subtracted is None and any("differs from georef.json" in n for n in back.notes)
+
+
+def test_coarse_las_scale_factors_are_said(cloud, folder):
+    """A LAS stored to 1 m rounds a scan's detail away (and stacks points):
+    read, with a note naming the scale factors."""
+    import laspy
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = cloud.xyz.T
+    path = folder / "metre.las"
+    las.write(path)
+    back = read_point_cloud(path)
+    assert "coordinates stored to 1 m (its header's scale factors 1, 1, 1): detail finer than that is lost" \
+        in back.notes
+    assert not any("stored to" in note for note in read_point_cloud(folder / "cloud.las").notes)
 
 
 # -- decimation ---------------------------------------------------------------------

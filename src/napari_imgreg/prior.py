@@ -1001,6 +1001,7 @@ def _attach_sun(prior: Prior, record: SensorRecord, photo, georef: Georef | None
     if record.sun is not None or record.time is not None:
         if record.sun is None and georef is None:
             prior.assumptions.append("capture time given but no georeference: sun unknown")
+            prior.sun_source = "unknown: capture time given but no georeference"
             return
         prior.sun = sun_from_record(record, georef, center)
         prior.sun_source = (

@@ -40,6 +40,11 @@ def test_a_point_cloud_opens_as_points_and_renders_intensity(workbench, qtbot, t
     layer = ctrl.layers.get("surface")
     assert layer is not None and type(layer).__name__ == "Points"
     assert len(layer.data) == 60_000  # under the display cap: every point
+    # The Scene tab says what the scan shows (not "no texture") and keeps the
+    # reader's notes in view (the status line moved on to the photos).
+    summary = workbench.scene_panel.scene_label.text()
+    assert "60,000 points, intensity," in summary and "texture" not in summary, summary
+    assert "<li>PLY files carry no CRS: coordinates taken as the model frame</li>" in summary
     render = ctrl.last_render
     assert render.mask.mean() > 0.75  # the wall fills the view but for ground and sky
     # Intensity, not shading: the beds' two levels are in the render.

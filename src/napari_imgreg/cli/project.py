@@ -150,6 +150,8 @@ def run(args: argparse.Namespace) -> int:
         raise input_error(
             args.mesh, "--georeferenced needs a georeference (georef.json beside the mesh "
             "or --georef)")
+    for note in scene.warnings:  # e.g. a cloud's CRS rule: which frame its points are in
+        print(f"  assumed: {note}")
     params = ProjectionParams(step_px=args.step, grazing_deg=args.grazing, cloud=cloud_params)
     sets = []
     for (result, lines), items in zip(pairs, drawn):

@@ -121,7 +121,9 @@ def run(args: argparse.Namespace) -> int:
                                               photo_name=photo_path.name)
         assumptions = reg.assumptions
     write_json(out, reg.to_dict())
-    _print_summary(reg, prior, photo_path, assumptions)
+    # The model's own notes first: a cloud's CRS rule (a map-coordinate LAS
+    # without georef.json) explains a camera "far from the model" below.
+    _print_summary(reg, prior, photo_path, [*scene.warnings, *assumptions])
     if pairs is not None and sol.ok:
         _print_pairs(sol)
     print(f"  -> {out}")

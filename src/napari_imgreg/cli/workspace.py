@@ -257,6 +257,8 @@ def _create(args: argparse.Namespace) -> int:
     if args.params:  # the file's fields over the scene's defaults (a point cloud's)
         ws.set_params(read_params(args.params, ws.scene))
     _OPENED.append(ws)
+    for note in ws.scene.warnings:  # e.g. a cloud's CRS rule, as batch says it
+        say(f"  assumed: {note}")
     try:
         ws.save(folder)
     except OSError as exc:  # checked writable above; the disk can still fill up

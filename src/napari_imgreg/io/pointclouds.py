@@ -444,6 +444,44 @@ def _apply_crs_rule(
     return origin
 
 
+def _refuse_degrees(path: Path, crs, lo: np.ndarray, hi: np.ndarray, georef) -> None:
+    """Refuse a cloud whose CRS record is geographic and whose x, y are degrees.
+
+    Taken as the model frame, a 200 m outcrop would be 0.003 units wide with
+    heights in metres: nothing a camera could be registered to. Reprojecting
+    is the user's step (PDAL, CloudCompare), as it is for a mesh.
+
+    Parameters
+    ----------
+    path : Path
+        The file, for the message.
+    crs : pyproj.CRS or None
+        The file's CRS record.
+    lo, hi : ndarray, shape (3,)
+        The points' bounding box in the file's coordinates.
+    georef : Georef or None
+        Named in the message as the CRS to reproject to.
+
+    Raises
+    ------
+    InputError
+        The record is geographic (or compound on a geographic one) and x, y
+        lie within ±180°, ±90° (a record that lies about metres is left to
+        the CRS rule).
+    """
+    if crs is None:
+        return
+    horizontal = crs.sub_crs_list[0] if crs.is_compound and crs.sub_crs_list else crs
+    if not horizontal.is_geographic:
+        return
+    if not (max(abs(lo[0]), abs(hi[0])) <= 180.0 and max(abs(lo[1]), abs(hi[1])) <= 90.0):
+        return
+    target = f"georef.json's {georef.crs}" if georef is not None else "a projected CRS such as UTM"
+    raise input_error(
+        path, f"coordinates are longitude/latitude in degrees (CRS record {_crs_label(crs)}, geographic), "
+              f"not metres: reproject the cloud to {target} first (e.g. with PDAL or CloudCompare)")
+
+
 def _map_like_note(lo: np.ndarray, hi: np.ndarray, notes: list[str], crs=None) -> None:
     reach = float(np.maximum(np.abs(lo), np.abs(hi)).max())
     if reach > 100_000:
@@ -684,6 +722,9 @@ def _finish_cloud(
     if rgb_raw is not None:
         rgb = rgb_raw if rgb_raw.dtype == np.uint8 else _rgb_to_8bit(rgb_raw, int(rgb_max or 0), notes, rgb_what)
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    if len(xyz) > 1 and np.array_equal(lo, hi):
+        raise input_error(path, f"all {_count(len(xyz))} points lie at one position {_xyz(lo)}: no surface")
+    _refuse_degrees(path, crs, lo, hi, georef)
     origin = None
     if apply_crs:
         origin = _apply_crs_rule(crs, crs_record, georef, lo, hi, notes, rgb_what)
@@ -741,12 +782,17 @@ def _read_las_checked(path: Path, p: PointCloudParams, georef, kind: str) -> Poi
         lo, hi = np.asarray(header.mins, float), np.asarray(header.maxs, float)
         if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or (hi < lo).any():
             raise input_error(path, "has an invalid bounding box in its header (corrupt header)")
+        coarsest = float(np.max(np.abs(header.scales)))
+        if coarsest > _LAS_COARSE_SCALE_M:
+            notes.append(f"coordinates stored to {_length(coarsest)} (its header's scale factors "
+                         f"{', '.join(f'{v:g}' for v in header.scales)}): detail finer than that is lost")
         dims = set(header.point_format.dimension_names)
         has_rgb = {"red", "green", "blue"} <= dims
         try:
             crs = header.parse_crs()
         except Exception:  # a CRS record pyproj cannot parse
             crs = None
+        _refuse_degrees(path, crs, lo, hi, georef)  # from the header: before minutes of decoding
         crs_record = any(v.user_id == "LASF_Projection" for v in header.vlrs) or bool(
             header.evlrs and any(v.user_id == "LASF_Projection" for v in header.evlrs)
         )
@@ -787,6 +833,9 @@ def _read_las_checked(path: Path, p: PointCloudParams, georef, kind: str) -> Poi
 #: The fixed part of the LAS public header block, bytes, by minor version
 #: (what laspy reads before the VLRs; LAS 1.5 adds the GPS time range).
 _LAS_FIXED_HEADER = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}
+#: Scale factors coarser than this (1 cm, what airborne LAS files use) round a
+#: terrestrial scan's millimetre-to-centimetre detail away: a note says so.
+_LAS_COARSE_SCALE_M = 0.01
 _LAS_VLR_HEADER = 54  # bytes of a VLR's header
 _LAS_EVLR_HEADER = 60  # bytes of an extended VLR's header
 #: A compressed point takes at least ~1 byte (LASzip's arithmetic coder on
@@ -823,6 +872,13 @@ def _check_las_header(path: Path, kind: str) -> None:
 
         if offset > size:
             bad(f"its header's offset to the point data, {offset}, lies beyond the file's {size} bytes")
+        scales = struct.unpack_from("<3d", head, 131)  # x, y, z scale factors (every LAS version)
+        if not all(math.isfinite(v) and v != 0.0 for v in scales):
+            # 0 puts every point on the offset: a cloud of one position, whose
+            # normals cost n² (hours), not a surface.
+            raise input_error(path, f"cannot read {kind} (its header's scale factors are "
+                                    f"{', '.join(f'{v:g}' for v in scales)}: each must be a finite "
+                                    "number other than 0; corrupt header)")
         fixed = _LAS_FIXED_HEADER.get(minor, _LAS_FIXED_HEADER[4] + 18)
         if header_size < fixed:
             bad(f"its header size, {header_size} bytes, is smaller than LAS 1.{minor}'s {fixed}")

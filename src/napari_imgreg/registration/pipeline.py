@@ -926,6 +926,17 @@ def register_photo(
     hints = list(best.hints)
     if status == "failed" and not hints:
         hints = ["No verified pose: try the manual control-point registration."]
+    if status == "failed" and ctx.sun is None and bool(getattr(scene, "is_cloud", False)):
+        # First: on a scan this is the missing input a user can supply, and
+        # the diagnosis below cannot see it (it blames the pose or the photo).
+        why = str(getattr(prior, "sun_source", "") or "").removeprefix("unknown: ") or "no capture time"
+        hints.insert(0, (
+            f"No sun is known for this photo ({why}): a lidar scan's intensity holds no light, so "
+            "its render was not lit as the photo is, and photo and render often share too little "
+            "to match. Give the photo its capture time with a time zone (the sensor record's "
+            "\"time\", e.g. \"2024-04-04T08:15:10+00:00\", with the model's georef.json) or its sun "
+            "(\"sun\": azimuth and elevation), then register again; or register with control "
+            "points."))
     if status == "registered" and ctx.sun is None and bool(getattr(scene, "is_cloud", False)):
         # The known blind spot of the error estimate (method §4): the scan's
         # unlit render, edges and MI agree on a pose biased by the photo's light.

@@ -333,8 +333,12 @@ class ScenePanel(QWidget):
             if files.get(key):
                 edit.setText(files[key])
         lo, hi = scene.bounds
-        parts = [f"<b>{scene.name}</b>: {size_text(scene)}",
-                 "textured" if scene.has_texture else "no texture",
+        if getattr(scene, "is_cloud", False):  # a scan has no texture to miss
+            looks = ("RGB colour" if scene.vertex_colors is not None else
+                     "intensity" if scene.has_intensity else "no intensity or colour: shaded")
+        else:
+            looks = "textured" if scene.has_texture else "no texture"
+        parts = [f"<b>{scene.name}</b>: {size_text(scene)}", looks,
                  f"{hi[0] - lo[0]:.0f} × {hi[1] - lo[1]:.0f} × {hi[2] - lo[2]:.0f} m"]
         if scene.georef is not None:
             parts.append(f"georeferenced ({scene.georef.crs})")
@@ -343,7 +347,10 @@ class ScenePanel(QWidget):
                          f"at {scene.dem.dx:g} m")
         else:
             parts.append("no DEM: altitudes from the model surface")
-        self.scene_label.setText(", ".join(parts))
+        # The reader's notes (a cloud's CRS rule, decimation) stay in view: the
+        # status line that also shows them is overwritten by the next message.
+        notes = "".join(f"<li>{html.escape(n)}</li>" for n in scene.warnings)
+        self.scene_label.setText(", ".join(parts) + (f"<br>Assumed:<ul>{notes}</ul>" if notes else ""))
 
     def _photos_changed(self) -> None:
         self.photo_list.blockSignals(True)
