@@ -542,3 +542,29 @@ def test_the_finer_voxel_of_a_second_read():
     assert _finer_voxel(float("inf"), 2, 300, 200) is None
     assert _finer_voxel(0.1, 300, 300, 200) is None
     assert _finer_voxel(0.1, 0, 300, 200) is None
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".las"])
+def test_missed_returns_stacked_on_one_position_are_left_out(cloud, folder, suffix):
+    """A scanner writing its missed returns at (0, 0, 0): 5000 points on one
+    position. They are left out with a note (their neighbour search grew with
+    the square of their number: 100,000 of them took 25 s more to load), and
+    the cliff's points stay, each with its intensity and colour."""
+    stacked = 5000
+    xyz = np.vstack([cloud.xyz, np.zeros((stacked, 3))])
+    intensity = np.concatenate([cloud.intensity, np.full(stacked, 0.5, np.float32)])
+    rgb = np.vstack([cloud.rgb, np.zeros((stacked, 3), np.uint8)])
+    path = write_point_cloud(folder / f"missed{suffix}", PointCloud(xyz, intensity, rgb))
+    back = read_point_cloud(path)
+    assert len(back) == len(cloud) and back.n_points_file == len(cloud) + stacked
+    np.testing.assert_allclose(back.xyz, cloud.xyz, rtol=0, atol=XYZ_TOL[suffix])
+    np.testing.assert_array_equal(back.rgb, cloud.rgb)
+    assert len(back.intensity) == len(cloud)
+    note = next(n for n in back.notes if "stacked" in n)
+    assert note.startswith("5000 points stacked on 1 position(s) (e.g. (0.000, 0.000, 0.000)")
+    assert note.endswith("a scanner's missed returns, left out")
+    # 1000 on one position (a coarsely quantised scan near its scanner) stay.
+    xyz = np.vstack([cloud.xyz, np.full((1000, 3), 2.0)])
+    path = write_point_cloud(folder / f"dense{suffix}", PointCloud(xyz, None, None))
+    back = read_point_cloud(path)
+    assert len(back) == len(xyz) and not any("stacked" in n for n in back.notes)

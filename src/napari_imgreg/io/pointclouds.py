@@ -724,6 +724,12 @@ def _finish_cloud(
     lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     if len(xyz) > 1 and np.array_equal(lo, hi):
         raise input_error(path, f"all {_count(len(xyz))} points lie at one position {_xyz(lo)}: no surface")
+    keep = _not_stacked(xyz, notes)
+    if keep is not None:
+        xyz = xyz[keep]
+        intensity = None if intensity is None else intensity[keep]
+        rgb = None if rgb is None else rgb[keep]
+        lo, hi = xyz.min(axis=0), xyz.max(axis=0)
     _refuse_degrees(path, crs, lo, hi, georef)
     origin = None
     if apply_crs:
@@ -740,6 +746,53 @@ def _finish_cloud(
         voxel_m=acc.voxel, intensity_range=intensity_limits,
     )
 
+
+#: A position shared by more points than this is no surface: a scanner's
+#: missed returns written at one place (often 0, 0, 0). A scan quantised
+#: coarsely (1 cm) close to its scanner puts tens of points on one position;
+#: over a thousand, the normals' neighbour search grows with the square of
+#: their number (100,000 took 25 s more to load), and their splats draw one
+#: blot in every render.
+STACKED_POINTS_MAX = 1000
+
+
+def _not_stacked(xyz: np.ndarray, notes: list[str]) -> np.ndarray | None:
+    """The points not stacked on a position shared by more than
+    :data:`STACKED_POINTS_MAX` points, as a mask; None when there are none
+    (the usual case, found in one pass over a hash of the coordinates).
+
+    Parameters
+    ----------
+    xyz : (N, 3) float64 array
+    notes : list of str
+        Gets a line saying how many points were left out, and where.
+    """
+    n = len(xyz)
+    if n <= STACKED_POINTS_MAX:
+        return None
+    bits = np.ascontiguousarray(xyz, dtype=np.float64).view(np.uint64).reshape(n, 3)
+    # Equal positions hash alike; a bucket holding over the limit is checked exactly.
+    hashed = (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
+              ^ bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
+              ^ bits[:, 2] * np.uint64(0x165667B19E3779F9))
+    table = min(2 * n + 1, 1 << 24) | 1
+    bucket = (hashed % np.uint64(table)).astype(np.int64)
+    heavy = np.flatnonzero(np.bincount(bucket, minlength=table) > STACKED_POINTS_MAX)
+    if not heavy.size:
+        return None
+    candidates = np.flatnonzero(np.isin(bucket, heavy))
+    positions, inverse, counts = np.unique(xyz[candidates], axis=0, return_inverse=True,
+                                           return_counts=True)
+    stacked = candidates[counts[inverse.ravel()] > STACKED_POINTS_MAX]
+    if not stacked.size:
+        return None
+    keep = np.ones(n, bool)
+    keep[stacked] = False
+    where = positions[counts > STACKED_POINTS_MAX]
+    notes.append(f"{_count(len(stacked))} points stacked on {len(where)} position(s) (e.g. "
+                 f"{_xyz(where[0])}, more than {STACKED_POINTS_MAX} each): a scanner's missed "
+                 "returns, left out")
+    return keep
 
 def _check_finite(path: Path, xyz: np.ndarray) -> None:
     if not np.isfinite(xyz).all():
