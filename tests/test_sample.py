@@ -789,3 +789,22 @@ def test_each_photo_has_control_points_a_gnss_survey_would_give(small):
         assert np.linalg.norm(pairs.photo_px - true_px, axis=1).max() < 5.0
         spread = np.ptp(pairs.photo_px, axis=0) / [truth.intrinsics.width, truth.intrinsics.height]
         assert (spread > 0.6).all(), spread
+
+
+def test_sample_scan_writes_a_laser_scan_of_the_same_outcrop(tmp_path, run_cli):
+    """`sample --scan`: a geologist without a scan can try the point-cloud
+    path; the scan lies on the sample's model, in its frame once read."""
+    from napari_imgreg import Scene
+    from napari_imgreg.geo import Georef
+    from napari_imgreg.io.pointclouds import read_point_cloud
+
+    out = tmp_path / "scene"
+    run = run_cli(["sample", "--out", out, "--scan"], max_seconds=None)
+    assert run.code == 0 and "laser scan of it written to" in run.out, run.out
+    cloud = read_point_cloud(out / "scan.laz", georef=Georef.load(out / "georef.json"))
+    assert len(cloud) > 300_000 and cloud.intensity is not None and cloud.rgb is None
+    assert cloud.origin_subtracted is not None  # its CRS is the georeference's
+    mesh = Scene.load(out / "outcrop.obj")
+    lo, hi = mesh.bounds
+    inside = np.all((cloud.xyz >= lo - 1.0) & (cloud.xyz <= hi + 1.0), axis=1)
+    assert inside.mean() > 0.99

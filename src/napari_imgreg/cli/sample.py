@@ -1,7 +1,8 @@
 """``napari-imgreg sample``: write the generated sample outcrop scene (contract §8).
 
 The scene: OBJ+MTL+JPEG, georef.json, dem.tif, and photos with sensor
-records and ground truth; ``--size`` and ``--seed`` choose which one.
+records and ground truth; ``--size`` and ``--seed`` choose which one;
+``--scan`` adds a terrestrial laser scan of it (``scan.laz``).
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "photos (10-20 s); large: about 1.2 million triangles, a 4096² texture and "
                    "five 1632×1224 photos (several times longer). Default small")
     p.add_argument("--seed", type=int, default=0, help="0 to 2**32 - 1 (default 0)")
+    p.add_argument("--scan", action="store_true",
+                   help="also write scan.laz: a terrestrial laser scan of the same outcrop "
+                   "(two stations 55 m out, 2 mrad, intensity only, in the georeference's "
+                   "CRS), to try the point-cloud path (a few seconds more)")
     p.set_defaults(func=run)
     return p
 
@@ -50,4 +55,11 @@ def run(args: argparse.Namespace) -> int:
     out = write_outcrop_folder(Path(args.out), size=args.size, seed=args.seed)
     print(f"sample outcrop ({args.size}, seed {args.seed}) written to {out} "
           f"in {time.perf_counter() - t0:.1f} s")
+    if args.scan:
+        from ..sample.scan import SAMPLE_SCAN_SPEC, scan_scene_folder
+
+        t0 = time.perf_counter()
+        scan = scan_scene_folder(out, SAMPLE_SCAN_SPEC)
+        print(f"laser scan of it written to {scan} in {time.perf_counter() - t0:.1f} s: use it "
+              f"in place of outcrop.obj")
     return EXIT_OK

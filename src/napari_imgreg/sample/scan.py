@@ -89,6 +89,7 @@ __all__ = [
     "SCAN_VERSION",
     "DEFAULT_REFLECTANCE",
     "ScanSpec",
+    "SAMPLE_SCAN_SPEC",
     "ScanPoints",
     "SurfaceCover",
     "Strata",
@@ -920,6 +921,11 @@ def _outcrop_spec(manifest: Mapping[str, Any]):
     kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in fields}
     return OutcropSpec(**kw)
 
+
+#: The scan ``napari-imgreg sample --scan`` writes beside the sample: the
+#: default survey at a 2 mrad step (10 cm at 50 m; about 0.9 M points and
+#: 4 MB of LAZ for the small sample, in ~3 s).
+SAMPLE_SCAN_SPEC = ScanSpec(step_mrad=2.0)
 
 def scan_scene_folder(folder: str | os.PathLike, spec: ScanSpec | None = None,
                       out_dir: str | os.PathLike | None = None, *,
