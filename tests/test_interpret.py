@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from interp_scenes import camera, combine, true_trace, wall_scene
@@ -634,3 +636,46 @@ def test_project_command_on_a_cloud_takes_gap_spacings(tmp_path, capsys):
                  "--gap-spacings", "0.1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--gap-spacings" in err[0] and not bad.exists()
+
+
+def test_three_point_plane_is_measured_by_the_backend_in_every_frame(tmp_path):
+    """A 3-point plane (three clicks on one bedding surface) is the plane
+    through the surface points under the clicks wherever it is measured:
+    ``project`` keeps those points (``three_point_xyz``) so ``measure`` on the
+    3D file, local or georeferenced, reports it. (It was computed by the
+    Interpret widget alone: ``measure`` fitted the 3-vertex polyline and
+    reported no plane, "the points lie in a plane through the camera".)"""
+    from napari_imgreg.geo import Georef
+    from napari_imgreg.interpret.files import read_features_geojson, write_features_geojson
+    from napari_imgreg.interpret.structural import THREE_POINT_NOTE
+
+    scene, X = wall_scene()
+    intr, pose = camera()
+    (trace,) = [t for t in true_trace(X, 35.0, 200.0) if len(t) > 20]
+    clicks = _draw(intr, pose, trace[[5, len(trace) // 2, len(trace) - 6]])
+    drawn = Interpretation("LineString", clicks, {"label": "bed", "measure": "three_point",
+                                                  "three_point_px": clicks.tolist()})
+    off = Interpretation("LineString", np.array([[600.0, 5.0], *clicks[1:]]),  # sky
+                         {"label": "bed", "measure": "three_point"})
+    features = project_interpretations(scene, intr, pose, [drawn, off], source="IMG_1.jpg")
+    assert np.shape(features[0].properties["three_point_xyz"]) == (3, 3)
+    assert features[1].properties["three_point_xyz"] is None
+    georef = Georef("EPSG:32630", np.array([579000.0, 5912000.0, 350.0]))
+    for georeferenced in (False, True):
+        path = tmp_path / f"lines_{georeferenced}.geojson"
+        write_features_geojson(path, features, georef, georeferenced=georeferenced)
+        back, _ = read_features_geojson(path)
+        m, missed = measure_features(back)
+        assert m.dip_deg == pytest.approx(35.0, abs=0.1), m.note
+        assert m.dip_direction_deg == pytest.approx(200.0, abs=0.1)
+        assert m.note == THREE_POINT_NOTE and m.n_points == 3 and m.plunge_deg is None
+        assert m.dip_sigma_deg is None  # none propagated, as documented
+        shift = georef.origin if georeferenced else np.zeros(3)
+        assert np.allclose(m.centroid - shift, trace[[5, len(trace) // 2, len(trace) - 6]].mean(0),
+                           atol=0.05)
+        assert missed.dip_deg is None and "off the surface" in missed.note
+    # A file written before the points were kept says what to do.
+    old = features[0].properties.copy()
+    del old["three_point_xyz"]
+    (m,) = measure_features([dataclasses.replace(features[0], properties=old)])
+    assert m.dip_deg is None and "re-run `project`" in m.note and m.n_points > 3

@@ -243,6 +243,21 @@ def _xyz(points: np.ndarray, shift: np.ndarray) -> list:
     return np.round(np.asarray(points, np.float64) + shift, _DECIMALS).tolist()
 
 
+def _positions_in_frame(props: dict[str, Any], shift: np.ndarray) -> None:
+    """Move the positions a feature's properties hold (``camera_position``,
+    a 3-point plane's ``three_point_xyz``) into the frame of its coordinates
+    (local + ``shift``, contract §5), in place."""
+    cam = props.get("camera_position")
+    if isinstance(cam, (list, tuple, np.ndarray)) and len(cam) == 3:
+        props["camera_position"] = _xyz(np.asarray(cam, np.float64).reshape(1, 3), shift)[0]
+    try:
+        three = np.asarray(props.get("three_point_xyz"), np.float64)
+    except (TypeError, ValueError):  # absent (None is NaN), or not a list of points
+        return
+    if three.shape == (3, 3):
+        props["three_point_xyz"] = _xyz(three, shift)
+
+
 def _jsonable(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
@@ -283,10 +298,7 @@ def features_to_geojson(
         props["length_m"] = round(f.length_m, 4)
         if f.surface_normal is not None:
             props["surface_normal"] = np.round(f.surface_normal, 6).tolist()
-        cam = props.get("camera_position")
-        if isinstance(cam, (list, tuple, np.ndarray)) and len(cam) == 3:
-            # In the frame of the coordinates (contract §5).
-            props["camera_position"] = _xyz(np.asarray(cam, np.float64).reshape(1, 3), shift)[0]
+        _positions_in_frame(props, shift)
         parts = [p for p in f.parts if len(p) >= 2]
         if f.kind == "facet":
             props["ring_complete"] = bool(f.ring_complete)
@@ -578,10 +590,7 @@ def _feature_row(f: Feature3D, shift: np.ndarray) -> dict[str, Any]:
     row["length_m"] = round(float(f.length_m), 4)
     if f.surface_normal is not None:
         row["surface_normal"] = np.round(f.surface_normal, 6).tolist()
-    cam = row.get("camera_position")
-    if isinstance(cam, (list, tuple, np.ndarray)) and len(cam) == 3:
-        # In the frame of the coordinates (contract §5), as in the GeoJSON.
-        row["camera_position"] = _xyz(np.asarray(cam, np.float64).reshape(1, 3), shift)[0]
+    _positions_in_frame(row, shift)  # as in the GeoJSON
     if f.kind == "facet":
         row["ring_complete"] = bool(f.ring_complete)
         if f.patch_faces is not None:

@@ -58,6 +58,7 @@ from .structural import (
     FitThresholds,
     Measurement,
     measure_facet,
+    measure_three_point,
     measure_traces,
 )
 from .uncertainty import (
@@ -288,6 +289,19 @@ class Feature3D:
         if self.kind == "facet":
             pts = self.patch_points if self.patch_points is not None and len(self.patch_points) else self.points
             m = measure_facet(pts, self.id, self.label, self.source, thresholds, model, uncertainty)
+        elif self.properties.get("measure") == "three_point":
+            # The plane through the surface points under the three clicks
+            # (``three_point_xyz``, in the frame of the coordinates), not the
+            # fit of the drawn polyline.
+            cam = self.properties.get("camera_position")
+            m = measure_three_point(self.properties.get("three_point_xyz"),
+                                    None if cam is None else np.asarray(cam, np.float64),
+                                    self.id, self.label, self.source)
+            if "three_point_xyz" not in self.properties:
+                m.note = ("no plane: the file has no three_point_xyz for this 3-point plane "
+                          "(written before they were kept: re-run `project`)")
+                if self.n_points:
+                    m.centroid, m.n_points = self.points.mean(axis=0), self.n_points
         else:
             m = measure_traces(
                 [self.parts], self.id, self.label, [self.source], self.surface_normal,
@@ -634,6 +648,27 @@ def _along_ray_rms(range_m: np.ndarray, cos_incidence: np.ndarray, focal_px: flo
 
 
 # -------------------------------------------------------------- projection
+def _three_point_xyz(scene: Scene, intrinsics: Intrinsics, pose: Pose,
+                     item: Interpretation, view: CloudView | None) -> list | None:
+    """The surface points under a 3-point plane's three clicks
+    (``properties.three_point_px``, else its three vertices), (3, 3) as
+    lists, metres, local frame; None when a click misses the surface."""
+    px = item.properties.get("three_point_px")
+    px = np.asarray(px if px is not None else item.pixels, np.float64)
+    if px.shape != (3, 2) or not np.isfinite(px).all():
+        return None
+    if getattr(scene, "is_cloud", False):
+        ch = cloud_hits(scene, view, px)
+        hit, points = ch.hit, ch.points
+    else:
+        origin, directions = pose.rays(intrinsics, px)
+        hits = scene.cast_rays(origin, directions)
+        hit, points = hits.hit, scene.surface_points(hits)
+    if not np.all(hit):
+        return None
+    return np.round(np.asarray(points, np.float64), 4).tolist()
+
+
 def project_interpretations(
     scene: Scene,
     intrinsics: Intrinsics,
@@ -712,6 +747,8 @@ def project_interpretations(
         user_id = props.pop("id", None)
         fid = str(user_id or f"{prefix}:{k + 1}")
         props["camera_position"] = [round(float(v), 4) for v in center]
+        if props.get("measure") == "three_point":
+            props["three_point_xyz"] = _three_point_xyz(scene, intrinsics, pose, item, view)
         on_pts = line.part >= 0
         if on_pts.any():
             hits = line.points[on_pts]

@@ -67,6 +67,8 @@ __all__ = [
     "pole_of_plane",
     "plane_from_three_points",
     "THREE_POINT_MIN_VIEW_ANGLE_DEG",
+    "THREE_POINT_NOTE",
+    "measure_three_point",
     "fisher_mean",
     "measure_trace",
     "measure_traces",
@@ -266,6 +268,53 @@ def plane_from_three_points(points: np.ndarray, camera_center: np.ndarray | None
             return (f"the camera lies {angle:.1f}° from the plane of the three points "
                     f"(< {THREE_POINT_MIN_VIEW_ANGLE_DEG:.0f}°): the viewing plane, not the rock's")
     return dip_dip_direction(n)
+
+
+#: The ``note`` of a 3-point plane's measurement.
+THREE_POINT_NOTE = "3-point plane (no uncertainty propagated)"
+
+
+def measure_three_point(
+    points: np.ndarray | None,
+    camera_center: np.ndarray | None = None,
+    id: str = "",
+    label: str = "",
+    source: str = "",
+) -> Measurement:
+    """Measure a *3-point plane*: the plane through the surface points under
+    three clicks (:func:`plane_from_three_points`).
+
+    Parameters
+    ----------
+    points : (3, 3) array or None
+        The three surface points, metres (x east, y north, z up); None, or a
+        non-finite point, when a click missed the surface.
+    camera_center : (3,) array, optional
+        The photo's camera centre, in the same frame: a plane within
+        :data:`THREE_POINT_MIN_VIEW_ANGLE_DEG` of it is refused.
+
+    Returns
+    -------
+    Measurement
+        Kind ``trace``, 3 points, dip and dip direction (no plunge/trend, no
+        σ: none is propagated for a 3-point plane), or empty angles and a
+        ``note`` saying why.
+    """
+    try:
+        p = None if points is None else np.asarray(points, np.float64)
+    except (TypeError, ValueError):  # a hand-edited file's ragged or non-numeric list
+        p = None
+    if p is None or p.shape != (3, 3) or not np.isfinite(p).all():
+        return Measurement(id, label, "trace", np.full(3, np.nan), 0, source=source,
+                           photo=source, note="no plane: a clicked point is off the surface")
+    m = Measurement(id, label, "trace", p.mean(axis=0), 3, source=source, photo=source)
+    plane = plane_from_three_points(p, camera_center)
+    if isinstance(plane, str):
+        m.note = "no plane: " + plane
+    else:
+        m.dip_deg, m.dip_direction_deg = plane
+        m.note = THREE_POINT_NOTE
+    return m
 
 
 def _wrap(angle: float) -> float:

@@ -296,8 +296,6 @@ class InterpretWidget(QWidget):
         self._recording = False  # this widget is recording its projection in the workspace
         #: Per workspace photo, what the running projection is made from (see :meth:`_jobs`).
         self._projected_from: dict[PhotoState, str] | None = None
-        #: Camera and pose of each photo of the running projection, by name.
-        self._projected_cameras: dict[str, tuple[Intrinsics, Pose]] = {}
         #: Photos and traces of the running projection.
         self._projected_counts = (0, 0)
         #: Says which projections are out of date once a run of pose edits pauses.
@@ -804,42 +802,6 @@ class InterpretWidget(QWidget):
         self.status_label.setStyleSheet("")
         return True
 
-    def _three_point_measurements(self, features: list[Feature3D],
-                                  measurements: list[Measurement]) -> None:
-        """Replace the measurement of each 3-point feature by the plane
-        through the surface points under its three clicks (in place)."""
-        scene = self.scene
-        cameras = {c[2]: (c[0], c[1]) for c in (camera_of_layer(lay)
-                                                for lay in self._photo_layers()) if c}
-        cameras.update(self._projected_cameras)  # the cameras projected from (shown or not)
-        by_id = {m.id: m for m in measurements}
-        for f in features:
-            if f.properties.get("measure") != "three_point" or f.id not in by_id:
-                continue
-            m, camera = by_id[f.id], cameras.get(f.source)
-            if camera is None or scene is None:
-                continue
-            intr, pose = camera
-            origin, dirs = pose.rays(intr, np.asarray(f.properties["three_point_px"], float))
-            hits = scene.cast_rays(origin, dirs)
-            m.plunge_deg = m.trend_deg = m.rms_m = m.planarity = m.collinearity = None
-            m.dip_deg = m.dip_direction_deg = None
-            for name in ("dip_sigma_deg", "dip_direction_sigma_deg", "plunge_sigma_deg",
-                         "trend_sigma_deg"):
-                if hasattr(m, name):
-                    setattr(m, name, None)  # not propagated for 3-point planes
-            if not np.all(hits.hit):
-                m.note = "no plane: a clicked point is off the surface"
-                continue
-            pts = origin + dirs * np.asarray(hits.distance)[:, None]
-            m.centroid, m.n_points = pts.mean(axis=0), 3
-            plane = plane_from_three_points(pts, pose.center)
-            if isinstance(plane, str):
-                m.note = "no plane: " + plane
-            else:
-                m.dip_deg, m.dip_direction_deg = plane
-                m.note = "3-point plane (no uncertainty propagated)"
-
     def _drawing_hint(self) -> str:
         """What the next clicks make: a 3-point plane wins over snapping."""
         if self.three_point_check.isChecked():
@@ -1161,7 +1123,6 @@ class InterpretWidget(QWidget):
         self.project_button.setEnabled(False)
         n = sum(len(j[2]) for j in jobs)
         self._projected_counts = (len(jobs), n)
-        self._projected_cameras = {j[3]: (j[0], j[1]) for j in jobs}
         self.status_label.setText(f"Projecting {n} trace(s) from {len(jobs)} photo(s)…")
         self.status_label.setStyleSheet("")
         # Errors come back as one line (bugs are logged with their traceback).
@@ -1192,7 +1153,6 @@ class InterpretWidget(QWidget):
         if result is None:  # cancelled
             return
         self.features, self.measurements = result
-        self._three_point_measurements(self.features, self.measurements)
         if self.workspace is not None:
             self._recording = True  # shown below, not again by the workspace's event
             try:
