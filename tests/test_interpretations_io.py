@@ -509,3 +509,37 @@ def test_the_drawings_note_and_units_reach_the_measurements(projected, tmp_path)
     assert (rows[0]["comment"], rows[0]["above"], rows[0]["below"]) == (
         "offset 2 m", "Unit B", "Unit A")
     assert rows[1]["comment"] == ""
+
+
+def test_measure_says_which_north_its_azimuths_are_from(tmp_path, projected, capsys):
+    """Azimuths are measured from the model's +Y, the grid north of a
+    georeferenced model's CRS; ``measure`` says how far that lies from true
+    north (the meridian convergence, PROJ's value at the features), and that
+    a model without a georeference has no known north."""
+    import pyproj
+
+    from napari_imgreg.interpret.files import azimuth_reference
+
+    *_, features = projected
+    centroid = np.concatenate([f.points for f in features if f.n_points]).mean(axis=0)
+    lon, lat = pyproj.Transformer.from_crs("EPSG:32630", "EPSG:4326", always_xy=True).transform(
+        *(centroid + GEOREF.origin)[:2])
+    gamma = pyproj.Proj("EPSG:32630").get_factors(lon, lat).meridian_convergence
+    assert 0.9 < gamma < 1.0  # east of zone 30's central meridian: grid north clockwise
+    for georeferenced in (False, True):
+        path = tmp_path / f"lines_{georeferenced}.geojson"
+        write_features_geojson(path, features, GEOREF, georeferenced=georeferenced)
+        assert run_cli(["measure", str(path), "--out", str(tmp_path / "m.csv"),
+                        "--samples", "20"]) == 0
+        out = capsys.readouterr().out
+        assert (f"from grid north of EPSG:32630, {gamma:.2f}° clockwise of true north here "
+                f"(true azimuth = grid azimuth + {gamma:.2f}°)") in out
+    write_features_geojson(tmp_path / "bare.geojson", features)
+    assert run_cli(["measure", str(tmp_path / "bare.geojson"), "--out", str(tmp_path / "m.csv"),
+                    "--samples", "20"]) == 0
+    assert "model frame's +Y axis (no georeference" in capsys.readouterr().out
+    # West of the central meridian, grid north lies anticlockwise of true north.
+    west = azimuth_reference({"frame": "local", "crs": "EPSG:32630", "origin": [300000.0,
+                                                                              5912000.0, 0.0]},
+                             np.zeros((1, 3)))
+    assert "anticlockwise of true north" in west and "grid azimuth − " in west

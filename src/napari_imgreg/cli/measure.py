@@ -112,7 +112,11 @@ def run(args: argparse.Namespace) -> int:
         vector_from_plunge_trend,
     )
     from ..interpret.project import measure_features
-    from ..interpret.files import read_features_geojson, write_measurements_csv
+    from ..interpret.files import (
+        azimuth_reference,
+        read_features_geojson,
+        write_measurements_csv,
+    )
 
     out = Path(args.out)
     if out.suffix.lower() != ".csv":
@@ -123,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
     if args.stereonet:
         check_writable(args.stereonet)
     import math
+
+    import numpy as np
 
     from ..interpret.uncertainty import UncertaintyParams
 
@@ -177,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"    {n}: {why}")
     if frame.get("frame") == "crs":
         print(f"  centroids in {frame.get('crs', 'the file CRS')}")
+    print("  " + azimuth_reference(frame, np.array([m.centroid for m in measurements])))
     if args.stereonet:
         save_stereonet(args.stereonet, measurements,
                        colors={m.label: m.color for m in measurements if m.color})

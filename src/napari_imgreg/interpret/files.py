@@ -67,6 +67,7 @@ __all__ = [
     "check_gis_outputs",
     "read_gis_layers",
     "local_crs_wkt",
+    "azimuth_reference",
     "GIS_LAYERS",
     "PATCH_POINTS_IN_FILE",
 ]
@@ -412,6 +413,60 @@ def read_features_geojson(path: str | os.PathLike) -> tuple[list[Feature3D], dic
             surface_normal=normal,
         ))
     return out, frame
+
+
+def azimuth_reference(frame: dict[str, Any], points: np.ndarray) -> str:
+    """Which north the azimuths measured in a 3D file are from, in words.
+
+    Trend and dip direction are measured clockwise from the frame's +Y axis:
+    the model's north, which in a georeferenced model is the **grid** north of
+    its CRS. That differs from true north by the meridian convergence
+    (:func:`~napari_imgreg.solar.meridian_convergence_deg`, about 1° in the
+    sample's UTM zone 30N, up to ~3° at a zone's edge): a geologist comparing
+    with compass readings (true north after declination) must add it.
+
+    Parameters
+    ----------
+    frame : dict
+        The file's ``napari_imgreg`` member (:func:`read_features_geojson`):
+        ``frame`` (``local``/``crs``), and ``crs``, ``origin`` when the model
+        is georeferenced.
+    points : (N, 3) array
+        Where the azimuths were measured (the centroids), in the file's frame;
+        NaN rows are ignored.
+
+    Returns
+    -------
+    str
+        E.g. ``"azimuths (trend, dip direction) from grid north of
+        EPSG:32630, 0.95° clockwise of true north here (true azimuth = grid
+        azimuth + 0.95°)"``; without a georeference, from the model's +Y axis.
+    """
+    from ..geo import Georef
+    from ..solar import meridian_convergence_deg
+
+    unknown = ("azimuths (trend, dip direction) from the model frame's +Y axis "
+               "(no georeference: its relation to true north is not known)")
+    try:
+        georef = Georef(str(frame["crs"]), np.asarray(frame["origin"], np.float64))
+    except Exception:  # no (or an unusable) georeference in the file
+        return unknown
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    where = pts.mean(axis=0) if len(pts) else np.zeros(3)
+    if frame.get("frame") == "crs":
+        where = where - georef.origin
+    try:
+        convergence = float(meridian_convergence_deg(georef, where))
+    except Exception:  # pyproj cannot place it (a CRS without a geodetic datum)
+        convergence = math.nan
+    if not math.isfinite(convergence):
+        return (f"azimuths (trend, dip direction) from grid north of {georef.crs} "
+                "(its angle to true north could not be computed)")
+    side = "clockwise" if convergence >= 0 else "anticlockwise"
+    return (f"azimuths (trend, dip direction) from grid north of {georef.crs}, "
+            f"{abs(convergence):.2f}° {side} of true north here (true azimuth = grid azimuth "
+            f"{'+' if convergence >= 0 else '−'} {abs(convergence):.2f}°)")
 
 
 # ----------------------------------------------------------------- other formats
