@@ -428,6 +428,9 @@ def test_gis_export_keeps_z_crs_and_every_attribute(tmp_path, projected, suffix)
         else:
             assert float(dip) == pytest.approx(m.dip_deg, abs=1e-9)
         assert data["id"][k] == m.id and (data["note"][k] or "") == m.note
+        # Empty text is null too, as the numbers: what a GIS's IS NULL finds.
+        for name in ("note", "comment", "above", "below"):
+            assert data[name][k] is None if getattr(m, name) == "" else data[name][k]
 
 
 def test_geopackage_in_local_frame_without_georef_and_camera_layer(tmp_path, projected):

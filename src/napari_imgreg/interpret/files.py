@@ -688,7 +688,10 @@ def _gis_layers(
     for m in measurements:
         c = np.asarray(m.centroid, np.float64)
         meas[0].append(_wkb_z("Point", c + shift) if np.isfinite(c).all() else None)
-        meas[1].append({fl.name: getattr(m, fl.name) for fl in fields(m) if fl.name not in skip})
+        # An empty cell of MEASUREMENTS.csv is a null, text as numbers (a GIS
+        # tells "no note" by IS NULL, not by an empty string).
+        meas[1].append({fl.name: None if getattr(m, fl.name) == "" else getattr(m, fl.name)
+                        for fl in fields(m) if fl.name not in skip})
     cams: dict[str, list] = {}
     for f in features:
         pos = f.properties.get("camera_position")
