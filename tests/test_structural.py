@@ -354,6 +354,27 @@ def test_stereonet_draws_cones_and_contours(tmp_path):
     assert len(ax.lines) >= 8 * 2 + 8
 
 
+def test_pole_cone_holds_the_dip_directions_error_too():
+    """The pole of a plane moves by σ_dip along its plunge and by
+    sin(dip) σ_ddir across it; the cone is twice their quadratic sum (it was
+    2 σ_dip alone: a steep fault's cone left out most of its azimuth error)."""
+    from napari_imgreg.interpret.structural import Measurement, pole_cone_deg
+
+    def plane(dip, s_dip, s_ddir):
+        return Measurement("a", "fault", "trace", np.zeros(3), 10, dip_deg=dip,
+                           dip_direction_deg=100.0, dip_sigma_deg=s_dip,
+                           dip_direction_sigma_deg=s_ddir)
+
+    assert pole_cone_deg(plane(65.0, 1.0, 2.0)) == pytest.approx(
+        2.0 * np.hypot(1.0, np.sin(np.radians(65.0)) * 2.0))  # 3.9°, not 2°
+    assert pole_cone_deg(plane(90.0, 3.0, 4.0)) == pytest.approx(10.0)
+    # A near-horizontal plane's wild azimuth hardly moves its (vertical) pole.
+    assert pole_cone_deg(plane(0.7, 1.4, 66.9)) == pytest.approx(
+        2.0 * np.hypot(1.4, np.sin(np.radians(0.7)) * 66.9))
+    assert pole_cone_deg(plane(30.0, 40.0, 40.0)) == 45.0  # capped
+    assert pole_cone_deg(plane(30.0, None, None)) is None
+
+
 def test_plane_from_three_points_known_answers():
     from napari_imgreg.interpret.structural import plane_from_three_points
 

@@ -65,6 +65,7 @@ __all__ = [
     "dip_dip_direction",
     "normal_from_dip",
     "pole_of_plane",
+    "pole_cone_deg",
     "plane_from_three_points",
     "THREE_POINT_MIN_VIEW_ANGLE_DEG",
     "THREE_POINT_NOTE",
@@ -1102,6 +1103,33 @@ def kamb_density(
     return x, y, out
 
 
+def pole_cone_deg(m: Measurement) -> float | None:
+    """Half-angle of a plane's pole confidence cone on the stereonet, degrees.
+
+    The pole moves by the dip's σ along its plunge and by ``sin(dip) ×`` the
+    dip direction's σ across it (its trend's σ scaled to an angle on the
+    sphere). The cone is twice their quadratic sum,
+    ``2 sqrt(σ_dip² + (sin(dip) σ_ddir)²)``: 95 % of a pole's scatter when
+    one component dominates, about 98 % when both are equal.
+
+    Returns
+    -------
+    float or None
+        None without a dip σ; capped at 45°.
+
+    Examples
+    --------
+    >>> m = Measurement("a", "bed", "facet", np.zeros(3), 3, dip_deg=90.0,
+    ...                 dip_sigma_deg=3.0, dip_direction_sigma_deg=4.0)
+    >>> pole_cone_deg(m)
+    10.0
+    """
+    if m.dip_deg is None or not m.dip_sigma_deg:
+        return None
+    across = math.sin(math.radians(m.dip_deg)) * (m.dip_direction_sigma_deg or 0.0)
+    return min(2.0 * math.hypot(m.dip_sigma_deg, across), 45.0)
+
+
 def _label_colors(labels: Iterable[str], colors: dict[str, str] | None) -> dict[str, str]:
     import matplotlib
 
@@ -1128,8 +1156,8 @@ def draw_stereonet(
     """Draw a lower-hemisphere equal-area stereonet of measurements.
 
     Poles (dots) and great circles of planes, each pole with its confidence
-    cone (a small circle of 2σ, from ``dip_sigma_deg``: the 95 % cone of the
-    pose, drawing and mesh errors), lineations of traces (triangles), per
+    cone (:func:`pole_cone_deg`: twice the pole's σ from the dip's and the dip
+    direction's, the cone of the pose, drawing and mesh errors), lineations of traces (triangles), per
     label the Fisher mean pole (star) with its α95 cone, and Kamb density
     contours of all poles (:func:`kamb_density`, multiples of uniform
     density, at 2, 4, 6, … when there are at least 5 poles).
@@ -1190,9 +1218,9 @@ def draw_stereonet(
             vec = np.array([vector_from_plunge_trend(p, t) for p, t in poles])
             if cones:
                 for m, v in zip(planes, vec):
-                    if m.dip_sigma_deg is not None and m.dip_sigma_deg > 0:
-                        # Dip σ is the pole's plunge σ; the cone is its 95 % (2σ).
-                        for px, py in _small_circle(v, min(2.0 * m.dip_sigma_deg, 45.0), 61):
+                    cone = pole_cone_deg(m)
+                    if cone:
+                        for px, py in _small_circle(v, cone, 61):
                             ax.plot(px, py, color=color, lw=0.5, alpha=0.7)
             fm = fisher_mean(vec)
             means[label] = fm
