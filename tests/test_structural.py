@@ -340,6 +340,18 @@ def test_kamb_density_peaks_on_a_cluster():
     assert np.nanmax(d) > 10 and np.nanmin(d) < 0.5
 
 
+def test_stereonet_is_written_in_the_format_its_suffix_names(tmp_path):
+    from napari_imgreg.errors import InputError
+
+    ms = [measure_facet(_plane_points(30.0, 90.0), id="a", label="bed")]
+    save_stereonet(tmp_path / "net.PDF", ms)
+    assert (tmp_path / "net.PDF").read_bytes().startswith(b"%PDF")
+    for name in ("net", "net.jpg"):  # matplotlib: ValueError, or a JPEG; refused
+        with pytest.raises(InputError, match=r"stereonet must be \.png, \.svg or \.pdf"):
+            save_stereonet(tmp_path / name, ms)
+        assert not (tmp_path / name).exists()
+
+
 def test_stereonet_draws_cones_and_contours(tmp_path):
     from napari_imgreg.interpret.uncertainty import ErrorModel
 

@@ -446,6 +446,14 @@ def test_errors_are_notified_and_saving_the_stereonet_says_so(
     widget.save_stereonet(tmp_path / "net.png")
     assert widget.status_label.text() == "Saved stereonet to net.png."
     assert (tmp_path / "net.png").stat().st_size > 1000
+    # A name without a picture suffix is one clear error, not matplotlib's
+    # ValueError (a traceback dialog) from the temporary file's random suffix.
+    for name in ("stereonet", "net.bmpx"):
+        widget._guarded(widget.save_stereonet, tmp_path / name)
+        assert seen[-1][0] == "error" and name in seen[-1][1] and ".png" in seen[-1][1]
+        assert not (tmp_path / name).exists()
+    widget.save_stereonet(tmp_path / "net.SVG")
+    assert (tmp_path / "net.SVG").read_text().lstrip().startswith("<?xml")
 
 
 def test_new_interpretation_layer_on_a_photo_that_has_one_keeps_its_lines(widget):

@@ -109,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         fisher_mean,
         pole_of_plane,
         save_stereonet,
+        stereonet_format,
         vector_from_plunge_trend,
     )
     from ..interpret.project import measure_features
@@ -121,8 +122,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() != ".csv":
         raise input_error(out, "output must be a .csv file")
-    if args.stereonet and Path(args.stereonet).suffix.lower() not in (".png", ".svg", ".pdf"):
-        raise input_error(args.stereonet, "stereonet must be .png, .svg or .pdf")
+    if args.stereonet:
+        stereonet_format(args.stereonet)
     check_writable(out)
     if args.stereonet:
         check_writable(args.stereonet)

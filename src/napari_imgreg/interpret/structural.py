@@ -79,6 +79,8 @@ __all__ = [
     "kamb_density",
     "draw_stereonet",
     "save_stereonet",
+    "stereonet_format",
+    "STEREONET_SUFFIXES",
 ]
 
 
@@ -1247,6 +1249,31 @@ def draw_stereonet(
     return means
 
 
+#: The picture formats a stereonet is written in (by the file's suffix).
+STEREONET_SUFFIXES = (".png", ".svg", ".pdf")
+
+
+def stereonet_format(path) -> str:
+    """The format (``png``, ``svg`` or ``pdf``) a stereonet at ``path`` is
+    written in, from its suffix.
+
+    Raises
+    ------
+    InputError
+        Any other suffix, or none: one line naming the file (matplotlib would
+        raise a ValueError, or write a PNG under another name).
+    """
+    from pathlib import Path
+
+    from ..errors import input_error
+
+    suffix = Path(path).suffix.lower()
+    if suffix not in STEREONET_SUFFIXES:
+        raise input_error(path, "stereonet must be .png, .svg or .pdf (the suffix names the "
+                          f"format), not {suffix or 'a name without a suffix'}")
+    return suffix[1:]
+
+
 def save_stereonet(
     path,
     measurements: Sequence[Measurement],
@@ -1258,16 +1285,18 @@ def save_stereonet(
     Parameters
     ----------
     path : path-like
-        ``.png`` (or any format matplotlib writes by extension).
+        ``.png``, ``.svg`` or ``.pdf`` (:func:`stereonet_format`).
     """
     from matplotlib.figure import Figure
 
     from .._atomic import atomic_path
+
+    fmt = stereonet_format(path)
 
     n_labels = len({m.label for m in measurements})
     fig = Figure(figsize=(6, 6.3 + 0.3 * n_labels))
     ax = fig.add_axes([0.02, 0.02, 0.96, 0.92])
     draw_stereonet(ax, measurements, colors, title=title)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
+        fig.savefig(tmp, dpi=120, format=fmt)
     return fig

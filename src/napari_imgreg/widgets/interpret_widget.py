@@ -76,6 +76,7 @@ from ..interpret.structural import (  # the three-point plane moved there (issue
     Measurement,
     draw_stereonet,
     plane_from_three_points,
+    stereonet_format,
 )
 from ..io.photos import load_photo
 from ..io.records import read_json
@@ -1338,9 +1339,11 @@ class InterpretWidget(QWidget):
                                   + (f" ({georef.crs})." if in_crs else " (local frame)."))
 
     def save_stereonet(self, path: str | Path) -> None:
-        """Write the stereonet as PNG, SVG or PDF (by the suffix)."""
+        """Write the stereonet as PNG, SVG or PDF (by the suffix; another is
+        refused, :func:`~napari_imgreg.interpret.structural.stereonet_format`)."""
+        fmt = stereonet_format(path)
         with atomic_path(path) as tmp:
-            self.figure.savefig(tmp, dpi=120)
+            self.figure.savefig(tmp, dpi=120, format=fmt)
         self.status_label.setText(f"Saved stereonet to {Path(path).name}.")
         self.status_label.setStyleSheet("")
 
@@ -1382,8 +1385,10 @@ class InterpretWidget(QWidget):
             self._guarded(self.save_measurements, path)
 
     def _save_stereonet_dialog(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Save stereonet", "stereonet.png",
-                                              "PNG (*.png);;SVG (*.svg);;PDF (*.pdf)")
+        path, chosen = QFileDialog.getSaveFileName(self, "Save stereonet", "stereonet.png",
+                                                   "PNG (*.png);;SVG (*.svg);;PDF (*.pdf)")
+        if path and not Path(path).suffix:  # a name typed without one: the filter's
+            path += "." + (chosen.split("*.")[-1].rstrip(")") if "*." in chosen else "png")
         if path:
             self._guarded(self.save_stereonet, path)
 
