@@ -328,6 +328,26 @@ def test_facet_gets_sigmas_and_csv_has_the_columns(tmp_path):
     assert rows[1]["plunge_sigma_deg"] == "" and rows[1]["dip_sigma_deg"] == ""
 
 
+@pytest.mark.parametrize("dip", [60.0, 88.0, 89.7])
+def test_steep_plane_sigmas_do_not_jump_across_the_vertical(dip):
+    """A steep fault's Monte Carlo planes that tip past the vertical deviate
+    by a little dip, not by 180° of dip direction: the σ of a plane dipping
+    60° and of one dipping 88–89.7° are alike (at 89.7° the dip direction σ
+    was 83°: every tipped sample counted as 180° off, and the dip σ too
+    small; with 2° of scatter, already at 88°)."""
+    from napari_imgreg.interpret.uncertainty import ErrorModel
+
+    model = ErrorModel(camera_position=np.array([-80.0, 0.0, 0.0]), relative_m=0.05,
+                       mesh_m=0.02, rotation_deg=0.5, position_m=0.02)
+    f = measure_facet(_plane_points(dip, 100.0, size=4.0, noise=0.05, seed=3), id="f",
+                      label="fault", error_model=model)
+    assert f.has_plane and f.dip_deg == pytest.approx(dip, abs=0.5)
+    assert 0.1 < f.dip_sigma_deg < 1.5
+    # Across the pole: sin(dip) σ_ddir is about σ_dip for an even scatter.
+    across = np.sin(np.radians(f.dip_deg)) * f.dip_direction_sigma_deg
+    assert across == pytest.approx(f.dip_sigma_deg, rel=0.5)
+
+
 def test_kamb_density_peaks_on_a_cluster():
     from napari_imgreg.interpret.structural import kamb_density
 

@@ -649,13 +649,23 @@ def _line_samples(direction: np.ndarray, samples: Sequence[np.ndarray]) -> np.nd
     return out
 
 
-def _plane_samples(samples: Sequence[np.ndarray]) -> np.ndarray:
-    """(K, 2) dip/dip direction of the planes fitted to sampled point sets."""
+def _plane_samples(samples: Sequence[np.ndarray], normal: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """(K, 2) dip/dip direction of the planes fitted to sampled point sets.
+
+    With ``normal`` (the reported plane's upward normal) each sample's normal
+    is turned to agree with it, not upward: a sample of a steep plane that
+    tips past the vertical then reads as a dip above 90° toward the same
+    direction (its true deviation), not as a dip below 90° toward the
+    opposite direction (a 180° jump of the dip direction, and too small a dip
+    change).
+    """
     if not len(samples) or len(samples[0]) < 3:
         return np.full((len(samples), 2), np.nan)
     eig, axes = _sample_axes(samples)
     n = axes[:, 2]
-    n = n * np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
+    reference = np.array([0.0, 0.0, 1.0]) if normal is None else np.asarray(normal, np.float64)
+    n = n * np.where(n @ reference < 0, -1.0, 1.0)[:, None]
     out = np.stack([np.degrees(np.arctan2(np.hypot(n[:, 0], n[:, 1]), n[:, 2])),
                     np.degrees(np.arctan2(n[:, 0], n[:, 1])) % 360.0], axis=1)
     out[eig[:, 1] <= 1e-18 * np.maximum(eig[:, 0], 1e-300)] = np.nan
@@ -677,7 +687,8 @@ def _trace_sigmas(m: Measurement, line: LineFit, samples: list[np.ndarray]) -> N
 def _plane_sigmas(m: Measurement, samples: list[np.ndarray]) -> None:
     from .uncertainty import angle_sigmas
 
-    sd, sa = angle_sigmas((m.dip_deg, m.dip_direction_deg), _plane_samples(samples))
+    sd, sa = angle_sigmas((m.dip_deg, m.dip_direction_deg),
+                          _plane_samples(samples, normal_from_dip(m.dip_deg, m.dip_direction_deg)))
     if math.isfinite(sd):
         m.dip_sigma_deg = sd
         m.dip_direction_sigma_deg = sa if m.dip_deg > 0.01 else None
