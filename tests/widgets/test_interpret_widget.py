@@ -141,6 +141,10 @@ def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path):
     plunge_cell = widget.table.item(0, 5).text()
     assert " ± " in plunge_cell and float(plunge_cell.split(" ± ")[0]) == pytest.approx(
         m.plunge_deg, abs=0.05)
+    # The azimuth columns say which north they are from (the sample: UTM 30N).
+    for col in (4, 6):
+        tip = widget.table.horizontalHeaderItem(col).toolTip()
+        assert "grid north of EPSG:32630" in tip and "true azimuth = grid azimuth + 0.9" in tip
     assert widget.figure.axes and widget.figure.axes[0].lines
 
     # Save / load pixel GeoJSON and exports.

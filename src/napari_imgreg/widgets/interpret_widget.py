@@ -62,6 +62,7 @@ from .._atomic import atomic_path
 from ..camera import Intrinsics, Pose
 from ..errors import InputError
 from ..interpret.files import (
+    azimuth_reference,
     export_features,
     measurements_in_frame,
     read_interpretations,
@@ -1285,6 +1286,15 @@ class InterpretWidget(QWidget):
             return fmt(v) + ("" if v is None or sigma is None else f" ± {sigma:.1f}")
 
         why = _TABLE_COLUMNS.index("why no plane")
+        # Which north the azimuths are from (grid north of the model's CRS).
+        georef = getattr(self.scene, "georef", None)
+        frame = ({"frame": "local", "crs": georef.crs, "origin": georef.origin.tolist()}
+                 if georef is not None else {"frame": "local"})
+        north = azimuth_reference(frame, np.array([m.centroid for m in measurements])
+                                  .reshape(-1, 3))
+        for col in ("dip dir.", "trend"):
+            self.table.horizontalHeaderItem(_TABLE_COLUMNS.index(col)).setToolTip(
+                north[0].upper() + north[1:])
         self.table.setRowCount(len(measurements))
         for row, m in enumerate(measurements):
             note = " · ".join(t for t in (m.comment, m.above and f"above: {m.above}",
