@@ -674,6 +674,17 @@ def test_three_point_plane_is_measured_by_the_backend_in_every_frame(tmp_path):
         assert np.allclose(m.centroid - shift, trace[[5, len(trace) // 2, len(trace) - 6]].mean(0),
                            atol=0.05)
         assert missed.dip_deg is None and "off the surface" in missed.note
+    # GIS layers: the points in the layer's frame, under a readable shapefile name.
+    import json
+
+    from napari_imgreg.interpret.files import read_gis_layers, write_features_gis
+
+    for name, column in (("l.gpkg", "three_point_xyz"), ("l.shp", "tp_xyz")):
+        write_features_gis(tmp_path / name, features, georef)
+        _, data, _ = read_gis_layers(tmp_path / name)["traces"]
+        np.testing.assert_allclose(json.loads(data[column][0]),
+                                   np.asarray(features[0].properties["three_point_xyz"])
+                                   + georef.origin, atol=1e-4)
     # A file written before the points were kept says what to do.
     old = features[0].properties.copy()
     del old["three_point_xyz"]

@@ -581,6 +581,7 @@ _SHP_NAMES = {
     "trend_deg": "trend", "dip_deg": "dip", "collinearity": "collinear", "planarity": "planarity",
     "n_points": "n_points", "ring_complete": "ring_ok", "surface_normal": "surf_norm",
     "camera_position": "cam_pos", "patch_n_faces": "patch_nf", "n_features": "n_feats",
+    "three_point_px": "tp_px", "three_point_xyz": "tp_xyz",
 }
 
 
