@@ -546,3 +546,30 @@ def test_measure_says_which_north_its_azimuths_are_from(tmp_path, projected, cap
                                                                               5912000.0, 0.0]},
                              np.zeros((1, 3)))
     assert "anticlockwise of true north" in west and "grid azimuth − " in west
+
+
+@pytest.mark.parametrize("props, expect", [
+    ({"surface_normal": "up"}, "properties.surface_normal must be [x, y, z]"),
+    ({"surface_normal": [0, 1]}, "properties.surface_normal must be [x, y, z]"),
+    # A 3-point plane with a camera or points that are not numbers: no plane, said so.
+    ({"camera_position": "x", "measure": "three_point",
+      "three_point_xyz": [[0, 0, "q"], [1], [2]]}, None),
+])
+def test_measure_hand_edited_properties_are_one_line_or_no_plane(tmp_path, capsys, props,
+                                                                expect):
+    """A hand-edited 3D file's odd property is one error line naming the file
+    and feature (exit 2), or measured without a plane; never a traceback."""
+    path = tmp_path / "l3d.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "id": "a", "properties": {"label": "x", "source": "p.jpg", **props},
+         "geometry": {"type": "LineString",
+                      "coordinates": [[0, 0, 10], [1, 0, 10], [1, 1, 9], [0, 1, 9], [0, 2, 8]]}}]}))
+    code = run_cli(["measure", str(path), "--out", str(tmp_path / "m.csv"), "--samples", "20"])
+    err = capsys.readouterr().err.strip()
+    if expect:
+        assert code == 2 and f"l3d.geojson: feature 1: {expect}" in err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "m.csv").exists()
+    else:
+        assert code == 0 and not err
+        (row,) = csv.DictReader((tmp_path / "m.csv").open())
+        assert row["dip_deg"] == "" and row["note"].startswith("no plane")

@@ -404,7 +404,15 @@ def read_features_geojson(path: str | os.PathLike) -> tuple[list[Feature3D], dic
         patch = props.pop("patch_points", None)
         patch_pts = _coords(patch, 3, path, f"{where} patch_points") if patch else None
         normal = props.get("surface_normal")
-        normal = np.asarray(normal, np.float64) if normal is not None else None
+        if normal is not None:
+            try:
+                normal = np.asarray(normal, np.float64).reshape(3)
+            except (TypeError, ValueError):
+                normal = None
+            if normal is None or isinstance(props["surface_normal"], str) \
+                    or not np.isfinite(normal).all():
+                raise input_error(path, f"{where}: properties.surface_normal must be "
+                                        "[x, y, z], three finite numbers")
         fid = str(feat.get("id", props.get("id", f"f{k + 1}")))
         props.setdefault("label", "unlabelled")
         out.append(Feature3D(

@@ -293,9 +293,8 @@ class Feature3D:
             # The plane through the surface points under the three clicks
             # (``three_point_xyz``, in the frame of the coordinates), not the
             # fit of the drawn polyline.
-            cam = self.properties.get("camera_position")
             m = measure_three_point(self.properties.get("three_point_xyz"),
-                                    None if cam is None else np.asarray(cam, np.float64),
+                                    None if model is None else model.camera_position,
                                     self.id, self.label, self.source)
             if "three_point_xyz" not in self.properties:
                 m.note = ("no plane: the file has no three_point_xyz for this 3-point plane "
