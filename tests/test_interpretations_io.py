@@ -554,6 +554,9 @@ def test_measure_says_which_north_its_azimuths_are_from(tmp_path, projected, cap
     # A 3-point plane with a camera or points that are not numbers: no plane, said so.
     ({"camera_position": "x", "measure": "three_point",
       "three_point_xyz": [[0, 0, "q"], [1], [2]]}, None),
+    # Not a colour: the label's own on the stereonet (was matplotlib's ValueError).
+    ({"color": 5}, None),
+    ({"color": "notacolour"}, None),
 ])
 def test_measure_hand_edited_properties_are_one_line_or_no_plane(tmp_path, capsys, props,
                                                                 expect):
@@ -564,12 +567,13 @@ def test_measure_hand_edited_properties_are_one_line_or_no_plane(tmp_path, capsy
         {"type": "Feature", "id": "a", "properties": {"label": "x", "source": "p.jpg", **props},
          "geometry": {"type": "LineString",
                       "coordinates": [[0, 0, 10], [1, 0, 10], [1, 1, 9], [0, 1, 9], [0, 2, 8]]}}]}))
-    code = run_cli(["measure", str(path), "--out", str(tmp_path / "m.csv"), "--samples", "20"])
+    code = run_cli(["measure", str(path), "--out", str(tmp_path / "m.csv"), "--samples", "20",
+                    "--stereonet", str(tmp_path / "net.png")])
     err = capsys.readouterr().err.strip()
     if expect:
         assert code == 2 and f"l3d.geojson: feature 1: {expect}" in err
         assert len(err.splitlines()) == 1 and not (tmp_path / "m.csv").exists()
     else:
-        assert code == 0 and not err
+        assert code == 0 and not err and (tmp_path / "net.png").stat().st_size > 1000
         (row,) = csv.DictReader((tmp_path / "m.csv").open())
         assert row["dip_deg"] == "" and row["note"].startswith("no plane")

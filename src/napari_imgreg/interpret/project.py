@@ -105,9 +105,14 @@ _EXTRA_COLORS = ("#1f78b4", "#33a02c", "#ff7f00", "#6a3d9a", "#b15928", "#a6cee3
 
 
 def label_color(label: str, color: str | None = None) -> str:
-    """The colour of a label: the feature's own, the standard one, or a stable pick."""
+    """The colour of a label: the feature's own (when matplotlib reads it as a
+    colour: a hand-edited file's ``"color": 5`` is not), the standard one, or
+    a stable pick."""
     if color:
-        return color
+        from matplotlib.colors import is_color_like
+
+        if isinstance(color, str) and is_color_like(color):
+            return color
     if label in LABEL_COLORS:
         return LABEL_COLORS[label]
     # Stable across runs (str hash is salted per process).
@@ -284,7 +289,8 @@ class Feature3D:
         uncertainty: UncertaintyParams = DEFAULT_UNCERTAINTY,
     ) -> Measurement:
         """The feature's contract §6 measurement (see :mod:`napari_imgreg.interpret.structural`)."""
-        color = self.properties.get("color")
+        color = label_color(self.label, self.properties["color"]) \
+            if self.properties.get("color") else None
         model = self.error_model
         if self.kind == "facet":
             pts = self.patch_points if self.patch_points is not None and len(self.patch_points) else self.points
