@@ -673,7 +673,16 @@ def test_three_point_plane_is_measured_by_the_backend_in_every_frame(tmp_path):
         shift = georef.origin if georeferenced else np.zeros(3)
         assert np.allclose(m.centroid - shift, trace[[5, len(trace) // 2, len(trace) - 6]].mean(0),
                            atol=0.05)
-        assert missed.dip_deg is None and "off the surface" in missed.note
+        assert missed.dip_deg is None and "not three clicked points on the surface" in missed.note
+    # Hand-edited clicks that are not three pixels: the drawn vertices are the
+    # clicks; a line of four vertices has none (no traceback either way).
+    odd = [Interpretation("LineString", clicks, {"label": "bed", "measure": "three_point",
+                                                 "three_point_px": "abc"}),
+           Interpretation("LineString", np.vstack([clicks, clicks[:1] + 5.0]),
+                          {"label": "bed", "measure": "three_point", "three_point_px": [[1, 2]]})]
+    by_vertices, four = measure_features(project_interpretations(scene, intr, pose, odd))
+    assert by_vertices.dip_deg == pytest.approx(35.0, abs=0.1)
+    assert four.dip_deg is None and "not three clicked points" in four.note
     # GIS layers: the points in the layer's frame, under a readable shapefile name.
     import json
 

@@ -657,10 +657,17 @@ def _three_point_xyz(scene: Scene, intrinsics: Intrinsics, pose: Pose,
                      item: Interpretation, view: CloudView | None) -> list | None:
     """The surface points under a 3-point plane's three clicks
     (``properties.three_point_px``, else its three vertices), (3, 3) as
-    lists, metres, local frame; None when a click misses the surface."""
-    px = item.properties.get("three_point_px")
-    px = np.asarray(px if px is not None else item.pixels, np.float64)
-    if px.shape != (3, 2) or not np.isfinite(px).all():
+    lists, metres, local frame; None when a click misses the surface (or
+    there are not three clicks)."""
+    px = None
+    for candidate in (item.properties.get("three_point_px"), item.pixels):
+        try:  # a hand-edited file's clicks may be anything
+            px = np.asarray(candidate, np.float64)
+        except (TypeError, ValueError):
+            continue
+        if px.shape == (3, 2) and np.isfinite(px).all():
+            break
+    else:
         return None
     if getattr(scene, "is_cloud", False):
         ch = cloud_hits(scene, view, px)

@@ -309,7 +309,7 @@ def measure_three_point(
         p = None
     if p is None or p.shape != (3, 3) or not np.isfinite(p).all():
         return Measurement(id, label, "trace", np.full(3, np.nan), 0, source=source,
-                           photo=source, note="no plane: a clicked point is off the surface")
+                           photo=source, note="no plane: not three clicked points on the surface")
     m = Measurement(id, label, "trace", p.mean(axis=0), 3, source=source, photo=source)
     plane = plane_from_three_points(p, camera_center)
     if isinstance(plane, str):
