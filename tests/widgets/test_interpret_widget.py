@@ -496,3 +496,17 @@ def test_the_interpret_tab_fits_a_narrow_dock(widget):
     out = Path("/tmp/gui_fix")
     out.mkdir(exist_ok=True)
     widget.grab().save(str(out / "test_interpret_360.png"))
+
+
+def test_a_name_typed_without_a_suffix_takes_the_chosen_filters():
+    """Qt's own save dialog adds no suffix: "outcrop" saved under *GeoPackage*
+    was refused as an unknown format, "net" under *SVG* raised."""
+    from napari_imgreg.widgets.interpret_widget import _EXPORT_FILTER, with_filter_suffix
+
+    gpkg = _EXPORT_FILTER.split(";;")[1]
+    assert with_filter_suffix("/d/outcrop", gpkg) == "/d/outcrop.gpkg"
+    assert with_filter_suffix("/d/net", "SVG (*.svg)") == "/d/net.svg"
+    assert with_filter_suffix("/d/a.b/lines", "GeoJSON (*.geojson *.json)") == "/d/a.b/lines.geojson"
+    assert with_filter_suffix("/d/outcrop.shp", gpkg) == "/d/outcrop.shp"  # the name's wins
+    assert with_filter_suffix("", gpkg) == ""  # cancelled
+    assert with_filter_suffix("/d/x", "All files (*)") == "/d/x"

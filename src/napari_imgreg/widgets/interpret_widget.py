@@ -1377,30 +1377,42 @@ class InterpretWidget(QWidget):
             self._guarded(self.load_geojson, path)
 
     def _save_dialog(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Save interpretations", "lines.geojson",
-                                              _GEOJSON_FILTER)
+        path, chosen = QFileDialog.getSaveFileName(self, "Save interpretations", "lines.geojson",
+                                                   _GEOJSON_FILTER)
+        path = with_filter_suffix(path, chosen)
         if path:
             self._guarded(self.save_geojson, path)
 
     def _export_dialog(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Export 3D interpretations",
-                                              "LINES3D.geojson", _EXPORT_FILTER)
+        path, chosen = QFileDialog.getSaveFileName(self, "Export 3D interpretations",
+                                                   "LINES3D.geojson", _EXPORT_FILTER)
+        path = with_filter_suffix(path, chosen)
         if path:
             self._guarded(self.export, path)
 
     def _save_csv_dialog(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Save measurements", "MEASUREMENTS.csv",
-                                              "CSV (*.csv)")
+        path, chosen = QFileDialog.getSaveFileName(self, "Save measurements", "MEASUREMENTS.csv",
+                                                   "CSV (*.csv)")
+        path = with_filter_suffix(path, chosen)
         if path:
             self._guarded(self.save_measurements, path)
 
     def _save_stereonet_dialog(self) -> None:
         path, chosen = QFileDialog.getSaveFileName(self, "Save stereonet", "stereonet.png",
                                                    "PNG (*.png);;SVG (*.svg);;PDF (*.pdf)")
-        if path and not Path(path).suffix:  # a name typed without one: the filter's
-            path += "." + (chosen.split("*.")[-1].rstrip(")") if "*." in chosen else "png")
+        path = with_filter_suffix(path, chosen)
         if path:
             self._guarded(self.save_stereonet, path)
+
+
+def with_filter_suffix(path: str, chosen_filter: str) -> str:
+    """``path`` as a save dialog returned it, with the chosen filter's first
+    suffix added when the name was typed without one (Qt's own dialog does
+    not add it): ``("net", "SVG (*.svg)") -> "net.svg"``. The suffix names the
+    format the file is written in."""
+    if not path or Path(path).suffix or "*." not in chosen_filter:
+        return path
+    return path + "." + chosen_filter.split("*.", 1)[1].split()[0].rstrip(")")
 
 
 def _notify(message: str, severity: str) -> None:
