@@ -569,11 +569,14 @@ def test_measure_hand_edited_properties_are_one_line_or_no_plane(tmp_path, capsy
                       "coordinates": [[0, 0, 10], [1, 0, 10], [1, 1, 9], [0, 1, 9], [0, 2, 8]]}}]}))
     code = run_cli(["measure", str(path), "--out", str(tmp_path / "m.csv"), "--samples", "20",
                     "--stereonet", str(tmp_path / "net.png")])
-    err = capsys.readouterr().err.strip()
+    out, err = capsys.readouterr()
+    err = err.strip()
     if expect:
         assert code == 2 and f"l3d.geojson: feature 1: {expect}" in err
         assert len(err.splitlines()) == 1 and not (tmp_path / "m.csv").exists()
     else:
         assert code == 0 and not err and (tmp_path / "net.png").stat().st_size > 1000
+        if props.get("measure") == "three_point":  # the summary counts why
+            assert "1: 3-point plane: not three clicked points on the surface" in out
         (row,) = csv.DictReader((tmp_path / "m.csv").open())
         assert row["dip_deg"] == "" and row["note"].startswith("no plane")

@@ -31,6 +31,10 @@ _REJECTIONS = (
     ("viewing rays", "plane contains the viewing rays"),
     ("pin the plane down", "dip σ above --max-dip-sigma (plane too close to the viewing plane)"),
     ("camera position unknown", "no camera position in the file (re-run `project`)"),
+    ("on one line", "points on one line"),
+    ("plane of the three points", "3-point plane: the camera lies in it (the viewing plane)"),
+    ("three clicked points", "3-point plane: not three clicked points on the surface"),
+    ("no three_point_xyz", "3-point plane without its surface points (re-run `project`)"),
 )
 
 
