@@ -579,16 +579,24 @@ def test_cloud_trace_on_relief_recovers_the_plane():
     intr, pose = camera(width=800, height=600, f=700.0)
     (trace,) = [t for t in true_trace(X, 35.0, 60.0) if len(t) > 20]
     drawn = Interpretation("LineString", _draw(intr, pose, trace), {"label": "sandstone"})
-    (f,) = project_interpretations(scene, intr, pose, [drawn], source="IMG_1.jpg",
-                                   pose_uncertainty=PoseUncertainty(0.1, 0.01, 0.005),
-                                   uncertainty=UncertaintyParams(drawing_px=0.2))
+    # The same plane from three clicks on it (a 3-point plane, read from the render).
+    ends = trace[[3, -4]]
+    chord = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    off_chord = np.linalg.norm(np.cross(trace - ends[0], chord), axis=1)
+    clicks = _draw(intr, pose, trace[[3, int(np.argmax(off_chord)), len(trace) - 4]])
+    three = Interpretation("LineString", clicks, {"label": "sandstone", "measure": "three_point"})
+    f, f3 = project_interpretations(scene, intr, pose, [drawn, three], source="IMG_1.jpg",
+                                    pose_uncertainty=PoseUncertainty(0.1, 0.01, 0.005),
+                                    uncertainty=UncertaintyParams(drawing_px=0.2))
     assert len(f.parts) == 1 and f.missed <= 2
     assert np.percentile(_distance_to_polyline(f.points, trace), 95) < 0.1
-    (m,) = measure_features([f])
+    m, m3 = measure_features([f, f3])
     assert m.has_plane, m.note
     assert m.dip_deg == pytest.approx(35.0, abs=1.0)
     assert abs((m.dip_direction_deg - 60.0 + 180) % 360 - 180) < 1.5
     assert abs(m.dip_deg - 35.0) <= 3 * m.dip_sigma_deg + 0.2
+    assert m3.dip_deg == pytest.approx(35.0, abs=1.0), m3.note
+    assert abs((m3.dip_direction_deg - 60.0 + 180) % 360 - 180) < 2.0
 
 
 def test_cloud_projection_params_are_checked():
@@ -657,6 +665,8 @@ def test_three_point_plane_is_measured_by_the_backend_in_every_frame(tmp_path):
                                                   "three_point_px": clicks.tolist()})
     off = Interpretation("LineString", np.array([[600.0, 5.0], *clicks[1:]]),  # sky
                          {"label": "bed", "measure": "three_point"})
+    # Clicks off the photo (a hand-edited file): the drawn vertices, in the sky here.
+    off.properties["three_point_px"] = [[1e9, 0.0], [0.0, 0.0], [1.0, 1.0]]
     features = project_interpretations(scene, intr, pose, [drawn, off], source="IMG_1.jpg")
     assert np.shape(features[0].properties["three_point_xyz"]) == (3, 3)
     assert features[1].properties["three_point_xyz"] is None

@@ -665,8 +665,9 @@ def _three_point_xyz(scene: Scene, intrinsics: Intrinsics, pose: Pose,
             px = np.asarray(candidate, np.float64)
         except (TypeError, ValueError):
             continue
-        if px.shape == (3, 2) and np.isfinite(px).all():
-            break
+        if px.shape == (3, 2) and np.isfinite(px).all() and np.all(
+                (px >= -0.5) & (px <= np.array([intrinsics.width, intrinsics.height]) - 0.5)):
+            break  # three clicks on the photo
     else:
         return None
     if getattr(scene, "is_cloud", False):
