@@ -84,7 +84,7 @@ def test_registered_photo_and_label_classes(widget):
     assert to_hex(shapes.current_edge_color) == "#e31a1c"  # fault red
 
 
-def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path):
+def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path, monkeypatch):
     folder, scene, truth = sample
     px, xyz = _true_bed_on_photo(sample)
     shapes = widget.new_interpretation_layer()
@@ -163,6 +163,13 @@ def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path):
     widget.save_stereonet(tmp_path / "net.png")
     assert (tmp_path / "m.csv").read_text().startswith("id,label,kind,x,y,z")
     assert (tmp_path / "net.png").stat().st_size > 5000
+    # georeferenced ticked on a model without a georeference: the dock's words
+    # (not the command line's "--georeferenced needs ... --georef").
+    monkeypatch.setattr(widget.scene, "georef", None)
+    widget._guarded(widget.export, tmp_path / "plain.geojson", True)
+    assert "the model has no georeference" in widget.status_label.text()
+    assert "untick 'georeferenced'" in widget.status_label.text()
+    assert "--" not in widget.status_label.text() and not (tmp_path / "plain.geojson").exists()
 
 
 def test_project_without_registration_says_why(widget, qtbot):

@@ -1332,6 +1332,11 @@ class InterpretWidget(QWidget):
         scene = self.scene
         georef = getattr(scene, "georef", None)
         geo = self.georef_check.isChecked() if georeferenced is None else georeferenced
+        if geo and georef is None and Path(path).suffix.lower() not in (".gpkg", ".shp"):
+            # (the backend's wording names the command line's --georeferenced)
+            raise InputError(f"{Path(path).name}: the model has no georeference (georef.json "
+                             "beside the mesh): untick 'georeferenced' to export in the model's "
+                             "frame")
         notes = export_features(path, self.features, georef, geo,
                                 measurements=self.measurements)
         self.status_label.setText(f"Exported {len(self.features)} feature(s) to {Path(path).name}."
