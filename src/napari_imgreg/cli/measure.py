@@ -50,9 +50,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "one) and its Monte Carlo dip σ is small, besides CloudCompare Compass's vetting "
         "(planarity, surface effect) and a relief test; rejected ones leave the cells empty "
         "and say why in 'note'. Every angle gets a σ column (pose uncertainty, drawing "
-        "noise, mesh resolution). Traces of one contact (same drawn id) on several photos "
-        "also get one combined row. Writes MEASUREMENTS.csv (docs/formats.md §8) and "
-        "optionally a stereonet with confidence cones and Kamb contours.",
+        "noise, mesh resolution). Traces of one contact (the same properties.contact and "
+        "label) on several photos also get one combined row; a 3-point plane is the plane "
+        "through its three surface points. Azimuths are from the model's +Y: the grid north "
+        "of its CRS (the summary gives the angle to true north). Writes MEASUREMENTS.csv "
+        "(docs/formats.md §8) and optionally a stereonet with confidence cones and Kamb "
+        "contours.",
     )
     p.add_argument("lines3d", metavar="LINES3D.geojson", help="output of `project`")
     p.add_argument("--out", required=True, metavar="MEASUREMENTS.csv")
