@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from interp_scenes import camera, combine, true_trace, wall_scene
@@ -577,16 +579,24 @@ def test_cloud_trace_on_relief_recovers_the_plane():
     intr, pose = camera(width=800, height=600, f=700.0)
     (trace,) = [t for t in true_trace(X, 35.0, 60.0) if len(t) > 20]
     drawn = Interpretation("LineString", _draw(intr, pose, trace), {"label": "sandstone"})
-    (f,) = project_interpretations(scene, intr, pose, [drawn], source="IMG_1.jpg",
-                                   pose_uncertainty=PoseUncertainty(0.1, 0.01, 0.005),
-                                   uncertainty=UncertaintyParams(drawing_px=0.2))
+    # The same plane from three clicks on it (a 3-point plane, read from the render).
+    ends = trace[[3, -4]]
+    chord = (ends[1] - ends[0]) / np.linalg.norm(ends[1] - ends[0])
+    off_chord = np.linalg.norm(np.cross(trace - ends[0], chord), axis=1)
+    clicks = _draw(intr, pose, trace[[3, int(np.argmax(off_chord)), len(trace) - 4]])
+    three = Interpretation("LineString", clicks, {"label": "sandstone", "measure": "three_point"})
+    f, f3 = project_interpretations(scene, intr, pose, [drawn, three], source="IMG_1.jpg",
+                                    pose_uncertainty=PoseUncertainty(0.1, 0.01, 0.005),
+                                    uncertainty=UncertaintyParams(drawing_px=0.2))
     assert len(f.parts) == 1 and f.missed <= 2
     assert np.percentile(_distance_to_polyline(f.points, trace), 95) < 0.1
-    (m,) = measure_features([f])
+    m, m3 = measure_features([f, f3])
     assert m.has_plane, m.note
     assert m.dip_deg == pytest.approx(35.0, abs=1.0)
     assert abs((m.dip_direction_deg - 60.0 + 180) % 360 - 180) < 1.5
     assert abs(m.dip_deg - 35.0) <= 3 * m.dip_sigma_deg + 0.2
+    assert m3.dip_deg == pytest.approx(35.0, abs=1.0), m3.note
+    assert abs((m3.dip_direction_deg - 60.0 + 180) % 360 - 180) < 2.0
 
 
 def test_cloud_projection_params_are_checked():
@@ -634,3 +644,68 @@ def test_project_command_on_a_cloud_takes_gap_spacings(tmp_path, capsys):
                  "--gap-spacings", "0.1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--gap-spacings" in err[0] and not bad.exists()
+
+
+def test_three_point_plane_is_measured_by_the_backend_in_every_frame(tmp_path):
+    """A 3-point plane (three clicks on one bedding surface) is the plane
+    through the surface points under the clicks wherever it is measured:
+    ``project`` keeps those points (``three_point_xyz``) so ``measure`` on the
+    3D file, local or georeferenced, reports it. (It was computed by the
+    Interpret widget alone: ``measure`` fitted the 3-vertex polyline and
+    reported no plane, "the points lie in a plane through the camera".)"""
+    from napari_imgreg.geo import Georef
+    from napari_imgreg.interpret.files import read_features_geojson, write_features_geojson
+    from napari_imgreg.interpret.structural import THREE_POINT_NOTE
+
+    scene, X = wall_scene()
+    intr, pose = camera()
+    (trace,) = [t for t in true_trace(X, 35.0, 200.0) if len(t) > 20]
+    clicks = _draw(intr, pose, trace[[5, len(trace) // 2, len(trace) - 6]])
+    drawn = Interpretation("LineString", clicks, {"label": "bed", "measure": "three_point",
+                                                  "three_point_px": clicks.tolist()})
+    off = Interpretation("LineString", np.array([[600.0, 5.0], *clicks[1:]]),  # sky
+                         {"label": "bed", "measure": "three_point"})
+    # Clicks off the photo (a hand-edited file): the drawn vertices, in the sky here.
+    off.properties["three_point_px"] = [[1e9, 0.0], [0.0, 0.0], [1.0, 1.0]]
+    features = project_interpretations(scene, intr, pose, [drawn, off], source="IMG_1.jpg")
+    assert np.shape(features[0].properties["three_point_xyz"]) == (3, 3)
+    assert features[1].properties["three_point_xyz"] is None
+    georef = Georef("EPSG:32630", np.array([579000.0, 5912000.0, 350.0]))
+    for georeferenced in (False, True):
+        path = tmp_path / f"lines_{georeferenced}.geojson"
+        write_features_geojson(path, features, georef, georeferenced=georeferenced)
+        back, _ = read_features_geojson(path)
+        m, missed = measure_features(back)
+        assert m.dip_deg == pytest.approx(35.0, abs=0.1), m.note
+        assert m.dip_direction_deg == pytest.approx(200.0, abs=0.1)
+        assert m.note == THREE_POINT_NOTE and m.n_points == 3 and m.plunge_deg is None
+        assert m.dip_sigma_deg is None  # none propagated, as documented
+        shift = georef.origin if georeferenced else np.zeros(3)
+        assert np.allclose(m.centroid - shift, trace[[5, len(trace) // 2, len(trace) - 6]].mean(0),
+                           atol=0.05)
+        assert missed.dip_deg is None and "not three clicked points on the surface" in missed.note
+    # Hand-edited clicks that are not three pixels: the drawn vertices are the
+    # clicks; a line of four vertices has none (no traceback either way).
+    odd = [Interpretation("LineString", clicks, {"label": "bed", "measure": "three_point",
+                                                 "three_point_px": "abc"}),
+           Interpretation("LineString", np.vstack([clicks, clicks[:1] + 5.0]),
+                          {"label": "bed", "measure": "three_point", "three_point_px": [[1, 2]]})]
+    by_vertices, four = measure_features(project_interpretations(scene, intr, pose, odd))
+    assert by_vertices.dip_deg == pytest.approx(35.0, abs=0.1)
+    assert four.dip_deg is None and "not three clicked points" in four.note
+    # GIS layers: the points in the layer's frame, under a readable shapefile name.
+    import json
+
+    from napari_imgreg.interpret.files import read_gis_layers, write_features_gis
+
+    for name, column in (("l.gpkg", "three_point_xyz"), ("l.shp", "tp_xyz")):
+        write_features_gis(tmp_path / name, features, georef)
+        _, data, _ = read_gis_layers(tmp_path / name)["traces"]
+        np.testing.assert_allclose(json.loads(data[column][0]),
+                                   np.asarray(features[0].properties["three_point_xyz"])
+                                   + georef.origin, atol=1e-4)
+    # A file written before the points were kept says what to do.
+    old = features[0].properties.copy()
+    del old["three_point_xyz"]
+    (m,) = measure_features([dataclasses.replace(features[0], properties=old)])
+    assert m.dip_deg is None and "re-run `project`" in m.note and m.n_points > 3

@@ -428,6 +428,9 @@ def test_gis_export_keeps_z_crs_and_every_attribute(tmp_path, projected, suffix)
         else:
             assert float(dip) == pytest.approx(m.dip_deg, abs=1e-9)
         assert data["id"][k] == m.id and (data["note"][k] or "") == m.note
+        # Empty text is null too, as the numbers: what a GIS's IS NULL finds.
+        for name in ("note", "comment", "above", "below"):
+            assert data[name][k] is None if getattr(m, name) == "" else data[name][k]
 
 
 def test_geopackage_in_local_frame_without_georef_and_camera_layer(tmp_path, projected):
@@ -509,3 +512,71 @@ def test_the_drawings_note_and_units_reach_the_measurements(projected, tmp_path)
     assert (rows[0]["comment"], rows[0]["above"], rows[0]["below"]) == (
         "offset 2 m", "Unit B", "Unit A")
     assert rows[1]["comment"] == ""
+
+
+def test_measure_says_which_north_its_azimuths_are_from(tmp_path, projected, capsys):
+    """Azimuths are measured from the model's +Y, the grid north of a
+    georeferenced model's CRS; ``measure`` says how far that lies from true
+    north (the meridian convergence, PROJ's value at the features), and that
+    a model without a georeference has no known north."""
+    import pyproj
+
+    from napari_imgreg.interpret.files import azimuth_reference
+
+    *_, features = projected
+    centroid = np.concatenate([f.points for f in features if f.n_points]).mean(axis=0)
+    lon, lat = pyproj.Transformer.from_crs("EPSG:32630", "EPSG:4326", always_xy=True).transform(
+        *(centroid + GEOREF.origin)[:2])
+    gamma = pyproj.Proj("EPSG:32630").get_factors(lon, lat).meridian_convergence
+    assert 0.9 < gamma < 1.0  # east of zone 30's central meridian: grid north clockwise
+    for georeferenced in (False, True):
+        path = tmp_path / f"lines_{georeferenced}.geojson"
+        write_features_geojson(path, features, GEOREF, georeferenced=georeferenced)
+        assert run_cli(["measure", str(path), "--out", str(tmp_path / "m.csv"),
+                        "--samples", "20"]) == 0
+        out = capsys.readouterr().out
+        assert (f"from grid north of EPSG:32630, {gamma:.2f}° clockwise of true north here "
+                f"(true azimuth = grid azimuth + {gamma:.2f}°)") in out
+    write_features_geojson(tmp_path / "bare.geojson", features)
+    assert run_cli(["measure", str(tmp_path / "bare.geojson"), "--out", str(tmp_path / "m.csv"),
+                    "--samples", "20"]) == 0
+    assert "model frame's +Y axis (no georeference" in capsys.readouterr().out
+    # West of the central meridian, grid north lies anticlockwise of true north.
+    west = azimuth_reference({"frame": "local", "crs": "EPSG:32630", "origin": [300000.0,
+                                                                              5912000.0, 0.0]},
+                             np.zeros((1, 3)))
+    assert "anticlockwise of true north" in west and "grid azimuth − " in west
+
+
+@pytest.mark.parametrize("props, expect", [
+    ({"surface_normal": "up"}, "properties.surface_normal must be [x, y, z]"),
+    ({"surface_normal": [0, 1]}, "properties.surface_normal must be [x, y, z]"),
+    # A 3-point plane with a camera or points that are not numbers: no plane, said so.
+    ({"camera_position": "x", "measure": "three_point",
+      "three_point_xyz": [[0, 0, "q"], [1], [2]]}, None),
+    # Not a colour: the label's own on the stereonet (was matplotlib's ValueError).
+    ({"color": 5}, None),
+    ({"color": "notacolour"}, None),
+])
+def test_measure_hand_edited_properties_are_one_line_or_no_plane(tmp_path, capsys, props,
+                                                                expect):
+    """A hand-edited 3D file's odd property is one error line naming the file
+    and feature (exit 2), or measured without a plane; never a traceback."""
+    path = tmp_path / "l3d.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "id": "a", "properties": {"label": "x", "source": "p.jpg", **props},
+         "geometry": {"type": "LineString",
+                      "coordinates": [[0, 0, 10], [1, 0, 10], [1, 1, 9], [0, 1, 9], [0, 2, 8]]}}]}))
+    code = run_cli(["measure", str(path), "--out", str(tmp_path / "m.csv"), "--samples", "20",
+                    "--stereonet", str(tmp_path / "net.png")])
+    out, err = capsys.readouterr()
+    err = err.strip()
+    if expect:
+        assert code == 2 and f"l3d.geojson: feature 1: {expect}" in err
+        assert len(err.splitlines()) == 1 and not (tmp_path / "m.csv").exists()
+    else:
+        assert code == 0 and not err and (tmp_path / "net.png").stat().st_size > 1000
+        if props.get("measure") == "three_point":  # the summary counts why
+            assert "1: 3-point plane: not three clicked points on the surface" in out
+        (row,) = csv.DictReader((tmp_path / "m.csv").open())
+        assert row["dip_deg"] == "" and row["note"].startswith("no plane")

@@ -328,6 +328,26 @@ def test_facet_gets_sigmas_and_csv_has_the_columns(tmp_path):
     assert rows[1]["plunge_sigma_deg"] == "" and rows[1]["dip_sigma_deg"] == ""
 
 
+@pytest.mark.parametrize("dip", [60.0, 88.0, 89.7])
+def test_steep_plane_sigmas_do_not_jump_across_the_vertical(dip):
+    """A steep fault's Monte Carlo planes that tip past the vertical deviate
+    by a little dip, not by 180° of dip direction: the σ of a plane dipping
+    60° and of one dipping 88–89.7° are alike (at 89.7° the dip direction σ
+    was 83°: every tipped sample counted as 180° off, and the dip σ too
+    small; with 2° of scatter, already at 88°)."""
+    from napari_imgreg.interpret.uncertainty import ErrorModel
+
+    model = ErrorModel(camera_position=np.array([-80.0, 0.0, 0.0]), relative_m=0.05,
+                       mesh_m=0.02, rotation_deg=0.5, position_m=0.02)
+    f = measure_facet(_plane_points(dip, 100.0, size=4.0, noise=0.05, seed=3), id="f",
+                      label="fault", error_model=model)
+    assert f.has_plane and f.dip_deg == pytest.approx(dip, abs=0.5)
+    assert 0.1 < f.dip_sigma_deg < 1.5
+    # Across the pole: sin(dip) σ_ddir is about σ_dip for an even scatter.
+    across = np.sin(np.radians(f.dip_deg)) * f.dip_direction_sigma_deg
+    assert across == pytest.approx(f.dip_sigma_deg, rel=0.5)
+
+
 def test_kamb_density_peaks_on_a_cluster():
     from napari_imgreg.interpret.structural import kamb_density
 
@@ -338,6 +358,18 @@ def test_kamb_density_peaks_on_a_cluster():
     px, py = equal_area(60.0, 30.0)
     assert np.hypot(x.ravel()[k] - px, y.ravel()[k] - py) < 0.08
     assert np.nanmax(d) > 10 and np.nanmin(d) < 0.5
+
+
+def test_stereonet_is_written_in_the_format_its_suffix_names(tmp_path):
+    from napari_imgreg.errors import InputError
+
+    ms = [measure_facet(_plane_points(30.0, 90.0), id="a", label="bed")]
+    save_stereonet(tmp_path / "net.PDF", ms)
+    assert (tmp_path / "net.PDF").read_bytes().startswith(b"%PDF")
+    for name in ("net", "net.jpg"):  # matplotlib: ValueError, or a JPEG; refused
+        with pytest.raises(InputError, match=r"stereonet must be \.png, \.svg or \.pdf"):
+            save_stereonet(tmp_path / name, ms)
+        assert not (tmp_path / name).exists()
 
 
 def test_stereonet_draws_cones_and_contours(tmp_path):
@@ -352,6 +384,27 @@ def test_stereonet_draws_cones_and_contours(tmp_path):
     assert len(ax.collections) > 0  # the Kamb contours
     # One cone per pole at least, beyond the great circles, α95 and frame.
     assert len(ax.lines) >= 8 * 2 + 8
+
+
+def test_pole_cone_holds_the_dip_directions_error_too():
+    """The pole of a plane moves by σ_dip along its plunge and by
+    sin(dip) σ_ddir across it; the cone is twice their quadratic sum (it was
+    2 σ_dip alone: a steep fault's cone left out most of its azimuth error)."""
+    from napari_imgreg.interpret.structural import Measurement, pole_cone_deg
+
+    def plane(dip, s_dip, s_ddir):
+        return Measurement("a", "fault", "trace", np.zeros(3), 10, dip_deg=dip,
+                           dip_direction_deg=100.0, dip_sigma_deg=s_dip,
+                           dip_direction_sigma_deg=s_ddir)
+
+    assert pole_cone_deg(plane(65.0, 1.0, 2.0)) == pytest.approx(
+        2.0 * np.hypot(1.0, np.sin(np.radians(65.0)) * 2.0))  # 3.9°, not 2°
+    assert pole_cone_deg(plane(90.0, 3.0, 4.0)) == pytest.approx(10.0)
+    # A near-horizontal plane's wild azimuth hardly moves its (vertical) pole.
+    assert pole_cone_deg(plane(0.7, 1.4, 66.9)) == pytest.approx(
+        2.0 * np.hypot(1.4, np.sin(np.radians(0.7)) * 66.9))
+    assert pole_cone_deg(plane(30.0, 40.0, 40.0)) == 45.0  # capped
+    assert pole_cone_deg(plane(30.0, None, None)) is None
 
 
 def test_plane_from_three_points_known_answers():

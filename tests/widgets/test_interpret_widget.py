@@ -84,7 +84,7 @@ def test_registered_photo_and_label_classes(widget):
     assert to_hex(shapes.current_edge_color) == "#e31a1c"  # fault red
 
 
-def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path):
+def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path, monkeypatch):
     folder, scene, truth = sample
     px, xyz = _true_bed_on_photo(sample)
     shapes = widget.new_interpretation_layer()
@@ -141,6 +141,10 @@ def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path):
     plunge_cell = widget.table.item(0, 5).text()
     assert " ± " in plunge_cell and float(plunge_cell.split(" ± ")[0]) == pytest.approx(
         m.plunge_deg, abs=0.05)
+    # The azimuth columns say which north they are from (the sample: UTM 30N).
+    for col in (4, 6):
+        tip = widget.table.horizontalHeaderItem(col).toolTip()
+        assert "grid north of EPSG:32630" in tip and "true azimuth = grid azimuth + 0.9" in tip
     assert widget.figure.axes and widget.figure.axes[0].lines
 
     # Save / load pixel GeoJSON and exports.
@@ -159,6 +163,13 @@ def test_draw_project_and_find_it_on_the_mesh(widget, sample, qtbot, tmp_path):
     widget.save_stereonet(tmp_path / "net.png")
     assert (tmp_path / "m.csv").read_text().startswith("id,label,kind,x,y,z")
     assert (tmp_path / "net.png").stat().st_size > 5000
+    # georeferenced ticked on a model without a georeference: the dock's words
+    # (not the command line's "--georeferenced needs ... --georef").
+    monkeypatch.setattr(widget.scene, "georef", None)
+    widget._guarded(widget.export, tmp_path / "plain.geojson", True)
+    assert "the model has no georeference" in widget.status_label.text()
+    assert "untick 'georeferenced'" in widget.status_label.text()
+    assert "--" not in widget.status_label.text() and not (tmp_path / "plain.geojson").exists()
 
 
 def test_project_without_registration_says_why(widget, qtbot):
@@ -446,6 +457,14 @@ def test_errors_are_notified_and_saving_the_stereonet_says_so(
     widget.save_stereonet(tmp_path / "net.png")
     assert widget.status_label.text() == "Saved stereonet to net.png."
     assert (tmp_path / "net.png").stat().st_size > 1000
+    # A name without a picture suffix is one clear error, not matplotlib's
+    # ValueError (a traceback dialog) from the temporary file's random suffix.
+    for name in ("stereonet", "net.bmpx"):
+        widget._guarded(widget.save_stereonet, tmp_path / name)
+        assert seen[-1][0] == "error" and name in seen[-1][1] and ".png" in seen[-1][1]
+        assert not (tmp_path / name).exists()
+    widget.save_stereonet(tmp_path / "net.SVG")
+    assert (tmp_path / "net.SVG").read_text().lstrip().startswith("<?xml")
 
 
 def test_new_interpretation_layer_on_a_photo_that_has_one_keeps_its_lines(widget):
@@ -484,3 +503,17 @@ def test_the_interpret_tab_fits_a_narrow_dock(widget):
     out = Path("/tmp/gui_fix")
     out.mkdir(exist_ok=True)
     widget.grab().save(str(out / "test_interpret_360.png"))
+
+
+def test_a_name_typed_without_a_suffix_takes_the_chosen_filters():
+    """Qt's own save dialog adds no suffix: "outcrop" saved under *GeoPackage*
+    was refused as an unknown format, "net" under *SVG* raised."""
+    from napari_imgreg.widgets.interpret_widget import _EXPORT_FILTER, with_filter_suffix
+
+    gpkg = _EXPORT_FILTER.split(";;")[1]
+    assert with_filter_suffix("/d/outcrop", gpkg) == "/d/outcrop.gpkg"
+    assert with_filter_suffix("/d/net", "SVG (*.svg)") == "/d/net.svg"
+    assert with_filter_suffix("/d/a.b/lines", "GeoJSON (*.geojson *.json)") == "/d/a.b/lines.geojson"
+    assert with_filter_suffix("/d/outcrop.shp", gpkg) == "/d/outcrop.shp"  # the name's wins
+    assert with_filter_suffix("", gpkg) == ""  # cancelled
+    assert with_filter_suffix("/d/x", "All files (*)") == "/d/x"

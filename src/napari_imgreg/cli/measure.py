@@ -31,6 +31,10 @@ _REJECTIONS = (
     ("viewing rays", "plane contains the viewing rays"),
     ("pin the plane down", "dip σ above --max-dip-sigma (plane too close to the viewing plane)"),
     ("camera position unknown", "no camera position in the file (re-run `project`)"),
+    ("on one line", "points on one line"),
+    ("plane of the three points", "3-point plane: the camera lies in it (the viewing plane)"),
+    ("three clicked points", "3-point plane: not three clicked points on the surface"),
+    ("no three_point_xyz", "3-point plane without its surface points (re-run `project`)"),
 )
 
 
@@ -46,9 +50,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "one) and its Monte Carlo dip σ is small, besides CloudCompare Compass's vetting "
         "(planarity, surface effect) and a relief test; rejected ones leave the cells empty "
         "and say why in 'note'. Every angle gets a σ column (pose uncertainty, drawing "
-        "noise, mesh resolution). Traces of one contact (same drawn id) on several photos "
-        "also get one combined row. Writes MEASUREMENTS.csv (docs/formats.md §8) and "
-        "optionally a stereonet with confidence cones and Kamb contours.",
+        "noise, mesh resolution). Traces of one contact (the same properties.contact and "
+        "label) on several photos also get one combined row; a 3-point plane is the plane "
+        "through its three surface points. Azimuths are from the model's +Y: the grid north "
+        "of its CRS (the summary gives the angle to true north). Writes MEASUREMENTS.csv "
+        "(docs/formats.md §8) and optionally a stereonet with confidence cones and Kamb "
+        "contours.",
     )
     p.add_argument("lines3d", metavar="LINES3D.geojson", help="output of `project`")
     p.add_argument("--out", required=True, metavar="MEASUREMENTS.csv")
@@ -109,20 +116,27 @@ def run(args: argparse.Namespace) -> int:
         fisher_mean,
         pole_of_plane,
         save_stereonet,
+        stereonet_format,
         vector_from_plunge_trend,
     )
     from ..interpret.project import measure_features
-    from ..interpret.files import read_features_geojson, write_measurements_csv
+    from ..interpret.files import (
+        azimuth_reference,
+        read_features_geojson,
+        write_measurements_csv,
+    )
 
     out = Path(args.out)
     if out.suffix.lower() != ".csv":
         raise input_error(out, "output must be a .csv file")
-    if args.stereonet and Path(args.stereonet).suffix.lower() not in (".png", ".svg", ".pdf"):
-        raise input_error(args.stereonet, "stereonet must be .png, .svg or .pdf")
+    if args.stereonet:
+        stereonet_format(args.stereonet)
     check_writable(out)
     if args.stereonet:
         check_writable(args.stereonet)
     import math
+
+    import numpy as np
 
     from ..interpret.uncertainty import UncertaintyParams
 
@@ -177,6 +191,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"    {n}: {why}")
     if frame.get("frame") == "crs":
         print(f"  centroids in {frame.get('crs', 'the file CRS')}")
+    print("  " + azimuth_reference(frame, np.array([m.centroid for m in measurements])))
     if args.stereonet:
         save_stereonet(args.stereonet, measurements,
                        colors={m.label: m.color for m in measurements if m.color})

@@ -67,6 +67,7 @@ __all__ = [
     "check_gis_outputs",
     "read_gis_layers",
     "local_crs_wkt",
+    "azimuth_reference",
     "GIS_LAYERS",
     "PATCH_POINTS_IN_FILE",
 ]
@@ -243,6 +244,21 @@ def _xyz(points: np.ndarray, shift: np.ndarray) -> list:
     return np.round(np.asarray(points, np.float64) + shift, _DECIMALS).tolist()
 
 
+def _positions_in_frame(props: dict[str, Any], shift: np.ndarray) -> None:
+    """Move the positions a feature's properties hold (``camera_position``,
+    a 3-point plane's ``three_point_xyz``) into the frame of its coordinates
+    (local + ``shift``, contract §5), in place."""
+    cam = props.get("camera_position")
+    if isinstance(cam, (list, tuple, np.ndarray)) and len(cam) == 3:
+        props["camera_position"] = _xyz(np.asarray(cam, np.float64).reshape(1, 3), shift)[0]
+    try:
+        three = np.asarray(props.get("three_point_xyz"), np.float64)
+    except (TypeError, ValueError):  # absent (None is NaN), or not a list of points
+        return
+    if three.shape == (3, 3):
+        props["three_point_xyz"] = _xyz(three, shift)
+
+
 def _jsonable(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
@@ -283,10 +299,7 @@ def features_to_geojson(
         props["length_m"] = round(f.length_m, 4)
         if f.surface_normal is not None:
             props["surface_normal"] = np.round(f.surface_normal, 6).tolist()
-        cam = props.get("camera_position")
-        if isinstance(cam, (list, tuple, np.ndarray)) and len(cam) == 3:
-            # In the frame of the coordinates (contract §5).
-            props["camera_position"] = _xyz(np.asarray(cam, np.float64).reshape(1, 3), shift)[0]
+        _positions_in_frame(props, shift)
         parts = [p for p in f.parts if len(p) >= 2]
         if f.kind == "facet":
             props["ring_complete"] = bool(f.ring_complete)
@@ -391,7 +404,15 @@ def read_features_geojson(path: str | os.PathLike) -> tuple[list[Feature3D], dic
         patch = props.pop("patch_points", None)
         patch_pts = _coords(patch, 3, path, f"{where} patch_points") if patch else None
         normal = props.get("surface_normal")
-        normal = np.asarray(normal, np.float64) if normal is not None else None
+        if normal is not None:
+            try:
+                normal = np.asarray(normal, np.float64).reshape(3)
+            except (TypeError, ValueError):
+                normal = None
+            if normal is None or isinstance(props["surface_normal"], str) \
+                    or not np.isfinite(normal).all():
+                raise input_error(path, f"{where}: properties.surface_normal must be "
+                                        "[x, y, z], three finite numbers")
         fid = str(feat.get("id", props.get("id", f"f{k + 1}")))
         props.setdefault("label", "unlabelled")
         out.append(Feature3D(
@@ -400,6 +421,60 @@ def read_features_geojson(path: str | os.PathLike) -> tuple[list[Feature3D], dic
             surface_normal=normal,
         ))
     return out, frame
+
+
+def azimuth_reference(frame: dict[str, Any], points: np.ndarray) -> str:
+    """Which north the azimuths measured in a 3D file are from, in words.
+
+    Trend and dip direction are measured clockwise from the frame's +Y axis:
+    the model's north, which in a georeferenced model is the **grid** north of
+    its CRS. That differs from true north by the meridian convergence
+    (:func:`~napari_imgreg.solar.meridian_convergence_deg`, about 1° in the
+    sample's UTM zone 30N, up to ~3° at a zone's edge): a geologist comparing
+    with compass readings (true north after declination) must add it.
+
+    Parameters
+    ----------
+    frame : dict
+        The file's ``napari_imgreg`` member (:func:`read_features_geojson`):
+        ``frame`` (``local``/``crs``), and ``crs``, ``origin`` when the model
+        is georeferenced.
+    points : (N, 3) array
+        Where the azimuths were measured (the centroids), in the file's frame;
+        NaN rows are ignored.
+
+    Returns
+    -------
+    str
+        E.g. ``"azimuths (trend, dip direction) from grid north of
+        EPSG:32630, 0.95° clockwise of true north here (true azimuth = grid
+        azimuth + 0.95°)"``; without a georeference, from the model's +Y axis.
+    """
+    from ..geo import Georef
+    from ..solar import meridian_convergence_deg
+
+    unknown = ("azimuths (trend, dip direction) from the model frame's +Y axis "
+               "(no georeference: its relation to true north is not known)")
+    try:
+        georef = Georef(str(frame["crs"]), np.asarray(frame["origin"], np.float64))
+    except Exception:  # no (or an unusable) georeference in the file
+        return unknown
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    where = pts.mean(axis=0) if len(pts) else np.zeros(3)
+    if frame.get("frame") == "crs":
+        where = where - georef.origin
+    try:
+        convergence = float(meridian_convergence_deg(georef, where))
+    except Exception:  # pyproj cannot place it (a CRS without a geodetic datum)
+        convergence = math.nan
+    if not math.isfinite(convergence):
+        return (f"azimuths (trend, dip direction) from grid north of {georef.crs} "
+                "(its angle to true north could not be computed)")
+    side = "clockwise" if convergence >= 0 else "anticlockwise"
+    return (f"azimuths (trend, dip direction) from grid north of {georef.crs}, "
+            f"{abs(convergence):.2f}° {side} of true north here (true azimuth = grid azimuth "
+            f"{'+' if convergence >= 0 else '−'} {abs(convergence):.2f}°)")
 
 
 # ----------------------------------------------------------------- other formats
@@ -514,6 +589,7 @@ _SHP_NAMES = {
     "trend_deg": "trend", "dip_deg": "dip", "collinearity": "collinear", "planarity": "planarity",
     "n_points": "n_points", "ring_complete": "ring_ok", "surface_normal": "surf_norm",
     "camera_position": "cam_pos", "patch_n_faces": "patch_nf", "n_features": "n_feats",
+    "three_point_px": "tp_px", "three_point_xyz": "tp_xyz",
 }
 
 
@@ -578,10 +654,7 @@ def _feature_row(f: Feature3D, shift: np.ndarray) -> dict[str, Any]:
     row["length_m"] = round(float(f.length_m), 4)
     if f.surface_normal is not None:
         row["surface_normal"] = np.round(f.surface_normal, 6).tolist()
-    cam = row.get("camera_position")
-    if isinstance(cam, (list, tuple, np.ndarray)) and len(cam) == 3:
-        # In the frame of the coordinates (contract §5), as in the GeoJSON.
-        row["camera_position"] = _xyz(np.asarray(cam, np.float64).reshape(1, 3), shift)[0]
+    _positions_in_frame(row, shift)  # as in the GeoJSON
     if f.kind == "facet":
         row["ring_complete"] = bool(f.ring_complete)
         if f.patch_faces is not None:
@@ -624,7 +697,10 @@ def _gis_layers(
     for m in measurements:
         c = np.asarray(m.centroid, np.float64)
         meas[0].append(_wkb_z("Point", c + shift) if np.isfinite(c).all() else None)
-        meas[1].append({fl.name: getattr(m, fl.name) for fl in fields(m) if fl.name not in skip})
+        # An empty cell of MEASUREMENTS.csv is a null, text as numbers (a GIS
+        # tells "no note" by IS NULL, not by an empty string).
+        meas[1].append({fl.name: None if getattr(m, fl.name) == "" else getattr(m, fl.name)
+                        for fl in fields(m) if fl.name not in skip})
     cams: dict[str, list] = {}
     for f in features:
         pos = f.properties.get("camera_position")

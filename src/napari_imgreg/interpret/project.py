@@ -58,6 +58,7 @@ from .structural import (
     FitThresholds,
     Measurement,
     measure_facet,
+    measure_three_point,
     measure_traces,
 )
 from .uncertainty import (
@@ -104,9 +105,14 @@ _EXTRA_COLORS = ("#1f78b4", "#33a02c", "#ff7f00", "#6a3d9a", "#b15928", "#a6cee3
 
 
 def label_color(label: str, color: str | None = None) -> str:
-    """The colour of a label: the feature's own, the standard one, or a stable pick."""
+    """The colour of a label: the feature's own (when matplotlib reads it as a
+    colour: a hand-edited file's ``"color": 5`` is not), the standard one, or
+    a stable pick."""
     if color:
-        return color
+        from matplotlib.colors import is_color_like
+
+        if isinstance(color, str) and is_color_like(color):
+            return color
     if label in LABEL_COLORS:
         return LABEL_COLORS[label]
     # Stable across runs (str hash is salted per process).
@@ -283,11 +289,24 @@ class Feature3D:
         uncertainty: UncertaintyParams = DEFAULT_UNCERTAINTY,
     ) -> Measurement:
         """The feature's contract §6 measurement (see :mod:`napari_imgreg.interpret.structural`)."""
-        color = self.properties.get("color")
+        color = label_color(self.label, self.properties["color"]) \
+            if self.properties.get("color") else None
         model = self.error_model
         if self.kind == "facet":
             pts = self.patch_points if self.patch_points is not None and len(self.patch_points) else self.points
             m = measure_facet(pts, self.id, self.label, self.source, thresholds, model, uncertainty)
+        elif self.properties.get("measure") == "three_point":
+            # The plane through the surface points under the three clicks
+            # (``three_point_xyz``, in the frame of the coordinates), not the
+            # fit of the drawn polyline.
+            m = measure_three_point(self.properties.get("three_point_xyz"),
+                                    None if model is None else model.camera_position,
+                                    self.id, self.label, self.source)
+            if "three_point_xyz" not in self.properties:
+                m.note = ("no plane: the file has no three_point_xyz for this 3-point plane "
+                          "(written before they were kept: re-run `project`)")
+                if self.n_points:
+                    m.centroid, m.n_points = self.points.mean(axis=0), self.n_points
         else:
             m = measure_traces(
                 [self.parts], self.id, self.label, [self.source], self.surface_normal,
@@ -634,6 +653,35 @@ def _along_ray_rms(range_m: np.ndarray, cos_incidence: np.ndarray, focal_px: flo
 
 
 # -------------------------------------------------------------- projection
+def _three_point_xyz(scene: Scene, intrinsics: Intrinsics, pose: Pose,
+                     item: Interpretation, view: CloudView | None) -> list | None:
+    """The surface points under a 3-point plane's three clicks
+    (``properties.three_point_px``, else its three vertices), (3, 3) as
+    lists, metres, local frame; None when a click misses the surface (or
+    there are not three clicks)."""
+    px = None
+    for candidate in (item.properties.get("three_point_px"), item.pixels):
+        try:  # a hand-edited file's clicks may be anything
+            px = np.asarray(candidate, np.float64)
+        except (TypeError, ValueError):
+            continue
+        if px.shape == (3, 2) and np.isfinite(px).all() and np.all(
+                (px >= -0.5) & (px <= np.array([intrinsics.width, intrinsics.height]) - 0.5)):
+            break  # three clicks on the photo
+    else:
+        return None
+    if getattr(scene, "is_cloud", False):
+        ch = cloud_hits(scene, view, px)
+        hit, points = ch.hit, ch.points
+    else:
+        origin, directions = pose.rays(intrinsics, px)
+        hits = scene.cast_rays(origin, directions)
+        hit, points = hits.hit, scene.surface_points(hits)
+    if not np.all(hit):
+        return None
+    return np.round(np.asarray(points, np.float64), 4).tolist()
+
+
 def project_interpretations(
     scene: Scene,
     intrinsics: Intrinsics,
@@ -712,6 +760,8 @@ def project_interpretations(
         user_id = props.pop("id", None)
         fid = str(user_id or f"{prefix}:{k + 1}")
         props["camera_position"] = [round(float(v), 4) for v in center]
+        if props.get("measure") == "three_point":
+            props["three_point_xyz"] = _three_point_xyz(scene, intrinsics, pose, item, view)
         on_pts = line.part >= 0
         if on_pts.any():
             hits = line.points[on_pts]

@@ -65,8 +65,11 @@ __all__ = [
     "dip_dip_direction",
     "normal_from_dip",
     "pole_of_plane",
+    "pole_cone_deg",
     "plane_from_three_points",
     "THREE_POINT_MIN_VIEW_ANGLE_DEG",
+    "THREE_POINT_NOTE",
+    "measure_three_point",
     "fisher_mean",
     "measure_trace",
     "measure_traces",
@@ -76,6 +79,8 @@ __all__ = [
     "kamb_density",
     "draw_stereonet",
     "save_stereonet",
+    "stereonet_format",
+    "STEREONET_SUFFIXES",
 ]
 
 
@@ -266,6 +271,53 @@ def plane_from_three_points(points: np.ndarray, camera_center: np.ndarray | None
             return (f"the camera lies {angle:.1f}° from the plane of the three points "
                     f"(< {THREE_POINT_MIN_VIEW_ANGLE_DEG:.0f}°): the viewing plane, not the rock's")
     return dip_dip_direction(n)
+
+
+#: The ``note`` of a 3-point plane's measurement.
+THREE_POINT_NOTE = "3-point plane (no uncertainty propagated)"
+
+
+def measure_three_point(
+    points: np.ndarray | None,
+    camera_center: np.ndarray | None = None,
+    id: str = "",
+    label: str = "",
+    source: str = "",
+) -> Measurement:
+    """Measure a *3-point plane*: the plane through the surface points under
+    three clicks (:func:`plane_from_three_points`).
+
+    Parameters
+    ----------
+    points : (3, 3) array or None
+        The three surface points, metres (x east, y north, z up); None, or a
+        non-finite point, when a click missed the surface.
+    camera_center : (3,) array, optional
+        The photo's camera centre, in the same frame: a plane within
+        :data:`THREE_POINT_MIN_VIEW_ANGLE_DEG` of it is refused.
+
+    Returns
+    -------
+    Measurement
+        Kind ``trace``, 3 points, dip and dip direction (no plunge/trend, no
+        σ: none is propagated for a 3-point plane), or empty angles and a
+        ``note`` saying why.
+    """
+    try:
+        p = None if points is None else np.asarray(points, np.float64)
+    except (TypeError, ValueError):  # a hand-edited file's ragged or non-numeric list
+        p = None
+    if p is None or p.shape != (3, 3) or not np.isfinite(p).all():
+        return Measurement(id, label, "trace", np.full(3, np.nan), 0, source=source,
+                           photo=source, note="no plane: not three clicked points on the surface")
+    m = Measurement(id, label, "trace", p.mean(axis=0), 3, source=source, photo=source)
+    plane = plane_from_three_points(p, camera_center)
+    if isinstance(plane, str):
+        m.note = "no plane: " + plane
+    else:
+        m.dip_deg, m.dip_direction_deg = plane
+        m.note = THREE_POINT_NOTE
+    return m
 
 
 def _wrap(angle: float) -> float:
@@ -597,13 +649,23 @@ def _line_samples(direction: np.ndarray, samples: Sequence[np.ndarray]) -> np.nd
     return out
 
 
-def _plane_samples(samples: Sequence[np.ndarray]) -> np.ndarray:
-    """(K, 2) dip/dip direction of the planes fitted to sampled point sets."""
+def _plane_samples(samples: Sequence[np.ndarray], normal: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """(K, 2) dip/dip direction of the planes fitted to sampled point sets.
+
+    With ``normal`` (the reported plane's upward normal) each sample's normal
+    is turned to agree with it, not upward: a sample of a steep plane that
+    tips past the vertical then reads as a dip above 90° toward the same
+    direction (its true deviation), not as a dip below 90° toward the
+    opposite direction (a 180° jump of the dip direction, and too small a dip
+    change).
+    """
     if not len(samples) or len(samples[0]) < 3:
         return np.full((len(samples), 2), np.nan)
     eig, axes = _sample_axes(samples)
     n = axes[:, 2]
-    n = n * np.where(n[:, 2] < 0, -1.0, 1.0)[:, None]
+    reference = np.array([0.0, 0.0, 1.0]) if normal is None else np.asarray(normal, np.float64)
+    n = n * np.where(n @ reference < 0, -1.0, 1.0)[:, None]
     out = np.stack([np.degrees(np.arctan2(np.hypot(n[:, 0], n[:, 1]), n[:, 2])),
                     np.degrees(np.arctan2(n[:, 0], n[:, 1])) % 360.0], axis=1)
     out[eig[:, 1] <= 1e-18 * np.maximum(eig[:, 0], 1e-300)] = np.nan
@@ -625,7 +687,8 @@ def _trace_sigmas(m: Measurement, line: LineFit, samples: list[np.ndarray]) -> N
 def _plane_sigmas(m: Measurement, samples: list[np.ndarray]) -> None:
     from .uncertainty import angle_sigmas
 
-    sd, sa = angle_sigmas((m.dip_deg, m.dip_direction_deg), _plane_samples(samples))
+    sd, sa = angle_sigmas((m.dip_deg, m.dip_direction_deg),
+                          _plane_samples(samples, normal_from_dip(m.dip_deg, m.dip_direction_deg)))
     if math.isfinite(sd):
         m.dip_sigma_deg = sd
         m.dip_direction_sigma_deg = sa if m.dip_deg > 0.01 else None
@@ -1053,6 +1116,33 @@ def kamb_density(
     return x, y, out
 
 
+def pole_cone_deg(m: Measurement) -> float | None:
+    """Half-angle of a plane's pole confidence cone on the stereonet, degrees.
+
+    The pole moves by the dip's σ along its plunge and by ``sin(dip) ×`` the
+    dip direction's σ across it (its trend's σ scaled to an angle on the
+    sphere). The cone is twice their quadratic sum,
+    ``2 sqrt(σ_dip² + (sin(dip) σ_ddir)²)``: 95 % of a pole's scatter when
+    one component dominates, about 98 % when both are equal.
+
+    Returns
+    -------
+    float or None
+        None without a dip σ; capped at 45°.
+
+    Examples
+    --------
+    >>> m = Measurement("a", "bed", "facet", np.zeros(3), 3, dip_deg=90.0,
+    ...                 dip_sigma_deg=3.0, dip_direction_sigma_deg=4.0)
+    >>> pole_cone_deg(m)
+    10.0
+    """
+    if m.dip_deg is None or not m.dip_sigma_deg:
+        return None
+    across = math.sin(math.radians(m.dip_deg)) * (m.dip_direction_sigma_deg or 0.0)
+    return min(2.0 * math.hypot(m.dip_sigma_deg, across), 45.0)
+
+
 def _label_colors(labels: Iterable[str], colors: dict[str, str] | None) -> dict[str, str]:
     import matplotlib
 
@@ -1079,8 +1169,8 @@ def draw_stereonet(
     """Draw a lower-hemisphere equal-area stereonet of measurements.
 
     Poles (dots) and great circles of planes, each pole with its confidence
-    cone (a small circle of 2σ, from ``dip_sigma_deg``: the 95 % cone of the
-    pose, drawing and mesh errors), lineations of traces (triangles), per
+    cone (:func:`pole_cone_deg`: twice the pole's σ from the dip's and the dip
+    direction's, the cone of the pose, drawing and mesh errors), lineations of traces (triangles), per
     label the Fisher mean pole (star) with its α95 cone, and Kamb density
     contours of all poles (:func:`kamb_density`, multiples of uniform
     density, at 2, 4, 6, … when there are at least 5 poles).
@@ -1141,9 +1231,9 @@ def draw_stereonet(
             vec = np.array([vector_from_plunge_trend(p, t) for p, t in poles])
             if cones:
                 for m, v in zip(planes, vec):
-                    if m.dip_sigma_deg is not None and m.dip_sigma_deg > 0:
-                        # Dip σ is the pole's plunge σ; the cone is its 95 % (2σ).
-                        for px, py in _small_circle(v, min(2.0 * m.dip_sigma_deg, 45.0), 61):
+                    cone = pole_cone_deg(m)
+                    if cone:
+                        for px, py in _small_circle(v, cone, 61):
                             ax.plot(px, py, color=color, lw=0.5, alpha=0.7)
             fm = fisher_mean(vec)
             means[label] = fm
@@ -1170,6 +1260,31 @@ def draw_stereonet(
     return means
 
 
+#: The picture formats a stereonet is written in (by the file's suffix).
+STEREONET_SUFFIXES = (".png", ".svg", ".pdf")
+
+
+def stereonet_format(path) -> str:
+    """The format (``png``, ``svg`` or ``pdf``) a stereonet at ``path`` is
+    written in, from its suffix.
+
+    Raises
+    ------
+    InputError
+        Any other suffix, or none: one line naming the file (matplotlib would
+        raise a ValueError, or write a PNG under another name).
+    """
+    from pathlib import Path
+
+    from ..errors import input_error
+
+    suffix = Path(path).suffix.lower()
+    if suffix not in STEREONET_SUFFIXES:
+        raise input_error(path, "stereonet must be .png, .svg or .pdf (the suffix names the "
+                          f"format), not {suffix or 'a name without a suffix'}")
+    return suffix[1:]
+
+
 def save_stereonet(
     path,
     measurements: Sequence[Measurement],
@@ -1181,16 +1296,18 @@ def save_stereonet(
     Parameters
     ----------
     path : path-like
-        ``.png`` (or any format matplotlib writes by extension).
+        ``.png``, ``.svg`` or ``.pdf`` (:func:`stereonet_format`).
     """
     from matplotlib.figure import Figure
 
     from .._atomic import atomic_path
+
+    fmt = stereonet_format(path)
 
     n_labels = len({m.label for m in measurements})
     fig = Figure(figsize=(6, 6.3 + 0.3 * n_labels))
     ax = fig.add_axes([0.02, 0.02, 0.96, 0.92])
     draw_stereonet(ax, measurements, colors, title=title)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120)
+        fig.savefig(tmp, dpi=120, format=fmt)
     return fig

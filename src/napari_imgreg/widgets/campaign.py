@@ -15,7 +15,7 @@ sized as fractions of the model's diagonal, as the workbench draws its
 cameras (:data:`~napari_imgreg.widgets._controller.CAMERA_MARKER`), so the
 outcrop stays what the view shows. The stereonet is
 :func:`~napari_imgreg.interpret.structural.draw_stereonet` (poles with their
-2σ cones, great circles, lineations, Fisher mean per label with its α95
+confidence cones, great circles, lineations, Fisher mean per label with its α95
 cone, Kamb contours); the Fisher means are listed under it.
 """
 

@@ -62,6 +62,7 @@ from .._atomic import atomic_path
 from ..camera import Intrinsics, Pose
 from ..errors import InputError
 from ..interpret.files import (
+    azimuth_reference,
     export_features,
     measurements_in_frame,
     read_interpretations,
@@ -76,6 +77,7 @@ from ..interpret.structural import (  # the three-point plane moved there (issue
     Measurement,
     draw_stereonet,
     plane_from_three_points,
+    stereonet_format,
 )
 from ..io.photos import load_photo
 from ..io.records import read_json
@@ -296,8 +298,6 @@ class InterpretWidget(QWidget):
         self._recording = False  # this widget is recording its projection in the workspace
         #: Per workspace photo, what the running projection is made from (see :meth:`_jobs`).
         self._projected_from: dict[PhotoState, str] | None = None
-        #: Camera and pose of each photo of the running projection, by name.
-        self._projected_cameras: dict[str, tuple[Intrinsics, Pose]] = {}
         #: Photos and traces of the running projection.
         self._projected_counts = (0, 0)
         #: Says which projections are out of date once a run of pose edits pauses.
@@ -804,42 +804,6 @@ class InterpretWidget(QWidget):
         self.status_label.setStyleSheet("")
         return True
 
-    def _three_point_measurements(self, features: list[Feature3D],
-                                  measurements: list[Measurement]) -> None:
-        """Replace the measurement of each 3-point feature by the plane
-        through the surface points under its three clicks (in place)."""
-        scene = self.scene
-        cameras = {c[2]: (c[0], c[1]) for c in (camera_of_layer(lay)
-                                                for lay in self._photo_layers()) if c}
-        cameras.update(self._projected_cameras)  # the cameras projected from (shown or not)
-        by_id = {m.id: m for m in measurements}
-        for f in features:
-            if f.properties.get("measure") != "three_point" or f.id not in by_id:
-                continue
-            m, camera = by_id[f.id], cameras.get(f.source)
-            if camera is None or scene is None:
-                continue
-            intr, pose = camera
-            origin, dirs = pose.rays(intr, np.asarray(f.properties["three_point_px"], float))
-            hits = scene.cast_rays(origin, dirs)
-            m.plunge_deg = m.trend_deg = m.rms_m = m.planarity = m.collinearity = None
-            m.dip_deg = m.dip_direction_deg = None
-            for name in ("dip_sigma_deg", "dip_direction_sigma_deg", "plunge_sigma_deg",
-                         "trend_sigma_deg"):
-                if hasattr(m, name):
-                    setattr(m, name, None)  # not propagated for 3-point planes
-            if not np.all(hits.hit):
-                m.note = "no plane: a clicked point is off the surface"
-                continue
-            pts = origin + dirs * np.asarray(hits.distance)[:, None]
-            m.centroid, m.n_points = pts.mean(axis=0), 3
-            plane = plane_from_three_points(pts, pose.center)
-            if isinstance(plane, str):
-                m.note = "no plane: " + plane
-            else:
-                m.dip_deg, m.dip_direction_deg = plane
-                m.note = "3-point plane (no uncertainty propagated)"
-
     def _drawing_hint(self) -> str:
         """What the next clicks make: a 3-point plane wins over snapping."""
         if self.three_point_check.isChecked():
@@ -1161,7 +1125,6 @@ class InterpretWidget(QWidget):
         self.project_button.setEnabled(False)
         n = sum(len(j[2]) for j in jobs)
         self._projected_counts = (len(jobs), n)
-        self._projected_cameras = {j[3]: (j[0], j[1]) for j in jobs}
         self.status_label.setText(f"Projecting {n} trace(s) from {len(jobs)} photo(s)…")
         self.status_label.setStyleSheet("")
         # Errors come back as one line (bugs are logged with their traceback).
@@ -1192,7 +1155,6 @@ class InterpretWidget(QWidget):
         if result is None:  # cancelled
             return
         self.features, self.measurements = result
-        self._three_point_measurements(self.features, self.measurements)
         if self.workspace is not None:
             self._recording = True  # shown below, not again by the workspace's event
             try:
@@ -1324,6 +1286,15 @@ class InterpretWidget(QWidget):
             return fmt(v) + ("" if v is None or sigma is None else f" ± {sigma:.1f}")
 
         why = _TABLE_COLUMNS.index("why no plane")
+        # Which north the azimuths are from (grid north of the model's CRS).
+        georef = getattr(self.scene, "georef", None)
+        frame = ({"frame": "local", "crs": georef.crs, "origin": georef.origin.tolist()}
+                 if georef is not None else {"frame": "local"})
+        north = azimuth_reference(frame, np.array([m.centroid for m in measurements])
+                                  .reshape(-1, 3))
+        for col in ("dip dir.", "trend"):
+            self.table.horizontalHeaderItem(_TABLE_COLUMNS.index(col)).setToolTip(
+                north[0].upper() + north[1:])
         self.table.setRowCount(len(measurements))
         for row, m in enumerate(measurements):
             note = " · ".join(t for t in (m.comment, m.above and f"above: {m.above}",
@@ -1361,6 +1332,11 @@ class InterpretWidget(QWidget):
         scene = self.scene
         georef = getattr(scene, "georef", None)
         geo = self.georef_check.isChecked() if georeferenced is None else georeferenced
+        if geo and georef is None and Path(path).suffix.lower() not in (".gpkg", ".shp"):
+            # (the backend's wording names the command line's --georeferenced)
+            raise InputError(f"{Path(path).name}: the model has no georeference (georef.json "
+                             "beside the mesh): untick 'georeferenced' to export in the model's "
+                             "frame")
         notes = export_features(path, self.features, georef, geo,
                                 measurements=self.measurements)
         self.status_label.setText(f"Exported {len(self.features)} feature(s) to {Path(path).name}."
@@ -1378,9 +1354,11 @@ class InterpretWidget(QWidget):
                                   + (f" ({georef.crs})." if in_crs else " (local frame)."))
 
     def save_stereonet(self, path: str | Path) -> None:
-        """Write the stereonet as PNG, SVG or PDF (by the suffix)."""
+        """Write the stereonet as PNG, SVG or PDF (by the suffix; another is
+        refused, :func:`~napari_imgreg.interpret.structural.stereonet_format`)."""
+        fmt = stereonet_format(path)
         with atomic_path(path) as tmp:
-            self.figure.savefig(tmp, dpi=120)
+            self.figure.savefig(tmp, dpi=120, format=fmt)
         self.status_label.setText(f"Saved stereonet to {Path(path).name}.")
         self.status_label.setStyleSheet("")
 
@@ -1404,28 +1382,42 @@ class InterpretWidget(QWidget):
             self._guarded(self.load_geojson, path)
 
     def _save_dialog(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Save interpretations", "lines.geojson",
-                                              _GEOJSON_FILTER)
+        path, chosen = QFileDialog.getSaveFileName(self, "Save interpretations", "lines.geojson",
+                                                   _GEOJSON_FILTER)
+        path = with_filter_suffix(path, chosen)
         if path:
             self._guarded(self.save_geojson, path)
 
     def _export_dialog(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Export 3D interpretations",
-                                              "LINES3D.geojson", _EXPORT_FILTER)
+        path, chosen = QFileDialog.getSaveFileName(self, "Export 3D interpretations",
+                                                   "LINES3D.geojson", _EXPORT_FILTER)
+        path = with_filter_suffix(path, chosen)
         if path:
             self._guarded(self.export, path)
 
     def _save_csv_dialog(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Save measurements", "MEASUREMENTS.csv",
-                                              "CSV (*.csv)")
+        path, chosen = QFileDialog.getSaveFileName(self, "Save measurements", "MEASUREMENTS.csv",
+                                                   "CSV (*.csv)")
+        path = with_filter_suffix(path, chosen)
         if path:
             self._guarded(self.save_measurements, path)
 
     def _save_stereonet_dialog(self) -> None:
-        path, _ = QFileDialog.getSaveFileName(self, "Save stereonet", "stereonet.png",
-                                              "PNG (*.png);;SVG (*.svg);;PDF (*.pdf)")
+        path, chosen = QFileDialog.getSaveFileName(self, "Save stereonet", "stereonet.png",
+                                                   "PNG (*.png);;SVG (*.svg);;PDF (*.pdf)")
+        path = with_filter_suffix(path, chosen)
         if path:
             self._guarded(self.save_stereonet, path)
+
+
+def with_filter_suffix(path: str, chosen_filter: str) -> str:
+    """``path`` as a save dialog returned it, with the chosen filter's first
+    suffix added when the name was typed without one (Qt's own dialog does
+    not add it): ``("net", "SVG (*.svg)") -> "net.svg"``. The suffix names the
+    format the file is written in."""
+    if not path or Path(path).suffix or "*." not in chosen_filter:
+        return path
+    return path + "." + chosen_filter.split("*.", 1)[1].split()[0].rstrip(")")
 
 
 def _notify(message: str, severity: str) -> None:
