@@ -301,7 +301,8 @@ class Feature3D:
             # fit of the drawn polyline.
             m = measure_three_point(self.properties.get("three_point_xyz"),
                                     None if model is None else model.camera_position,
-                                    self.id, self.label, self.source)
+                                    self.id, self.label, self.source, model, uncertainty,
+                                    self.surface_normal)
             if "three_point_xyz" not in self.properties:
                 m.note = ("no plane: the file has no three_point_xyz for this 3-point plane "
                           "(written before they were kept: re-run `project`)")

@@ -51,6 +51,7 @@ import numpy as np
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
+    from .uncertainty import ErrorModel, UncertaintyParams
 
 __all__ = [
     "FitThresholds",
@@ -69,6 +70,7 @@ __all__ = [
     "plane_from_three_points",
     "THREE_POINT_MIN_VIEW_ANGLE_DEG",
     "THREE_POINT_NOTE",
+    "THREE_POINT_NOTE_NO_SIGMA",
     "measure_three_point",
     "fisher_mean",
     "measure_trace",
@@ -273,8 +275,11 @@ def plane_from_three_points(points: np.ndarray, camera_center: np.ndarray | None
     return dip_dip_direction(n)
 
 
-#: The ``note`` of a 3-point plane's measurement.
-THREE_POINT_NOTE = "3-point plane (no uncertainty propagated)"
+#: The ``note`` of a 3-point plane's measurement; without the photo's error
+#: model (a file without ``camera_position``) no σ is propagated and
+#: :data:`THREE_POINT_NOTE_NO_SIGMA` says so.
+THREE_POINT_NOTE = "3-point plane"
+THREE_POINT_NOTE_NO_SIGMA = "3-point plane (no uncertainty propagated: no camera_position)"
 
 
 def measure_three_point(
@@ -283,6 +288,9 @@ def measure_three_point(
     id: str = "",
     label: str = "",
     source: str = "",
+    error_model: ErrorModel | None = None,
+    uncertainty: UncertaintyParams | None = None,
+    surface_normal: np.ndarray | None = None,
 ) -> Measurement:
     """Measure a *3-point plane*: the plane through the surface points under
     three clicks (:func:`plane_from_three_points`).
@@ -295,13 +303,20 @@ def measure_three_point(
     camera_center : (3,) array, optional
         The photo's camera centre, in the same frame: a plane within
         :data:`THREE_POINT_MIN_VIEW_ANGLE_DEG` of it is refused.
+    error_model : ErrorModel, optional
+        The photo's error model: with it, dip and dip direction get their σ
+        (:func:`~napari_imgreg.interpret.uncertainty.three_point_samples`: the
+        pose's error, each click's own, the mesh's).
+    uncertainty : UncertaintyParams, optional
+        The Monte Carlo's settings (default: the package's).
+    surface_normal : (3,) array, optional
+        The surface's mean normal under the clicks.
 
     Returns
     -------
     Measurement
-        Kind ``trace``, 3 points, dip and dip direction (no plunge/trend, no
-        σ: none is propagated for a 3-point plane), or empty angles and a
-        ``note`` saying why.
+        Kind ``trace``, 3 points, dip and dip direction with their σ (no
+        plunge/trend), or empty angles and a ``note`` saying why.
     """
     try:
         p = None if points is None else np.asarray(points, np.float64)
@@ -314,9 +329,16 @@ def measure_three_point(
     plane = plane_from_three_points(p, camera_center)
     if isinstance(plane, str):
         m.note = "no plane: " + plane
-    else:
-        m.dip_deg, m.dip_direction_deg = plane
-        m.note = THREE_POINT_NOTE
+        return m
+    m.dip_deg, m.dip_direction_deg = plane
+    if error_model is None:
+        m.note = THREE_POINT_NOTE_NO_SIGMA
+        return m
+    from .uncertainty import DEFAULT_UNCERTAINTY, three_point_samples
+
+    m.note = THREE_POINT_NOTE
+    _plane_sigmas(m, three_point_samples(p, error_model, uncertainty or DEFAULT_UNCERTAINTY,
+                                         surface_normal))
     return m
 
 

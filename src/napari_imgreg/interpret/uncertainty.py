@@ -543,6 +543,49 @@ def monte_carlo(
     return [[v[k] for v in per_view] for k in range(K)]
 
 
+def three_point_samples(
+    points: np.ndarray,
+    model: ErrorModel,
+    params: UncertaintyParams = DEFAULT_UNCERTAINTY,
+    surface_normal: np.ndarray | None = None,
+) -> list[np.ndarray]:
+    """Perturbed copies of a 3-point plane's three surface points.
+
+    As :func:`monte_carlo` does for a trace, with the clicks as the control
+    points: per sample one rigid rotation about the camera centre and one
+    shift (the pose's error, shared by the three points), and at each click
+    its own image error (independent between the clicks: three separate
+    clicks, not one stroke) turned into a 3D error across the ray plus the
+    slide along it that keeps the point on the surface; the mesh's error,
+    independent per point.
+
+    Parameters
+    ----------
+    points : (3, 3) array
+        The surface points under the clicks, metres.
+    model : ErrorModel
+        The photo's (camera centre, pose error, pixel noise at the range).
+    params : UncertaintyParams
+    surface_normal : (3,) array, optional
+        The surface's mean normal there (else the slide is drawn independently).
+
+    Returns
+    -------
+    list (``params.samples``) of (3, 3) arrays
+    """
+    rng = np.random.default_rng(params.seed)
+    K = params.samples
+    pts = np.asarray(points, np.float64).reshape(3, 3)
+    c = np.asarray(model.camera_position, np.float64)
+    Rs = np.stack([_rotation(rng, model.rotation_deg) for _ in range(K)])
+    shift = rng.normal(0.0, model.position_m / math.sqrt(3.0), (K, 1, 3))
+    q = (pts - c) @ np.transpose(Rs, (0, 2, 1)) + c + shift
+    q += _image_error(rng, K, pts, np.arange(3.0), np.eye(3), c, model, surface_normal,
+                      params.max_obliquity_gain)
+    if model.mesh_m > 0:
+        q += rng.normal(0.0, model.mesh_m / math.sqrt(3.0), q.shape)
+    return list(q)
+
 def _wrapped(diff: np.ndarray, period: float) -> np.ndarray:
     return (np.asarray(diff) + period / 2) % period - period / 2
 
