@@ -137,8 +137,34 @@ class JobRunner(QObject):
         self._pending: dict[str, Callable[[], None]] = {}
         self._cancel: dict[str, threading.Event] = {}
         self._closed = False
+        # Its Qt object deleted with its dock (napari closing, a test's
+        # teardown) while a worker still runs: nothing may be emitted then.
+        self._deleted = False
+        # (Not a bound method: Qt drops an object's own slots before it
+        # tells of its destruction.)
+        self.destroyed.connect(lambda *_args, runner=self: runner._on_destroyed())
         self._notified: dict[str, str] = {}  # per job: the failure last notified
         enough_worker_threads()
+
+    def _on_destroyed(self, *_args) -> None:
+        self._deleted = True
+        self._closed = True
+        self._pending.clear()
+        for event in self._cancel.values():
+            event.set()
+        for worker in list(self._workers.values()):
+            worker.quit()
+
+    def _emit(self, signal_name: str, *args) -> None:
+        """Emit one of this runner's signals, unless its Qt object is gone (a
+        worker finishing after its dock was deleted raised RuntimeError in a
+        Qt slot: "wrapped C/C++ object of type JobRunner has been deleted")."""
+        if self._deleted:
+            return
+        try:
+            getattr(self, signal_name).emit(*args)
+        except RuntimeError:
+            self._deleted = True
 
     # -------------------------------------------------------------- state
     @property
@@ -225,7 +251,7 @@ class JobRunner(QObject):
             # handlers may start the next job of the same name.
             if self._workers.get(job) is worker:
                 del self._workers[job]
-                self.busy_changed.emit()
+                self._emit("busy_changed")
 
         def returned(value):
             release()
@@ -233,7 +259,7 @@ class JobRunner(QObject):
                 return
             self._notified.pop(job, None)
             if value is CANCELLED:
-                self.status.emit(f"{job}: cancelled")
+                self._emit("status", f"{job}: cancelled")
                 on_returned(None)
                 return
             on_returned(value)
@@ -243,10 +269,10 @@ class JobRunner(QObject):
             msg = one_line(exc)
             _log_failure(job, msg, exc)
             if not self._closed:
-                self.status.emit(f"{job} failed: {msg}")
+                self._emit("status", f"{job} failed: {msg}")
                 if notify:
                     self._notify_failure(job, f"{job} failed: {msg}")
-                self.failed.emit(job, msg)
+                self._emit("failed", job, msg)
                 if on_failed is not None:
                     on_failed(msg)
 
@@ -265,7 +291,7 @@ class JobRunner(QObject):
 
         def finished():
             release()
-            self.busy_changed.emit()
+            self._emit("busy_changed")
             if on_finished is not None and not self._closed:
                 on_finished()
             if job not in self._workers:
@@ -284,7 +310,7 @@ class JobRunner(QObject):
         worker = create_worker(guarded(fn), *args, _connect=connect, _start_thread=False,
                                **extra, **kwargs)
         self._workers[job] = worker
-        self.busy_changed.emit()
+        self._emit("busy_changed")
         worker.start()
         return worker
 
