@@ -517,3 +517,26 @@ def test_a_name_typed_without_a_suffix_takes_the_chosen_filters():
     assert with_filter_suffix("/d/outcrop.shp", gpkg) == "/d/outcrop.shp"  # the name's wins
     assert with_filter_suffix("", gpkg) == ""  # cancelled
     assert with_filter_suffix("/d/x", "All files (*)") == "/d/x"
+
+
+def test_on_its_own_the_dock_frames_the_photo_to_draw_on(widget, qtbot):
+    """With the model and a photo in one viewer (Plugins → Interpret), the
+    canvas was fitted to both: the photo small in a corner of a black canvas,
+    a slice of the model over it. Drawing hides the model in 2D and frames
+    the photo; Show in 3D brings the model back."""
+    viewer = widget.viewer
+    model, photo = viewer.layers["sample outcrop"], viewer.layers["IMG_0001"]
+    viewer.dims.ndisplay = 3
+    viewer.reset_view()
+    widget.new_interpretation_layer()
+    assert viewer.dims.ndisplay == 2 and not model.visible and photo.visible
+    h, w = photo.data.shape[:2]
+    camera = viewer.scene.camera
+    center = np.asarray(camera.center[-2:])
+    assert np.allclose(center, [(h - 1) / 2, (w - 1) / 2], atol=0.05 * w)
+    canvas_h, canvas_w = viewer.canvas.size
+    # The photo fills the canvas's width or height (napari's 5 % margin).
+    assert max(w * camera.zoom / canvas_w, h * camera.zoom / canvas_h) > 0.85
+    # The model hidden, its height slider moves nothing: no slider bar.
+    assert viewer.window._qt_viewer.dims.isHidden()
+    widget.show_3d()  # nothing projected yet: stays; the model comes back with a projection

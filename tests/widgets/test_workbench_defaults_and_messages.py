@@ -222,10 +222,8 @@ def test_closing_after_the_window_is_gone_does_not_abort(workbench):
         def isHidden(self):
             raise RuntimeError("wrapped C/C++ object of type QtDims has been deleted")
 
-    qt_viewer = workbench.controller.viewer.window._qt_viewer
-    bar, qt_viewer.dims = qt_viewer.dims, Deleted()
-    try:
-        workbench.controller._update_dims_bar()
-        workbench.controller._set_dims_bar_visible(True)
-    finally:
-        qt_viewer.dims = bar
+    hider = workbench.controller._dims_bar
+    hider._bar = Deleted()
+    hider.update()
+    hider.set_visible(True)
+    assert not isinstance(hider._bar, Deleted)  # the window's own bar, found again

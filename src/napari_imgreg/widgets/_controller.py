@@ -53,6 +53,7 @@ from ..registration.stages.relight import render_sunlit
 from ..render import RenderResult, render
 from ..sample import sample_scene
 from ._jobs import JobRunner, in_python_thread
+from ._dims_bar import HeightSliderHider
 from ._layers import (
     INTERPRETATION_OF,
     REDUCED_BY,
@@ -62,7 +63,6 @@ from ._layers import (
     frustum_segments,
     napari_from_pixels,
     napari_from_world,
-    only_height_slider,
     pixels_from_napari,
     surface_layer_data,
     view_from_camera,
@@ -680,11 +680,7 @@ class WorkbenchController(QObject):
         self._params_timer.setInterval(PARAMS_SAVE_DELAY_MS)
         self._params_timer.timeout.connect(self._save_params)
         viewer.dims.events.ndisplay.connect(self._on_ndisplay)
-        for dims_event in self._DIMS_BAR_EVENTS:
-            getattr(viewer.dims.events, dims_event).connect(self._update_dims_bar)
-        for layers_event in ("inserted", "removed"):
-            getattr(viewer.layers.events, layers_event).connect(self._update_dims_bar)
-        self._update_dims_bar()
+        self._dims_bar = HeightSliderHider(viewer)
         self.jobs.busy_changed.connect(self.busy_changed.emit)
         self.jobs.status.connect(self.status.emit)
         self.jobs.failed.connect(self.failed.emit)
@@ -897,6 +893,8 @@ class WorkbenchController(QObject):
         """A dock uses this controller; when the last one is gone, it shuts down."""
         self._docks += 1
         widget.destroyed.connect(self._detach)
+        if self._dims_bar.anchor is None and hasattr(widget, "window"):
+            self._dims_bar.anchor = widget
 
     def _detach(self, *_args) -> None:
         self._docks -= 1
@@ -920,13 +918,9 @@ class WorkbenchController(QObject):
             self.workspace.detach()
         try:
             self.viewer.dims.events.ndisplay.disconnect(self._on_ndisplay)
-            for dims_event in self._DIMS_BAR_EVENTS:
-                getattr(self.viewer.dims.events, dims_event).disconnect(self._update_dims_bar)
-            for layers_event in ("inserted", "removed"):
-                getattr(self.viewer.layers.events, layers_event).disconnect(self._update_dims_bar)
         except (TypeError, ValueError, RuntimeError):  # pragma: no cover
             pass
-        self._set_dims_bar_visible(True)
+        self._dims_bar.release()
 
     # -------------------------------------------------------------- scene
     def open_scene(self, mesh: str | Path, dem: str | Path | None = None,
@@ -1741,30 +1735,6 @@ class WorkbenchController(QObject):
         if three_d and self._cameras_dirty:
             self._update_cameras()
         self.layers.set_mode_3d(three_d)
-
-    #: The viewer's dims events after which the slider bar is checked again.
-    _DIMS_BAR_EVENTS = ("ndisplay", "range", "axis_labels")
-
-    def _update_dims_bar(self, event=None) -> None:
-        """Hide napari's slider bar under the canvas while its one slider is
-        the model's height in the 2D view of the photos (it moves nothing
-        there: :func:`only_height_slider`); show it again otherwise."""
-        dims = self.viewer.dims
-        visible_ndims = [layer.ndim for layer in self.viewer.layers if layer.visible]
-        self._set_dims_bar_visible(not only_height_slider(dims.axis_labels, dims.displayed,
-                                                          dims.nsteps, visible_ndims))
-
-    def _set_dims_bar_visible(self, visible: bool) -> None:
-        # napari has no public switch for its slider bar: its Qt widget is
-        # reached through the window; a viewer without one (a model in a
-        # test, a napari that moved it) keeps its bar as it is.
-        qt_viewer = getattr(getattr(self.viewer, "window", None), "_qt_viewer", None)
-        bar = getattr(qt_viewer, "dims", None)
-        try:
-            if bar is not None and hasattr(bar, "isHidden") and bar.isHidden() == visible:
-                bar.setVisible(visible)
-        except RuntimeError:  # the window is closing: its widgets are deleted
-            pass
 
     def show_3d(self, from_pose: bool = False) -> None:
         """The model and the cameras in 3D: seen obliquely, facing the outcrop

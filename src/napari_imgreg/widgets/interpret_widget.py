@@ -83,6 +83,7 @@ from ..io.photos import load_photo
 from ..io.records import read_json
 from ..prior import load_camera_and_pose
 from ..workspace import PhotoState, Workspace, one_line, project_interpretation_sets
+from ._dims_bar import HeightSliderHider
 from ._jobs import JobRunner
 from ._layers import (
     INTERPRETATION_OF,
@@ -442,6 +443,8 @@ class InterpretWidget(QWidget):
             event.connect(self._update_drawing)
         self.viewer.layers.selection.events.active.connect(self._update_drawing)
         self.viewer.dims.events.ndisplay.connect(self._update_drawing)
+        self._dims_bar = HeightSliderHider(self.viewer, anchor=self)
+        self.destroyed.connect(lambda *_args, bar=self._dims_bar: bar.release())
         self.viewer.dims.events.ndisplay.connect(self._interpretations_follow_ndisplay)
         self._refresh_layers()
         if self.workspace is not None:
@@ -512,10 +515,11 @@ class InterpretWidget(QWidget):
             return None
         layer = self.interpretation_layer(photo_layer) or self.show_workspace_interpretations(
             photo_layer)
-        if layer is None:
+        new = layer is None
+        if new:
             layer = self._add_interpretation_layer(photo_layer)
         self.viewer.layers.selection.active = layer
-        self._draw_mode(layer)
+        self._draw_mode(layer, fit=new)
         layer.mode = _LINE_MODE
         self.status_label.setText(
             f"Drawing {self.current_label!r} on {photo_layer.name}: {self._drawing_hint()}.")
@@ -933,12 +937,46 @@ class InterpretWidget(QWidget):
             else:
                 other.visible = True
 
-    def _draw_mode(self, layer) -> None:
-        """Drawing happens on the photo, in 2D: leave the 3D canvas, show photo and layer."""
-        if self.viewer.dims.ndisplay != 2:
+    def _draw_mode(self, layer, fit: bool = False) -> None:
+        """Drawing happens on the photo, in 2D: leave the 3D canvas, show photo and layer.
+
+        On its own (not in the workbench, which frames its canvas itself) the
+        dock also hides the model and the projected lines (metres in 3D: in
+        2D a stray slice of them lay over the photo's corner; "Show in 3D"
+        shows them again) and frames the photo when it leaves 3D or ``fit``
+        (a new layer): the view was fitted to the model's and the photo's
+        extents together, the photo small in a corner of a black canvas.
+        """
+        switched = self.viewer.dims.ndisplay != 2
+        if switched:
             self.viewer.dims.ndisplay = 2
         photo = self.viewer.layers[layer.metadata[INTERP_KEY]]
         photo.visible = layer.visible = True
+        if self.workspace is not None:
+            return
+        model = self.surface_combo.currentText()
+        for other in list(self.viewer.layers):
+            if other.visible and other.ndim > 2 and (PROJECTED_KEY in other.metadata
+                                                     or other.name == model):
+                other.visible = False
+        if switched or fit:
+            self._frame(photo)
+        self._dims_bar.update()  # the model hidden: its height slider moves nothing now
+
+    def _frame(self, photo) -> None:
+        """The photo fills the 2D canvas (``viewer.fit_to_view`` takes a 2D
+        layer's extent for all the viewer's axes and fails when the model
+        gives it three)."""
+        lo, hi = (np.asarray(photo.extent.world, float)[:, -2:])
+        canvas = getattr(self.viewer, "canvas", None)
+        canvas_h, canvas_w = canvas.size if canvas is not None else (600, 800)
+        scene = getattr(self.viewer, "scene", None)  # napari >= 0.9 keeps the camera there
+        cam = scene.camera if scene is not None and hasattr(scene, "camera") else self.viewer.camera
+        mid = (lo + hi) / 2.0
+        centre = tuple(cam.center)
+        cam.center = (centre[0], *mid) if len(centre) == 3 else tuple(mid)
+        cam.zoom = 0.95 * min(canvas_h / max(hi[0] - lo[0], 1.0),
+                              canvas_w / max(hi[1] - lo[1], 1.0))
 
     # ----------------------------------------------------------- labels
     @property
