@@ -632,6 +632,59 @@ def test_a_failed_sub_command_gives_the_folder_back(sample, tmp_path):
     Workspace.open(folder).detach()  # and it opens again in this process
 
 
+#: `workspace register` whose first photo stalls (marking that it started)
+#: until the process is signalled.
+_STALLED_REGISTER = """
+    import sys, time
+    from pathlib import Path
+    from napari_imgreg.cli import main
+    from napari_imgreg.workspace import Workspace
+
+    def register(self, *args, **kwargs):
+        Path(sys.argv[1]).write_text("started")
+        while True:
+            time.sleep(0.05)
+
+    Workspace.register = register
+    sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("signum, code, words", [
+    (signal.SIGTERM, 143, "terminated (SIGTERM)"),  # a job scheduler's time limit, `kill`
+    (signal.SIGINT, 130, "interrupted"),
+])
+def test_a_signalled_workspace_register_gives_the_folder_back(sample, tmp_path, signum, code,
+                                                              words):
+    """SIGTERM killed `workspace register` where it stood: exit -15, no word,
+    workspace.lock left behind; it now unwinds as Ctrl-C does."""
+    folder = tmp_path / "campaign.imgreg"
+    assert _cli("workspace", "create", folder, sample[0]) == 0
+    marker = tmp_path / "started"
+    child = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(_STALLED_REGISTER), str(marker), "workspace",
+         "register", str(folder), "--workers", "0"],
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")}, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not marker.exists():
+            assert child.poll() is None and time.monotonic() < deadline, child.communicate()
+            time.sleep(0.05)
+        assert (folder / "workspace.lock").exists()
+        child.send_signal(signum)
+        stdout, stderr = child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait(30)
+    assert child.returncode == code, stderr
+    assert stderr.strip() == words
+    assert "interrupted; every photo registered so far is saved" in stdout
+    assert not (folder / "workspace.lock").exists()
+    Workspace.open(folder).detach()  # free for the next session
+
+
 def test_one_session_saves_into_a_folder_at_a_time(ws, tmp_path):
     folder = tmp_path / "w.imgreg"
     ws.save(folder)

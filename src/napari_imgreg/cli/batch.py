@@ -40,7 +40,6 @@ import csv
 import json
 import math
 import re
-import signal
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -53,12 +52,14 @@ from ._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_OK,
+    Terminated,
     load_scene,
     one_line,
     print_error,
     progress_printer,
     read_params,
     say,
+    sigterm_as_interrupt,
     write_json,
 )
 from ..errors import InputError, input_error
@@ -365,18 +366,8 @@ def _result_names(photos: list[Path]) -> dict[Path, str]:
             for p in photos}
 
 
-#: Exit code after SIGTERM, as a shell reports it (128 + 15).
-EXIT_TERMINATED = 143
 #: Statuses a result file of ours may hold.
 _RESULT_STATUSES = ("registered", "failed")
-
-
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the batch is, so it unwinds as Ctrl-C does."""
-
-
-def _raise_terminated(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
-    raise _Terminated()
 
 
 # ---------------------------------------------------------------- summary
@@ -552,22 +543,15 @@ def run(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
 
     try:
-        previous_sigterm = signal.signal(signal.SIGTERM, _raise_terminated)
-    except ValueError:  # not the main thread (an embedding application): its own handler stays
-        previous_sigterm = None
-    try:
-        return _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
-                           t_start, earlier)
+        # SIGTERM unwinds as Ctrl-C (Terminated): main() reports it, exit code 143.
+        with sigterm_as_interrupt():
+            return _run_photos(args, files, spec, scene, params, cluster, out, names, header,
+                               rows, t_start, earlier)
     except InputError:
         # No scheduler answers (nothing was registered): no empty results folder left behind.
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
         raise
-    except _Terminated:
-        return EXIT_TERMINATED
-    finally:
-        if previous_sigterm is not None:
-            signal.signal(signal.SIGTERM, previous_sigterm)
 
 
 def _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
@@ -630,9 +614,9 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
             for name, outcome in runner.run(tasks):
                 _record_outcome(name, outcome, out, names[files.photos[order[name]]], record,
                                 f"[{done + 1:>{width}}/{n}] {name}")
-    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (_Terminated)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (Terminated)
         header["interrupted"] = True
-        header["signal"] = "SIGTERM" if isinstance(exc, _Terminated) else "SIGINT"
+        header["signal"] = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
         left = _rows_left_in_folder(files.photos, out, names, rows, earlier)
         rows.extend(left)
         rows.sort(key=lambda r: order[r["photo"]])

@@ -317,7 +317,6 @@ def _not_added(errors: list[str], action: str) -> int:
 
 
 def _register(args: argparse.Namespace) -> int:
-    from ..workspace import one_line
     ws = _open(args.folder)
     chosen = {id(_photo_named(ws, args.folder, name)) for name in args.photo or []}
     asked = [k for k, ps in enumerate(ws.photos) if not args.photo or id(ps) in chosen]
@@ -330,6 +329,19 @@ def _register(args: argparse.Namespace) -> int:
     say(f"{args.folder}: {len(todo)} photo(s) to register"
         + (f" ({done} already done)" if done else ""))
     cluster = cluster_params(args)
+    try:
+        return _register_photos(args, ws, asked, todo, cluster)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: each photo was saved as it came back
+        say(f"{args.folder}: interrupted; every photo registered so far is saved there "
+            "(run 'workspace register' again to carry on)", flush=True)
+        raise
+
+
+def _register_photos(args: argparse.Namespace, ws: Workspace, asked: list[int],
+                     todo: list[int], cluster) -> int:
+    """Register the photos ``todo`` (indices into ``ws.photos``) on the cluster,
+    or one after another here; the exit code covers the photos ``asked``."""
+    from ..workspace import one_line
     if not cluster.in_process and len(todo) > 1:
         failed = _register_on_cluster(ws, todo, auto=not args.once, cluster=cluster)
         missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered
