@@ -280,6 +280,56 @@ def test_interrupted_rerun_lists_every_result_in_the_folder(tmp_path, monkeypatc
     assert "interrupted after 3 of 3 photos (1 of them an earlier run's result" in stdout
 
 
+def test_skip_existing_never_keeps_a_result_of_another_model(tmp_path, monkeypatch):
+    """The model re-exported, the batch run again into the same folder and
+    interrupted, then resumed: --skip-existing kept the earlier model's poses
+    as if they were of the new one. Now each is registered again, and the
+    interrupted run's summary names them (``stale_results``) instead of
+    listing them as its own."""
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002", "IMG_0003"])
+    out = tmp_path / "results"
+    calls = []
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        calls.append(photo_name)
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    assert _run(["batch", scene, "--out", out, "--workers", 0])[0] == 0
+    with open(scene / "outcrop.obj", "a", encoding="utf-8") as fh:
+        fh.write("# re-exported\n")  # another model under the same name
+
+    def interrupted_at_the_second(scene_, image, prior, params=None, photo_name="",
+                                  on_progress=None):
+        if photo_name == "IMG_0002.jpg":
+            raise KeyboardInterrupt
+        return registered(scene_, image, prior, params, photo_name)
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register",
+                        interrupted_at_the_second)
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--workers", 0])
+    assert code == 130
+    assert "holds 3 result(s) registered on another model (outcrop.obj: " in stdout
+    rows, summary = _summary(out)
+    assert [r["photo"] for r in rows] == ["IMG_0001.jpg"]  # the only one of this model
+    assert summary["stale_results"] == ["IMG_0002.result.json", "IMG_0003.result.json"]
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    calls.clear()
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])
+    assert code == 0
+    assert calls == ["IMG_0002.jpg", "IMG_0003.jpg"]
+    assert "IMG_0003.jpg: existing result registered on another model: redoing it" in stdout
+    rows, summary = _summary(out)
+    assert summary["complete"] and summary["stale_results"] == []
+    assert summary["counts"] == {"registered": 3, "failed": 0, "bad_input": 0, "error": 0,
+                                 "skipped": 1}
+    # Resumed with the same model, nothing is redone.
+    calls.clear()
+    assert _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])[0] == 0
+    assert calls == []
+
+
 def test_batch_help(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["batch", "--help"])

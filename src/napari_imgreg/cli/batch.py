@@ -69,6 +69,7 @@ from ..scene import size_text
 from ..io.photos import PHOTO_SUFFIXES
 from ..registration.quality import outcome_words
 from ..io.records import read_json
+from ..io.workspace_files import file_fingerprint, fingerprint_difference
 from ..validate import check_writable
 
 if TYPE_CHECKING:
@@ -456,8 +457,18 @@ def _refuse_unwritable_outputs(out: Path, result_names) -> None:
             raise input_error(out / name, "cannot write here: it is a folder, not a file")
 
 
-def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
-    """Write summary.csv and summary.json atomically (csv first, json last)."""
+def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]],
+                   stale: dict[str, tuple[int, int, int]] | None = None) -> None:
+    """Write summary.csv and summary.json atomically (csv first, json last).
+
+    ``stale``: the results of another model found at the start (file name ->
+    stamp, :func:`_stale_results`); those still in the folder unchanged are
+    named in ``stale_results``, so a later ``--skip-existing`` redoes them.
+    """
+    if stale:
+        now = _result_stamps_of(out, stale)
+        header["stale_results"] = sorted(name for name, stamp in stale.items()
+                                         if now.get(name) == stamp)
     with atomic_write(out / "summary.csv", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(SUMMARY_COLUMNS)
@@ -526,15 +537,24 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     names = _result_names(files.photos)
     earlier = _result_stamps(out, names)
-    if earlier and not args.skip_existing:
-        say(f"  {out}/ holds {len(earlier)} result(s) of an earlier run: they will be replaced "
-            "(--skip-existing keeps them and registers only the other photos)")
+    mesh_fingerprint = file_fingerprint(files.mesh)
+    other_model = _other_model(out, mesh_fingerprint)
+    stale = _stale_results(out, earlier, other_model)
+    if other_model and stale:
+        say(f"  {out}/ holds {len(stale)} result(s) registered on another model "
+            f"({other_model}): they will be registered again"
+            + ("" if args.skip_existing else " and replaced"))
+    if earlier.keys() - stale.keys() and not args.skip_existing:
+        say(f"  {out}/ holds {len(earlier.keys() - stale.keys())} result(s) of an earlier run: "
+            "they will be replaced (--skip-existing keeps them and registers only the other "
+            "photos)")
     header: dict[str, Any] = {
         "scene": str(files.folder),
         "mesh": str(files.mesh),
         "dem": str(files.dem) if files.dem else None,
         "georef": str(files.georef) if files.georef else None,
         "params": str(args.params) if args.params else None,
+        "mesh_fingerprint": mesh_fingerprint,
         "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "n_photos": n,
         "complete": False,
@@ -546,7 +566,7 @@ def run(args: argparse.Namespace) -> int:
         # SIGTERM unwinds as Ctrl-C (Terminated): main() reports it, exit code 143.
         with sigterm_as_interrupt():
             return _run_photos(args, files, spec, scene, params, cluster, out, names, header,
-                               rows, t_start, earlier)
+                               rows, t_start, earlier, stale)
     except InputError:
         # No scheduler answers (nothing was registered): no empty results folder left behind.
         if created and out.is_dir() and not any(out.iterdir()):
@@ -555,7 +575,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
-                t_start, earlier) -> int:
+                t_start, earlier, stale) -> int:
     """The photo loop of :func:`run`; the summary is current after every photo.
 
     Results kept from an earlier run (``--skip-existing``) come first; the
@@ -564,6 +584,9 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
     summary (its rows in the photos' name order) after each photo. After an
     interrupt the summary lists every result in RESULTS_DIR (``earlier``: the
     stamps of those there at the start, see :func:`_rows_left_in_folder`).
+    Results in ``stale`` (of another model, :func:`_stale_results`) are
+    registered again, never kept, and until then named in the summary's
+    ``stale_results``, not listed as rows.
     """
     from ..registration import batch as backend
 
@@ -577,13 +600,15 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
         done += 1
         rows.append(row)
         rows.sort(key=lambda r: order[r["photo"]])
-        _write_summary(out, header, rows)
+        _write_summary(out, header, rows, stale)
 
     try:
         todo = []
         for photo_path in files.photos:
             result_path = out / names[photo_path]
-            if args.skip_existing and result_path.is_file():
+            if args.skip_existing and result_path.name in stale:
+                say(f"{photo_path.name}: existing result registered on another model: redoing it")
+            elif args.skip_existing and result_path.is_file():
                 try:
                     row = _existing_row(photo_path.name, result_path)
                 except InputError as exc:
@@ -618,9 +643,10 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
         header["interrupted"] = True
         header["signal"] = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
         left = _rows_left_in_folder(files.photos, out, names, rows, earlier)
+        left = [r for r in left if not (r["skipped"] and r["result"] in stale)]
         rows.extend(left)
         rows.sort(key=lambda r: order[r["photo"]])
-        _write_summary(out, header, rows)
+        _write_summary(out, header, rows, stale)
         n_earlier = sum(1 for r in left if r["skipped"])
         say(f"interrupted after {len(rows)} of {n} photos"
             + (f" ({n_earlier} of them an earlier run's result, not replaced)" if n_earlier
@@ -630,7 +656,7 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
         raise
 
     header["complete"] = True
-    _write_summary(out, header, rows)
+    _write_summary(out, header, rows, stale)
     counts = {k: sum(1 for r in rows if r["status"] == k)
               for k in ("registered", "failed", "bad_input", "error")}
     skipped = sum(1 for r in rows if r.get("skipped"))
@@ -649,8 +675,43 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
 
 def _result_stamps(out: Path, names: dict[Path, str]) -> dict[str, tuple[int, int, int]]:
     """Result file name -> (inode, size, mtime) of the photos' results already in ``out``."""
+    return _result_stamps_of(out, names.values())
+
+
+def _other_model(out: Path, mesh_fingerprint: dict | None) -> str:
+    """How the model of the summary already in ``out`` differs from this
+    run's (``mesh_fingerprint``), in words; "" when it does not, or when that
+    cannot be told (no summary, an unreadable one, or one written before
+    summaries recorded ``mesh_fingerprint``)."""
+    try:
+        earlier = read_json(out / "summary.json")
+    except (InputError, OSError):
+        return ""
+    if not isinstance(earlier, dict):
+        return ""
+    difference = fingerprint_difference(earlier.get("mesh_fingerprint"), mesh_fingerprint)
+    return f"{Path(str(earlier.get('mesh'))).name}: {difference}" if difference else ""
+
+
+def _stale_results(out: Path, earlier: dict[str, tuple[int, int, int]], other_model: str
+                   ) -> dict[str, tuple[int, int, int]]:
+    """The results in ``out`` registered on another model than this run's:
+    every one when the summary there is of another model (``other_model``),
+    else those the summary still names in ``stale_results`` (an interrupted
+    run on this model had not replaced them yet). Name -> stamp, as ``earlier``."""
+    if other_model:
+        return dict(earlier)
+    try:
+        named = read_json(out / "summary.json").get("stale_results") or []
+    except (InputError, OSError, AttributeError):
+        return {}
+    return {name: earlier[name] for name in named if isinstance(name, str) and name in earlier}
+
+
+def _result_stamps_of(out: Path, names) -> dict[str, tuple[int, int, int]]:
+    """File name -> (inode, size, mtime) of the files ``names`` in ``out`` that exist."""
     stamps = {}
-    for name in names.values():
+    for name in names:
         try:
             st = (out / name).stat()
         except OSError:  # none yet (or unreadable: registered again, as if none)
