@@ -719,6 +719,37 @@ def test_one_session_saves_into_a_folder_at_a_time(ws, tmp_path):
         Workspace.open(folder, scene=ws.scene, terrain=ws.terrain)
 
 
+def test_a_lock_being_written_by_another_session_is_not_taken_for_a_stale_one(tmp_path):
+    """Two sessions starting at once: the second found the first's lock file
+    created but not yet written, took the empty file for a stale lock and
+    took it over; both then saved into the folder."""
+    import threading
+
+    folder = tmp_path / "w.imgreg"
+    folder.mkdir()
+    lock = folder / wsfiles.LOCK
+    lock.write_text("")  # the other session's, created an instant ago
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    held = json.dumps({"pid": other.pid, "host": __import__("socket").gethostname(),
+                       "since": "2026-12-05T08:00:00Z", "token": "theirs"})
+    writer = threading.Timer(0.3, lock.write_text, args=(held,))
+    writer.start()
+    try:
+        with pytest.raises(InputError, match=f"is open in another napari-imgreg \\(pid {other.pid}"):
+            wsfiles.acquire_lock(folder)
+    finally:
+        writer.join()
+        other.kill()
+        other.wait(30)
+    assert json.loads(lock.read_text())["token"] == "theirs"
+    # A lock that stays unreadable is a torn write of a session long gone: taken over.
+    lock.write_text("{")
+    os.utime(lock, (time.time() - 60, time.time() - 60))
+    token = wsfiles.acquire_lock(folder)
+    assert json.loads(lock.read_text())["token"] == token
+    assert [p.name for p in folder.iterdir()] == [wsfiles.LOCK]  # no temporary file left
+
+
 def test_two_photos_with_one_file_name_are_told_apart_not_confused(sample, tmp_path, capsys):
     # Two cameras both name a photo IMG_0001.jpg: a command naming
     # "IMG_0001.jpg" must not pick one of them silently (it used to draw on
