@@ -330,6 +330,46 @@ def test_skip_existing_never_keeps_a_result_of_another_model(tmp_path, monkeypat
     assert calls == []
 
 
+def test_one_batch_writes_into_a_results_folder_at_a_time(tmp_path, monkeypatch):
+    """Two batches into one folder each rewrote the summary with only their
+    own rows and replaced each other's results: the second is now refused
+    in one line, before its scene loads, and the folder is left as it was."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001"])
+    out = tmp_path / "results"
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    assert _run(["batch", scene, "--out", out, "--workers", 0])[0] == 0
+    assert not (out / "batch.lock").exists()  # given back at the end
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (out / "batch.lock").write_text(json.dumps(
+            {"pid": other.pid, "host": socket.gethostname(), "since": "2026-12-05T08:00:00Z",
+             "token": "theirs"}))
+        code, stdout, stderr = _run(["batch", scene, "--out", out, "--workers", 0])
+    finally:
+        other.kill()
+        other.wait(30)
+    assert code == 2 and stdout == ""
+    assert stderr.strip() == (f"napari-imgreg batch: error: {out}: another napari-imgreg batch "
+                              f"(pid {other.pid}, since 2026-12-05T08:00:00Z) writes its results "
+                              "here: let it end or stop it, or delete batch.lock if no batch runs")
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != "batch.lock"} == before
+    # Its process gone (killed, a power cut): the lock is taken over.
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])
+    assert code == 0, stderr
+    assert sorted(os.listdir(out)) == sorted(before)
+
+
 def test_batch_help(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["batch", "--help"])

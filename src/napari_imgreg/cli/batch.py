@@ -69,7 +69,12 @@ from ..scene import size_text
 from ..io.photos import PHOTO_SUFFIXES
 from ..registration.quality import outcome_words
 from ..io.records import read_json
-from ..io.workspace_files import file_fingerprint, fingerprint_difference
+from ..io.workspace_files import (
+    acquire_lock,
+    file_fingerprint,
+    fingerprint_difference,
+    release_lock,
+)
 from ..validate import check_writable
 
 if TYPE_CHECKING:
@@ -367,6 +372,8 @@ def _result_names(photos: list[Path]) -> dict[Path, str]:
             for p in photos}
 
 
+#: Held in RESULTS_DIR while a batch writes there ({"pid", "host", "since", "token"}).
+BATCH_LOCK = "batch.lock"
 #: Statuses a result file of ours may hold.
 _RESULT_STATUSES = ("registered", "failed")
 
@@ -493,8 +500,6 @@ def exit_code_of(rows: list[dict[str, Any]]) -> int:
 # ------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``batch``: check the scene, register every photo, keep the summary current."""
-    from ..registration.batch import SceneSpec
-
     t_start = time.perf_counter()
     # Absolute: the workers of an existing scheduler resolve a relative path
     # in their own working folder, not the one this command was run in.
@@ -502,6 +507,23 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise input_error(out, "exists and is not a folder")
     check_writable(out, folder=True)  # before the scene loads: read-only, /proc, inside a file
+    # One batch writes into a results folder at a time: two would each rewrite
+    # the summary with their own rows only, and replace each other's results.
+    lock: dict[str, str] = {}
+    if out.is_dir():  # refused before the scene loads
+        lock["token"] = acquire_lock(out, lock_name=BATCH_LOCK, kind="batch")
+    try:
+        return _run_scene(args, out, t_start, lock)
+    finally:
+        if lock:
+            release_lock(out, lock["token"], BATCH_LOCK)
+
+
+def _run_scene(args: argparse.Namespace, out: Path, t_start: float, lock: dict[str, str]) -> int:
+    """:func:`run` once RESULTS_DIR is this command's (``lock``: the token of
+    its ``batch.lock``, taken here when this command creates the folder)."""
+    from ..registration.batch import SceneSpec
+
     cluster = cluster_params(args)
     if cluster.scheduler:
         from ..registration.batch import _scheduler_address
@@ -535,6 +557,8 @@ def run(args: argparse.Namespace) -> int:
 
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    if not lock:
+        lock["token"] = acquire_lock(out, lock_name=BATCH_LOCK, kind="batch")
     names = _result_names(files.photos)
     earlier = _result_stamps(out, names)
     mesh_fingerprint = file_fingerprint(files.mesh)
@@ -569,6 +593,7 @@ def run(args: argparse.Namespace) -> int:
                                rows, t_start, earlier, stale)
     except InputError:
         # No scheduler answers (nothing was registered): no empty results folder left behind.
+        release_lock(out, lock.pop("token"), BATCH_LOCK)
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
         raise

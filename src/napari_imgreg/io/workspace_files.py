@@ -435,8 +435,13 @@ def _create_lock(path: Path, text: str) -> bool:
         tmp.unlink(missing_ok=True)
 
 
-def acquire_lock(folder: str | os.PathLike, own_stale: bool = True) -> str:
+def acquire_lock(folder: str | os.PathLike, own_stale: bool = True, lock_name: str = LOCK,
+                 kind: str = "workspace") -> str:
     """Take the folder's ``workspace.lock`` for this process; returns its token.
+
+    ``lock_name`` and ``kind`` (``"workspace"``, or ``"batch"`` for the
+    ``batch.lock`` of a results folder) name the lock and the session the
+    error lines speak of.
 
     A lock left by a process that is gone (killed, crashed) on this machine is
     taken over; so is one of this process (``own_stale``: the caller knows no
@@ -451,7 +456,7 @@ def acquire_lock(folder: str | os.PathLike, own_stale: bool = True) -> str:
         another machine (which cannot be checked): the line says which and how
         to go on.
     """
-    path = Path(folder) / LOCK
+    path = Path(folder) / lock_name
     host, pid = socket.gethostname(), os.getpid()
     token = uuid.uuid4().hex
     text = json_text({"pid": pid, "host": host, "since": utc_now(), "token": token})
@@ -474,25 +479,35 @@ def acquire_lock(folder: str | os.PathLike, own_stale: bool = True) -> str:
                 time.sleep(0.1)
                 continue
             held, other_pid, other_host = {}, -1, host  # a torn write long ago: stale
+        since = held.get("since", "?")
         if other_host != host:
+            if kind == "batch":
+                raise input_error(folder, f"a napari-imgreg batch on {other_host} (pid "
+                                          f"{other_pid}, since {since}) writes its results "
+                                          f"here; let it end or stop it there, or delete "
+                                          f"{lock_name} if it is gone")
             raise input_error(folder, f"is open in napari-imgreg on {other_host} (pid "
-                                      f"{other_pid}, since {held.get('since', '?')}); close it "
-                                      f"there, or delete {LOCK} if that session is gone")
+                                      f"{other_pid}, since {since}); close it "
+                                      f"there, or delete {lock_name} if that session is gone")
         if other_pid == pid and not own_stale:
             raise input_error(folder, "is already open in this session")
         if other_pid != pid and other_pid > 0 and _process_alive(other_pid):
+            if kind == "batch":
+                raise input_error(folder, f"another napari-imgreg batch (pid {other_pid}, since "
+                                          f"{since}) writes its results here: let it end or "
+                                          f"stop it, or delete {lock_name} if no batch runs")
             # (Nothing opens a folder read-only in the workbench: say what to do instead.)
             raise input_error(folder, f"is open in another napari-imgreg (pid {other_pid}, "
-                                      f"since {held.get('since', '?')}): close it first, or "
-                                      f"delete {LOCK} if no napari-imgreg has it open")
+                                      f"since {since}): close it first, or "
+                                      f"delete {lock_name} if no napari-imgreg has it open")
         path.unlink(missing_ok=True)  # stale: its process is gone
         takeovers += 1
-    raise input_error(path, "could not take the workspace lock (another session keeps taking it)")
+    raise input_error(path, f"could not take the {kind} lock (another session keeps taking it)")
 
 
-def release_lock(folder: str | os.PathLike, token: str) -> None:
+def release_lock(folder: str | os.PathLike, token: str, lock_name: str = LOCK) -> None:
     """Give the lock back, if it is still this token's."""
-    path = Path(folder) / LOCK
+    path = Path(folder) / lock_name
     try:
         if json.loads(path.read_text(encoding="utf-8")).get("token") == token:
             path.unlink()
