@@ -189,6 +189,10 @@ def _tiny_obj(path):
         ("two_meshes", "several models (a.obj, b.ply): choose one with --mesh"),
         ("corrupt_mesh", "broken.obj"),
         ("no_photos", "no photos in the folder"),
+        # A campaign kept by day: the photos were not found, and nothing said why.
+        ("photos_in_subfolders", "no photos in the folder (expected JPEG, PNG, TIFF or HEIC "
+                                 "files); there are photos in its subfolders (day1/, day2/), "
+                                 "not read: only the folder itself is"),
         ("bad_params", "params.json: invalid JSON"),
     ],
 )
@@ -197,14 +201,20 @@ def test_bad_scene_is_exit_2_and_writes_nothing(tmp_path, case, needle):
     extra = []
     if case != "missing":
         scene.mkdir()
-        if case != "no_photos":
+        if case == "photos_in_subfolders":
+            for day in ("day1", "day2"):
+                (scene / day).mkdir()
+                Image.new("RGB", (32, 24)).save(scene / day / "IMG_0001.jpg")
+            (scene / ".thumbs").mkdir()  # hidden: not named
+            Image.new("RGB", (32, 24)).save(scene / ".thumbs" / "IMG_0001.jpg")
+        elif case != "no_photos":
             Image.new("RGB", (32, 24)).save(scene / "IMG_0001.jpg")
         if case == "two_meshes":
             _tiny_obj(scene / "a.obj")
             (scene / "b.ply").write_text("ply\n")
         elif case == "corrupt_mesh":
             (scene / "broken.obj").write_bytes(b"v 1 2\nf 1 2 9\n\x00\xff garbage")
-        elif case in ("no_photos", "bad_params"):
+        elif case in ("no_photos", "photos_in_subfolders", "bad_params"):
             _tiny_obj(scene / "a.obj")
         if case == "bad_params":
             (tmp_path / "params.json").write_text("{ oops")
@@ -215,6 +225,21 @@ def test_bad_scene_is_exit_2_and_writes_nothing(tmp_path, case, needle):
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], stderr
     assert not out.exists()
+
+
+def test_photos_in_subfolders_are_said_to_be_left_out(tmp_path):
+    """Photos in a subfolder beside those of the folder were left out in silence."""
+    from napari_imgreg.cli.batch import find_scene_files
+
+    scene = tmp_path / "scene"
+    (scene / "day2" / "cam_b").mkdir(parents=True)
+    _tiny_obj(scene / "a.obj")
+    Image.new("RGB", (32, 24)).save(scene / "IMG_0001.jpg")
+    for name in ("IMG_0001.jpg", "IMG_0002.JPG"):
+        Image.new("RGB", (32, 24)).save(scene / "day2" / "cam_b" / name)
+    files = find_scene_files(scene)
+    assert [p.name for p in files.photos] == ["IMG_0001.jpg"]
+    assert files.ignored["day2/"] == "a subfolder with 2 photo(s): only the folder itself is read"
 
 
 def test_interrupted_batch_keeps_finished_results(tmp_path, monkeypatch):

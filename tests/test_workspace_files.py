@@ -620,6 +620,20 @@ def test_the_command_line_on_a_workspace_is_resumable(sample, tmp_path, capsys):
     assert not (folder / "workspace.lock").exists()
 
 
+def test_create_names_the_subfolders_of_photos_it_leaves_out(sample, tmp_path, capsys):
+    """A campaign kept by day: the photos of day2/ were left out in silence."""
+    scene_dir = tmp_path / "scene"
+    shutil.copytree(sample[0], scene_dir, ignore=shutil.ignore_patterns("IMG_0002.*", "IMG_0003.*"))
+    (scene_dir / "day2").mkdir()
+    for name in ("IMG_0002.jpg", "IMG_0002.json", "IMG_0003.jpg", "IMG_0003.json"):
+        shutil.copy2(sample[0] / name, scene_dir / "day2" / name)
+    assert _cli("workspace", "create", tmp_path / "campaign", scene_dir) == 0
+    out = capsys.readouterr().out
+    assert ("  not added: day2/ (a subfolder with 2 photo(s): only the folder itself is read; "
+            "'workspace add' adds them)") in out
+    assert "workspace with outcrop.obj and 1 photo(s)" in out
+
+
 def test_a_failed_sub_command_gives_the_folder_back(sample, tmp_path):
     folder = tmp_path / "campaign.imgreg"
     assert _cli("workspace", "create", folder, sample[0], "--no-photos") == 0

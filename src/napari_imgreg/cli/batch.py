@@ -358,9 +358,28 @@ def find_scene_files(
             scene.ignored[p.name] = "a GeoTIFF raster (DEM or orthophoto), not a photo"
         else:
             scene.photos.append(p)
+    in_subfolders = _photos_in_subfolders(folder)
     if not scene.photos and photos_required:
-        raise input_error(folder, "no photos in the folder (expected JPEG, PNG, TIFF or HEIC files)")
+        shown = ", ".join(in_subfolders)
+        raise input_error(folder, "no photos in the folder (expected JPEG, PNG, TIFF or HEIC files)"
+                          + (f"; there are photos in its subfolders ({shown}), not read: only "
+                             "the folder itself is" if in_subfolders else ""))
+    for sub, count in in_subfolders.items():
+        scene.ignored[sub] = f"a subfolder with {count} photo(s): only the folder itself is read"
     return scene
+
+
+def _photos_in_subfolders(folder: Path) -> dict[str, int]:
+    """``"day2/"`` -> how many photos it holds (at any depth), for each
+    subfolder of ``folder`` holding photos (a campaign kept by day or camera):
+    they are not read, and the command says so."""
+    counts: dict[str, int] = {}
+    for p in sorted(folder.glob("*/**/*")):
+        parts = p.relative_to(folder).parts
+        if (p.suffix.lower() in PHOTO_SUFFIXES and not any(x.startswith(".") for x in parts)
+                and p.is_file()):
+            counts[f"{parts[0]}/"] = counts.get(f"{parts[0]}/", 0) + 1
+    return counts
 
 
 def _result_names(photos: list[Path]) -> dict[Path, str]:

@@ -265,6 +265,9 @@ def _create(args: argparse.Namespace) -> int:
     errors = [] if args.no_photos else ws.add_photos(files.photos)
     for line in errors:
         say(f"  not added: {line}")
+    for sub, why in files.ignored.items():
+        if sub.endswith("/"):  # photos kept by day or camera: 'workspace add' takes them
+            say(f"  not added: {sub} ({why}; 'workspace add' adds them)")
     say(f"{folder}: workspace with {files.mesh.name} and {len(ws.photos)} photo(s)"
         + (f"; {len(errors)} could not be read" if errors else ""))
     return _not_added(errors, "create") if errors else EXIT_OK
