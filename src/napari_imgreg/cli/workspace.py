@@ -333,11 +333,20 @@ def _register(args: argparse.Namespace) -> int:
         + (f" ({done} already done)" if done else ""))
     cluster = cluster_params(args)
     try:
-        return _register_photos(args, ws, asked, todo, cluster)
+        code = _register_photos(args, ws, asked, todo, cluster)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: each photo was saved as it came back
         say(f"{args.folder}: interrupted; every photo registered so far is saved there "
             "(run 'workspace register' again to carry on)", flush=True)
         raise
+    unopened = [line for line in ws.open_problems if line not in ws.open_warnings]
+    if unopened and not args.photo:
+        # Every photo was asked for: one that could not be read is not registered
+        # (as a bad photo of 'batch', exit code 2, not 0).
+        more = f" (and {len(unopened) - 1} more, listed above)" if len(unopened) > 1 else ""
+        print_error("workspace register", " ".join(
+            f"not registered, could not be opened: {unopened[0]}{more}".split()))
+        return EXIT_BAD_INPUT
+    return code
 
 
 def _register_photos(args: argparse.Namespace, ws: Workspace, asked: list[int],
