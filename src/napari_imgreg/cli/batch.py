@@ -683,16 +683,19 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
             for name, outcome in runner.run(tasks):
                 _record_outcome(name, outcome, out, names[files.photos[order[name]]], record,
                                 f"[{done + 1:>{width}}/{n}] {name}")
-    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (Terminated)
+    except (KeyboardInterrupt, backend.SchedulerLost) as exc:  # Ctrl-C, SIGTERM, no scheduler
         header["interrupted"] = True
-        header["signal"] = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
+        if isinstance(exc, backend.SchedulerLost):
+            header["error"] = str(exc)
+        else:
+            header["signal"] = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
         left = _rows_left_in_folder(files.photos, out, names, rows, earlier)
         left = [r for r in left if not (r["skipped"] and r["result"] in stale)]
         rows.extend(left)
         rows.sort(key=lambda r: order[r["photo"]])
         _write_summary(out, header, rows, stale)
         n_earlier = sum(1 for r in left if r["skipped"])
-        say(f"interrupted after {len(rows)} of {n} photos"
+        say(f"{'stopped' if 'error' in header else 'interrupted'} after {len(rows)} of {n} photos"
             + (f" ({n_earlier} of them an earlier run's result, not replaced)" if n_earlier
                else "")
             + f"; finished results and the summary are in {out}/ (run again with "
@@ -801,6 +804,10 @@ def _record_outcome(name: str, outcome: Any, out: Path, result_name: str, record
 
     if isinstance(outcome, TaskLost):
         outcome = {"photo": name, "status": "error", "error": f"{name}: {outcome}",
+                   "seconds": None}
+    elif isinstance(outcome, BaseException):  # raised around the task (e.g. by Dask itself)
+        outcome = {"photo": name, "status": "error",
+                   "error": f"{name}: {type(outcome).__name__}: {one_line(outcome)}",
                    "seconds": None}
     status = outcome["status"]
     if status in ("bad_input", "error"):
