@@ -355,6 +355,33 @@ def test_skip_existing_never_keeps_a_result_of_another_model(tmp_path, monkeypat
     assert calls == []
 
 
+def test_skip_existing_redoes_a_photo_replaced_under_its_name(tmp_path, monkeypatch):
+    """A photo re-exported (cropped, retouched) under its name kept the result
+    of its earlier version with --skip-existing."""
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002"])
+    out = tmp_path / "results"
+    calls = []
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        calls.append(photo_name)
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    assert _run(["batch", scene, "--out", out, "--workers", 0])[0] == 0
+    Image.open(scene / "IMG_0002.jpg").save(scene / "IMG_0002.jpg", quality=70)  # re-exported
+    calls.clear()
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])
+    assert code == 0 and calls == ["IMG_0002.jpg"]
+    assert "IMG_0002.jpg: the photo has changed since its existing result (" in stdout
+    _, summary = _summary(out)
+    assert [r["skipped"] for r in summary["photos"]] == [True, False]
+    assert all(r["photo_fingerprint"]["size"] == (scene / r["photo"]).stat().st_size
+               for r in summary["photos"])
+    calls.clear()  # as it is now, nothing to redo
+    assert _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])[0] == 0
+    assert calls == []
+
+
 def test_one_batch_writes_into_a_results_folder_at_a_time(tmp_path, monkeypatch):
     """Two batches into one folder each rewrote the summary with only their
     own rows and replaced each other's results: the second is now refused

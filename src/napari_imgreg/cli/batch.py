@@ -638,11 +638,21 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
     width = len(str(n))
     order = {p.name: k for k, p in enumerate(files.photos)}
     done = 0
+    # Each result row names the version of its photo (a photo replaced under its
+    # name, re-exported or cropped, makes its result another photo's).
+    prints_now = {p.name: file_fingerprint(p) for p in files.photos}
+    prints_before = _earlier_photo_prints(out)
+
+    def with_print(row: dict[str, Any]) -> dict[str, Any]:
+        if row.get("result"):
+            row["photo_fingerprint"] = (prints_before.get(row["photo"]) if row.get("skipped")
+                                        else prints_now[row["photo"]])
+        return row
 
     def record(row: dict[str, Any]) -> None:
         nonlocal done
         done += 1
-        rows.append(row)
+        rows.append(with_print(row))
         rows.sort(key=lambda r: order[r["photo"]])
         _write_summary(out, header, rows, stale)
 
@@ -650,8 +660,13 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
         todo = []
         for photo_path in files.photos:
             result_path = out / names[photo_path]
+            replaced = fingerprint_difference(prints_before.get(photo_path.name),
+                                              prints_now[photo_path.name])
             if args.skip_existing and result_path.name in stale:
                 say(f"{photo_path.name}: existing result registered on another model: redoing it")
+            elif args.skip_existing and replaced and result_path.is_file():
+                say(f"{photo_path.name}: the photo has changed since its existing result "
+                    f"({replaced}): redoing it")
             elif args.skip_existing and result_path.is_file():
                 try:
                     row = _existing_row(photo_path.name, result_path)
@@ -691,7 +706,7 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
             header["signal"] = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
         left = _rows_left_in_folder(files.photos, out, names, rows, earlier)
         left = [r for r in left if not (r["skipped"] and r["result"] in stale)]
-        rows.extend(left)
+        rows.extend(with_print(r) for r in left)
         rows.sort(key=lambda r: order[r["photo"]])
         _write_summary(out, header, rows, stale)
         n_earlier = sum(1 for r in left if r["skipped"])
@@ -723,6 +738,17 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
 def _result_stamps(out: Path, names: dict[Path, str]) -> dict[str, tuple[int, int, int]]:
     """Result file name -> (inode, size, mtime) of the photos' results already in ``out``."""
     return _result_stamps_of(out, names.values())
+
+
+def _earlier_photo_prints(out: Path) -> dict[str, dict]:
+    """Photo name -> ``photo_fingerprint`` of the rows of the summary already in
+    ``out`` (none for a summary written before rows recorded it)."""
+    try:
+        earlier = read_json(out / "summary.json")
+        return {row["photo"]: row["photo_fingerprint"] for row in earlier["photos"]
+                if isinstance(row.get("photo_fingerprint"), dict)}
+    except (InputError, OSError, KeyError, TypeError, AttributeError):
+        return {}
 
 
 def _other_model(out: Path, mesh_fingerprint: dict | None) -> str:
