@@ -119,7 +119,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="georef.json (default: the one in SCENE_DIR or beside the mesh)")
     p.add_argument("--params", metavar="PARAMS.json", help="registration parameters (any subset)")
     p.add_argument("--skip-existing", action="store_true",
-                   help="keep photos whose RESULTS_DIR/<photo>.result.json exists (resume a batch)")
+                   help="keep photos whose RESULTS_DIR/<photo>.result.json exists (resume a "
+                        "batch); one of another model or of an earlier version of the photo is "
+                        "redone")
     p.add_argument("-v", "--verbose", action="store_true",
                    help="print progress within each photo (with --workers 0 only)")
     add_cluster_arguments(p)
