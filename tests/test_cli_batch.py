@@ -227,6 +227,21 @@ def test_bad_scene_is_exit_2_and_writes_nothing(tmp_path, case, needle):
     assert not out.exists()
 
 
+def test_result_names_are_unique_ignoring_case():
+    """IMG_0001.JPG and IMG_0001.jpg (two cameras) got IMG_0001.JPG.result.json
+    and IMG_0001.jpg.result.json: one file on a case-insensitive results disk."""
+    from pathlib import Path
+
+    from napari_imgreg.cli.batch import _result_names
+
+    photos = [Path("s/IMG_0001.JPG"), Path("s/IMG_0001.jpg"), Path("s/IMG_0001.png"),
+              Path("s/IMG_0002.jpg")]
+    names = list(_result_names(photos).values())
+    assert names == ["IMG_0001.JPG.result.json", "IMG_0001.jpg.2.result.json",
+                     "IMG_0001.png.result.json", "IMG_0002.result.json"]
+    assert len({n.lower() for n in names}) == len(names)
+
+
 def test_photos_in_subfolders_are_said_to_be_left_out(tmp_path):
     """Photos in a subfolder beside those of the folder were left out in silence."""
     from napari_imgreg.cli.batch import find_scene_files

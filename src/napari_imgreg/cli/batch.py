@@ -385,12 +385,26 @@ def _photos_in_subfolders(folder: Path) -> dict[str, int]:
 
 
 def _result_names(photos: list[Path]) -> dict[Path, str]:
-    """``<stem>.result.json`` per photo (``<name>.result.json`` where stems clash)."""
+    """``<stem>.result.json`` per photo (``<name>.result.json`` where stems clash,
+    ``<name>.<k>.result.json`` where names differ only in case).
+
+    Unique ignoring case: ``IMG_0001.JPG`` and ``IMG_0001.jpg`` (two cameras)
+    live side by side on a case-sensitive disk, but their results would be one
+    file on a case-insensitive one (a Windows share, a USB drive, macOS).
+    """
     stems: dict[str, int] = {}
     for p in photos:
         stems[p.stem.lower()] = stems.get(p.stem.lower(), 0) + 1
-    return {p: (f"{p.stem}.result.json" if stems[p.stem.lower()] == 1 else f"{p.name}.result.json")
-            for p in photos}
+    names: dict[Path, str] = {}
+    taken: set[str] = set()
+    for p in photos:
+        name = f"{p.stem}.result.json" if stems[p.stem.lower()] == 1 else f"{p.name}.result.json"
+        k = 2
+        while name.lower() in taken:
+            name, k = f"{p.name}.{k}.result.json", k + 1
+        taken.add(name.lower())
+        names[p] = name
+    return names
 
 
 #: Held in RESULTS_DIR while a batch writes there ({"pid", "host", "since", "token"}).
