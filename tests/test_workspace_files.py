@@ -737,6 +737,7 @@ def test_a_lock_being_written_by_another_session_is_not_taken_for_a_stale_one(tm
     """Two sessions starting at once: the second found the first's lock file
     created but not yet written, took the empty file for a stale lock and
     took it over; both then saved into the folder."""
+    import socket
     import threading
 
     folder = tmp_path / "w.imgreg"
@@ -744,12 +745,13 @@ def test_a_lock_being_written_by_another_session_is_not_taken_for_a_stale_one(tm
     lock = folder / wsfiles.LOCK
     lock.write_text("")  # the other session's, created an instant ago
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
-    held = json.dumps({"pid": other.pid, "host": __import__("socket").gethostname(),
+    held = json.dumps({"pid": other.pid, "host": socket.gethostname(),
                        "since": "2026-12-05T08:00:00Z", "token": "theirs"})
     writer = threading.Timer(0.3, lock.write_text, args=(held,))
     writer.start()
     try:
-        with pytest.raises(InputError, match=f"is open in another napari-imgreg \\(pid {other.pid}"):
+        with pytest.raises(InputError,
+                           match=f"is open in another napari-imgreg \\(pid {other.pid}"):
             wsfiles.acquire_lock(folder)
     finally:
         writer.join()
