@@ -16,6 +16,7 @@ exit code 2. The command line is Qt-free but for ``demo --gui``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 
@@ -78,7 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     # that did its work into a traceback: its lines are dropped instead.
     sys.stdout = _QuietWhenClosed(sys.stdout)
     try:
-        with sigterm_as_interrupt():
+        # Not around a GUI (demo --gui): in Qt's event loop a Python handler runs
+        # only when Python code does, so `kill` would no longer end the window.
+        with contextlib.nullcontext() if getattr(args, "gui", False) else sigterm_as_interrupt():
             return int(args.func(args) or 0)
     except (InputError, FieldValueError) as exc:
         # FieldValueError: a value checked where no file is known (an API
