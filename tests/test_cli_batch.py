@@ -242,6 +242,22 @@ def test_result_names_are_unique_ignoring_case():
     assert len({n.lower() for n in names}) == len(names)
 
 
+def test_photos_sharing_a_sensor_record_are_warned_of(tmp_path, monkeypatch):
+    """IMG_0001.jpg and IMG_0001.png (two cameras) both took IMG_0001.json
+    without a word: one of them with another camera's focal length."""
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001"])
+    Image.open(scene / "IMG_0001.jpg").save(scene / "IMG_0001.png")
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    code, stdout, _ = _run(["batch", scene, "--out", tmp_path / "results", "--workers", 0])
+    assert code == 0
+    assert ("  warning: 2 photos share the sensor record IMG_0001.json (IMG_0001.jpg, "
+            "IMG_0001.png): each is registered from it") in stdout
+
+
 def test_photos_in_subfolders_are_said_to_be_left_out(tmp_path):
     """Photos in a subfolder beside those of the folder were left out in silence."""
     from napari_imgreg.cli.batch import find_scene_files

@@ -371,6 +371,18 @@ def find_scene_files(
     return scene
 
 
+def _shared_records(photos: list[Path]) -> dict[str, list[str]]:
+    """Sensor record name -> the photos (two or more) that read it: a record is
+    found by the photo's stem, so ``IMG_0001.JPG`` and ``IMG_0001.jpg`` (two
+    cameras) both take ``IMG_0001.json``."""
+    readers: dict[Path, list[str]] = {}
+    for photo in photos:
+        record = photo.with_suffix(".json")
+        if record.is_file():
+            readers.setdefault(record, []).append(photo.name)
+    return {record.name: names for record, names in readers.items() if len(names) > 1}
+
+
 def _photos_in_subfolders(folder: Path) -> dict[str, int]:
     """``"day2/"`` -> how many photos it holds (at any depth), for each
     subfolder of ``folder`` holding photos (a campaign kept by day or camera):
@@ -585,6 +597,10 @@ def _run_scene(args: argparse.Namespace, out: Path, t_start: float, lock: dict[s
         say(f"  assumed: {note}")
     if files.ignored:
         say("  not photos: " + ", ".join(f"{k} ({v})" for k, v in files.ignored.items()))
+    for record, sharing in _shared_records(files.photos).items():
+        say(f"  warning: {len(sharing)} photos share the sensor record {record} ("
+            + ", ".join(sharing) + "): each is registered from it; if they are of different "
+            "cameras, rename one photo and its record")
     spec = SceneSpec(str(files.mesh), None if files.dem is None else str(files.dem),
                      None if files.georef is None else str(files.georef))
     if not cluster.in_process:
