@@ -154,3 +154,27 @@ def test_commands_on_a_cloud_say_which_frame_its_points_are_in(wall, tmp_path, r
     assert run.code == 0 and said in run.out and fix in run.out, run.out
     run = run_cli(["workspace", "create", tmp_path / "ws", folder, "--no-photos"])
     assert run.code == 0 and said in run.out and fix in run.out, run.out
+
+
+def test_sigterm_unwinds_a_command_as_ctrl_c_but_leaves_a_gui_to_the_default(monkeypatch):
+    """Every command turns SIGTERM into an interrupt (exit 143, its files and
+    locks given back); not demo --gui, whose Qt event loop would hold the
+    Python handler back, so that `kill` would no longer close the window."""
+    import signal
+
+    from napari_imgreg.cli import demo, main
+
+    seen = []
+
+    def fake_run(args):
+        seen.append(signal.getsignal(signal.SIGTERM))
+        if not args.gui:
+            signal.raise_signal(signal.SIGTERM)
+        return 0
+
+    monkeypatch.setattr(demo, "run", fake_run)
+    before = signal.getsignal(signal.SIGTERM)
+    assert main(["demo", "--out", "x"]) == 143
+    assert main(["demo", "--gui"]) == 0
+    assert seen[0] is not before and seen[1] is before
+    assert signal.getsignal(signal.SIGTERM) is before

@@ -189,6 +189,10 @@ def _tiny_obj(path):
         ("two_meshes", "several models (a.obj, b.ply): choose one with --mesh"),
         ("corrupt_mesh", "broken.obj"),
         ("no_photos", "no photos in the folder"),
+        # A campaign kept by day: the photos were not found, and nothing said why.
+        ("photos_in_subfolders", "no photos in the folder (expected JPEG, PNG, TIFF or HEIC "
+                                 "files); there are photos in its subfolders (day1/, day2/), "
+                                 "not read: only the folder itself is"),
         ("bad_params", "params.json: invalid JSON"),
     ],
 )
@@ -197,14 +201,20 @@ def test_bad_scene_is_exit_2_and_writes_nothing(tmp_path, case, needle):
     extra = []
     if case != "missing":
         scene.mkdir()
-        if case != "no_photos":
+        if case == "photos_in_subfolders":
+            for day in ("day1", "day2"):
+                (scene / day).mkdir()
+                Image.new("RGB", (32, 24)).save(scene / day / "IMG_0001.jpg")
+            (scene / ".thumbs").mkdir()  # hidden: not named
+            Image.new("RGB", (32, 24)).save(scene / ".thumbs" / "IMG_0001.jpg")
+        elif case != "no_photos":
             Image.new("RGB", (32, 24)).save(scene / "IMG_0001.jpg")
         if case == "two_meshes":
             _tiny_obj(scene / "a.obj")
             (scene / "b.ply").write_text("ply\n")
         elif case == "corrupt_mesh":
             (scene / "broken.obj").write_bytes(b"v 1 2\nf 1 2 9\n\x00\xff garbage")
-        elif case in ("no_photos", "bad_params"):
+        elif case in ("no_photos", "photos_in_subfolders", "bad_params"):
             _tiny_obj(scene / "a.obj")
         if case == "bad_params":
             (tmp_path / "params.json").write_text("{ oops")
@@ -215,6 +225,52 @@ def test_bad_scene_is_exit_2_and_writes_nothing(tmp_path, case, needle):
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], stderr
     assert not out.exists()
+
+
+def test_result_names_are_unique_ignoring_case():
+    """IMG_0001.JPG and IMG_0001.jpg (two cameras) got IMG_0001.JPG.result.json
+    and IMG_0001.jpg.result.json: one file on a case-insensitive results disk."""
+    from pathlib import Path
+
+    from napari_imgreg.cli.batch import _result_names
+
+    photos = [Path("s/IMG_0001.JPG"), Path("s/IMG_0001.jpg"), Path("s/IMG_0001.png"),
+              Path("s/IMG_0002.jpg")]
+    names = list(_result_names(photos).values())
+    assert names == ["IMG_0001.JPG.result.json", "IMG_0001.jpg.2.result.json",
+                     "IMG_0001.png.result.json", "IMG_0002.result.json"]
+    assert len({n.lower() for n in names}) == len(names)
+
+
+def test_photos_sharing_a_sensor_record_are_warned_of(tmp_path, monkeypatch):
+    """IMG_0001.jpg and IMG_0001.png (two cameras) both took IMG_0001.json
+    without a word: one of them with another camera's focal length."""
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001"])
+    Image.open(scene / "IMG_0001.jpg").save(scene / "IMG_0001.png")
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    code, stdout, _ = _run(["batch", scene, "--out", tmp_path / "results", "--workers", 0])
+    assert code == 0
+    assert ("  warning: 2 photos share the sensor record IMG_0001.json (IMG_0001.jpg, "
+            "IMG_0001.png): each is registered from it") in stdout
+
+
+def test_photos_in_subfolders_are_said_to_be_left_out(tmp_path):
+    """Photos in a subfolder beside those of the folder were left out in silence."""
+    from napari_imgreg.cli.batch import find_scene_files
+
+    scene = tmp_path / "scene"
+    (scene / "day2" / "cam_b").mkdir(parents=True)
+    _tiny_obj(scene / "a.obj")
+    Image.new("RGB", (32, 24)).save(scene / "IMG_0001.jpg")
+    for name in ("IMG_0001.jpg", "IMG_0002.JPG"):
+        Image.new("RGB", (32, 24)).save(scene / "day2" / "cam_b" / name)
+    files = find_scene_files(scene)
+    assert [p.name for p in files.photos] == ["IMG_0001.jpg"]
+    assert files.ignored["day2/"] == "a subfolder with 2 photo(s): only the folder itself is read"
 
 
 def test_interrupted_batch_keeps_finished_results(tmp_path, monkeypatch):
@@ -278,6 +334,123 @@ def test_interrupted_rerun_lists_every_result_in_the_folder(tmp_path, monkeypatc
     assert summary["n_done"] == 3 and summary["interrupted"] and not summary["complete"]
     assert (out / "IMG_0003.result.json").read_bytes() == earlier_third
     assert "interrupted after 3 of 3 photos (1 of them an earlier run's result" in stdout
+
+
+def test_skip_existing_never_keeps_a_result_of_another_model(tmp_path, monkeypatch):
+    """The model re-exported, the batch run again into the same folder and
+    interrupted, then resumed: --skip-existing kept the earlier model's poses
+    as if they were of the new one. Now each is registered again, and the
+    interrupted run's summary names them (``stale_results``) instead of
+    listing them as its own."""
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002", "IMG_0003"])
+    out = tmp_path / "results"
+    calls = []
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        calls.append(photo_name)
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    assert _run(["batch", scene, "--out", out, "--workers", 0])[0] == 0
+    with open(scene / "outcrop.obj", "a", encoding="utf-8") as fh:
+        fh.write("# re-exported\n")  # another model under the same name
+
+    def interrupted_at_the_second(scene_, image, prior, params=None, photo_name="",
+                                  on_progress=None):
+        if photo_name == "IMG_0002.jpg":
+            raise KeyboardInterrupt
+        return registered(scene_, image, prior, params, photo_name)
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register",
+                        interrupted_at_the_second)
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--workers", 0])
+    assert code == 130
+    assert "holds 3 result(s) registered on another model (outcrop.obj: " in stdout
+    rows, summary = _summary(out)
+    assert [r["photo"] for r in rows] == ["IMG_0001.jpg"]  # the only one of this model
+    assert summary["stale_results"] == ["IMG_0002.result.json", "IMG_0003.result.json"]
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    calls.clear()
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])
+    assert code == 0
+    assert calls == ["IMG_0002.jpg", "IMG_0003.jpg"]
+    assert "IMG_0003.jpg: existing result registered on another model: redoing it" in stdout
+    rows, summary = _summary(out)
+    assert summary["complete"] and summary["stale_results"] == []
+    assert summary["counts"] == {"registered": 3, "failed": 0, "bad_input": 0, "error": 0,
+                                 "skipped": 1}
+    # Resumed with the same model, nothing is redone.
+    calls.clear()
+    assert _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])[0] == 0
+    assert calls == []
+
+
+def test_skip_existing_redoes_a_photo_replaced_under_its_name(tmp_path, monkeypatch):
+    """A photo re-exported (cropped, retouched) under its name kept the result
+    of its earlier version with --skip-existing."""
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002"])
+    out = tmp_path / "results"
+    calls = []
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        calls.append(photo_name)
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    assert _run(["batch", scene, "--out", out, "--workers", 0])[0] == 0
+    Image.open(scene / "IMG_0002.jpg").save(scene / "IMG_0002.jpg", quality=70)  # re-exported
+    calls.clear()
+    code, stdout, _ = _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])
+    assert code == 0 and calls == ["IMG_0002.jpg"]
+    assert "IMG_0002.jpg: the photo has changed since its existing result (" in stdout
+    _, summary = _summary(out)
+    assert [r["skipped"] for r in summary["photos"]] == [True, False]
+    assert all(r["photo_fingerprint"]["size"] == (scene / r["photo"]).stat().st_size
+               for r in summary["photos"])
+    calls.clear()  # as it is now, nothing to redo
+    assert _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])[0] == 0
+    assert calls == []
+
+
+def test_one_batch_writes_into_a_results_folder_at_a_time(tmp_path, monkeypatch):
+    """Two batches into one folder each rewrote the summary with only their
+    own rows and replaced each other's results: the second is now refused
+    in one line, before its scene loads, and the folder is left as it was."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001"])
+    out = tmp_path / "results"
+
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        return _fake_registration(prior, photo_name, status="registered")
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
+    assert _run(["batch", scene, "--out", out, "--workers", 0])[0] == 0
+    assert not (out / "batch.lock").exists()  # given back at the end
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (out / "batch.lock").write_text(json.dumps(
+            {"pid": other.pid, "host": socket.gethostname(), "since": "2026-12-05T08:00:00Z",
+             "token": "theirs"}))
+        code, stdout, stderr = _run(["batch", scene, "--out", out, "--workers", 0])
+    finally:
+        other.kill()
+        other.wait(30)
+    assert code == 2 and stdout == ""
+    assert stderr.strip() == (f"napari-imgreg batch: error: {out}: another napari-imgreg batch "
+                              f"(pid {other.pid}, since 2026-12-05T08:00:00Z) writes its results "
+                              "here: let it end or stop it, or delete batch.lock if no batch runs")
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != "batch.lock"} == before
+    # Its process gone (killed, a power cut): the lock is taken over.
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--workers", 0, "--skip-existing"])
+    assert code == 0, stderr
+    assert sorted(os.listdir(out)) == sorted(before)
 
 
 def test_batch_help(capsys):

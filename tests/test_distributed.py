@@ -302,6 +302,43 @@ def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in,
     assert "--skip-existing" in stdout
 
 
+def test_a_scheduler_that_goes_away_mid_run_is_one_line_and_a_valid_summary(scene, tmp_path):
+    """The scheduler stopped during a run (restarted, its job ended): the
+    command crashed with a traceback ('FutureCancelledError' object is not
+    subscriptable) and left the summary as it was before. Now: one line
+    naming the scheduler, exit 2, and the summary of an interrupted run."""
+    local = distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                     dashboard_address=":0")
+    client = distributed.Client(local)
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    client.register_plugin(StandIn(str(marks), stall="IMG_0003.jpg"))
+    address = local.scheduler_address
+    out = tmp_path / "results"
+    try:
+        proc = _batch_until_started(scene, out, address, marks, "IMG_0003.jpg")
+        client.close()
+        local.close()  # the scheduler and its worker go away
+        stdout, stderr = proc.communicate(timeout=120)
+    finally:
+        (marks / "release").write_text("")
+        client.close()
+        local.close()
+    assert proc.returncode == 2, stderr
+    assert "Traceback" not in stderr
+    assert stderr.strip().splitlines()[-1] == (
+        f"napari-imgreg batch: error: {address}: the scheduler went away during the run (the "
+        "connection to it was lost); the photos finished before are kept")
+    summary = strict_load((out / "summary.json").read_text())
+    assert summary["interrupted"] is True and not summary["complete"]
+    assert "the scheduler went away" in summary["error"]
+    listed = {r["result"] for r in summary["photos"] if r["result"]}
+    assert {"IMG_0001.result.json", "IMG_0002.result.json"} <= listed
+    assert listed == {p.name for p in out.glob("*.result.json")}
+    assert "--skip-existing" in stdout
+    assert not (out / "batch.lock").exists()
+
+
 def test_a_photo_running_on_a_scheduler_at_an_interrupt_writes_no_result_after_it(
         scene, stand_in, tmp_path):
     """Cancelling does not stop a photo already running on an existing

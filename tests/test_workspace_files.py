@@ -620,6 +620,20 @@ def test_the_command_line_on_a_workspace_is_resumable(sample, tmp_path, capsys):
     assert not (folder / "workspace.lock").exists()
 
 
+def test_create_names_the_subfolders_of_photos_it_leaves_out(sample, tmp_path, capsys):
+    """A campaign kept by day: the photos of day2/ were left out in silence."""
+    scene_dir = tmp_path / "scene"
+    shutil.copytree(sample[0], scene_dir, ignore=shutil.ignore_patterns("IMG_0002.*", "IMG_0003.*"))
+    (scene_dir / "day2").mkdir()
+    for name in ("IMG_0002.jpg", "IMG_0002.json", "IMG_0003.jpg", "IMG_0003.json"):
+        shutil.copy2(sample[0] / name, scene_dir / "day2" / name)
+    assert _cli("workspace", "create", tmp_path / "campaign", scene_dir) == 0
+    out = capsys.readouterr().out
+    assert ("  not added: day2/ (a subfolder with 2 photo(s): only the folder itself is read; "
+            "'workspace add' adds them)") in out
+    assert "workspace with outcrop.obj and 1 photo(s)" in out
+
+
 def test_a_failed_sub_command_gives_the_folder_back(sample, tmp_path):
     folder = tmp_path / "campaign.imgreg"
     assert _cli("workspace", "create", folder, sample[0], "--no-photos") == 0
@@ -630,6 +644,59 @@ def test_a_failed_sub_command_gives_the_folder_back(sample, tmp_path):
         _cli("workspace", "register", folder, "--photo", "IMG_9.jpg")
     assert not (folder / "workspace.lock").exists()
     Workspace.open(folder).detach()  # and it opens again in this process
+
+
+#: `workspace register` whose first photo stalls (marking that it started)
+#: until the process is signalled.
+_STALLED_REGISTER = """
+    import sys, time
+    from pathlib import Path
+    from napari_imgreg.cli import main
+    from napari_imgreg.workspace import Workspace
+
+    def register(self, *args, **kwargs):
+        Path(sys.argv[1]).write_text("started")
+        while True:
+            time.sleep(0.05)
+
+    Workspace.register = register
+    sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("signum, code, words", [
+    (signal.SIGTERM, 143, "terminated (SIGTERM)"),  # a job scheduler's time limit, `kill`
+    (signal.SIGINT, 130, "interrupted"),
+])
+def test_a_signalled_workspace_register_gives_the_folder_back(sample, tmp_path, signum, code,
+                                                              words):
+    """SIGTERM killed `workspace register` where it stood: exit -15, no word,
+    workspace.lock left behind; it now unwinds as Ctrl-C does."""
+    folder = tmp_path / "campaign.imgreg"
+    assert _cli("workspace", "create", folder, sample[0]) == 0
+    marker = tmp_path / "started"
+    child = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(_STALLED_REGISTER), str(marker), "workspace",
+         "register", str(folder), "--workers", "0"],
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")}, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not marker.exists():
+            assert child.poll() is None and time.monotonic() < deadline, child.communicate()
+            time.sleep(0.05)
+        assert (folder / "workspace.lock").exists()
+        child.send_signal(signum)
+        stdout, stderr = child.communicate(timeout=60)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait(30)
+    assert child.returncode == code, stderr
+    assert stderr.strip() == words
+    assert "interrupted; every photo registered so far is saved" in stdout
+    assert not (folder / "workspace.lock").exists()
+    Workspace.open(folder).detach()  # free for the next session
 
 
 def test_one_session_saves_into_a_folder_at_a_time(ws, tmp_path):
@@ -664,6 +731,39 @@ def test_one_session_saves_into_a_folder_at_a_time(ws, tmp_path):
     with pytest.raises(InputError, match="open in napari-imgreg on field-laptop .*delete "
                                          "workspace.lock if that session is gone"):
         Workspace.open(folder, scene=ws.scene, terrain=ws.terrain)
+
+
+def test_a_lock_being_written_by_another_session_is_not_taken_for_a_stale_one(tmp_path):
+    """Two sessions starting at once: the second found the first's lock file
+    created but not yet written, took the empty file for a stale lock and
+    took it over; both then saved into the folder."""
+    import socket
+    import threading
+
+    folder = tmp_path / "w.imgreg"
+    folder.mkdir()
+    lock = folder / wsfiles.LOCK
+    lock.write_text("")  # the other session's, created an instant ago
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    held = json.dumps({"pid": other.pid, "host": socket.gethostname(),
+                       "since": "2026-12-05T08:00:00Z", "token": "theirs"})
+    writer = threading.Timer(0.3, lock.write_text, args=(held,))
+    writer.start()
+    try:
+        with pytest.raises(InputError,
+                           match=f"is open in another napari-imgreg \\(pid {other.pid}"):
+            wsfiles.acquire_lock(folder)
+    finally:
+        writer.join()
+        other.kill()
+        other.wait(30)
+    assert json.loads(lock.read_text())["token"] == "theirs"
+    # A lock that stays unreadable is a torn write of a session long gone: taken over.
+    lock.write_text("{")
+    os.utime(lock, (time.time() - 60, time.time() - 60))
+    token = wsfiles.acquire_lock(folder)
+    assert json.loads(lock.read_text())["token"] == token
+    assert [p.name for p in folder.iterdir()] == [wsfiles.LOCK]  # no temporary file left
 
 
 def test_two_photos_with_one_file_name_are_told_apart_not_confused(sample, tmp_path, capsys):

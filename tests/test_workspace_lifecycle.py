@@ -166,6 +166,28 @@ def test_a_photo_missing_for_a_while_keeps_its_place_in_the_campaign(scene_dir, 
     assert back.current is back.photos[1]  # and the photo worked on stays current
 
 
+def test_register_with_a_photo_that_cannot_be_opened_is_not_a_success(scene_dir, tmp_path,
+                                                                        capsys):
+    """`workspace register` with one photo unreadable registered the others
+    and exited 0, as if the campaign were done."""
+    from napari_imgreg.cli import main
+
+    folder = tmp_path / "campaign.imgreg"
+    ws = _campaign(scene_dir, folder)
+    ws.select_photo(1)
+    ws.record_registration(_registration(ws.current), "Auto")  # the other one is done
+    ws.detach()
+    (scene_dir / "IMG_0001.jpg").write_bytes(b"\xff\xd8 not a whole JPEG")
+    assert main(["workspace", "register", str(folder)]) == 2
+    out, err = capsys.readouterr()
+    assert "not opened: IMG_0001: " in out and "0 photo(s) to register (1 already done)" in out
+    (line,) = err.splitlines()
+    assert line.startswith("napari-imgreg workspace register: error: not registered, could not "
+                           "be opened: IMG_0001: ")
+    # Asked for the photos that open, it is their outcome alone.
+    assert main(["workspace", "register", str(folder), "--photo", "IMG_0002.jpg"]) == 0
+
+
 def test_what_a_full_disk_kept_from_being_saved_is_saved_by_the_next_change(scene_dir, tmp_path,
                                                                             monkeypatch):
     import errno

@@ -16,6 +16,7 @@ exit code 2. The command line is Qt-free but for ``demo --gui``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 
@@ -34,7 +35,15 @@ from . import (
     sample,
     workspace,
 )
-from ._common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, one_line, print_error
+from ._common import (
+    EXIT_BAD_INPUT,
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    Terminated,
+    one_line,
+    print_error,
+    sigterm_as_interrupt,
+)
 from ..errors import InputError
 from ..validate import FieldValueError
 
@@ -70,7 +79,10 @@ def main(argv: list[str] | None = None) -> int:
     # that did its work into a traceback: its lines are dropped instead.
     sys.stdout = _QuietWhenClosed(sys.stdout)
     try:
-        return int(args.func(args) or 0)
+        # Not around a GUI (demo --gui): in Qt's event loop a Python handler runs
+        # only when Python code does, so `kill` would no longer end the window.
+        with contextlib.nullcontext() if getattr(args, "gui", False) else sigterm_as_interrupt():
+            return int(args.func(args) or 0)
     except (InputError, FieldValueError) as exc:
         # FieldValueError: a value checked where no file is known (an API
         # object built from an option); still bad input, still one line.
@@ -89,6 +101,9 @@ def main(argv: list[str] | None = None) -> int:
         print_error(_command_name(args), f"{os.fsdecode(where)}: "
                                          f"{exc.strerror or one_line(exc)}")
         return EXIT_BAD_INPUT
+    except Terminated:
+        print("terminated (SIGTERM)", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -4,14 +4,19 @@ atomic output files, ``--params`` and scene loading.
 Exit codes (contract §8): :data:`EXIT_OK` (0) success, :data:`EXIT_FAILED` (1)
 a registration that failed its quality bar, :data:`EXIT_BAD_INPUT` (2) bad
 input, reported as one line on stderr naming the file and the problem;
-:data:`EXIT_INTERRUPTED` (130) after Ctrl-C, as a shell reports SIGINT.
+:data:`EXIT_INTERRUPTED` (130) after Ctrl-C, as a shell reports SIGINT;
+:data:`EXIT_TERMINATED` (143) after SIGTERM (a job scheduler's time limit,
+``kill``), which every command handles as it does Ctrl-C
+(:func:`sigterm_as_interrupt`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import sys
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -30,6 +35,9 @@ __all__ = [
     "EXIT_FAILED",
     "EXIT_BAD_INPUT",
     "EXIT_INTERRUPTED",
+    "EXIT_TERMINATED",
+    "Terminated",
+    "sigterm_as_interrupt",
     "one_line",
     "print_error",
     "write_json",
@@ -45,6 +53,38 @@ __all__ = [
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 EXIT_INTERRUPTED = 130
+#: Exit code after SIGTERM, as a shell reports it (128 + 15).
+EXIT_TERMINATED = 143
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the command is, so it unwinds as Ctrl-C does."""
+
+
+def _raise_terminated(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Turn SIGTERM into :class:`Terminated` while the block runs.
+
+    Without it SIGTERM ends the process where it stands: no ``finally`` runs,
+    so a workspace keeps its ``workspace.lock``, a local Dask cluster's
+    workers are left to die on their own (and multiprocessing warns of
+    leaked semaphores) and the command says nothing. Unwinding as Ctrl-C
+    does closes all of that and keeps whatever was saved. Outside the main
+    thread (an application embedding a command) its own handler stays.
+    """
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def one_line(exc: BaseException) -> str:

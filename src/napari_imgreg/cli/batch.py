@@ -40,7 +40,6 @@ import csv
 import json
 import math
 import re
-import signal
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -53,12 +52,14 @@ from ._common import (
     EXIT_BAD_INPUT,
     EXIT_FAILED,
     EXIT_OK,
+    Terminated,
     load_scene,
     one_line,
     print_error,
     progress_printer,
     read_params,
     say,
+    sigterm_as_interrupt,
     write_json,
 )
 from ..errors import InputError, input_error
@@ -68,6 +69,12 @@ from ..scene import size_text
 from ..io.photos import PHOTO_SUFFIXES
 from ..registration.quality import outcome_words
 from ..io.records import read_json
+from ..io.workspace_files import (
+    acquire_lock,
+    file_fingerprint,
+    fingerprint_difference,
+    release_lock,
+)
 from ..validate import check_writable
 
 if TYPE_CHECKING:
@@ -112,7 +119,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="georef.json (default: the one in SCENE_DIR or beside the mesh)")
     p.add_argument("--params", metavar="PARAMS.json", help="registration parameters (any subset)")
     p.add_argument("--skip-existing", action="store_true",
-                   help="keep photos whose RESULTS_DIR/<photo>.result.json exists (resume a batch)")
+                   help="keep photos whose RESULTS_DIR/<photo>.result.json exists (resume a "
+                        "batch); one of another model or of an earlier version of the photo is "
+                        "redone")
     p.add_argument("-v", "--verbose", action="store_true",
                    help="print progress within each photo (with --workers 0 only)")
     add_cluster_arguments(p)
@@ -351,32 +360,69 @@ def find_scene_files(
             scene.ignored[p.name] = "a GeoTIFF raster (DEM or orthophoto), not a photo"
         else:
             scene.photos.append(p)
+    in_subfolders = _photos_in_subfolders(folder)
     if not scene.photos and photos_required:
-        raise input_error(folder, "no photos in the folder (expected JPEG, PNG, TIFF or HEIC files)")
+        shown = ", ".join(in_subfolders)
+        raise input_error(folder, "no photos in the folder (expected JPEG, PNG, TIFF or HEIC files)"
+                          + (f"; there are photos in its subfolders ({shown}), not read: only "
+                             "the folder itself is" if in_subfolders else ""))
+    for sub, count in in_subfolders.items():
+        scene.ignored[sub] = f"a subfolder with {count} photo(s): only the folder itself is read"
     return scene
 
 
+def _shared_records(photos: list[Path]) -> dict[str, list[str]]:
+    """Sensor record name -> the photos (two or more) that read it: a record is
+    found by the photo's stem, so ``IMG_0001.JPG`` and ``IMG_0001.jpg`` (two
+    cameras) both take ``IMG_0001.json``."""
+    readers: dict[Path, list[str]] = {}
+    for photo in photos:
+        record = photo.with_suffix(".json")
+        if record.is_file():
+            readers.setdefault(record, []).append(photo.name)
+    return {record.name: names for record, names in readers.items() if len(names) > 1}
+
+
+def _photos_in_subfolders(folder: Path) -> dict[str, int]:
+    """``"day2/"`` -> how many photos it holds (at any depth), for each
+    subfolder of ``folder`` holding photos (a campaign kept by day or camera):
+    they are not read, and the command says so."""
+    counts: dict[str, int] = {}
+    for p in sorted(folder.glob("*/**/*")):
+        parts = p.relative_to(folder).parts
+        if (p.suffix.lower() in PHOTO_SUFFIXES and not any(x.startswith(".") for x in parts)
+                and p.is_file()):
+            counts[f"{parts[0]}/"] = counts.get(f"{parts[0]}/", 0) + 1
+    return counts
+
+
 def _result_names(photos: list[Path]) -> dict[Path, str]:
-    """``<stem>.result.json`` per photo (``<name>.result.json`` where stems clash)."""
+    """``<stem>.result.json`` per photo (``<name>.result.json`` where stems clash,
+    ``<name>.<k>.result.json`` where names differ only in case).
+
+    Unique ignoring case: ``IMG_0001.JPG`` and ``IMG_0001.jpg`` (two cameras)
+    live side by side on a case-sensitive disk, but their results would be one
+    file on a case-insensitive one (a Windows share, a USB drive, macOS).
+    """
     stems: dict[str, int] = {}
     for p in photos:
         stems[p.stem.lower()] = stems.get(p.stem.lower(), 0) + 1
-    return {p: (f"{p.stem}.result.json" if stems[p.stem.lower()] == 1 else f"{p.name}.result.json")
-            for p in photos}
+    names: dict[Path, str] = {}
+    taken: set[str] = set()
+    for p in photos:
+        name = f"{p.stem}.result.json" if stems[p.stem.lower()] == 1 else f"{p.name}.result.json"
+        k = 2
+        while name.lower() in taken:
+            name, k = f"{p.name}.{k}.result.json", k + 1
+        taken.add(name.lower())
+        names[p] = name
+    return names
 
 
-#: Exit code after SIGTERM, as a shell reports it (128 + 15).
-EXIT_TERMINATED = 143
+#: Held in RESULTS_DIR while a batch writes there ({"pid", "host", "since", "token"}).
+BATCH_LOCK = "batch.lock"
 #: Statuses a result file of ours may hold.
 _RESULT_STATUSES = ("registered", "failed")
-
-
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the batch is, so it unwinds as Ctrl-C does."""
-
-
-def _raise_terminated(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
-    raise _Terminated()
 
 
 # ---------------------------------------------------------------- summary
@@ -465,8 +511,18 @@ def _refuse_unwritable_outputs(out: Path, result_names) -> None:
             raise input_error(out / name, "cannot write here: it is a folder, not a file")
 
 
-def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]]) -> None:
-    """Write summary.csv and summary.json atomically (csv first, json last)."""
+def _write_summary(out: Path, header: dict[str, Any], rows: list[dict[str, Any]],
+                   stale: dict[str, tuple[int, int, int]] | None = None) -> None:
+    """Write summary.csv and summary.json atomically (csv first, json last).
+
+    ``stale``: the results of another model found at the start (file name ->
+    stamp, :func:`_stale_results`); those still in the folder unchanged are
+    named in ``stale_results``, so a later ``--skip-existing`` redoes them.
+    """
+    if stale:
+        now = _result_stamps_of(out, stale)
+        header["stale_results"] = sorted(name for name, stamp in stale.items()
+                                         if now.get(name) == stamp)
     with atomic_write(out / "summary.csv", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(SUMMARY_COLUMNS)
@@ -491,8 +547,6 @@ def exit_code_of(rows: list[dict[str, Any]]) -> int:
 # ------------------------------------------------------------------- run
 def run(args: argparse.Namespace) -> int:
     """Run ``batch``: check the scene, register every photo, keep the summary current."""
-    from ..registration.batch import SceneSpec
-
     t_start = time.perf_counter()
     # Absolute: the workers of an existing scheduler resolve a relative path
     # in their own working folder, not the one this command was run in.
@@ -500,6 +554,23 @@ def run(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise input_error(out, "exists and is not a folder")
     check_writable(out, folder=True)  # before the scene loads: read-only, /proc, inside a file
+    # One batch writes into a results folder at a time: two would each rewrite
+    # the summary with their own rows only, and replace each other's results.
+    lock: dict[str, str] = {}
+    if out.is_dir():  # refused before the scene loads
+        lock["token"] = acquire_lock(out, lock_name=BATCH_LOCK, kind="batch")
+    try:
+        return _run_scene(args, out, t_start, lock)
+    finally:
+        if lock:
+            release_lock(out, lock["token"], BATCH_LOCK)
+
+
+def _run_scene(args: argparse.Namespace, out: Path, t_start: float, lock: dict[str, str]) -> int:
+    """:func:`run` once RESULTS_DIR is this command's (``lock``: the token of
+    its ``batch.lock``, taken here when this command creates the folder)."""
+    from ..registration.batch import SceneSpec
+
     cluster = cluster_params(args)
     if cluster.scheduler:
         from ..registration.batch import _scheduler_address
@@ -526,6 +597,10 @@ def run(args: argparse.Namespace) -> int:
         say(f"  assumed: {note}")
     if files.ignored:
         say("  not photos: " + ", ".join(f"{k} ({v})" for k, v in files.ignored.items()))
+    for record, sharing in _shared_records(files.photos).items():
+        say(f"  warning: {len(sharing)} photos share the sensor record {record} ("
+            + ", ".join(sharing) + "): each is registered from it; if they are of different "
+            "cameras, rename one photo and its record")
     spec = SceneSpec(str(files.mesh), None if files.dem is None else str(files.dem),
                      None if files.georef is None else str(files.georef))
     if not cluster.in_process:
@@ -533,17 +608,28 @@ def run(args: argparse.Namespace) -> int:
 
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    if not lock:
+        lock["token"] = acquire_lock(out, lock_name=BATCH_LOCK, kind="batch")
     names = _result_names(files.photos)
     earlier = _result_stamps(out, names)
-    if earlier and not args.skip_existing:
-        say(f"  {out}/ holds {len(earlier)} result(s) of an earlier run: they will be replaced "
-            "(--skip-existing keeps them and registers only the other photos)")
+    mesh_fingerprint = file_fingerprint(files.mesh)
+    other_model = _other_model(out, mesh_fingerprint)
+    stale = _stale_results(out, earlier, other_model)
+    if other_model and stale:
+        say(f"  {out}/ holds {len(stale)} result(s) registered on another model "
+            f"({other_model}): they will be registered again"
+            + ("" if args.skip_existing else " and replaced"))
+    if earlier.keys() - stale.keys() and not args.skip_existing:
+        say(f"  {out}/ holds {len(earlier.keys() - stale.keys())} result(s) of an earlier run: "
+            "they will be replaced (--skip-existing keeps them and registers only the other "
+            "photos)")
     header: dict[str, Any] = {
         "scene": str(files.folder),
         "mesh": str(files.mesh),
         "dem": str(files.dem) if files.dem else None,
         "georef": str(files.georef) if files.georef else None,
         "params": str(args.params) if args.params else None,
+        "mesh_fingerprint": mesh_fingerprint,
         "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "n_photos": n,
         "complete": False,
@@ -552,26 +638,20 @@ def run(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
 
     try:
-        previous_sigterm = signal.signal(signal.SIGTERM, _raise_terminated)
-    except ValueError:  # not the main thread (an embedding application): its own handler stays
-        previous_sigterm = None
-    try:
-        return _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
-                           t_start, earlier)
+        # SIGTERM unwinds as Ctrl-C (Terminated): main() reports it, exit code 143.
+        with sigterm_as_interrupt():
+            return _run_photos(args, files, spec, scene, params, cluster, out, names, header,
+                               rows, t_start, earlier, stale)
     except InputError:
         # No scheduler answers (nothing was registered): no empty results folder left behind.
+        release_lock(out, lock.pop("token"), BATCH_LOCK)
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
         raise
-    except _Terminated:
-        return EXIT_TERMINATED
-    finally:
-        if previous_sigterm is not None:
-            signal.signal(signal.SIGTERM, previous_sigterm)
 
 
 def _run_photos(args, files, spec, scene, params, cluster, out, names, header, rows,
-                t_start, earlier) -> int:
+                t_start, earlier, stale) -> int:
     """The photo loop of :func:`run`; the summary is current after every photo.
 
     Results kept from an earlier run (``--skip-existing``) come first; the
@@ -580,6 +660,9 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
     summary (its rows in the photos' name order) after each photo. After an
     interrupt the summary lists every result in RESULTS_DIR (``earlier``: the
     stamps of those there at the start, see :func:`_rows_left_in_folder`).
+    Results in ``stale`` (of another model, :func:`_stale_results`) are
+    registered again, never kept, and until then named in the summary's
+    ``stale_results``, not listed as rows.
     """
     from ..registration import batch as backend
 
@@ -587,19 +670,36 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
     width = len(str(n))
     order = {p.name: k for k, p in enumerate(files.photos)}
     done = 0
+    # Each result row names the version of its photo (a photo replaced under its
+    # name, re-exported or cropped, makes its result another photo's).
+    prints_now = {p.name: file_fingerprint(p) for p in files.photos}
+    prints_before = _earlier_photo_prints(out)
+
+    def with_print(row: dict[str, Any]) -> dict[str, Any]:
+        if row.get("result"):
+            row["photo_fingerprint"] = (prints_before.get(row["photo"]) if row.get("skipped")
+                                        else prints_now[row["photo"]])
+        return row
 
     def record(row: dict[str, Any]) -> None:
         nonlocal done
         done += 1
-        rows.append(row)
+        rows.append(with_print(row))
         rows.sort(key=lambda r: order[r["photo"]])
-        _write_summary(out, header, rows)
+        _write_summary(out, header, rows, stale)
 
     try:
         todo = []
         for photo_path in files.photos:
             result_path = out / names[photo_path]
-            if args.skip_existing and result_path.is_file():
+            replaced = fingerprint_difference(prints_before.get(photo_path.name),
+                                              prints_now[photo_path.name])
+            if args.skip_existing and result_path.name in stale:
+                say(f"{photo_path.name}: existing result registered on another model: redoing it")
+            elif args.skip_existing and replaced and result_path.is_file():
+                say(f"{photo_path.name}: the photo has changed since its existing result "
+                    f"({replaced}): redoing it")
+            elif args.skip_existing and result_path.is_file():
                 try:
                     row = _existing_row(photo_path.name, result_path)
                 except InputError as exc:
@@ -630,15 +730,19 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
             for name, outcome in runner.run(tasks):
                 _record_outcome(name, outcome, out, names[files.photos[order[name]]], record,
                                 f"[{done + 1:>{width}}/{n}] {name}")
-    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (_Terminated)
+    except (KeyboardInterrupt, backend.SchedulerLost) as exc:  # Ctrl-C, SIGTERM, no scheduler
         header["interrupted"] = True
-        header["signal"] = "SIGTERM" if isinstance(exc, _Terminated) else "SIGINT"
+        if isinstance(exc, backend.SchedulerLost):
+            header["error"] = str(exc)
+        else:
+            header["signal"] = "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
         left = _rows_left_in_folder(files.photos, out, names, rows, earlier)
-        rows.extend(left)
+        left = [r for r in left if not (r["skipped"] and r["result"] in stale)]
+        rows.extend(with_print(r) for r in left)
         rows.sort(key=lambda r: order[r["photo"]])
-        _write_summary(out, header, rows)
+        _write_summary(out, header, rows, stale)
         n_earlier = sum(1 for r in left if r["skipped"])
-        say(f"interrupted after {len(rows)} of {n} photos"
+        say(f"{'stopped' if 'error' in header else 'interrupted'} after {len(rows)} of {n} photos"
             + (f" ({n_earlier} of them an earlier run's result, not replaced)" if n_earlier
                else "")
             + f"; finished results and the summary are in {out}/ (run again with "
@@ -646,7 +750,7 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
         raise
 
     header["complete"] = True
-    _write_summary(out, header, rows)
+    _write_summary(out, header, rows, stale)
     counts = {k: sum(1 for r in rows if r["status"] == k)
               for k in ("registered", "failed", "bad_input", "error")}
     skipped = sum(1 for r in rows if r.get("skipped"))
@@ -665,8 +769,54 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
 
 def _result_stamps(out: Path, names: dict[Path, str]) -> dict[str, tuple[int, int, int]]:
     """Result file name -> (inode, size, mtime) of the photos' results already in ``out``."""
+    return _result_stamps_of(out, names.values())
+
+
+def _earlier_photo_prints(out: Path) -> dict[str, dict]:
+    """Photo name -> ``photo_fingerprint`` of the rows of the summary already in
+    ``out`` (none for a summary written before rows recorded it)."""
+    try:
+        earlier = read_json(out / "summary.json")
+        return {row["photo"]: row["photo_fingerprint"] for row in earlier["photos"]
+                if isinstance(row.get("photo_fingerprint"), dict)}
+    except (InputError, OSError, KeyError, TypeError, AttributeError):
+        return {}
+
+
+def _other_model(out: Path, mesh_fingerprint: dict | None) -> str:
+    """How the model of the summary already in ``out`` differs from this
+    run's (``mesh_fingerprint``), in words; "" when it does not, or when that
+    cannot be told (no summary, an unreadable one, or one written before
+    summaries recorded ``mesh_fingerprint``)."""
+    try:
+        earlier = read_json(out / "summary.json")
+    except (InputError, OSError):
+        return ""
+    if not isinstance(earlier, dict):
+        return ""
+    difference = fingerprint_difference(earlier.get("mesh_fingerprint"), mesh_fingerprint)
+    return f"{Path(str(earlier.get('mesh'))).name}: {difference}" if difference else ""
+
+
+def _stale_results(out: Path, earlier: dict[str, tuple[int, int, int]], other_model: str
+                   ) -> dict[str, tuple[int, int, int]]:
+    """The results in ``out`` registered on another model than this run's:
+    every one when the summary there is of another model (``other_model``),
+    else those the summary still names in ``stale_results`` (an interrupted
+    run on this model had not replaced them yet). Name -> stamp, as ``earlier``."""
+    if other_model:
+        return dict(earlier)
+    try:
+        named = read_json(out / "summary.json").get("stale_results") or []
+    except (InputError, OSError, AttributeError):
+        return {}
+    return {name: earlier[name] for name in named if isinstance(name, str) and name in earlier}
+
+
+def _result_stamps_of(out: Path, names) -> dict[str, tuple[int, int, int]]:
+    """File name -> (inode, size, mtime) of the files ``names`` in ``out`` that exist."""
     stamps = {}
-    for name in names.values():
+    for name in names:
         try:
             st = (out / name).stat()
         except OSError:  # none yet (or unreadable: registered again, as if none)
@@ -712,6 +862,10 @@ def _record_outcome(name: str, outcome: Any, out: Path, result_name: str, record
 
     if isinstance(outcome, TaskLost):
         outcome = {"photo": name, "status": "error", "error": f"{name}: {outcome}",
+                   "seconds": None}
+    elif isinstance(outcome, BaseException):  # raised around the task (e.g. by Dask itself)
+        outcome = {"photo": name, "status": "error",
+                   "error": f"{name}: {type(outcome).__name__}: {one_line(outcome)}",
                    "seconds": None}
     status = outcome["status"]
     if status in ("bad_input", "error"):

@@ -267,6 +267,9 @@ def _create(args: argparse.Namespace) -> int:
     errors = [] if args.no_photos else ws.add_photos(files.photos)
     for line in errors:
         say(f"  not added: {line}")
+    for sub, why in files.ignored.items():
+        if sub.endswith("/"):  # photos kept by day or camera: 'workspace add' takes them
+            say(f"  not added: {sub} ({why}; 'workspace add' adds them)")
     say(f"{folder}: workspace with {files.mesh.name} and {len(ws.photos)} photo(s)"
         + (f"; {len(errors)} could not be read" if errors else ""))
     return _not_added(errors, "create") if errors else EXIT_OK
@@ -319,7 +322,6 @@ def _not_added(errors: list[str], action: str) -> int:
 
 
 def _register(args: argparse.Namespace) -> int:
-    from ..workspace import one_line
     ws = _open(args.folder)
     chosen = {id(_photo_named(ws, args.folder, name)) for name in args.photo or []}
     asked = [k for k, ps in enumerate(ws.photos) if not args.photo or id(ps) in chosen]
@@ -332,6 +334,28 @@ def _register(args: argparse.Namespace) -> int:
     say(f"{args.folder}: {len(todo)} photo(s) to register"
         + (f" ({done} already done)" if done else ""))
     cluster = cluster_params(args)
+    try:
+        code = _register_photos(args, ws, asked, todo, cluster)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: each photo was saved as it came back
+        say(f"{args.folder}: interrupted; every photo registered so far is saved there "
+            "(run 'workspace register' again to carry on)", flush=True)
+        raise
+    unopened = [line for line in ws.open_problems if line not in ws.open_warnings]
+    if unopened and not args.photo:
+        # Every photo was asked for: one that could not be read is not registered
+        # (as a bad photo of 'batch', exit code 2, not 0).
+        more = f" (and {len(unopened) - 1} more, listed above)" if len(unopened) > 1 else ""
+        print_error("workspace register", " ".join(
+            f"not registered, could not be opened: {unopened[0]}{more}".split()))
+        return EXIT_BAD_INPUT
+    return code
+
+
+def _register_photos(args: argparse.Namespace, ws: Workspace, asked: list[int],
+                     todo: list[int], cluster) -> int:
+    """Register the photos ``todo`` (indices into ``ws.photos``) on the cluster,
+    or one after another here; the exit code covers the photos ``asked``."""
+    from ..workspace import one_line
     if not cluster.in_process and len(todo) > 1:
         failed = _register_on_cluster(ws, todo, auto=not args.once, cluster=cluster)
         missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered

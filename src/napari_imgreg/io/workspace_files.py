@@ -26,6 +26,7 @@ import hashlib
 import json
 import os
 import socket
+import time
 import uuid
 from pathlib import Path
 from typing import Any
@@ -401,12 +402,52 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
-def acquire_lock(folder: str | os.PathLike, own_stale: bool = True) -> str:
+#: How long a lock file that cannot be read yet is taken for one being
+#: written by another session starting at the same moment, seconds.
+LOCK_UNREADABLE_GRACE_S = 2.0
+
+
+def _create_lock(path: Path, text: str) -> bool:
+    """Create ``path`` holding ``text``, all at once; False when it exists.
+
+    The text goes into a temporary file first, then a hard link gives it the
+    lock's name (refused when that name exists): another session never sees
+    the lock empty or half-written, which it would take for a stale lock
+    and take over. Where hard links are not supported (some network and FAT
+    file systems) the file is created exclusively and then written.
+    """
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}")
+    tmp.write_text(text, encoding="utf-8")
+    try:
+        os.link(tmp, path)
+        return True
+    except FileExistsError:
+        return False
+    except OSError:  # no hard links here
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            return False
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        return True
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def acquire_lock(folder: str | os.PathLike, own_stale: bool = True, lock_name: str = LOCK,
+                 kind: str = "workspace") -> str:
     """Take the folder's ``workspace.lock`` for this process; returns its token.
+
+    ``lock_name`` and ``kind`` (``"workspace"``, or ``"batch"`` for the
+    ``batch.lock`` of a results folder) name the lock and the session the
+    error lines speak of.
 
     A lock left by a process that is gone (killed, crashed) on this machine is
     taken over; so is one of this process (``own_stale``: the caller knows no
-    live session of its own holds the folder).
+    live session of its own holds the folder). A lock that cannot be read is
+    taken over only once it is :data:`LOCK_UNREADABLE_GRACE_S` old (before
+    that it may be another session's, being written).
 
     Raises
     ------
@@ -415,41 +456,58 @@ def acquire_lock(folder: str | os.PathLike, own_stale: bool = True) -> str:
         another machine (which cannot be checked): the line says which and how
         to go on.
     """
-    path = Path(folder) / LOCK
+    path = Path(folder) / lock_name
     host, pid = socket.gethostname(), os.getpid()
     token = uuid.uuid4().hex
     text = json_text({"pid": pid, "host": host, "since": utc_now(), "token": token})
-    for _ in range(3):
+    takeovers = 0
+    deadline = time.monotonic() + LOCK_UNREADABLE_GRACE_S + 1.0
+    while takeovers < 3 and time.monotonic() < deadline:
+        if _create_lock(path, text):
+            return token
         try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        except FileExistsError:
-            try:
-                held = json.loads(path.read_text(encoding="utf-8"))
-                other_pid, other_host = int(held["pid"]), str(held["host"])
-            except (OSError, ValueError, KeyError, TypeError):
-                held, other_pid, other_host = {}, -1, host  # unreadable: a torn write, stale
-            if other_host != host:
-                raise input_error(folder, f"is open in napari-imgreg on {other_host} (pid "
-                                          f"{other_pid}, since {held.get('since', '?')}); close it "
-                                          f"there, or delete {LOCK} if that session is gone")
-            if other_pid == pid and not own_stale:
-                raise input_error(folder, "is already open in this session")
-            if other_pid != pid and other_pid > 0 and _process_alive(other_pid):
-                # (Nothing opens a folder read-only in the workbench: say what to do instead.)
-                raise input_error(folder, f"is open in another napari-imgreg (pid {other_pid}, "
-                                          f"since {held.get('since', '?')}): close it first, or "
-                                          f"delete {LOCK} if no napari-imgreg has it open")
-            path.unlink(missing_ok=True)  # stale: its process is gone
+            held = json.loads(path.read_text(encoding="utf-8"))
+            other_pid, other_host = int(held["pid"]), str(held["host"])
+        except FileNotFoundError:  # given back meanwhile
             continue
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        return token
-    raise input_error(path, "could not take the workspace lock (another session keeps taking it)")
+        except (OSError, ValueError, KeyError, TypeError):
+            try:
+                age_s = time.time() - path.stat().st_mtime
+            except OSError:
+                continue
+            if age_s < LOCK_UNREADABLE_GRACE_S:  # another session's, being written
+                time.sleep(0.1)
+                continue
+            held, other_pid, other_host = {}, -1, host  # a torn write long ago: stale
+        since = held.get("since", "?")
+        if other_host != host:
+            if kind == "batch":
+                raise input_error(folder, f"a napari-imgreg batch on {other_host} (pid "
+                                          f"{other_pid}, since {since}) writes its results "
+                                          f"here; let it end or stop it there, or delete "
+                                          f"{lock_name} if it is gone")
+            raise input_error(folder, f"is open in napari-imgreg on {other_host} (pid "
+                                      f"{other_pid}, since {since}); close it "
+                                      f"there, or delete {lock_name} if that session is gone")
+        if other_pid == pid and not own_stale:
+            raise input_error(folder, "is already open in this session")
+        if other_pid != pid and other_pid > 0 and _process_alive(other_pid):
+            if kind == "batch":
+                raise input_error(folder, f"another napari-imgreg batch (pid {other_pid}, since "
+                                          f"{since}) writes its results here: let it end or "
+                                          f"stop it, or delete {lock_name} if no batch runs")
+            # (Nothing opens a folder read-only in the workbench: say what to do instead.)
+            raise input_error(folder, f"is open in another napari-imgreg (pid {other_pid}, "
+                                      f"since {since}): close it first, or "
+                                      f"delete {lock_name} if no napari-imgreg has it open")
+        path.unlink(missing_ok=True)  # stale: its process is gone
+        takeovers += 1
+    raise input_error(path, f"could not take the {kind} lock (another session keeps taking it)")
 
 
-def release_lock(folder: str | os.PathLike, token: str) -> None:
+def release_lock(folder: str | os.PathLike, token: str, lock_name: str = LOCK) -> None:
     """Give the lock back, if it is still this token's."""
-    path = Path(folder) / LOCK
+    path = Path(folder) / lock_name
     try:
         if json.loads(path.read_text(encoding="utf-8")).get("token") == token:
             path.unlink()

@@ -422,6 +422,12 @@ class TaskLost(Exception):
     """A photo's task gave up: its workers kept dying, or the cluster went away."""
 
 
+class SchedulerLost(InputError):
+    """The scheduler went away during the run (stopped, restarted, its job
+    ended, the network cut): the photos not finished cannot be run. One line
+    naming the scheduler, as for one that never answered."""
+
+
 class _GivenUp:
     """Dask gave a task up after its workers died (before its solo retry)."""
 
@@ -658,6 +664,12 @@ class PhotoRunner:
             for future in running:
                 tag, task = futures.pop(future)
                 outcome = self._outcome(future)
+                if isinstance(outcome, TaskLost) and self._scheduler_gone():
+                    futures[future] = (tag, task)  # not finished: cancelled below
+                    raise SchedulerLost(
+                        f"{self.scheduler_address or 'the local cluster'}: the scheduler went "
+                        "away during the run (the connection to it was lost); the photos "
+                        "finished before are kept")
                 if isinstance(outcome, _GivenUp):
                     given_up[future] = (tag, task, outcome)
                 else:
@@ -706,6 +718,13 @@ class PhotoRunner:
         future.release()
         return outcome
 
+    def _scheduler_gone(self) -> bool:
+        """This process's client has lost its scheduler: Dask cancels every
+        future at once, tries to reconnect (``connecting``) and closes the
+        client when that fails (``closed``). Either way the photos in flight
+        will not come back."""
+        return self.client is not None and self.client.status != "running"
+
     def slots(self) -> int:
         """Threads of the cluster's workers now (at least 1)."""
         try:
@@ -747,10 +766,15 @@ def _scheduler_address(given: str) -> str:
 def _is_lost(exc: BaseException) -> bool:
     """The cluster lost the task (its workers died, it was cancelled, the
     scheduler went away), as opposed to the task raising."""
+    from concurrent.futures import CancelledError
+
     from distributed import KilledWorker
     from distributed.comm.core import CommClosedError
 
-    return isinstance(exc, (KilledWorker, CommClosedError, asyncio.CancelledError))
+    # distributed's FutureCancelledError (its client closed: the scheduler went
+    # away) is a concurrent.futures.CancelledError, not asyncio's.
+    return isinstance(exc, (KilledWorker, CommClosedError, asyncio.CancelledError,
+                            CancelledError))
 
 
 def _lost_message(exc: BaseException, allowed_failures: int, solo: bool = False) -> str:
@@ -835,7 +859,9 @@ def _quiet_distributed() -> None:
     """Dask's own warnings (a worker restarted, a slow event loop) are not the
     user's business: the command reports what happened to each photo."""
     for name in ("distributed", "distributed.nanny", "distributed.scheduler",
-                 "distributed.worker", "distributed.core", "distributed.comm"):
+                 "distributed.worker", "distributed.core", "distributed.comm",
+                 # Its "Failed to reconnect to scheduler": the command's SchedulerLost line says it.
+                 "distributed.client"):
         # CRITICAL: Dask logs a task given up after workers died at ERROR, beside
         # the command's own line for that photo.
         logging.getLogger(name).setLevel(logging.CRITICAL)
