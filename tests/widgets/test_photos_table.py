@@ -16,6 +16,7 @@ from napari_imgreg.widgets._controller import WorkbenchController
 from napari_imgreg.widgets._photos_table import (
     COLUMNS,
     THUMBNAIL_WIDTH,
+    TIME_COLUMN,
     PhotosTable,
     _thumbnail,
 )
@@ -60,10 +61,10 @@ def test_rows_follow_the_workspace_and_sort_by_number(table):
     ws.record_registration(_registration(first, 1.25, 9.0), "Auto", first)
     ws.record_registration(_registration(third, -0.3, 10.5), "Auto", third)
     assert _column(table, 4) == ["1.25", "—", "-0.30"]
-    assert _column(table, 6) == ["9.0", "—", "10.5"]
+    assert _column(table, TIME_COLUMN) == ["9.0", "—", "10.5"]
     assert _column(table, 3) == ["excellent", "—", "poor"]
-    table.table.sortItems(6, Qt.SortOrder.AscendingOrder)
-    assert _column(table, 6) == ["9.0", "10.5", "—"]
+    table.table.sortItems(TIME_COLUMN, Qt.SortOrder.AscendingOrder)
+    assert _column(table, TIME_COLUMN) == ["9.0", "10.5", "—"]
     table.table.sortItems(4, Qt.SortOrder.AscendingOrder)
     assert _column(table, 4) == ["-0.30", "1.25", "—"]
     table.table.sortItems(3, Qt.SortOrder.AscendingOrder)  # best grade first

@@ -44,7 +44,10 @@ from ._shortcuts import key_of
 __all__ = ["PhotosTable", "COLUMNS", "THUMBNAIL_WIDTH", "STATUS_COLORS"]
 
 #: The table's columns, left to right.
-COLUMNS = ("", "photo", "status", "grade", "Q", "± px", "time", "lines")
+#: "time" last: in a narrow dock the table scrolls sideways, and the time
+#: is what the user needs least.
+COLUMNS = ("", "photo", "status", "grade", "Q", "± px", "lines", "time")
+TIME_COLUMN = COLUMNS.index("time")
 LINES_COLUMN = COLUMNS.index("lines")
 #: Thumbnail width, pixels.
 THUMBNAIL_WIDTH = 52  # with the six columns, fits the workbench's ~480 px
@@ -164,7 +167,7 @@ class PhotosTable(QWidget):
                        (4, "quality Q of the last registration, −1.9 … 1.9"),
                        (5, ("expected reprojection error of the pose, pixels "
                             "(RESULT.json uncertainty.reprojection_px)")),
-                       (6, "time of the last registration, seconds"),
+                       (TIME_COLUMN, "time of the last registration, seconds"),
                        (LINES_COLUMN, ("features drawn on the photo; ✓: all mapped onto the model by "
                             "the last projection, 'not mapped' or 'out of date': Project "
                             "(Interpret tab) again"))):
@@ -284,7 +287,7 @@ class PhotosTable(QWidget):
                          "the last projection"
                          + (" (its drawings or pose changed since)" if s.mapped_out_of_date
                             else ""))
-        for col, item in enumerate((thumb, name, status, grade, q, unc, secs, lines)):
+        for col, item in enumerate((thumb, name, status, grade, q, unc, lines, secs)):
             if col >= 2:
                 item.setTextAlignment(int(Qt.AlignmentFlag.AlignCenter))
             self.table.setItem(row, col, item)
