@@ -336,6 +336,14 @@ def test_interrupted_rerun_lists_every_result_in_the_folder(tmp_path, monkeypatc
     assert "interrupted after 3 of 3 photos (1 of them an earlier run's result" in stdout
 
 
+def _registering(calls: list):
+    """A fake ``pipeline.register`` that registers every photo and notes its name."""
+    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        calls.append(photo_name)
+        return _fake_registration(prior, photo_name, status="registered")
+
+    return registered
+
 def test_skip_existing_never_keeps_a_result_of_another_model(tmp_path, monkeypatch):
     """The model re-exported, the batch run again into the same folder and
     interrupted, then resumed: --skip-existing kept the earlier model's poses
@@ -345,11 +353,7 @@ def test_skip_existing_never_keeps_a_result_of_another_model(tmp_path, monkeypat
     scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002", "IMG_0003"])
     out = tmp_path / "results"
     calls = []
-
-    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
-        calls.append(photo_name)
-        return _fake_registration(prior, photo_name, status="registered")
-
+    registered = _registering(calls)
     monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
     assert _run(["batch", scene, "--out", out, "--workers", 0])[0] == 0
     with open(scene / "outcrop.obj", "a", encoding="utf-8") as fh:
@@ -392,11 +396,7 @@ def test_skip_existing_redoes_a_photo_replaced_under_its_name(tmp_path, monkeypa
     scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002"])
     out = tmp_path / "results"
     calls = []
-
-    def registered(scene_, image, prior, params=None, photo_name="", on_progress=None):
-        calls.append(photo_name)
-        return _fake_registration(prior, photo_name, status="registered")
-
+    registered = _registering(calls)
     monkeypatch.setattr("napari_imgreg.registration.pipeline.register", registered)
     assert _run(["batch", scene, "--out", out, "--workers", 0])[0] == 0
     Image.open(scene / "IMG_0002.jpg").save(scene / "IMG_0002.jpg", quality=70)  # re-exported

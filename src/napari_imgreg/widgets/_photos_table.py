@@ -38,6 +38,7 @@ from qtpy.QtWidgets import (
 
 from ..registration.quality import GRADES
 from ..workspace import PhotoState
+from ._signals import follow_while_alive
 from ._controller import WorkbenchController
 from ._shortcuts import key_of
 
@@ -205,18 +206,10 @@ class PhotosTable(QWidget):
         """Keep the "lines" column current as drawings and projections change
         (released with the widget: the workspace may outlive it)."""
         ws = self.ws
-        followed = [(ws.interpretations_changed, self._drawings_changed),
-                    (ws.projection_changed, self.refresh),
-                    # a pose edit puts the photo's mapped lines out of date
-                    (ws.pose_changed, self._current_lines_changed)]
-        for signal, handler in followed:
-            signal.connect(handler)
-
-        def release(*_args) -> None:
-            for signal, handler in followed:
-                signal.disconnect(handler)
-
-        self.destroyed.connect(release)
+        follow_while_alive(self, [(ws.interpretations_changed, self._drawings_changed),
+                                  (ws.projection_changed, self.refresh),
+                                  # a pose edit puts the photo's mapped lines out of date
+                                  (ws.pose_changed, self._current_lines_changed)])
 
     def _drawings_changed(self, _ps=None) -> None:
         self.refresh()

@@ -85,6 +85,7 @@ from ..prior import load_camera_and_pose
 from ..workspace import PhotoState, Workspace, one_line, project_interpretation_sets
 from ._dims_bar import HeightSliderHider
 from ._jobs import JobRunner
+from ._signals import follow_while_alive
 from ._layers import (
     INTERPRETATION_OF,
     REDUCED_BY,
@@ -601,19 +602,12 @@ class InterpretWidget(QWidget):
         """Show the workspace's drawings and projection as it changes (the
         handlers are released with the widget: the workspace may outlive it)."""
         ws = self.workspace
-        followed = [(ws.photo_changed, self._current_photo_shown),
-                    (ws.scene_changed, self._photos_closed),
-                    (ws.projection_changed, self.show_workspace_projection),
-                    # a pose changed (nudged, registered): its projection may be out of date
-                    (ws.pose_changed, self._pose_edited)]
-        for signal, handler in followed:
-            signal.connect(handler)
-
-        def release(*_args) -> None:
-            for signal, handler in followed:
-                signal.disconnect(handler)
-
-        self.destroyed.connect(release)
+        follow_while_alive(self, [
+            (ws.photo_changed, self._current_photo_shown),
+            (ws.scene_changed, self._photos_closed),
+            (ws.projection_changed, self.show_workspace_projection),
+            # a pose changed (nudged, registered): its projection may be out of date
+            (ws.pose_changed, self._pose_edited)])
 
     def _current_photo_shown(self) -> None:
         current = self.workspace.current if self.workspace is not None else None
