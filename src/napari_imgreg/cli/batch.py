@@ -709,7 +709,8 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
                     row.update(skipped=True, result=result_path.name)
                     record(row)
                     say(f"[{done:>{width}}/{n}] {photo_path.name}: skipped, result exists "
-                        f"({row['status']}, {outcome_words(row['status'], row['grade'])})", flush=True)
+                        f"({row['status']}, {outcome_words(row['status'], row['grade'])})",
+                        flush=True)
                     continue
             todo.append(photo_path)
 
@@ -884,7 +885,8 @@ def _record_outcome(name: str, outcome: Any, out: Path, result_name: str, record
 
     err = row["reprojection_error_px"]
     say(
-        f"{tag}: {status.upper()} — {outcome_words(status, row['grade'])} (Q = {row['Q'] or 0:+.2f}), "
+        f"{tag}: {status.upper()} — {outcome_words(status, row['grade'])} "
+        f"(Q = {row['Q'] or 0:+.2f}), "
         f"{row['n_trials']} trial(s), {row['seconds'] or 0:.1f} s; "
         f"({f1('x')}, {f1('y')}, {f1('z')}) m, trend {f1('trend_deg')}° "
         f"plunge {f1('plunge_deg')}° roll {f1('roll_deg')}°"

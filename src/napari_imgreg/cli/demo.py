@@ -90,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
         prior_pos_err = float(np.linalg.norm(prior.pose.center - truth.center))
         seconds = reg.timings_s["total"]
         print(
-            f"  {photo_path.name}: {reg.status.upper()} — {outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}) "
+            f"  {photo_path.name}: {reg.status.upper()} — "
+            f"{outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}) "
             f"in {seconds:.1f} s; off the true pose by {rot_err:.3f}° and {pos_err:.2f} m "
             f"(the prior: {prior_rot_err:.1f}° and {prior_pos_err:.1f} m)"
         )

@@ -149,7 +149,8 @@ def _print_summary(reg, prior, photo_path: Path, assumptions) -> None:
     x, y, z = reg.pose.center
     m = reg.metrics
     print(
-        f"{photo_path.name}: {reg.status.upper()} — {outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}) "
+        f"{photo_path.name}: {reg.status.upper()} — {outcome_words(reg.status, reg.grade)} "
+        f"(Q = {reg.q:+.2f}) "
         f"after {len(reg.trials)} trial(s) in {reg.timings_s['total']:.1f} s"
     )
     print(

@@ -376,8 +376,9 @@ def _register_photos(args: argparse.Namespace, ws: Workspace, asked: list[int],
             failed += 1
             continue
         failed += not reg.registered
-        say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — {outcome_words(reg.status, reg.grade)} "
-            f"(Q = {reg.q:+.2f}), {len(reg.trials)} trial(s), {time.perf_counter() - start:.1f} s")
+        say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — "
+            f"{outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}), {len(reg.trials)} "
+            f"trial(s), {time.perf_counter() - start:.1f} s")
     missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered
                   for k in asked)
     return EXIT_FAILED if (failed or missing) else EXIT_OK
@@ -417,8 +418,9 @@ def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) ->
             # Its pose becomes the photo's pose though another photo is current.
             ws.record_registration(reg, kind, ps, pose_if_not_current=True)
             failed += not reg.registered
-            say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — {outcome_words(reg.status, reg.grade)} "
-                f"(Q = {reg.q:+.2f}), {len(reg.trials)} trial(s), "
+            say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — "
+                f"{outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}), "
+                f"{len(reg.trials)} trial(s), "
                 f"{reg.timings_s.get('total', 0.0):.1f} s")
     return failed
 
