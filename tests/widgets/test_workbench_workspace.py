@@ -167,8 +167,8 @@ def test_photos_table_updates_as_photos_register_and_sorts(workbench, qtbot, mon
     assert table.progress.value() == 100 and not table.cancel_button.isEnabled()
     row = {table.table.item(r, 1).text().lstrip("● "): r for r in range(3)}
     r2 = row["IMG_0002.jpg"]
-    cells = [table.table.item(r2, c).text() for c in range(1, 7)]
-    assert cells == ["● IMG_0002.jpg", "registered", "fair", "0.30", "1.2", "2.0"]
+    cells = [table.table.item(r2, c).text() for c in range(1, 8)]
+    assert cells == ["● IMG_0002.jpg", "registered", "fair", "0.30", "1.2", "—", "2.0"]
     # The photos registered to their true poses, the current one included.
     for ps in ws.photos:
         assert np.allclose(ps.pose.R, load_truth(ps.photo.path).pose.R)
