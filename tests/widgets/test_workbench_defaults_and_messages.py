@@ -152,15 +152,22 @@ def _shot_path(name):
 
 
 # ------------------------------------------------------------ Orient model dock
-def test_orient_auto_without_a_site_speaks_of_the_dock(orient_widget, dated_orient_tables, qtbot):
-    widget = orient_widget
-    widget.set_tables(*dated_orient_tables)
+def _run_auto_declination(widget, tables, signal, qtbot) -> list:
+    """Orient with the declination from the World Magnetic Model; the
+    arguments of ``signal`` (done or failed), once the dock is idle again."""
+    widget.set_tables(*tables)
     widget.declination_auto.setChecked(True)
-    with qtbot.waitSignal(widget.orientation_failed, timeout=15_000) as blocker:
+    with qtbot.waitSignal(signal, timeout=15_000) as blocker:
         widget.run()
     qtbot.waitUntil(lambda: widget.run_button.isEnabled(), timeout=5_000)
+    return blocker.args
+
+
+def test_orient_auto_without_a_site_speaks_of_the_dock(orient_widget, dated_orient_tables, qtbot):
+    widget = orient_widget
+    args = _run_auto_declination(widget, dated_orient_tables, widget.orientation_failed, qtbot)
     text = widget.status_label.text()
-    assert blocker.args[0] == text
+    assert args[0] == text
     assert "needs the site" in text and "--georef" not in text and "--declination" not in text
     assert "Georef field" in text and "untick Auto (WMM)" in text
 
@@ -173,12 +180,8 @@ def test_orient_auto_finds_georef_one_folder_up_and_says_so(orient_widget, dated
     georef = est.parent.parent / "georef.json"
     Georef("EPSG:32721", [283_077.411822, 8_562_012.355651, 0.0]).save(georef)
     widget = orient_widget
-    widget.set_tables(*dated_orient_tables)
-    widget.declination_auto.setChecked(True)
-    with qtbot.waitSignal(widget.orientation_done, timeout=15_000) as blocker:
-        widget.run()
-    qtbot.waitUntil(lambda: widget.run_button.isEnabled(), timeout=5_000)
-    assert blocker.args[0].inputs["declination"]["georef"] == str(georef)
+    args = _run_auto_declination(widget, dated_orient_tables, widget.orientation_done, qtbot)
+    assert args[0].inputs["declination"]["georef"] == str(georef)
     text = widget.status_label.text()
     assert f"origin of {georef}, found one folder up from the estimated table" in text
 

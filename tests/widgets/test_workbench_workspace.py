@@ -383,12 +383,12 @@ import napari
 from qtpy.QtWidgets import QApplication
 
 from napari_imgreg.registration import pipeline
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Progress, Registration, Trial
-from napari_imgreg.sample import load_truth
+from napari_imgreg.registration.pipeline import Progress
 from napari_imgreg.widgets.workbench import Workbench
 
 folder = Path(sys.argv[1])
+sys.path.insert(0, sys.argv[2])  # the tests' folder: the GUI tests' helpers
+from widgets._workbench import registered_on_truth  # noqa: E402
 app = QApplication.instance() or QApplication([])
 viewer = napari.Viewer(show=False)
 wb = Workbench.add_to_viewer(viewer)
@@ -406,15 +406,7 @@ def wait(cond, timeout=120.0):
 
 def register_photo(scene, image, prior, params, photo_name="", cancelled=None):
     yield Progress("match", 0.5, "matching")
-    ps = next(p for p in ctrl.photos if p.name == photo_name)
-    truth = load_truth(ps.photo.path)
-    trial = Trial(index=0, params=RegistrationParams(), metrics={"inliers_3d": 200}, q=1.4,
-                  grade="excellent", hints=[], pose=truth.pose, start_pose=ps.pose, rounds=1,
-                  converged=True, verified=True, residual_flow_px=0.4)
-    return Registration(status="registered", photo=ps.name, intrinsics=ps.intrinsics,
-                        pose=truth.pose, prior=ps.prior, metrics=trial.metrics, q=1.4,
-                        grade="excellent", hints=[], trials=[trial],
-                        timings_s={"total": 1.0}, best_trial=0)
+    return registered_on_truth(next(p for p in ctrl.photos if p.name == photo_name))
 
 
 pipeline.register_photo = register_photo
@@ -438,11 +430,14 @@ def test_the_gui_autosave_survives_sigkill(tmp_path):
     import signal
     import subprocess
     import sys
+    from pathlib import Path
 
     folder = tmp_path / "campaign.imgreg"
     script = tmp_path / "session.py"
     script.write_text(_GUI_SESSION)
-    proc = subprocess.Popen([sys.executable, str(script), str(folder)], stdout=subprocess.PIPE,
+    tests = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen([sys.executable, str(script), str(folder), str(tests)],
+                            stdout=subprocess.PIPE,
                             stderr=subprocess.DEVNULL, text=True, env=dict(os.environ))
     last = 0
     try:
