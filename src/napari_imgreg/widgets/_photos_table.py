@@ -80,6 +80,15 @@ def _number_key(value: float) -> float:
     return value if math.isfinite(value) else float("inf")
 
 
+def _show_lines(item: QTableWidgetItem, s) -> None:
+    """Fill a "lines" cell from the photo's :class:`PhotoSummary`."""
+    item.setText(_lines_text(s))
+    item.setData(SORT_ROLE, s.drawn)
+    item.setToolTip(f"{s.drawn} drawn on the photo; {s.mapped} mapped onto the model by the "
+                    "last projection"
+                    + (" (its drawings or pose changed since)" if s.mapped_out_of_date else ""))
+
+
 def _lines_text(s) -> str:
     """The photos table's "lines" cell: how many features are drawn on the
     photo, and whether the last projection mapped them as they are now."""
@@ -206,23 +215,23 @@ class PhotosTable(QWidget):
         """Keep the "lines" column current as drawings and projections change
         (released with the widget: the workspace may outlive it)."""
         ws = self.ws
-        follow_while_alive(self, [(ws.interpretations_changed, self._drawings_changed),
+        follow_while_alive(self, [(ws.interpretations_changed, self._lines_changed),
                                   (ws.projection_changed, self.refresh),
                                   # a pose edit puts the photo's mapped lines out of date
                                   (ws.pose_changed, self._current_lines_changed)])
 
-    def _drawings_changed(self, _ps=None) -> None:
-        self.refresh()
-
     def _current_lines_changed(self, *_args) -> None:
-        """Only the current photo's "lines" cell: pose edits come often."""
-        ps, index = self.ws.current, self.ws.current_index
-        row = self.row_of(index) if ps is not None and index is not None else None
-        if row is None or not (ps.interpretations or self.ws.features_3d):
+        self._lines_changed(self.ws.current)
+
+    def _lines_changed(self, ps: PhotoState | None = None) -> None:
+        """Only that photo's "lines" cell (a line drawn, a pose nudged or
+        dragged: these come often, and each cell digests its photo's drawings)."""
+        if ps is None or ps not in self.ws.photos:
             return
-        item = self.table.item(row, LINES_COLUMN)
+        row = self.row_of(self.ws.photos.index(ps))
+        item = None if row is None else self.table.item(row, LINES_COLUMN)
         if item is not None:
-            item.setText(_lines_text(self.ws.photo_summary(ps)))
+            _show_lines(item, self.ws.photo_summary(ps))
 
     # ------------------------------------------------------------- rows
     def thumbnail(self, ps: PhotoState) -> QPixmap:
@@ -274,12 +283,8 @@ class PhotosTable(QWidget):
         unc.setData(SORT_ROLE, _number_key(s.reprojection_px))
         secs = _Item("—" if not math.isfinite(s.time_s) else f"{s.time_s:.1f}")
         secs.setData(SORT_ROLE, _number_key(s.time_s))
-        lines = _Item(_lines_text(s))
-        lines.setData(SORT_ROLE, s.drawn)
-        lines.setToolTip(f"{s.drawn} drawn on the photo; {s.mapped} mapped onto the model by "
-                         "the last projection"
-                         + (" (its drawings or pose changed since)" if s.mapped_out_of_date
-                            else ""))
+        lines = _Item()
+        _show_lines(lines, s)
         for col, item in enumerate((thumb, name, status, grade, q, unc, lines, secs)):
             if col >= 2:
                 item.setTextAlignment(int(Qt.AlignmentFlag.AlignCenter))
