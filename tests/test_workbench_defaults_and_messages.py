@@ -255,3 +255,17 @@ def test_the_command_line_says_a_failed_photo_is_not_graded_as_registered(capsys
     assert first.startswith("IMG_0009.jpg: FAILED — best trial fair (uncertain) (Q = +0.41)")
     assert outcome_words("failed", "excellent") == "best trial excellent (not verified)"
     assert outcome_words("registered", "excellent") == "grade excellent"
+
+
+def test_fit_camera_2d_centres_the_box_and_fills_the_canvas():
+    """The view the workbench and the Interpret dock frame a photo with: a
+    1024 × 768 photo on a 600 × 800 canvas is limited by its height."""
+    from napari_imgreg.widgets._layers import fit_camera_2d
+
+    cam = SimpleNamespace(center=(5.0, 0.0, 0.0), zoom=1.0)
+    fit_camera_2d(cam, (-0.5, -0.5), (767.5, 1023.5), (600, 800))
+    assert cam.center == (5.0, 383.5, 511.5)  # the slice coordinate kept
+    assert cam.zoom == pytest.approx(0.95 * 600 / 768)
+    cam = SimpleNamespace(center=(0.0, 0.0), zoom=1.0)
+    fit_camera_2d(cam, (0.0, 0.0), (100.0, 1000.0), (600, 800))
+    assert cam.center == (50.0, 500.0) and cam.zoom == pytest.approx(0.95 * 800 / 1000)

@@ -60,12 +60,14 @@ from ._layers import (
     WORKBENCH_MODEL,
     camera_from_view,
     cloud_layer_data,
+    fit_camera_2d,
     frustum_segments,
     napari_from_pixels,
     napari_from_world,
     pixels_from_napari,
     surface_layer_data,
     view_from_camera,
+    viewer_camera,
     world_from_napari,
 )
 from ..workspace import (
@@ -1714,10 +1716,7 @@ class WorkbenchController(QObject):
     @property
     def camera(self):
         """The viewer's camera model (``viewer.scene.camera`` from napari 0.9 on)."""
-        scene = getattr(self.viewer, "scene", None)
-        if scene is not None and hasattr(scene, "camera"):
-            return scene.camera
-        return self.viewer.camera
+        return viewer_camera(self.viewer)
 
     def canvas_px(self) -> float:
         """The canvas' smaller side, pixels."""
@@ -1775,12 +1774,8 @@ class WorkbenchController(QObject):
             return
         h, w = self.layers.height, self.layers.offset + self.layers.width
         canvas = getattr(self.viewer, "canvas", None)
-        ch, cw = canvas.size if canvas is not None else (600, 800)
-        cam = self.camera
-        center = tuple(cam.center)
-        cam.center = (center[0], (h - 1) / 2.0, (w - 1) / 2.0) if len(center) == 3 else \
-            ((h - 1) / 2.0, (w - 1) / 2.0)
-        cam.zoom = 0.95 * min(ch / h, cw / w)
+        fit_camera_2d(self.camera, (-0.5, -0.5), (h - 0.5, w - 0.5),
+                      canvas.size if canvas is not None else (600, 800))
 
     def fly_to_pose(self) -> None:
         """Set the 3D view to look from the current photo's pose."""

@@ -34,6 +34,8 @@ __all__ = [
     "frustum_segments",
     "NAPARI_AXIS_LABELS",
     "only_height_slider",
+    "viewer_camera",
+    "fit_camera_2d",
     "INTERPRETATION_OF",
     "REDUCED_BY",
     "photo_pixel_frame",
@@ -44,6 +46,35 @@ LayerDataTuple = tuple[Any, dict[str, Any], str]
 
 NAPARI_AXIS_LABELS = ("z (up)", "x (east)", "y (north)")
 
+
+def viewer_camera(viewer):
+    """The viewer's camera model (``viewer.scene.camera`` from napari 0.9 on,
+    where ``viewer.camera`` is deprecated)."""
+    scene = getattr(viewer, "scene", None)
+    if scene is not None and hasattr(scene, "camera"):
+        return scene.camera
+    return viewer.camera
+
+
+def fit_camera_2d(camera, lo, hi, canvas_hw) -> None:
+    """Centre a 2D view on the (row, col) box ``lo``–``hi`` and zoom it to fill
+    95 % of the canvas.
+
+    Parameters
+    ----------
+    camera : napari camera
+        Its ``center`` keeps a leading (not displayed) coordinate if it has one.
+    lo, hi : (2,) arrays
+        The box's corners, world (row, col).
+    canvas_hw : (int, int)
+        The canvas' height and width, pixels.
+    """
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    mid = (lo + hi) / 2.0
+    centre = tuple(camera.center)
+    camera.center = (centre[0], *mid) if len(centre) == 3 else tuple(mid)
+    camera.zoom = 0.95 * min(canvas_hw[0] / max(hi[0] - lo[0], 1.0),
+                             canvas_hw[1] / max(hi[1] - lo[1], 1.0))
 
 def only_height_slider(axis_labels, displayed, nsteps, visible_ndims) -> bool:
     """Whether the one slider napari would show under the canvas is the

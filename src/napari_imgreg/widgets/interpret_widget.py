@@ -89,10 +89,12 @@ from ._signals import follow_while_alive
 from ._layers import (
     INTERPRETATION_OF,
     REDUCED_BY,
+    fit_camera_2d,
     napari_from_pixels,
     napari_from_world,
     photo_pixel_frame,
     pixels_from_napari,
+    viewer_camera,
 )
 
 if TYPE_CHECKING:
@@ -961,16 +963,10 @@ class InterpretWidget(QWidget):
         """The photo fills the 2D canvas (``viewer.fit_to_view`` takes a 2D
         layer's extent for all the viewer's axes and fails when the model
         gives it three)."""
-        lo, hi = (np.asarray(photo.extent.world, float)[:, -2:])
+        lo, hi = np.asarray(photo.extent.world, float)[:, -2:]
         canvas = getattr(self.viewer, "canvas", None)
-        canvas_h, canvas_w = canvas.size if canvas is not None else (600, 800)
-        scene = getattr(self.viewer, "scene", None)  # napari >= 0.9 keeps the camera there
-        cam = scene.camera if scene is not None and hasattr(scene, "camera") else self.viewer.camera
-        mid = (lo + hi) / 2.0
-        centre = tuple(cam.center)
-        cam.center = (centre[0], *mid) if len(centre) == 3 else tuple(mid)
-        cam.zoom = 0.95 * min(canvas_h / max(hi[0] - lo[0], 1.0),
-                              canvas_w / max(hi[1] - lo[1], 1.0))
+        fit_camera_2d(viewer_camera(self.viewer), lo, hi,
+                      canvas.size if canvas is not None else (600, 800))
 
     # ----------------------------------------------------------- labels
     @property
@@ -1302,8 +1298,7 @@ class InterpretWidget(QWidget):
             camera = camera_of_layer(layer)
             if camera is not None and camera[2] == name:
                 view = camera[1].view_direction
-        scene = getattr(self.viewer, "scene", None)  # napari >= 0.9 keeps the camera there
-        cam = scene.camera if scene is not None and hasattr(scene, "camera") else self.viewer.camera
+        cam = viewer_camera(self.viewer)
         cam.center = tuple(napari_from_world(pts.mean(axis=0)))
         cam.set_view_direction(tuple(napari_from_world(view)), up_direction=(1.0, 0.0, 0.0))
         extent = float(np.ptp(pts, axis=0).max()) or 10.0
