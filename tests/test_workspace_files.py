@@ -803,3 +803,61 @@ def test_two_photos_with_one_file_name_are_told_apart_not_confused(sample, tmp_p
     info = capsys.readouterr().out
     assert "IMG_0001.jpg (IMG_0001): not registered" in info
     assert "IMG_0001.jpg (IMG_0001_2): not registered; 0 trial(s), 1 drawn" in info
+
+
+
+_TAKEOVER_RACER = textwrap.dedent("""
+    import sys, time
+    from pathlib import Path
+    from napari_imgreg.errors import InputError
+    from napari_imgreg.io import workspace_files as wsfiles
+
+    folder, start_at, slow = Path(sys.argv[1]), float(sys.argv[2]), sys.argv[3] == "slow"
+    if slow:  # this session is slow to decide the lock it read is stale
+        alive = wsfiles._process_alive
+        def slow_alive(pid):
+            time.sleep(1.0)
+            return alive(pid)
+        wsfiles._process_alive = slow_alive
+    while time.time() < start_at:
+        time.sleep(0.001)
+    try:
+        token = wsfiles.acquire_lock(folder)
+    except InputError as exc:
+        print("refused", exc)
+        sys.exit(0)
+    print("holds")
+    sys.stdout.flush()
+    time.sleep(2.0)  # while the other decides
+    wsfiles.release_lock(folder, token)
+""")
+
+
+def test_two_sessions_taking_over_one_stale_lock_do_not_both_hold_it(tmp_path):
+    """A session found a dead session's lock and, while it decided the lock
+    was stale, another took it over; the first then deleted the other's new
+    lock and made its own, and both saved into the folder. The takeover now
+    deletes the stale lock only while it is still the one read, one session
+    at a time."""
+    import socket
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait(30)
+    script = tmp_path / "racer.py"
+    script.write_text(_TAKEOVER_RACER)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    folder = tmp_path / "w.imgreg"
+    folder.mkdir()
+    (folder / wsfiles.LOCK).write_text(json.dumps(
+        {"pid": dead.pid, "host": socket.gethostname(), "since": "2026-12-01T08:00:00Z",
+         "token": "stale"}))
+    start_at = time.time() + 3.0  # after both have imported
+    slow, quick = (subprocess.Popen([sys.executable, str(script), str(folder), str(at), mode],
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                    env=env)
+                   for at, mode in ((start_at, "slow"), (start_at + 0.3, "quick")))
+    slow_out, quick_out = slow.communicate(timeout=60)[0], quick.communicate(timeout=60)[0]
+    assert quick_out.startswith("holds"), quick_out
+    assert slow_out.startswith("refused") and f"is open in another napari-imgreg (pid {quick.pid}" \
+        in slow_out, slow_out
+    assert [p.name for p in folder.iterdir()] == []  # given back, nothing left beside it

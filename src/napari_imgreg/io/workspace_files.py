@@ -406,6 +406,11 @@ def _process_alive(pid: int) -> bool:
 #: written by another session starting at the same moment, seconds.
 LOCK_UNREADABLE_GRACE_S = 2.0
 
+#: Age beyond which a takeover guard (``NAME.takeover``) is taken for one left
+#: by a session that died while taking a stale lock over, seconds; a takeover
+#: holds it for a few milliseconds.
+TAKEOVER_GUARD_STALE_S = 5.0
+
 
 def _create_lock(path: Path, text: str) -> bool:
     """Create ``path`` holding ``text``, all at once; False when it exists.
@@ -433,6 +438,42 @@ def _create_lock(path: Path, text: str) -> bool:
         return True
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _remove_stale_lock(path: Path, stale: bytes | None) -> int:
+    """Delete the lock at ``path`` if it still holds ``stale``; 1 when it did.
+
+    Two sessions that read the same stale lock would each delete "it" and
+    create their own, and the later deletion would remove the other's new
+    lock: both would then hold the folder. So the check and the deletion are
+    done together under a guard file (``NAME.takeover``) that one session at
+    a time creates; a lock that changed since it was read is left alone (the
+    caller reads it again). A guard older than :data:`TAKEOVER_GUARD_STALE_S`
+    was left by a session that died in the middle and is removed.
+    """
+    guard = path.with_name(f"{path.name}.takeover")
+    if not _create_lock(guard, json_text({"pid": os.getpid(), "host": socket.gethostname(),
+                                          "since": utc_now()})):
+        try:
+            if time.time() - guard.stat().st_mtime > TAKEOVER_GUARD_STALE_S:
+                guard.unlink(missing_ok=True)
+        except OSError:
+            pass
+        time.sleep(0.02)  # another session is taking it over: read the lock again
+        return 0
+    try:
+        try:
+            still_stale = stale is not None and path.read_bytes() == stale
+        except FileNotFoundError:
+            return 0
+        except OSError:  # unreadable as before: the caller's grace has passed
+            still_stale = stale is None
+        if still_stale:
+            path.unlink(missing_ok=True)
+            return 1
+        return 0
+    finally:
+        guard.unlink(missing_ok=True)
 
 
 def acquire_lock(folder: str | os.PathLike, own_stale: bool = True, lock_name: str = LOCK,
@@ -466,11 +507,15 @@ def acquire_lock(folder: str | os.PathLike, own_stale: bool = True, lock_name: s
         if _create_lock(path, text):
             return token
         try:
-            held = json.loads(path.read_text(encoding="utf-8"))
-            other_pid, other_host = int(held["pid"]), str(held["host"])
+            raw = path.read_bytes()
         except FileNotFoundError:  # given back meanwhile
             continue
-        except (OSError, ValueError, KeyError, TypeError):
+        except OSError:
+            raw = None
+        try:
+            held = json.loads(raw.decode("utf-8"))
+            other_pid, other_host = int(held["pid"]), str(held["host"])
+        except (AttributeError, ValueError, KeyError, TypeError):
             try:
                 age_s = time.time() - path.stat().st_mtime
             except OSError:
@@ -500,8 +545,7 @@ def acquire_lock(folder: str | os.PathLike, own_stale: bool = True, lock_name: s
             raise input_error(folder, f"is open in another napari-imgreg (pid {other_pid}, "
                                       f"since {since}): close it first, or "
                                       f"delete {lock_name} if no napari-imgreg has it open")
-        path.unlink(missing_ok=True)  # stale: its process is gone
-        takeovers += 1
+        takeovers += _remove_stale_lock(path, raw)  # stale: its process is gone
     raise input_error(path, f"could not take the {kind} lock (another session keeps taking it)")
 
 
