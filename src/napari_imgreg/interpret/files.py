@@ -34,6 +34,7 @@ import csv
 import json
 import math
 import os
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
@@ -968,7 +969,12 @@ def read_gis_layers(path: str | os.PathLike) -> dict[str, tuple[list, dict[str, 
         pairs = [(str(name), path, str(name)) for name, _ in pyogrio.list_layers(path)]
     out = {}
     for layer, p, lname in pairs:
-        meta, _, geoms, data = pyogrio.raw.read(p, layer=lname)
+        with warnings.catch_warnings():
+            # GDAL cannot tell an empty PolygonZ shapefile from a PolygonZM one
+            # (the shape type is the same); it is read as Polygon Z all the same.
+            warnings.filterwarnings("ignore", "Measured \\(M\\) geometry types",
+                                    UserWarning)
+            meta, _, geoms, data = pyogrio.raw.read(p, layer=lname)
         out[layer] = (list(geoms), dict(zip(meta["fields"], data)), meta["crs"])
     return out
 
