@@ -861,3 +861,17 @@ def test_two_sessions_taking_over_one_stale_lock_do_not_both_hold_it(tmp_path):
     assert slow_out.startswith("refused") and f"is open in another napari-imgreg (pid {quick.pid}" \
         in slow_out, slow_out
     assert [p.name for p in folder.iterdir()] == []  # given back, nothing left beside it
+
+
+def test_a_lock_holder_is_alive_while_it_runs_and_dead_once_it_ended():
+    running = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        assert wsfiles._process_alive(running.pid)
+        assert wsfiles._process_alive(os.getpid())
+    finally:
+        running.kill()
+    # Killed but not yet reaped (a zombie): it holds nothing any more.
+    time.sleep(0.5)
+    assert not wsfiles._process_alive(running.pid)
+    running.wait(30)
+    assert not wsfiles._process_alive(running.pid)

@@ -391,15 +391,20 @@ def photo_key(photo: str | os.PathLike, taken: set[str]) -> str:
 
 # -------------------------------------------------------------------- lock
 def _process_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine.
+
+    psutil, not ``os.kill(pid, 0)``: on Windows signal 0 is CTRL_C_EVENT,
+    which would interrupt the lock's holder (or fail, and the holder's lock
+    be taken for stale).
+    """
+    import psutil
+
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+        return psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
         return False
-    except PermissionError:  # alive, another user's
+    except psutil.Error:  # alive, another user's
         return True
-    except OSError:
-        return False
-    return True
 
 
 #: How long a lock file that cannot be read yet is taken for one being
