@@ -458,6 +458,88 @@ def test_local_workers_ignore_sigint_also_when_restarted():
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+#: A worker whose process exits while its photo's thread is inside OpenCV: the
+#: worker closes without waiting for its task (``executor_wait=False``), as one
+#: closed at an interrupt does once Dask's close timeout has passed.
+EXIT_MID_OPENCV = """
+    import os, sys, time
+    from pathlib import Path
+
+    import distributed
+    import numpy as np
+
+    from napari_imgreg.registration import batch as backend
+
+
+    def busy_in_opencv(scene, image, prior, params=None, photo_name="", on_progress=None):
+        import cv2
+
+        pixels = np.random.default_rng(0).random((1200, 1200), dtype=np.float32)
+        Path(os.environ["MARKER"]).write_text(str(os.getpid()))
+        while True:  # most of the time with the GIL released inside OpenCV
+            cv2.GaussianBlur(pixels, (31, 31), 5)
+
+
+    class BusyInOpenCV(distributed.WorkerPlugin):
+        def __init__(self, marker):
+            self.marker = marker
+
+        def setup(self, worker):
+            from napari_imgreg.registration import pipeline
+
+            os.environ["MARKER"] = self.marker
+            pipeline.register = busy_in_opencv
+
+
+    def close_now(dask_worker):
+        dask_worker.loop.add_callback(dask_worker.close, nanny=False, executor_wait=False)
+
+
+    if __name__ == "__main__":
+        scene, marker, with_plugin = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3] == "1"
+        with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                      dashboard_address=":0") as local, \\
+                distributed.Client(local) as client:
+            client.register_plugin(BusyInOpenCV(str(marker)))
+            if with_plugin:
+                client.register_plugin(backend._NoFinalizingMidPhoto())
+            future = client.submit(
+                backend.register_photo_file, backend.SceneSpec(str(scene / "wall.obj")),
+                str(scene / "IMG_0001.jpg"), str(marker.with_suffix(".result.json")), None,
+                pure=False)
+            while not marker.exists():
+                time.sleep(0.05)
+            time.sleep(0.5)
+            client.cancel(future)  # not run again on the worker that takes its place
+            client.run(close_now)
+            time.sleep(2.0)  # the old worker process exits meanwhile
+"""
+
+
+@pytest.mark.skipif(sys.version_info >= (3, 14), reason="3.14 no longer ends a thread that "
+                    "takes the GIL during finalization (it waits forever instead)")
+def test_a_worker_exiting_mid_photo_does_not_abort_in_opencv(scene, tmp_path):
+    """Seen once after SIGTERM to `batch --workers 2`: `terminate called without an
+    active exception` on the command's stderr. A worker process reached Python's
+    finalization with a photo's thread still inside OpenCV, whose C++ GIL guard
+    then aborted the process. With the plugin it ends before finalization."""
+
+    runs = {}
+    for with_plugin in (False, True):  # side by side: each mostly waits
+        marker = tmp_path / f"started-{int(with_plugin)}"
+        runs[with_plugin] = subprocess.Popen(
+            [sys.executable, "-c", textwrap.dedent(EXIT_MID_OPENCV), str(scene), str(marker),
+             str(int(with_plugin))],
+            env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE, text=True)
+    stderr = {key: proc.communicate(timeout=120)[1] for key, proc in runs.items()}
+    assert (tmp_path / "started-0").exists() and (tmp_path / "started-1").exists(), stderr
+    # The plain worker shows the fault (so this test can see it) ...
+    assert "terminate called without an active exception" in stderr[False]
+    # ... ours exits quietly.
+    assert "terminate called" not in stderr[True] and "Aborted" not in stderr[True], stderr[True]
+
+
 def test_the_scene_is_loaded_once_per_process_and_again_when_it_changes(tmp_path, monkeypatch):
     mesh = tmp_path / "wall.obj"
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 0 1\nf 1 2 3\n")

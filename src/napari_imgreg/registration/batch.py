@@ -36,10 +36,13 @@ or where worker processes cannot start.
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
+import functools
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -259,6 +262,28 @@ def stop_requested() -> bool:
         return False
 
 
+#: Photo tasks running in this process now, in any thread (see :class:`_NoFinalizingMidPhoto`).
+_PHOTOS_RUNNING = [0]
+_PHOTOS_RUNNING_LOCK = threading.Lock()
+
+
+def _counted_as_running(task: Callable) -> Callable:
+    """Count ``task`` in :data:`_PHOTOS_RUNNING` while it runs (a photo task)."""
+
+    @functools.wraps(task)
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        with _PHOTOS_RUNNING_LOCK:
+            _PHOTOS_RUNNING[0] += 1
+        try:
+            return task(*args, **kwargs)
+        finally:
+            with _PHOTOS_RUNNING_LOCK:
+                _PHOTOS_RUNNING[0] -= 1
+
+    return counted
+
+
+@_counted_as_running
 def register_photo_file(
     scene_spec: SceneSpec,
     photo_path: str,
@@ -325,6 +350,7 @@ def register_photo_file(
             "seconds": time.perf_counter() - t0, "scene_load_s": scene_s, "pid": os.getpid()}
 
 
+@_counted_as_running
 def register_prior(scene_spec: SceneSpec, image: Any, prior: Any, params: Any,
                    name: str) -> Any:
     """Register an image from a given prior: a ``workspace register`` task.
@@ -377,6 +403,43 @@ class _IgnoreInterrupt(WorkerPlugin):
         # worker thread of this process (processes=False) is left alone.
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+class _NoFinalizingMidPhoto(WorkerPlugin):
+    """A Dask worker plugin: a worker process that exits while one of its
+    threads is still registering a photo ends at once (``os._exit``), without
+    the interpreter's finalization.
+
+    Closing a worker waits for its running tasks only so long (Dask's close
+    timeout), and a photo takes seconds: at an interrupt the worker's process
+    can reach its exit with the photo's thread still inside OpenCV. When that
+    thread leaves the OpenCV call, Python (3.11–3.13) ends it with
+    ``pthread_exit`` because the interpreter is finalizing; the unwinding
+    reaches OpenCV's GIL guard, a C++ destructor, and the C++ runtime aborts
+    the process: ``terminate called without an active exception`` on the
+    command's stderr, which the workers share. Exiting before finalization
+    begins (from ``atexit``, when the other threads still run as usual) leaves
+    that thread nothing to unwind. A worker with no photo running exits as
+    it always did.
+    """
+
+    name = "napari-imgreg-no-finalizing-mid-photo"
+
+    def setup(self, worker) -> None:  # noqa: ARG002 - the plugin interface
+        # One handler per process, however often the plugin is registered.
+        atexit.unregister(_exit_at_once_if_mid_photo)
+        atexit.register(_exit_at_once_if_mid_photo)
+
+
+def _exit_at_once_if_mid_photo() -> None:
+    """``atexit``: end this process now if a photo task is still running in
+    one of its threads (:class:`_NoFinalizingMidPhoto`)."""
+    if _PHOTOS_RUNNING[0] == 0:
+        return
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(0)  # the worker was exiting anyway
 
 
 def worker_environment(threads: int, dask_environment: dict | None = None) -> dict:
@@ -545,6 +608,7 @@ class PhotoRunner:
             self.description = (f"local cluster: {n_workers} worker {kind}, "
                                 f"{threads} thread(s) each")
         self.client.register_plugin(_PinThreads(None), name=_PinThreads.name)
+        self.client.register_plugin(_NoFinalizingMidPhoto(), name=_NoFinalizingMidPhoto.name)
         if self._local is not None and self.cluster.processes:
             self.client.register_plugin(_IgnoreInterrupt(), name=_IgnoreInterrupt.name)
 
