@@ -685,3 +685,37 @@ def test_a_cluster_whose_event_loop_starts_late_is_started_again(monkeypatch):
     with pytest.raises(InputError, match="did not start"):
         with backend.PhotoRunner(backend.ClusterParams(workers=1, processes=False), 1):
             pass
+
+
+def test_sigterm_while_the_local_cluster_starts_or_closes_waits_for_it():
+    """SIGTERM during Dask's start left a half-made cluster for Dask's exit hook
+    (a traceback, 'AssertionError: Status.init'); during its close (just as the
+    last photo finished) the workers outlived the command, which took 10 s to
+    exit. Now it is held until the cluster is up or down, then raised."""
+    import multiprocessing
+
+    from napari_imgreg.cli._common import Terminated, sigterm_as_interrupt
+
+    def sigterm_in(seconds: float) -> threading.Timer:
+        timer = threading.Timer(seconds, os.kill, (os.getpid(), signal.SIGTERM))
+        timer.start()
+        return timer
+
+    with sigterm_as_interrupt():
+        entered = False
+        sigterm_in(0.2)  # the cluster takes seconds to start
+        with pytest.raises(Terminated), backend.PhotoRunner(backend.ClusterParams(workers=1), 2):
+            entered = True
+        assert not entered and not multiprocessing.active_children()
+
+        runner = backend.PhotoRunner(backend.ClusterParams(workers=1), 2)
+        with pytest.raises(Terminated), runner:
+            sigterm_in(0.2)  # the cluster takes a second or more to close
+        assert runner.client is None and not multiprocessing.active_children()
+
+        # An interrupt already on its way out: one more during the close adds nothing.
+        with pytest.raises(KeyboardInterrupt) as raised, \
+                backend.PhotoRunner(backend.ClusterParams(workers=1), 2):
+            sigterm_in(0.1)
+            raise KeyboardInterrupt
+        assert type(raised.value) is KeyboardInterrupt and not multiprocessing.active_children()

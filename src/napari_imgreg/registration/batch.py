@@ -530,7 +530,7 @@ class PhotoRunner:
         except BaseException:
             # __exit__ is not called when __enter__ raises: a cluster half set
             # up (a Ctrl-C, a plugin that failed) is closed here.
-            self.close()
+            self.close(deliver_interrupts=False)
             raise
         return self
 
@@ -582,7 +582,7 @@ class PhotoRunner:
                 "distributed.admin.system-monitor.disk": False,
                 "distributed.worker.memory.monitor-interval": "1s",
                 "distributed.admin.tick.interval": "500ms",
-            }), _interrupt_kept_from_workers():
+            }), _interrupts_held(), _interrupt_kept_from_workers():
                 for attempt in (1, 2):
                     try:
                         self._local = LocalCluster(
@@ -603,7 +603,7 @@ class PhotoRunner:
                             raise InputError("the local Dask cluster did not start (its "
                                              "event loop took over 10 s): the machine is "
                                              "busy; try again") from None
-            self.client = Client(self._local)
+                self.client = Client(self._local)
             kind = "process(es)" if self.cluster.processes else "thread(s) of this process"
             self.description = (f"local cluster: {n_workers} worker {kind}, "
                                 f"{threads} thread(s) each")
@@ -612,23 +612,29 @@ class PhotoRunner:
         if self._local is not None and self.cluster.processes:
             self.client.register_plugin(_IgnoreInterrupt(), name=_IgnoreInterrupt.name)
 
-    def __exit__(self, *exc_info) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        # Unwinding from an interrupt already: another one during the close adds nothing.
+        self.close(deliver_interrupts=exc_type is None)
 
-    def close(self) -> None:
-        """Stop the client and the local cluster (a remote cluster stays)."""
+    def close(self, deliver_interrupts: bool = True) -> None:
+        """Stop the client and the local cluster (a remote cluster stays).
+
+        Ctrl-C and SIGTERM are held until both are closed (:func:`_interrupts_held`),
+        then raised (``deliver_interrupts``) or dropped.
+        """
         client, local = self.client, self._local
         self.client = self._local = None
-        try:
-            if client is not None:
-                client.close(timeout=10)
-        except Exception:  # noqa: BLE001 - closing after an interrupt may find it half gone
-            pass
-        try:
-            if local is not None:
-                local.close(timeout=10)
-        except Exception:  # noqa: BLE001
-            pass
+        with _interrupts_held(deliver=deliver_interrupts):
+            try:
+                if client is not None:
+                    client.close(timeout=10)
+            except Exception:  # noqa: BLE001 - closing after an interrupt may find it half gone
+                pass
+            try:
+                if local is not None:
+                    local.close(timeout=10)
+            except Exception:  # noqa: BLE001
+                pass
         for name, value in self._saved_env.items():  # this process's own, as before
             if value is None:
                 os.environ.pop(name, None)
@@ -849,6 +855,38 @@ def _lost_message(exc: BaseException, allowed_failures: int, solo: bool = False)
         return (f"the worker registering it died {deaths} (a crash in a native library "
                 f"or out of memory?); not retried")
     return f"lost by the cluster ({type(exc).__name__}: {_one_line(exc)})"
+
+
+@contextlib.contextmanager
+def _interrupts_held(deliver: bool = True) -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM while a local cluster starts or closes; then
+    raise the first that arrived (``deliver``), or drop it.
+
+    Raised inside Dask's start or close, an interrupt left the cluster half
+    made or half closed: its worker processes outlived the command, which
+    waited 10 s for Dask's own timeout to exit (a SIGTERM just as the last
+    photo finished). Both take seconds and have timeouts. Handlers can only
+    be set in the main thread; elsewhere the block runs as it is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived: list[int] = []
+
+    def hold(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
+        arrived.append(signum)
+
+    previous = {}
+    try:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous[signum] = signal.signal(signum, hold)
+        yield
+    finally:
+        for signum, handler in previous.items():
+            # None: a handler not set from Python, restored as the default.
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+        if arrived and deliver:
+            signal.raise_signal(arrived[0])  # its handler raises here, as it would have
 
 
 @contextlib.contextmanager
