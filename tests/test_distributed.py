@@ -719,3 +719,48 @@ def test_sigterm_while_the_local_cluster_starts_or_closes_waits_for_it():
             sigterm_in(0.1)
             raise KeyboardInterrupt
         assert type(raised.value) is KeyboardInterrupt and not multiprocessing.active_children()
+
+
+def test_an_interrupt_that_breaks_a_lock_wait_is_still_the_interrupt(monkeypatch):
+    """SIGTERM while the command waits for the next photo (inside as_completed's
+    condition) can leave the condition's lock unheld, and its `with` then fails:
+    'RuntimeError: cannot release un-acquired lock', a traceback and exit 1 (seen
+    once in the SIGTERM trials, with the command's process stalled by load)."""
+    from napari_imgreg.cli._common import Terminated
+
+    class WaitBrokenBySigterm:
+        def __init__(self):
+            self.added = 0
+
+        def add(self, future):
+            self.added += 1
+
+        def count(self):
+            return self.added
+
+        def __iter__(self):
+            return self
+
+        def __next__(self):
+            try:
+                raise Terminated()  # the handler, inside Condition.wait
+            except Terminated:
+                raise RuntimeError("cannot release un-acquired lock") from None
+
+    class IdleClient:
+        status = "running"
+
+        def submit(self, *args, **kwargs):
+            return object()
+
+        def nthreads(self):
+            return {"worker": 1}
+
+        def cancel(self, futures):
+            pass
+
+    monkeypatch.setattr(distributed, "as_completed", WaitBrokenBySigterm)
+    runner = backend.PhotoRunner(backend.ClusterParams(workers=1), 1)
+    runner.client, runner._local = IdleClient(), object()  # a local cluster's path
+    with pytest.raises(Terminated):
+        list(runner.run([("IMG_0001.jpg", print, ())]))

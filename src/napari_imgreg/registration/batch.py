@@ -759,6 +759,14 @@ class PhotoRunner:
                     futures.pop(retry)
                     outcome = self._outcome(retry, solo=True)
                 yield tag, TaskLost(outcome.message) if isinstance(outcome, _GivenUp) else outcome
+        except RuntimeError as exc:
+            # An interrupt raised while this thread waits on a lock (as_completed's
+            # condition) can leave the lock unheld, and the wait's `with` then fails
+            # to release it ("cannot release un-acquired lock", a traceback and exit
+            # 1 after SIGTERM): what happened is the interrupt.
+            if isinstance(exc.__context__, KeyboardInterrupt):
+                raise exc.__context__ from None
+            raise
         finally:
             if futures and self.client is not None:
                 try:
