@@ -337,6 +337,34 @@ def test_a_scheduler_that_goes_away_mid_run_is_one_line_and_a_valid_summary(scen
     assert listed == {p.name for p in out.glob("*.result.json")}
     assert "--skip-existing" in stdout
     assert not (out / "batch.lock").exists()
+    # Said at once, before Dask's 30 s of trying to reconnect.
+    assert (f"lost the connection to the scheduler at {address}: trying to reconnect for up "
+            "to 30 s") in stdout
+
+
+def test_a_dropped_connection_to_the_scheduler_is_survived(scene, stand_in, tmp_path):
+    """A network blip: the scheduler stays, the command's connection to it drops.
+    Dask cancels every photo in flight and reconnects; the batch said nothing
+    for 30 s and stopped. Now it says so, submits those photos again and goes on."""
+    address, marks, client = stand_in(slow="IMG_0002.jpg")
+    out = tmp_path / "results"
+    proc = _batch_until_started(scene, out, address, marks, "IMG_0002.jpg")
+
+    def drop_other_clients(dask_scheduler, keep=client.id):
+        for client_id, stream in list(dask_scheduler.client_comms.items()):
+            if client_id != keep and not client_id.startswith("fire-and-forget"):
+                stream.comm.abort()
+
+    client.run_on_scheduler(drop_other_clients)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 2, stderr  # the two corrupt photos, as without the blip
+    assert "Traceback" not in stderr and "scheduler went away" not in stderr
+    assert f"lost the connection to the scheduler at {address}" in stdout
+    assert f"reconnected to the scheduler at {address}" in stdout
+    summary = strict_load((out / "summary.json").read_text())
+    assert summary["complete"] and not summary["interrupted"]
+    assert summary["counts"]["registered"] == 5
+    assert [c[0] for c in _calls(marks)].count("IMG_0002.jpg") == 2  # submitted again
 
 
 def test_a_photo_running_on_a_scheduler_at_an_interrupt_writes_no_result_after_it(

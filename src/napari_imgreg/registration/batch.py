@@ -672,7 +672,8 @@ class PhotoRunner:
         return dict(self.client.run(os.getpid))
 
     # -- work
-    def run(self, tasks: Iterable[tuple[str, Callable, tuple]]) -> Iterator[tuple[str, Any]]:
+    def run(self, tasks: Iterable[tuple[str, Callable, tuple]],
+            report: Callable[[str], None] | None = None) -> Iterator[tuple[str, Any]]:
         """Run ``(tag, function, args)`` tasks; yield ``(tag, outcome)`` as each finishes.
 
         ``outcome`` is what the function returned, the exception it raised, or
@@ -680,6 +681,11 @@ class PhotoRunner:
         In this process the tasks run in order (an exception propagates); on
         a cluster in any order.
         Leaving the loop early (an interrupt) cancels what has not finished.
+
+        When the connection to an existing scheduler drops, Dask cancels every
+        task in flight and tries to reconnect for ``connect_timeout_s``; this
+        says so at once through ``report`` (a line of progress), submits those
+        tasks again if it reconnects, and raises :class:`SchedulerLost` if not.
         """
         if self.client is None:
             for tag, fn, args in tasks:
@@ -729,17 +735,27 @@ class PhotoRunner:
                 pass
 
         given_up: dict[Any, tuple[str, tuple[str, Callable, tuple], _GivenUp]] = {}
+        resubmitted = 0
         try:
             fill()
             for future in running:
+                if future not in futures:  # cancelled as the connection dropped, submitted again
+                    continue
                 tag, task = futures.pop(future)
                 outcome = self._outcome(future)
                 if isinstance(outcome, TaskLost) and self._scheduler_gone():
                     futures[future] = (tag, task)  # not finished: cancelled below
-                    raise SchedulerLost(
-                        f"{self.scheduler_address or 'the local cluster'}: the scheduler went "
-                        "away during the run (the connection to it was lost); the photos "
-                        "finished before are kept")
+                    if not self._reconnected(len(futures), report):
+                        raise SchedulerLost(
+                            f"{self.scheduler_address or 'the local cluster'}: the scheduler "
+                            "went away during the run (the connection to it was lost); the "
+                            "photos finished before are kept")
+                    # Dask cancelled every photo in flight when the connection dropped.
+                    for lost, (_, lost_task) in list(futures.items()):
+                        del futures[lost]
+                        resubmitted += 1
+                        running.add(submit(lost_task, f"again{resubmitted:05d}"))
+                    continue
                 if isinstance(outcome, _GivenUp):
                     given_up[future] = (tag, task, outcome)
                 else:
@@ -768,7 +784,8 @@ class PhotoRunner:
                 raise exc.__context__ from None
             raise
         finally:
-            if futures and self.client is not None:
+            # Not with a scheduler gone: each call would wait for it (30 s each).
+            if futures and self.client is not None and not self._scheduler_gone():
                 try:
                     # Cancelling does not stop a photo already running: tell it
                     # not to write its result after the summary.
@@ -795,6 +812,31 @@ class PhotoRunner:
                 outcome = TaskLost(_lost_message(exc, self.cluster.allowed_failures))
         future.release()
         return outcome
+
+    def _reconnected(self, n_in_flight: int, report: Callable[[str], None] | None) -> bool:
+        """After the connection to the scheduler dropped: whether Dask's client
+        reconnects (it tries for ``connect_timeout_s``). An existing scheduler
+        may be back after a network blip or a restart; a local cluster's,
+        in this process, is not. Says what it waits for, and what came of it."""
+        if self._local is not None or self.client is None:
+            return False
+        address = self.scheduler_address
+        if report is not None:
+            report(f"lost the connection to the scheduler at {address}: trying to reconnect for "
+                   f"up to {self.cluster.connect_timeout_s:g} s (Ctrl-C stops; the photos "
+                   "finished are kept)")
+        t0 = time.monotonic()
+        # Dask's own deadline, and a margin in case its client never says.
+        while (self.client.status in ("connecting", "newly-created")
+               and time.monotonic() - t0 < self.cluster.connect_timeout_s + 10):
+            time.sleep(0.1)
+        if self.client.status != "running":
+            return False
+        if report is not None:
+            report(f"reconnected to the scheduler at {address} after "
+                   f"{time.monotonic() - t0:.1f} s: the {n_in_flight} photo(s) that were in "
+                   "flight are registered again")
+        return True
 
     def _scheduler_gone(self) -> bool:
         """This process's client has lost its scheduler: Dask cancels every
