@@ -715,7 +715,7 @@ def test_a_cluster_whose_event_loop_starts_late_is_started_again(monkeypatch):
             pass
 
 
-def test_sigterm_while_the_local_cluster_starts_or_closes_waits_for_it():
+def test_sigterm_while_the_local_cluster_starts_or_closes_waits_for_it(monkeypatch):
     """SIGTERM during Dask's start left a half-made cluster for Dask's exit hook
     (a traceback, 'AssertionError: Status.init'); during its close (just as the
     last photo finished) the workers outlived the command, which took 10 s to
@@ -724,34 +724,54 @@ def test_sigterm_while_the_local_cluster_starts_or_closes_waits_for_it():
 
     from napari_imgreg.cli._common import Terminated, sigterm_as_interrupt
 
-    def sigterm_in(seconds: float) -> threading.Timer:
-        timer = threading.Timer(seconds, os.kill, (os.getpid(), signal.SIGTERM))
-        timer.start()
-        return timer
-
     others = set(multiprocessing.active_children())  # the module's cluster, when it runs
 
     def workers_left() -> set:
         return set(multiprocessing.active_children()) - others
 
-    with sigterm_as_interrupt():
-        entered = False
-        sigterm_in(0.2)  # the cluster takes seconds to start
-        with pytest.raises(Terminated), backend.PhotoRunner(backend.ClusterParams(workers=1), 2):
-            entered = True
-        assert not entered and not workers_left()
+    timers = []
 
-        runner = backend.PhotoRunner(backend.ClusterParams(workers=1), 2)
-        with pytest.raises(Terminated), runner:
-            sigterm_in(0.2)  # the cluster takes a second or more to close
-        assert runner.client is None and not workers_left()
+    class SigtermWhileStarting(distributed.LocalCluster):
+        def __init__(self, *args, **kwargs):
+            # Starting a worker process (a fresh interpreter) takes far longer.
+            timers.append(threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM)))
+            timers[-1].start()
+            super().__init__(*args, **kwargs)
 
-        # An interrupt already on its way out: one more during the close adds nothing.
-        with pytest.raises(KeyboardInterrupt) as raised, \
-                backend.PhotoRunner(backend.ClusterParams(workers=1), 2):
-            sigterm_in(0.1)
-            raise KeyboardInterrupt
-        assert type(raised.value) is KeyboardInterrupt and not workers_left()
+    def sigterm_at_close(runner):
+        close = runner._local.close
+
+        def close_after_sigterm(*args, **kwargs):
+            os.kill(os.getpid(), signal.SIGTERM)  # its handler runs at once, in this thread
+            return close(*args, **kwargs)
+
+        runner._local.close = close_after_sigterm
+
+    try:
+        with sigterm_as_interrupt():
+            entered = False
+            with monkeypatch.context() as patched:
+                patched.setattr(distributed, "LocalCluster", SigtermWhileStarting)
+                with pytest.raises(Terminated), \
+                        backend.PhotoRunner(backend.ClusterParams(workers=1), 2):
+                    entered = True
+            assert not entered and not workers_left()
+
+            runner = backend.PhotoRunner(backend.ClusterParams(workers=1), 2)
+            with pytest.raises(Terminated), runner:
+                sigterm_at_close(runner)
+            assert runner.client is None and not workers_left()
+
+            # An interrupt already on its way out: one more during the close adds nothing.
+            with pytest.raises(KeyboardInterrupt) as raised, \
+                    backend.PhotoRunner(backend.ClusterParams(workers=1), 2) as runner:
+                sigterm_at_close(runner)
+                raise KeyboardInterrupt
+            assert type(raised.value) is KeyboardInterrupt and not workers_left()
+    finally:
+        for timer in timers:  # none may fire after the handler is gone
+            timer.cancel()
+            timer.join()
 
 
 def test_an_interrupt_that_breaks_a_lock_wait_is_still_the_interrupt(monkeypatch):
