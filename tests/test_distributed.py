@@ -302,6 +302,7 @@ def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in,
     assert "--skip-existing" in stdout
 
 
+@pytest.mark.slow  # Dask tries to reconnect for 30 s before the command may give up
 def test_a_scheduler_that_goes_away_mid_run_is_one_line_and_a_valid_summary(scene, tmp_path):
     """The scheduler stopped during a run (restarted, its job ended): the
     command crashed with a traceback ('FutureCancelledError' object is not
