@@ -728,7 +728,7 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
                 header["cluster"] = runner.description
                 where = "in this process" if cluster.in_process else f"on the {runner.description}"
                 say(f"registering {len(todo)} photo(s) {where}", flush=True)
-            for name, outcome in runner.run(tasks):
+            for name, outcome in runner.run(tasks, lambda message: say(message, flush=True)):
                 _record_outcome(name, outcome, out, names[files.photos[order[name]]], record,
                                 f"[{done + 1:>{width}}/{n}] {name}")
     except (KeyboardInterrupt, backend.SchedulerLost) as exc:  # Ctrl-C, SIGTERM, no scheduler

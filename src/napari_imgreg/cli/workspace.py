@@ -409,7 +409,8 @@ def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) ->
     failed = 0
     with backend.PhotoRunner(cluster, len(todo)) as runner:
         say(f"  on the {runner.description}", flush=True)
-        for n, (tag, reg) in enumerate(runner.run(tasks), 1):
+        for n, (tag, reg) in enumerate(runner.run(tasks, lambda message: say(f"  {message}")),
+                                       1):
             ps = ws.photos[int(tag)]
             if isinstance(reg, BaseException):
                 say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: not registered: {one_line(reg)}")

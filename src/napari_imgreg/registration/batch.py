@@ -36,10 +36,13 @@ or where worker processes cannot start.
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
+import functools
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -259,6 +262,28 @@ def stop_requested() -> bool:
         return False
 
 
+#: Photo tasks running in this process now, in any thread (see :class:`_NoFinalizingMidPhoto`).
+_PHOTOS_RUNNING = [0]
+_PHOTOS_RUNNING_LOCK = threading.Lock()
+
+
+def _counted_as_running(task: Callable) -> Callable:
+    """Count ``task`` in :data:`_PHOTOS_RUNNING` while it runs (a photo task)."""
+
+    @functools.wraps(task)
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        with _PHOTOS_RUNNING_LOCK:
+            _PHOTOS_RUNNING[0] += 1
+        try:
+            return task(*args, **kwargs)
+        finally:
+            with _PHOTOS_RUNNING_LOCK:
+                _PHOTOS_RUNNING[0] -= 1
+
+    return counted
+
+
+@_counted_as_running
 def register_photo_file(
     scene_spec: SceneSpec,
     photo_path: str,
@@ -325,6 +350,7 @@ def register_photo_file(
             "seconds": time.perf_counter() - t0, "scene_load_s": scene_s, "pid": os.getpid()}
 
 
+@_counted_as_running
 def register_prior(scene_spec: SceneSpec, image: Any, prior: Any, params: Any,
                    name: str) -> Any:
     """Register an image from a given prior: a ``workspace register`` task.
@@ -377,6 +403,43 @@ class _IgnoreInterrupt(WorkerPlugin):
         # worker thread of this process (processes=False) is left alone.
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+class _NoFinalizingMidPhoto(WorkerPlugin):
+    """A Dask worker plugin: a worker process that exits while one of its
+    threads is still registering a photo ends at once (``os._exit``), without
+    the interpreter's finalization.
+
+    Closing a worker waits for its running tasks only so long (Dask's close
+    timeout), and a photo takes seconds: at an interrupt the worker's process
+    can reach its exit with the photo's thread still inside OpenCV. When that
+    thread leaves the OpenCV call, Python (3.11–3.13) ends it with
+    ``pthread_exit`` because the interpreter is finalizing; the unwinding
+    reaches OpenCV's GIL guard, a C++ destructor, and the C++ runtime aborts
+    the process: ``terminate called without an active exception`` on the
+    command's stderr, which the workers share. Exiting before finalization
+    begins (from ``atexit``, when the other threads still run as usual) leaves
+    that thread nothing to unwind. A worker with no photo running exits as
+    it always did.
+    """
+
+    name = "napari-imgreg-no-finalizing-mid-photo"
+
+    def setup(self, worker) -> None:  # noqa: ARG002 - the plugin interface
+        # One handler per process, however often the plugin is registered.
+        atexit.unregister(_exit_at_once_if_mid_photo)
+        atexit.register(_exit_at_once_if_mid_photo)
+
+
+def _exit_at_once_if_mid_photo() -> None:
+    """``atexit``: end this process now if a photo task is still running in
+    one of its threads (:class:`_NoFinalizingMidPhoto`)."""
+    if _PHOTOS_RUNNING[0] == 0:
+        return
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(0)  # the worker was exiting anyway
 
 
 def worker_environment(threads: int, dask_environment: dict | None = None) -> dict:
@@ -467,7 +530,7 @@ class PhotoRunner:
         except BaseException:
             # __exit__ is not called when __enter__ raises: a cluster half set
             # up (a Ctrl-C, a plugin that failed) is closed here.
-            self.close()
+            self.close(deliver_interrupts=False)
             raise
         return self
 
@@ -519,7 +582,7 @@ class PhotoRunner:
                 "distributed.admin.system-monitor.disk": False,
                 "distributed.worker.memory.monitor-interval": "1s",
                 "distributed.admin.tick.interval": "500ms",
-            }), _interrupt_kept_from_workers():
+            }), _interrupts_held(), _interrupt_kept_from_workers():
                 for attempt in (1, 2):
                     try:
                         self._local = LocalCluster(
@@ -540,31 +603,38 @@ class PhotoRunner:
                             raise InputError("the local Dask cluster did not start (its "
                                              "event loop took over 10 s): the machine is "
                                              "busy; try again") from None
-            self.client = Client(self._local)
+                self.client = Client(self._local)
             kind = "process(es)" if self.cluster.processes else "thread(s) of this process"
             self.description = (f"local cluster: {n_workers} worker {kind}, "
                                 f"{threads} thread(s) each")
         self.client.register_plugin(_PinThreads(None), name=_PinThreads.name)
+        self.client.register_plugin(_NoFinalizingMidPhoto(), name=_NoFinalizingMidPhoto.name)
         if self._local is not None and self.cluster.processes:
             self.client.register_plugin(_IgnoreInterrupt(), name=_IgnoreInterrupt.name)
 
-    def __exit__(self, *exc_info) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        # Unwinding from an interrupt already: another one during the close adds nothing.
+        self.close(deliver_interrupts=exc_type is None)
 
-    def close(self) -> None:
-        """Stop the client and the local cluster (a remote cluster stays)."""
+    def close(self, deliver_interrupts: bool = True) -> None:
+        """Stop the client and the local cluster (a remote cluster stays).
+
+        Ctrl-C and SIGTERM are held until both are closed (:func:`_interrupts_held`),
+        then raised (``deliver_interrupts``) or dropped.
+        """
         client, local = self.client, self._local
         self.client = self._local = None
-        try:
-            if client is not None:
-                client.close(timeout=10)
-        except Exception:  # noqa: BLE001 - closing after an interrupt may find it half gone
-            pass
-        try:
-            if local is not None:
-                local.close(timeout=10)
-        except Exception:  # noqa: BLE001
-            pass
+        with _interrupts_held(deliver=deliver_interrupts):
+            try:
+                if client is not None:
+                    client.close(timeout=10)
+            except Exception:  # noqa: BLE001 - closing after an interrupt may find it half gone
+                pass
+            try:
+                if local is not None:
+                    local.close(timeout=10)
+            except Exception:  # noqa: BLE001
+                pass
         for name, value in self._saved_env.items():  # this process's own, as before
             if value is None:
                 os.environ.pop(name, None)
@@ -602,7 +672,8 @@ class PhotoRunner:
         return dict(self.client.run(os.getpid))
 
     # -- work
-    def run(self, tasks: Iterable[tuple[str, Callable, tuple]]) -> Iterator[tuple[str, Any]]:
+    def run(self, tasks: Iterable[tuple[str, Callable, tuple]],
+            report: Callable[[str], None] | None = None) -> Iterator[tuple[str, Any]]:
         """Run ``(tag, function, args)`` tasks; yield ``(tag, outcome)`` as each finishes.
 
         ``outcome`` is what the function returned, the exception it raised, or
@@ -610,6 +681,11 @@ class PhotoRunner:
         In this process the tasks run in order (an exception propagates); on
         a cluster in any order.
         Leaving the loop early (an interrupt) cancels what has not finished.
+
+        When the connection to an existing scheduler drops, Dask cancels every
+        task in flight and tries to reconnect for ``connect_timeout_s``; this
+        says so at once through ``report`` (a line of progress), submits those
+        tasks again if it reconnects, and raises :class:`SchedulerLost` if not.
         """
         if self.client is None:
             for tag, fn, args in tasks:
@@ -659,17 +735,27 @@ class PhotoRunner:
                 pass
 
         given_up: dict[Any, tuple[str, tuple[str, Callable, tuple], _GivenUp]] = {}
+        resubmitted = 0
         try:
             fill()
             for future in running:
+                if future not in futures:  # cancelled as the connection dropped, submitted again
+                    continue
                 tag, task = futures.pop(future)
                 outcome = self._outcome(future)
                 if isinstance(outcome, TaskLost) and self._scheduler_gone():
                     futures[future] = (tag, task)  # not finished: cancelled below
-                    raise SchedulerLost(
-                        f"{self.scheduler_address or 'the local cluster'}: the scheduler went "
-                        "away during the run (the connection to it was lost); the photos "
-                        "finished before are kept")
+                    if not self._reconnected(len(futures), report):
+                        raise SchedulerLost(
+                            f"{self.scheduler_address or 'the local cluster'}: the scheduler "
+                            "went away during the run (the connection to it was lost); the "
+                            "photos finished before are kept")
+                    # Dask cancelled every photo in flight when the connection dropped.
+                    for lost, (_, lost_task) in list(futures.items()):
+                        del futures[lost]
+                        resubmitted += 1
+                        running.add(submit(lost_task, f"again{resubmitted:05d}"))
+                    continue
                 if isinstance(outcome, _GivenUp):
                     given_up[future] = (tag, task, outcome)
                 else:
@@ -689,8 +775,17 @@ class PhotoRunner:
                     futures.pop(retry)
                     outcome = self._outcome(retry, solo=True)
                 yield tag, TaskLost(outcome.message) if isinstance(outcome, _GivenUp) else outcome
+        except RuntimeError as exc:
+            # An interrupt raised while this thread waits on a lock (as_completed's
+            # condition) can leave the lock unheld, and the wait's `with` then fails
+            # to release it ("cannot release un-acquired lock", a traceback and exit
+            # 1 after SIGTERM): what happened is the interrupt.
+            if isinstance(exc.__context__, KeyboardInterrupt):
+                raise exc.__context__ from None
+            raise
         finally:
-            if futures and self.client is not None:
+            # Not with a scheduler gone: each call would wait for it (30 s each).
+            if futures and self.client is not None and not self._scheduler_gone():
                 try:
                     # Cancelling does not stop a photo already running: tell it
                     # not to write its result after the summary.
@@ -717,6 +812,31 @@ class PhotoRunner:
                 outcome = TaskLost(_lost_message(exc, self.cluster.allowed_failures))
         future.release()
         return outcome
+
+    def _reconnected(self, n_in_flight: int, report: Callable[[str], None] | None) -> bool:
+        """After the connection to the scheduler dropped: whether Dask's client
+        reconnects (it tries for ``connect_timeout_s``). An existing scheduler
+        may be back after a network blip or a restart; a local cluster's,
+        in this process, is not. Says what it waits for, and what came of it."""
+        if self._local is not None or self.client is None:
+            return False
+        address = self.scheduler_address
+        if report is not None:
+            report(f"lost the connection to the scheduler at {address}: trying to reconnect for "
+                   f"up to {self.cluster.connect_timeout_s:g} s (Ctrl-C stops; the photos "
+                   "finished are kept)")
+        t0 = time.monotonic()
+        # Dask's own deadline, and a margin in case its client never says.
+        while (self.client.status in ("connecting", "newly-created")
+               and time.monotonic() - t0 < self.cluster.connect_timeout_s + 10):
+            time.sleep(0.1)
+        if self.client.status != "running":
+            return False
+        if report is not None:
+            report(f"reconnected to the scheduler at {address} after "
+                   f"{time.monotonic() - t0:.1f} s: the {n_in_flight} photo(s) that were in "
+                   "flight are registered again")
+        return True
 
     def _scheduler_gone(self) -> bool:
         """This process's client has lost its scheduler: Dask cancels every
@@ -785,6 +905,38 @@ def _lost_message(exc: BaseException, allowed_failures: int, solo: bool = False)
         return (f"the worker registering it died {deaths} (a crash in a native library "
                 f"or out of memory?); not retried")
     return f"lost by the cluster ({type(exc).__name__}: {_one_line(exc)})"
+
+
+@contextlib.contextmanager
+def _interrupts_held(deliver: bool = True) -> Iterator[None]:
+    """Hold Ctrl-C and SIGTERM while a local cluster starts or closes; then
+    raise the first that arrived (``deliver``), or drop it.
+
+    Raised inside Dask's start or close, an interrupt left the cluster half
+    made or half closed: its worker processes outlived the command, which
+    waited 10 s for Dask's own timeout to exit (a SIGTERM just as the last
+    photo finished). Both take seconds and have timeouts. Handlers can only
+    be set in the main thread; elsewhere the block runs as it is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived: list[int] = []
+
+    def hold(signum, frame) -> None:  # noqa: ARG001 - a signal handler's signature
+        arrived.append(signum)
+
+    previous = {}
+    try:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous[signum] = signal.signal(signum, hold)
+        yield
+    finally:
+        for signum, handler in previous.items():
+            # None: a handler not set from Python, restored as the default.
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+        if arrived and deliver:
+            signal.raise_signal(arrived[0])  # its handler raises here, as it would have
 
 
 @contextlib.contextmanager
