@@ -34,3 +34,51 @@ def test_a_job_ending_after_its_dock_was_deleted_raises_nothing(qtbot):
     qtbot.waitUntil(lambda: bool(finished), timeout=5000)
     qtbot.wait(50)
     assert seen == []  # a result for a dock that is gone is not handed on
+
+
+_ENDS_MID_JOB = '''
+import time
+from qtpy.QtWidgets import QApplication
+app = QApplication.instance() or QApplication([])
+from napari_imgreg.registration.pipeline import Cancelled
+from napari_imgreg.widgets._jobs import JobRunner
+
+runner = JobRunner()
+cancelled = runner.cancel_token("registration")
+
+def job():
+    for k in range(1000):  # 20 s unless cancelled
+        if cancelled():
+            raise Cancelled
+        time.sleep(0.02)
+        yield k
+
+runner.start("registration", job, on_returned=lambda value: None)
+end = time.time() + 0.5
+while time.time() < end:
+    app.processEvents()
+    time.sleep(0.01)
+print("running at exit:", runner.is_running("registration"), flush=True)
+'''
+
+
+def test_a_script_that_ends_while_a_job_runs_exits_cleanly(tmp_path):
+    """A script or notebook ending while a registration ran went straight to
+    Python's finalization: the worker's Qt signals were deleted under its
+    thread ("GeneratorWorkerSignals has been deleted"; in napari's window the
+    process aborted). Now the job is cancelled and waited for at exit."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "ends_mid_job.py"
+    script.write_text(_ENDS_MID_JOB, encoding="utf-8")
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    t0 = time.monotonic()
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          env=env, timeout=120)
+    assert "running at exit: True" in done.stdout
+    assert done.returncode == 0, done.stderr
+    assert "has been deleted" not in done.stderr, done.stderr
+    assert time.monotonic() - t0 < 15  # cancelled, not run to its end

@@ -17,10 +17,12 @@ wraps those in a worker that can be stopped between two yields.
 
 from __future__ import annotations
 
+import atexit
 import functools
 import inspect
 import logging
 import threading
+import weakref
 from typing import Any, Callable
 
 from qtpy.QtCore import QObject, QThreadPool, Signal
@@ -35,6 +37,33 @@ log = logging.getLogger(__name__)
 
 #: What a cancelled job returns inside the worker (its handler receives None).
 CANCELLED = object()
+
+
+#: Every live runner (see :func:`_finish_jobs_at_exit`).
+_RUNNERS: "weakref.WeakSet[JobRunner]" = weakref.WeakSet()
+
+#: How long the interpreter's exit waits for cancelled jobs to stop, ms.
+EXIT_WAIT_MS = 15_000
+
+
+@atexit.register
+def _finish_jobs_at_exit() -> None:
+    """Cancel every job and wait for its thread before Python finalizes.
+
+    napari's own application waits for its workers when it quits, but a
+    script or a notebook that ends while a registration runs went straight
+    to finalization: the worker's Qt signals were deleted under the running
+    thread, which then raised in Qt's thread ("wrapped C/C++ object of type
+    GeneratorWorkerSignals has been deleted") and the process aborted. The
+    jobs poll their cancel token between steps, so this waits a fraction of
+    a second.
+    """
+    runners = [r for r in list(_RUNNERS) if r._workers]
+    if not runners:
+        return
+    for runner in runners:
+        runner.shutdown()
+    QThreadPool.globalInstance().waitForDone(EXIT_WAIT_MS)
 
 
 def guarded(fn: Callable) -> Callable:
@@ -145,6 +174,7 @@ class JobRunner(QObject):
         self.destroyed.connect(lambda *_args, runner=self: runner._on_destroyed())
         self._notified: dict[str, str] = {}  # per job: the failure last notified
         enough_worker_threads()
+        _RUNNERS.add(self)
 
     def _on_destroyed(self, *_args) -> None:
         self._deleted = True
