@@ -65,7 +65,7 @@ def umask() -> int:
     """The process umask, read without changing it (``os.umask`` would race
     with other threads); 0o022 where /proc is not available."""
     with contextlib.suppress(OSError, ValueError):
-        for line in Path("/proc/self/status").read_text().splitlines():
+        for line in Path("/proc/self/status").read_text(encoding="utf-8").splitlines():
             if line.startswith("Umask:"):
                 return int(line.split()[1], 8)
     return 0o022
@@ -114,9 +114,27 @@ def fsync_dir(folder: str | os.PathLike) -> None:
         os.close(fd)
 
 
+#: Windows: ``os.fsync`` is ``FlushFileBuffers``, which refuses a handle
+#: opened without write access (EBADF). A module flag so tests can emulate it.
+_WINDOWS = os.name == "nt"
+
+
+def _flush_open_flags() -> int:
+    """``os.open`` flags for a descriptor ``os.fsync`` accepts: read-only on
+    POSIX (fsync flushes through any descriptor, whatever the file's mode),
+    read-write in binary mode on Windows."""
+    if _WINDOWS:
+        return os.O_RDWR | getattr(os, "O_BINARY", 0)
+    return os.O_RDONLY
+
+
 def fsync_file(path: str | os.PathLike) -> None:
-    """Flush a written file's content to the disk (before it is renamed into place)."""
-    fd = os.open(path, os.O_RDONLY)
+    """Flush a written file's content to the disk (before it is renamed into place).
+
+    On Windows the file must still be writable: call this before the file
+    gets a read-only mode (:func:`atomic_path` does).
+    """
+    fd = os.open(path, _flush_open_flags())
     try:
         os.fsync(fd)
     finally:
@@ -171,9 +189,11 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     try:
         try:
             yield tmp_path
+            # Flushed while still writable: Windows opens it read-write to
+            # flush, which a read-only target's mode would then forbid.
+            fsync_file(tmp_path)
             # mkstemp makes the file private (0600): give it the target's mode.
             os.chmod(tmp_path, file_mode(target))
-            fsync_file(tmp_path)
         except OSError as exc:
             # A full disk (or quota, or a dying drive) while writing names no
             # file: say which output it was. Other errors are the writer's.
