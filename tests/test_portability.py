@@ -13,7 +13,7 @@ import os
 
 import pytest
 
-from napari_imgreg import _atomic
+from napari_imgreg import _atomic, _platform
 from napari_imgreg._atomic import atomic_write
 
 
@@ -30,7 +30,7 @@ def windows_fsync(monkeypatch):
         flushed.append(fd)
         real_fsync(fd)
 
-    monkeypatch.setattr(_atomic, "_WINDOWS", True)
+    monkeypatch.setattr(_platform, "WINDOWS", True)
     monkeypatch.setattr(os, "fsync", fsync)
     return flushed
 
@@ -68,7 +68,7 @@ def test_read_only_output_is_flushed_before_it_gets_its_mode(tmp_path, windows_f
 
 
 def test_linux_still_flushes_read_only(monkeypatch):
-    monkeypatch.setattr(_atomic, "_WINDOWS", False)
+    monkeypatch.setattr(_platform, "WINDOWS", False)
     assert _atomic._flush_open_flags() == os.O_RDONLY
 
 
@@ -86,3 +86,59 @@ def test_gis_export_replaces_its_files_on_windows(tmp_path, windows_fsync):
     assert windows_fsync
     _, fields, _ = read_gis_layers(tmp_path / "map.shp")["traces"]
     assert list(fields["label"]) == ["Störung"]
+
+
+# ------------------------------------------------- a file open in another program
+def test_output_open_in_excel_is_one_line_saying_to_close_it(tmp_path, monkeypatch):
+    """Windows refuses to replace a file another program holds open."""
+    from napari_imgreg.interpret.files import write_measurements_csv
+
+    path = tmp_path / "measurements.csv"
+    path.write_text("open in Excel\n", encoding="utf-8")
+
+    def replace_refused(src, dst):
+        raise PermissionError(errno.EACCES, "Access is denied", os.fspath(src), None, os.fspath(dst))
+
+    monkeypatch.setattr(_platform, "WINDOWS", True)
+    monkeypatch.setattr(_atomic.os, "replace", replace_refused)
+    with pytest.raises(_atomic.OutputError) as caught:
+        write_measurements_csv(path, [])
+    message = str(caught.value)
+    assert "\n" not in message and message.startswith(f"{path}: cannot write")
+    assert "open in another program" in message and "close it" in message
+    assert path.read_text(encoding="utf-8") == "open in Excel\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["measurements.csv"]
+
+
+def test_refused_replace_off_windows_keeps_the_system_reason(tmp_path, monkeypatch):
+    path = tmp_path / "out.json"
+    path.write_text("{}", encoding="utf-8")
+
+    def replace_refused(src, dst):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(_platform, "WINDOWS", False)
+    monkeypatch.setattr(_atomic.os, "replace", replace_refused)
+    with pytest.raises(_atomic.OutputError, match=r"cannot write \(Permission denied\)$"):
+        with atomic_write(path, encoding="utf-8") as fh:
+            fh.write("{}")
+
+
+def test_cli_names_the_held_file_in_one_line(tmp_path, monkeypatch, run_cli):
+    table = tmp_path / "cams.csv"
+    table.write_text("photo,trend_deg,plunge_deg,roll_deg\na,10,5,0\nb,100,3,1\nc,200,8,-1\n",
+                     encoding="utf-8")
+    phone = tmp_path / "phone.csv"
+    phone.write_bytes(table.read_bytes())
+    out = tmp_path / "orientation.json"
+    out.write_text("{}", encoding="utf-8")
+
+    def replace_refused(src, dst):
+        raise PermissionError(errno.EACCES, "Access is denied")
+
+    monkeypatch.setattr(_platform, "WINDOWS", True)
+    monkeypatch.setattr(_atomic.os, "replace", replace_refused)
+    run = run_cli(["orient", table, phone, "--out", out])
+    assert run.code == 2 and "Traceback" not in run.err
+    assert run.line.startswith(f"napari-imgreg orient: error: {out}: cannot write (it is open in "
+                               "another program"), run.err

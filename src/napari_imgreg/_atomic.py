@@ -9,6 +9,8 @@ import tempfile
 from pathlib import Path
 from typing import IO, Iterator
 
+from . import _platform
+
 __all__ = [
     "atomic_write", "atomic_path", "umask", "file_mode", "resolve_target", "fsync_dir", "fsync_file",
     "OutputError",
@@ -35,7 +37,8 @@ class OutputError(OSError):
         elif isinstance(cause, (FileExistsError, NotADirectoryError)):  # from making its folder
             reason = "a file is in the way of its folder"
         else:
-            reason = cause.strerror or " ".join(str(cause).split()) or type(cause).__name__
+            reason = (_platform.held_open_hint(Path(path), cause)
+                      or cause.strerror or " ".join(str(cause).split()) or type(cause).__name__)
         super().__init__(f"{os.fspath(path)}: cannot write ({reason})")
         # errno only: with strerror or filename set, OSError's str() would
         # become "[Errno n] ..." instead of the one line above.
@@ -114,16 +117,12 @@ def fsync_dir(folder: str | os.PathLike) -> None:
         os.close(fd)
 
 
-#: Windows: ``os.fsync`` is ``FlushFileBuffers``, which refuses a handle
-#: opened without write access (EBADF). A module flag so tests can emulate it.
-_WINDOWS = os.name == "nt"
-
-
 def _flush_open_flags() -> int:
     """``os.open`` flags for a descriptor ``os.fsync`` accepts: read-only on
     POSIX (fsync flushes through any descriptor, whatever the file's mode),
-    read-write in binary mode on Windows."""
-    if _WINDOWS:
+    read-write in binary mode on Windows, where ``os.fsync`` is
+    ``FlushFileBuffers``, which refuses a handle without write access (EBADF)."""
+    if _platform.WINDOWS:
         return os.O_RDWR | getattr(os, "O_BINARY", 0)
     return os.O_RDONLY
 
