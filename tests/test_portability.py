@@ -142,3 +142,76 @@ def test_cli_names_the_held_file_in_one_line(tmp_path, monkeypatch, run_cli):
     assert run.code == 2 and "Traceback" not in run.err
     assert run.line.startswith(f"napari-imgreg orient: error: {out}: cannot write (it is open in "
                                "another program"), run.err
+
+
+# ------------------------------------------------------- text files and the locale
+def run_in_legacy_locale(code: str, *args: str, io_encoding: str | None = None):
+    """Run ``python -c code`` where the locale's encoding is not UTF-8.
+
+    Windows' default text encoding is the ANSI code page (cp1252 in Western
+    Europe), not UTF-8. Here the C locale without UTF-8 coercion gives ASCII,
+    stricter still: a text file opened without ``encoding=`` fails on the
+    first non-ASCII character, and PEP 597's EncodingWarning, raised as an
+    error for this package's modules, names the call.
+    """
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    src = Path(__file__).resolve().parents[1] / "src"
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONCOERCECLOCALE": "0", "PYTHONUTF8": "0",
+           "PYTHONPATH": os.pathsep.join([str(src), os.environ.get("PYTHONPATH", "")])}
+    env.pop("PYTHONIOENCODING", None)
+    if io_encoding:
+        env["PYTHONIOENCODING"] = io_encoding
+    prelude = ("import warnings; warnings.filterwarnings('error', category=EncodingWarning, "
+               "module=r'napari_imgreg(\\.|$)')\n")
+    return subprocess.run(
+        [sys.executable, "-X", "warn_default_encoding", "-c", prelude + code, *args],
+        env=env, capture_output=True, timeout=300, encoding="utf-8", errors="replace")
+
+
+def test_legacy_locale_is_emulated():
+    run = run_in_legacy_locale("import locale; print(locale.getpreferredencoding(False))")
+    assert run.returncode == 0, run.stderr
+    assert "utf" not in run.stdout.lower(), run.stdout
+
+
+def test_orientation_table_with_accented_photo_names_in_a_legacy_locale(tmp_path):
+    code = '''
+import sys
+import numpy as np
+from napari_imgreg.io.orientation_tables import (
+    OrientationTable, read_orientation_csv, write_orientation_csv)
+photos = ["gr\\u00e8s_01.jpg", "St\\u00f6rung\\u2192IMG_2.jpg", "\\u03c3-IMG_3.jpg"]
+table = OrientationTable(photos, np.tile(np.eye(3), (3, 1, 1)), np.zeros(3))
+write_orientation_csv(sys.argv[1], table)
+assert read_orientation_csv(sys.argv[1]).photos == photos
+'''
+    path = tmp_path / "cams.csv"
+    run = run_in_legacy_locale(code, str(path))
+    assert run.returncode == 0, run.stderr
+    text = path.read_bytes().decode("utf-8")
+    assert "grès_01.jpg" in text and "\r\r" not in text  # newline="": one CRLF per row
+
+
+def test_mesh_companions_and_batch_textures_read_utf8_materials(tmp_path):
+    """An OBJ's material file is UTF-8 (what Metashape and CloudCompare
+    write), read as such whatever the locale. (File names stay ASCII here:
+    an ASCII locale cannot name the others, which Windows can.)"""
+    (tmp_path / "model.mtl").write_text("# mat\u00e9riau gr\u00e8s\nnewmtl m\nmap_Kd texture_0.jpg\n",
+                                        encoding="utf-8")
+    (tmp_path / "texture_0.jpg").write_bytes(b"\xff\xd8\xff")
+    (tmp_path / "model.obj").write_text("mtllib model.mtl\nv 0 0 0\n", encoding="utf-8")
+    code = '''
+import sys
+from pathlib import Path
+from napari_imgreg.io.meshes import _companions
+from napari_imgreg.cli.batch import _textures_named_by
+folder = Path(sys.argv[1])
+names = [p.name for p in _companions(folder / "model.obj")]
+assert names == ["model.obj", "model.mtl", "texture_0.jpg"], names
+assert "texture_0.jpg" in _textures_named_by([folder / "model.obj"], folder)
+'''
+    run = run_in_legacy_locale(code, str(tmp_path))
+    assert run.returncode == 0, run.stderr

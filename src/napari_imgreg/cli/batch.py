@@ -224,7 +224,7 @@ def _textures_named_by(mesh_files: list[Path], folder: Path) -> dict[str, str]:
         if mtl.suffix.lower() != ".mtl" or not mtl.is_file():
             continue
         try:
-            text = mtl.read_text(errors="replace")
+            text = mtl.read_text(encoding="utf-8", errors="replace")
         except OSError:
             continue
         for line in text.splitlines():
@@ -235,7 +235,7 @@ def _textures_named_by(mesh_files: list[Path], folder: Path) -> dict[str, str]:
         suffix = mesh.suffix.lower()
         try:
             if suffix == ".gltf":
-                data = json.loads(mesh.read_text(errors="replace"))
+                data = json.loads(mesh.read_text(encoding="utf-8", errors="replace"))
                 for image in data.get("images", []) if isinstance(data, dict) else []:
                     if isinstance(image, dict) and isinstance(image.get("uri"), str) \
                             and not image["uri"].startswith("data:"):

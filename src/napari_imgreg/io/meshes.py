@@ -344,7 +344,9 @@ def _companions(path: Path) -> list[Path]:
     out = [path]
     if path.suffix.lower() == ".obj":
         try:
-            head = path.open("rb").read(65536).decode("utf-8", "replace")
+            # Closed at once: on Windows an open file cannot be replaced (a re-export).
+            with path.open("rb") as fh:
+                head = fh.read(65536).decode("utf-8", "replace")
         except OSError:
             head = ""
         for line in head.splitlines():
@@ -352,7 +354,7 @@ def _companions(path: Path) -> list[Path]:
                 mtl = path.parent / line.split(None, 1)[1].strip()
                 if mtl.exists():
                     out.append(mtl)
-                    for mline in mtl.read_text(errors="replace").splitlines():
+                    for mline in mtl.read_text(encoding="utf-8", errors="replace").splitlines():
                         parts = mline.split()
                         if parts and parts[0].lower().startswith("map_"):
                             tex = path.parent / parts[-1]
