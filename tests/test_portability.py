@@ -215,3 +215,57 @@ assert "texture_0.jpg" in _textures_named_by([folder / "model.obj"], folder)
 '''
     run = run_in_legacy_locale(code, str(tmp_path))
     assert run.returncode == 0, run.stderr
+
+
+# ------------------------------------------------------------------ the console
+def run_cli_process(*args: str, io_encoding: str):
+    """``python -m napari_imgreg ARGS`` whose stdout and stderr are in
+    ``io_encoding``: on Windows, output redirected to a file or a pipe is in
+    the ANSI code page (cp1252), a console window's (cp437, cp850) for some
+    programs."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    src = Path(__file__).resolve().parents[1] / "src"
+    env = {**os.environ, "PYTHONIOENCODING": io_encoding,
+           "PYTHONPATH": os.pathsep.join([str(src), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-m", "napari_imgreg", *args], env=env,
+                          capture_output=True, timeout=300)
+
+
+@pytest.mark.parametrize("io_encoding", ["cp1252", "cp437"])
+def test_help_with_greek_letters_prints_in_a_code_page(io_encoding):
+    run = run_cli_process("measure", "--help", io_encoding=io_encoding)
+    assert run.returncode == 0 and b"Traceback" not in run.stderr, run.stderr
+    out = run.stdout.decode(io_encoding)
+    assert "--max-dip-sigma" in out
+    # What the code page lacks is escaped; what it has is printed as is.
+    assert ("\\u03c3" in out) == (io_encoding == "cp1252") and "\\u03bb" in out
+
+
+def test_summary_is_printed_whole_in_a_code_page(tmp_path):
+    """``orient``'s summary has Δξ/Δρ and the output's name: a code page
+    without them used to end the summary there, silently (exit code 0)."""
+    table = tmp_path / "cams.csv"
+    table.write_text("photo,trend_deg,plunge_deg,roll_deg\na,10,5,0\nb,100,3,1\nc,200,8,-1\n",
+                     encoding="utf-8")
+    phone = tmp_path / "phone.csv"
+    phone.write_bytes(table.read_bytes())
+    out = tmp_path / "Störung→orientation.json"
+    run = run_cli_process("orient", str(table), str(phone), "--out", str(out), io_encoding="cp1252")
+    assert run.returncode == 0 and b"Traceback" not in run.stderr, run.stderr
+    text = run.stdout.decode("cp1252")
+    assert "mean |\\u0394\\u03be|" in text and "rotation 0.00° clockwise" in text
+    assert text.rstrip().endswith("Störung\\u2192orientation.json"), text
+    assert out.exists()
+
+
+def test_console_left_alone_when_it_is_utf8(capsys):
+    import sys
+
+    from napari_imgreg._platform import tolerant_console
+
+    before = sys.stdout.errors
+    with tolerant_console():
+        assert sys.stdout.errors == before
