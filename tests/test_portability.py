@@ -269,3 +269,45 @@ def test_console_left_alone_when_it_is_utf8(capsys):
     before = sys.stdout.errors
     with tolerant_console():
         assert sys.stdout.errors == before
+
+
+# ------------------------------------------------------------------ the caches
+@pytest.mark.parametrize("system, expected", [
+    ("win32", ("AppData", "Local", "napari-imgreg", "Cache")),
+    ("darwin", ("Library", "Caches", "napari-imgreg")),
+    ("linux", (".cache", "napari-imgreg")),
+])
+def test_caches_live_in_the_systems_user_cache_folder(monkeypatch, tmp_path, system, expected):
+    """platformdirs decides the folder from ``sys.platform``: each system's is
+    asked for by giving platformdirs that system's name."""
+    import importlib
+
+    import platformdirs
+
+    from napari_imgreg.io.meshes import mesh_cache_dir
+    from napari_imgreg.sample import cache_dir
+
+    monkeypatch.delenv("NAPARI_IMGREG_CACHE", raising=False)
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("LOCALAPPDATA", str(tmp_path / "AppData" / "Local"))
+    monkeypatch.setattr("sys.platform", system)
+    try:
+        importlib.reload(platformdirs)  # it picks its class for sys.platform on import
+        if system == "win32":  # asks Windows' shell folders API, absent here
+            monkeypatch.setattr("platformdirs.windows.get_win_folder",
+                                lambda csidl: os.environ["LOCALAPPDATA"])
+        root = cache_dir()
+    finally:
+        monkeypatch.undo()
+        importlib.reload(platformdirs)
+    assert root.parts[-len(expected):] == expected and root.is_relative_to(tmp_path), root
+    assert mesh_cache_dir().name == "meshes"
+
+
+def test_cache_override_is_kept(monkeypatch, tmp_path):
+    from napari_imgreg.io.meshes import mesh_cache_dir
+    from napari_imgreg.sample import cache_dir
+
+    monkeypatch.setenv("NAPARI_IMGREG_CACHE", str(tmp_path / "c"))
+    assert cache_dir() == tmp_path / "c" and mesh_cache_dir() == tmp_path / "c" / "meshes"

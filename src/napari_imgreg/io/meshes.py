@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._platform import cache_root
 from ..errors import input_error
 
 __all__ = [
@@ -91,10 +92,10 @@ def mesh_cache_limit_bytes() -> int:
 
 
 def mesh_cache_dir() -> Path:
-    """Where parsed meshes are cached: ``$NAPARI_IMGREG_CACHE/meshes``
-    (default ``~/.cache/napari-imgreg/meshes``)."""
-    root = os.environ.get("NAPARI_IMGREG_CACHE") or Path.home() / ".cache" / "napari-imgreg"
-    return Path(root) / "meshes"
+    """Where parsed meshes are cached: ``meshes`` in
+    :func:`~napari_imgreg._platform.cache_root` (``$NAPARI_IMGREG_CACHE``, or
+    the system's user cache folder)."""
+    return cache_root() / "meshes"
 
 
 @dataclass

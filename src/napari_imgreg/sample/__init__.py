@@ -52,6 +52,7 @@ import numpy as np
 
 from .._atomic import atomic_path, atomic_write, umask
 from .._json import dump as strict_json_dump
+from .._platform import cache_root
 from ..scene import ray_threads
 from ..camera import Intrinsics, Pose
 from .noise import rng_for
@@ -620,10 +621,12 @@ def _is_sample_scene_of(folder: Path, size: str, seed: int) -> bool:
 
 # ------------------------------------------------------------------ cache
 def cache_dir() -> Path:
-    """Where generated sample scenes are kept: ``$NAPARI_IMGREG_CACHE`` or
-    ``~/.cache/napari-imgreg``."""
-    env = os.environ.get("NAPARI_IMGREG_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "napari-imgreg"
+    """Where generated sample scenes are kept: ``$NAPARI_IMGREG_CACHE``, or
+    the system's user cache folder (``~/.cache/napari-imgreg`` on Linux,
+    ``~/Library/Caches/napari-imgreg`` on macOS,
+    ``%LOCALAPPDATA%\\napari-imgreg\\Cache`` on Windows); see
+    :func:`~napari_imgreg._platform.cache_root`."""
+    return cache_root()
 
 
 def write_survey(folder: Path, georef, survey_sun_local: np.ndarray,
