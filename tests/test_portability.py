@@ -311,3 +311,63 @@ def test_cache_override_is_kept(monkeypatch, tmp_path):
 
     monkeypatch.setenv("NAPARI_IMGREG_CACHE", str(tmp_path / "c"))
     assert cache_dir() == tmp_path / "c" and mesh_cache_dir() == tmp_path / "c" / "meshes"
+
+
+# ------------------------------------------------------------ names for files
+@pytest.mark.parametrize("text, expected", [
+    ("IMG_0001", "IMG_0001"),
+    ("grès Störung", "grès Störung"),
+    ('a<b>c:d"e/f\\g|h?i*j', "a_b_c_d_e_f_g_h_i_j"),
+    ("IMG.", "IMG"),
+    ("IMG. . ", "IMG"),
+    ("CON", "CON_"),
+    ("con.backup", "con_.backup"),
+    ("Com1", "Com1_"),
+    ("LPT9", "LPT9_"),
+    ("CONSOLE", "CONSOLE"),
+    (".", "photo"),
+    ("..", "photo"),
+    ("", "photo"),
+    ("x" * 300, "x" * 100),
+])
+def test_portable_name(text, expected):
+    from napari_imgreg._platform import portable_name
+
+    assert portable_name(text, fallback="photo") == expected
+
+
+def test_photo_folders_are_names_windows_accepts_inside_photos():
+    from napari_imgreg.io.workspace_files import photo_key
+
+    taken: set[str] = set()
+    keys = [photo_key(name, taken) for name in
+            ["CON.jpg", "aux.JPG", "IMG..jpg", "IMG.jpg", "..jpg", "...jpg", "IMG_1.jpg", "img_1.JPG"]]
+    assert keys == ["CON_", "aux_", "IMG", "IMG_2", "photo", "photo_2", "IMG_1", "img_1_2"]
+
+
+def test_workspace_photos_with_awkward_names_get_folders_inside_photos(tmp_path, run_cli):
+    """A photo named ``...jpg`` used to get the folder ``photos/..``: its
+    files went into the workspace's own folder; ``CON.jpg`` a folder Windows
+    cannot make."""
+    import shutil
+
+    from napari_imgreg.io import workspace_files as wsfiles
+    from napari_imgreg.sample import sample_scene
+    from napari_imgreg.workspace import Workspace
+
+    src = sample_scene("small")
+    photos = tmp_path / "photos in"
+    photos.mkdir()
+    for name in (".", "..", "CON", "IMG."):
+        for suffix in (".jpg", ".json"):
+            shutil.copy(src / f"IMG_0002{suffix}", photos / f"{name}{suffix}")
+    folder = tmp_path / "campaign.imgreg"
+    assert run_cli(["workspace", "create", folder, src, "--no-photos"]).code == 0
+    before = sorted(p.name for p in folder.iterdir())
+    added = run_cli(["workspace", "add", folder, *sorted(photos.glob("*.jpg"))])
+    assert added.code == 0, added.err
+    assert sorted(p.name for p in folder.iterdir()) == sorted([*before, wsfiles.PHOTOS_DIR])
+    keys = sorted(p.name for p in (folder / wsfiles.PHOTOS_DIR).iterdir())
+    assert keys == ["CON_", "IMG", "photo", "photo_2"]
+    opened = Workspace.open(folder, autosave=False)
+    assert sorted(opened.photo_key(ps) for ps in opened.photos) == keys
