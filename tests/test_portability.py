@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+from pathlib import Path
 
 import pytest
 
@@ -156,7 +157,6 @@ def run_in_legacy_locale(code: str, *args: str, io_encoding: str | None = None):
     """
     import subprocess
     import sys
-    from pathlib import Path
 
     src = Path(__file__).resolve().parents[1] / "src"
     env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONCOERCECLOCALE": "0", "PYTHONUTF8": "0",
@@ -225,7 +225,6 @@ def run_cli_process(*args: str, io_encoding: str):
     programs."""
     import subprocess
     import sys
-    from pathlib import Path
 
     src = Path(__file__).resolve().parents[1] / "src"
     env = {**os.environ, "PYTHONIOENCODING": io_encoding,
@@ -371,3 +370,35 @@ def test_workspace_photos_with_awkward_names_get_folders_inside_photos(tmp_path,
     assert keys == ["CON_", "IMG", "photo", "photo_2"]
     opened = Workspace.open(folder, autosave=False)
     assert sorted(opened.photo_key(ps) for ps in opened.photos) == keys
+
+
+# ------------------------------------------------- worker processes by spawn
+@pytest.mark.slow
+def test_batch_on_two_spawned_worker_processes(tmp_path):
+    """Windows and macOS start processes by spawn: a worker imports the
+    package afresh and gets everything by pickle. Dask uses spawn on every
+    system unless configured otherwise; here it is asked for explicitly,
+    with ``python -m napari_imgreg`` (whose ``__main__`` a spawned worker
+    must not run again)."""
+    import csv
+    import shutil
+    import subprocess
+    import sys
+
+    from napari_imgreg.sample import sample_scene
+
+    scene = tmp_path / "scene"
+    shutil.copytree(sample_scene("small"), scene,
+                    ignore=shutil.ignore_patterns("IMG_0003.*", "orient"))
+    src = Path(__file__).resolve().parents[1] / "src"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(src), os.environ.get("PYTHONPATH", "")]),
+           "DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD": "spawn"}
+    run = subprocess.run(
+        [sys.executable, "-m", "napari_imgreg", "batch", str(scene), "--out", str(tmp_path / "out"),
+         "--workers", "2"], env=env, capture_output=True, text=True, encoding="utf-8", timeout=900)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "2 worker process(es)" in run.stdout
+    with open(tmp_path / "out" / "summary.csv", newline="", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    assert sorted((r["photo"], r["status"]) for r in rows) == [
+        ("IMG_0001.jpg", "registered"), ("IMG_0002.jpg", "registered")]
