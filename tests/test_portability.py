@@ -402,3 +402,58 @@ def test_batch_on_two_spawned_worker_processes(tmp_path):
         rows = list(csv.DictReader(fh))
     assert sorted((r["photo"], r["status"]) for r in rows) == [
         ("IMG_0001.jpg", "registered"), ("IMG_0002.jpg", "registered")]
+
+
+def test_batch_goes_on_while_its_summary_is_open_in_excel(tmp_path, monkeypatch):
+    """On Windows a summary.csv open in Excel cannot be replaced: it used to
+    end the batch after the photo being recorded; now the photos go on and
+    the summary is written once it is closed."""
+    from test_cli_batch import _fake_registration, _make_scene, _run, _summary
+
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002", "IMG_0003"])
+    out = tmp_path / "results"
+    held = {"summary.csv": 2}  # refused while the first two photos are recorded
+    real_replace = os.replace
+
+    def replace(src, dst):
+        name = Path(dst).name
+        if held.get(name):
+            held[name] -= 1
+            raise PermissionError(errno.EACCES, "Access is denied")
+        real_replace(src, dst)
+
+    def fake_register(scene_, image, prior, params=None, photo_name="", on_progress=None):
+        return _fake_registration(prior, photo_name)
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register", fake_register)
+    monkeypatch.setattr(_platform, "WINDOWS", True)
+    monkeypatch.setattr(_atomic.os, "replace", replace)
+    code, stdout, stderr = _run(["batch", scene, "--out", out, "--workers", 0])
+    assert code == 1 and stderr == "", stdout + stderr  # the stand-in fails every photo
+    assert stdout.count("summary.csv: cannot write") == 1, stdout
+    assert "the photos go on and the summary is updated once it is closed" in stdout
+    assert sorted(p.name for p in out.glob("*.result.json")) == [
+        "IMG_0001.result.json", "IMG_0002.result.json", "IMG_0003.result.json"]
+    rows, summary = _summary(out)
+    assert [r["photo"] for r in rows] == ["IMG_0001.jpg", "IMG_0002.jpg", "IMG_0003.jpg"]
+    assert summary["complete"]
+
+
+def test_batch_summary_refused_off_windows_still_stops(tmp_path, monkeypatch):
+    from test_cli_batch import _fake_registration, _make_scene, _run
+
+    scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002"])
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if Path(dst).name == "summary.csv":
+            raise PermissionError(errno.EACCES, "Permission denied")
+        real_replace(src, dst)
+
+    monkeypatch.setattr("napari_imgreg.registration.pipeline.register",
+                        lambda scene_, image, prior, params=None, photo_name="", on_progress=None:
+                        _fake_registration(prior, photo_name))
+    monkeypatch.setattr(_platform, "WINDOWS", False)
+    monkeypatch.setattr(_atomic.os, "replace", replace)
+    code, stdout, stderr = _run(["batch", scene, "--out", tmp_path / "out", "--workers", 0])
+    assert code == 2 and "summary.csv: cannot write (Permission denied)" in stderr

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import codecs
 import contextlib
+import errno
 import os
 import re
 import sys
@@ -19,7 +20,7 @@ from pathlib import Path
 from typing import Iterator
 
 __all__ = [
-    "WINDOWS", "cache_root", "portable_name", "tolerant_console", "held_open_hint",
+    "WINDOWS", "cache_root", "portable_name", "tolerant_console", "held_open_hint", "held_open",
 ]
 
 #: Windows rules apply (a module flag, so tests can emulate them on Linux).
@@ -144,3 +145,10 @@ def held_open_hint(target: Path, cause: OSError) -> str | None:
         return None
     return ("it is open in another program, or read-only: close it there "
             "(Excel, QGIS, a viewer) and run again")
+
+
+def held_open(exc: OSError) -> bool:
+    """Whether a refused write is Windows refusing to replace a file that
+    another program holds open (an :class:`~napari_imgreg._atomic.OutputError`
+    keeps the system's errno)."""
+    return WINDOWS and exc.errno in (errno.EACCES, errno.EPERM)
