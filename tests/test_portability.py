@@ -457,3 +457,41 @@ def test_batch_summary_refused_off_windows_still_stops(tmp_path, monkeypatch):
     monkeypatch.setattr(_atomic.os, "replace", replace)
     code, stdout, stderr = _run(["batch", scene, "--out", tmp_path / "out", "--workers", 0])
     assert code == 2 and "summary.csv: cannot write (Permission denied)" in stderr
+
+
+# ------------------------------------------------ tables saved by a spreadsheet
+def test_orientation_table_from_a_decimal_comma_spreadsheet(tmp_path):
+    """Excel where the decimal separator is a comma (de, fr, it, es...)
+    separates fields with semicolons and writes 12,5."""
+    from napari_imgreg.io.orientation_tables import read_orientation_csv
+
+    path = tmp_path / "phone.csv"
+    path.write_bytes("\ufeffphoto;trend_deg;plunge_deg;roll_deg;x;y;z\r\n"
+                     "Störung_1,2.jpg;12,5;-3,25;0;1,5e3;0;0\r\n"
+                     "IMG_2.jpg;100;3;1;-,5;0;0\r\n".encode("utf-8"))
+    table = read_orientation_csv(path)
+    assert table.photos == ["Störung_1,2.jpg", "IMG_2.jpg"]
+    assert table.trend_deg.tolist() == [12.5, 100.0]
+    assert table.positions[:, 0].tolist() == [1500.0, -0.5]
+
+
+def test_comma_separated_table_keeps_refusing_a_decimal_comma(tmp_path):
+    from napari_imgreg.errors import InputError
+    from napari_imgreg.io.orientation_tables import read_orientation_csv
+
+    path = tmp_path / "phone.csv"
+    path.write_text('photo,trend_deg,plunge_deg,roll_deg\na.jpg,"12,5",0,0\n', encoding="utf-8")
+    with pytest.raises(InputError, match=r"row 2: trend_deg is not a number \('12,5'\)"):
+        read_orientation_csv(path)
+
+
+def test_control_points_saved_in_the_windows_code_page_say_how_to_save_them(tmp_path):
+    from napari_imgreg.errors import InputError
+    from napari_imgreg.io.control_points import read_control_points
+
+    path = tmp_path / "pairs.csv"
+    path.write_bytes("photo_x,photo_y,x,y,z,name\n10,20,1,2,3,Störung\n".encode("cp1252"))
+    with pytest.raises(InputError) as caught:
+        read_control_points(path)
+    assert str(caught.value) == (f"{path}: line 2: not UTF-8 text; save the table as UTF-8 "
+                                 "(Excel: 'CSV UTF-8')")
