@@ -495,3 +495,20 @@ def test_control_points_saved_in_the_windows_code_page_say_how_to_save_them(tmp_
         read_control_points(path)
     assert str(caught.value) == (f"{path}: line 2: not UTF-8 text; save the table as UTF-8 "
                                  "(Excel: 'CSV UTF-8')")
+
+
+def test_shapefile_set_named_with_brackets_is_written(tmp_path):
+    """A name like ``map[v2].shp`` was taken as a glob pattern: nothing was written."""
+    pytest.importorskip("pyogrio", reason="pyogrio (GDAL) not installed")
+    import numpy as np
+
+    from napari_imgreg.interpret.files import gis_output_files, write_features_gis
+    from napari_imgreg.interpret.project import Feature3D
+
+    feature = Feature3D("t1", "trace", [np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0]])],
+                        {"label": "grès"})
+    path = tmp_path / "map[v2] (grès).shp"
+    write_features_gis(path, [feature])
+    assert (tmp_path / "map[v2] (grès).shp").is_file()
+    assert {p.name for p in tmp_path.iterdir()} >= {
+        p.name for p in gis_output_files(path) if p.name.startswith("map[v2] (grès).")}

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import glob
 import json
 import math
 import os
@@ -809,7 +810,9 @@ def write_features_gis(
                 str(out), np.array(geoms, dtype=object), arrays, names,
                 geometry_type=gtype, crs=crs, **kwargs)
             if suffix == ".shp":
-                written += [(p, path.parent / p.name) for p in tmp_dir.glob(f"{stem}.*")]
+                # Escaped: a name like "map[v2]" is no pattern (it matched nothing).
+                written += [(p, path.parent / p.name)
+                            for p in tmp_dir.glob(f"{glob.escape(stem)}.*")]
         if suffix != ".shp":
             written = [(tmp_dir / path.name, path)]
         _replace_together(written, tmp_dir / ".replaced")
