@@ -12,6 +12,7 @@ import fcntl
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from napari_imgreg import _atomic, _platform
@@ -75,7 +76,6 @@ def test_linux_still_flushes_read_only(monkeypatch):
 
 def test_gis_export_replaces_its_files_on_windows(tmp_path, windows_fsync):
     """The shapefile set is flushed by :func:`fsync_file` before its renames."""
-    import numpy as np
 
     from napari_imgreg.interpret.files import read_gis_layers, write_features_gis
     from napari_imgreg.interpret.project import Feature3D
@@ -500,7 +500,6 @@ def test_control_points_saved_in_the_windows_code_page_say_how_to_save_them(tmp_
 def test_shapefile_set_named_with_brackets_is_written(tmp_path):
     """A name like ``map[v2].shp`` was taken as a glob pattern: nothing was written."""
     pytest.importorskip("pyogrio", reason="pyogrio (GDAL) not installed")
-    import numpy as np
 
     from napari_imgreg.interpret.files import gis_output_files, write_features_gis
     from napari_imgreg.interpret.project import Feature3D
@@ -512,3 +511,39 @@ def test_shapefile_set_named_with_brackets_is_written(tmp_path):
     assert (tmp_path / "map[v2] (grès).shp").is_file()
     assert {p.name for p in tmp_path.iterdir()} >= {
         p.name for p in gis_output_files(path) if p.name.startswith("map[v2] (grès).")}
+
+
+# ------------------------------------------------------ dependencies per system
+def test_e57_without_pye57_is_one_line(tmp_path, monkeypatch):
+    """Intel Macs get no pye57 (no wheel): an E57 is then refused in words."""
+    import sys
+
+    from napari_imgreg.errors import InputError
+    from napari_imgreg.io.pointclouds import read_point_cloud
+
+    pye57 = pytest.importorskip("pye57")
+    path = tmp_path / "scan.e57"
+    e57 = pye57.E57(str(path), mode="w")
+    e57.write_scan_raw({"cartesianX": np.zeros(3), "cartesianY": np.arange(3.0),
+                        "cartesianZ": np.ones(3)})
+    e57.close()
+    monkeypatch.setitem(sys.modules, "pye57", None)  # import pye57 -> ImportError
+    with pytest.raises(InputError, match=r"scan\.e57: reading E57 needs pye57, which is not "
+                                         r"installed .* convert the scan to LAZ"):
+        read_point_cloud(path)
+
+
+def test_pye57_is_left_out_only_on_intel_macs():
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+
+    from packaging.requirements import Requirement
+
+    pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+    deps = tomllib.loads(pyproject.read_text(encoding="utf-8"))["project"]["dependencies"]
+    (pye57,) = [Requirement(d) for d in deps if d.startswith("pye57")]
+
+    def installed(sys_platform, machine):
+        return pye57.marker.evaluate({"sys_platform": sys_platform, "platform_machine": machine})
+
+    assert installed("darwin", "arm64") and installed("win32", "AMD64")
+    assert installed("linux", "x86_64") and not installed("darwin", "x86_64")
