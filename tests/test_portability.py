@@ -547,3 +547,35 @@ def test_pye57_is_left_out_only_on_intel_macs():
 
     assert installed("darwin", "arm64") and installed("win32", "AMD64")
     assert installed("linux", "x86_64") and not installed("darwin", "x86_64")
+
+
+# ------------------------------------------------------------------- locks
+def test_stale_lock_being_read_by_another_session_is_taken_a_moment_later(tmp_path, monkeypatch):
+    """Windows cannot delete a file another process has open, even for a
+    read: the takeover of a stale lock tries again instead of failing."""
+    import json
+    import socket
+    import subprocess
+    import sys
+
+    from napari_imgreg.io import workspace_files as wsfiles
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait(30)
+    lock = tmp_path / wsfiles.LOCK
+    lock.write_text(json.dumps({"pid": dead.pid, "host": socket.gethostname(),
+                                "since": "2026-12-01T08:00:00Z", "token": "stale"}),
+                    encoding="utf-8")
+    refusals = []
+    real_unlink = Path.unlink
+
+    def unlink(self, missing_ok=False):
+        if self == lock and not refusals:
+            refusals.append(self)
+            raise PermissionError(13, "The process cannot access the file because it is "
+                                      "being used by another process", str(self))
+        real_unlink(self, missing_ok=missing_ok)
+
+    monkeypatch.setattr(Path, "unlink", unlink)
+    token = wsfiles.acquire_lock(tmp_path)
+    assert refusals and json.loads(lock.read_text(encoding="utf-8"))["token"] == token

@@ -484,7 +484,10 @@ def _remove_stale_lock(path: Path, stale: bytes | None) -> int:
         except OSError:  # unreadable as before: the caller's grace has passed
             still_stale = stale is None
         if still_stale:
-            path.unlink(missing_ok=True)
+            try:
+                path.unlink(missing_ok=True)
+            except PermissionError:  # Windows: another session is reading it this instant
+                return 0  # the caller reads it again
             return 1
         return 0
     finally:
