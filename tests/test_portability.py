@@ -111,6 +111,34 @@ def test_output_open_in_excel_is_one_line_saying_to_close_it(tmp_path, monkeypat
     assert [p.name for p in tmp_path.iterdir()] == ["measurements.csv"]
 
 
+@pytest.mark.parametrize("windows", [True, False])
+def test_a_rename_refused_for_a_moment_is_tried_again_on_windows(tmp_path, monkeypatch, windows):
+    """A virus scanner or the search indexer opening the new file for a
+    moment: Windows refuses the rename; it is tried again."""
+    path = tmp_path / "traces.geojson"
+    refusals = []
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if len(refusals) < 2:
+            refusals.append(dst)
+            raise PermissionError(errno.EACCES, "Access is denied")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(_platform, "WINDOWS", windows)
+    monkeypatch.setattr(_atomic.os, "replace", replace)
+    if windows:
+        with atomic_write(path, encoding="utf-8") as fh:
+            fh.write("{}")
+        assert path.read_text(encoding="utf-8") == "{}" and len(refusals) == 2
+    else:  # POSIX renames do not fail so: no waiting
+        with pytest.raises(_atomic.OutputError):
+            with atomic_write(path, encoding="utf-8") as fh:
+                fh.write("{}")
+        assert len(refusals) == 1
+    assert [p.name for p in tmp_path.iterdir()] == (["traces.geojson"] if windows else [])
+
+
 def test_refused_replace_off_windows_keeps_the_system_reason(tmp_path, monkeypatch):
     path = tmp_path / "out.json"
     path.write_text("{}", encoding="utf-8")
@@ -412,13 +440,10 @@ def test_batch_goes_on_while_its_summary_is_open_in_excel(tmp_path, monkeypatch)
 
     scene = _make_scene(tmp_path / "scene", ["IMG_0001", "IMG_0002", "IMG_0003"])
     out = tmp_path / "results"
-    held = {"summary.csv": 2}  # refused while the first two photos are recorded
     real_replace = os.replace
 
-    def replace(src, dst):
-        name = Path(dst).name
-        if held.get(name):
-            held[name] -= 1
+    def replace(src, dst):  # held open while the first photo is recorded
+        if Path(dst).name == "summary.csv" and len(list(out.glob("*.result.json"))) < 2:
             raise PermissionError(errno.EACCES, "Access is denied")
         real_replace(src, dst)
 

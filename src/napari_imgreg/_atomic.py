@@ -6,6 +6,7 @@ import contextlib
 import errno
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import IO, Iterator
 
@@ -13,7 +14,7 @@ from . import _platform
 
 __all__ = [
     "atomic_write", "atomic_path", "umask", "file_mode", "resolve_target", "fsync_dir", "fsync_file",
-    "OutputError",
+    "replace_file", "OutputError",
 ]
 
 
@@ -140,6 +141,27 @@ def fsync_file(path: str | os.PathLike) -> None:
         os.close(fd)
 
 
+#: Pauses between the tries of a rename Windows refuses, seconds (0.75 s in all).
+WINDOWS_RENAME_RETRY_S = (0.05, 0.1, 0.2, 0.4)
+
+
+def replace_file(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """``os.replace``; on Windows tried again for a moment when refused.
+
+    A virus scanner or the search indexer opens a file that was just written
+    for a moment, and Windows will not rename a file that is open (nor
+    replace one): ``PermissionError``. A program holding the file for longer
+    (Excel) still gets the error, after :data:`WINDOWS_RENAME_RETRY_S`.
+    """
+    for pause in WINDOWS_RENAME_RETRY_S if _platform.WINDOWS else ():
+        try:
+            os.replace(src, dst)
+            return
+        except PermissionError:
+            time.sleep(pause)
+    os.replace(src, dst)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it over ``path`` on success.
@@ -200,7 +222,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
                 raise OutputError(path, exc) from exc
             raise
         try:
-            os.replace(tmp_path, target)  # a folder in the way, an immutable file: refused
+            replace_file(tmp_path, target)  # a folder in the way, an immutable file: refused
         except OSError as exc:
             raise OutputError(path, exc) from exc
     except BaseException:

@@ -41,7 +41,9 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from .._atomic import OutputError, atomic_write, fsync_dir, fsync_file, resolve_target
+from .._atomic import (
+    OutputError, atomic_write, fsync_dir, fsync_file, replace_file, resolve_target,
+)
 from .._json import dump as strict_json_dump
 from ..errors import InputError, input_error
 from .project import Feature3D, Interpretation
@@ -901,7 +903,7 @@ def _replace_together(moves: Sequence[tuple[Path, Path]], backups: Path) -> None
             except OSError:  # no hard links here: this one cannot be put back
                 backup = None
         try:
-            os.replace(src, target)
+            replace_file(src, target)
         except OSError as exc:
             for done_target, done_backup, done_existed in reversed(done):
                 with contextlib.suppress(OSError):
