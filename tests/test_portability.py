@@ -604,3 +604,28 @@ def test_stale_lock_being_read_by_another_session_is_taken_a_moment_later(tmp_pa
     monkeypatch.setattr(Path, "unlink", unlink)
     token = wsfiles.acquire_lock(tmp_path)
     assert refusals and json.loads(lock.read_text(encoding="utf-8"))["token"] == token
+
+
+# ------------------------------------------------------------------ folders
+def test_sample_into_an_empty_folder_made_beforehand_on_windows(tmp_path, monkeypatch, run_cli):
+    """Windows cannot rename a folder over another, even an empty one: the
+    sample command into a folder made beforehand (in Explorer) failed there."""
+    import napari_imgreg.sample as sample
+    from test_sample import _fake_outcrop
+
+    real_replace = os.replace
+
+    def windows_replace(src, dst):
+        if os.path.isdir(src) and os.path.exists(dst):
+            raise PermissionError(errno.EACCES, "Access is denied", str(src), None, str(dst))
+        real_replace(src, dst)
+
+    calls: list = []
+    monkeypatch.setattr(sample, "generate_outcrop", _fake_outcrop(calls))
+    monkeypatch.setattr(sample.os, "replace", windows_replace)
+    folder = tmp_path / "Sample outcrop"
+    folder.mkdir()
+    run = run_cli(["sample", "--out", folder])
+    assert run.code == 0, run.err
+    assert (folder / "outcrop.obj").is_file() and (folder / "scene.json").is_file()
+    assert [p.name for p in tmp_path.iterdir()] == ["Sample outcrop"]  # no temporary left

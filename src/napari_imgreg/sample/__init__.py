@@ -521,9 +521,13 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
             _refuse_edited_files(out, target, fresh=tmp)
             # File by file: whatever else the user keeps in the folder stays.
             _move_files_into(tmp, target)
+        elif target.is_dir():
+            # An empty folder (one made beforehand in the file manager): its
+            # files moved in. Windows cannot rename a folder over another.
+            _move_files_into(tmp, target)
         else:
             _share(tmp)  # the permissions mkdir would give it
-            os.replace(tmp, target)  # a new name, or over the empty folder
+            os.replace(tmp, target)  # a new name
     finally:
         with contextlib.suppress(OSError):
             shutil.rmtree(tmp)
