@@ -6,12 +6,15 @@ import contextlib
 import errno
 import os
 import tempfile
+import time
 from pathlib import Path
 from typing import IO, Iterator
 
+from . import _platform
+
 __all__ = [
     "atomic_write", "atomic_path", "umask", "file_mode", "resolve_target", "fsync_dir", "fsync_file",
-    "OutputError",
+    "replace_file", "OutputError",
 ]
 
 
@@ -35,7 +38,8 @@ class OutputError(OSError):
         elif isinstance(cause, (FileExistsError, NotADirectoryError)):  # from making its folder
             reason = "a file is in the way of its folder"
         else:
-            reason = cause.strerror or " ".join(str(cause).split()) or type(cause).__name__
+            reason = (_platform.held_open_hint(Path(path), cause)
+                      or cause.strerror or " ".join(str(cause).split()) or type(cause).__name__)
         super().__init__(f"{os.fspath(path)}: cannot write ({reason})")
         # errno only: with strerror or filename set, OSError's str() would
         # become "[Errno n] ..." instead of the one line above.
@@ -65,7 +69,7 @@ def umask() -> int:
     """The process umask, read without changing it (``os.umask`` would race
     with other threads); 0o022 where /proc is not available."""
     with contextlib.suppress(OSError, ValueError):
-        for line in Path("/proc/self/status").read_text().splitlines():
+        for line in Path("/proc/self/status").read_text(encoding="utf-8").splitlines():
             if line.startswith("Umask:"):
                 return int(line.split()[1], 8)
     return 0o022
@@ -114,13 +118,48 @@ def fsync_dir(folder: str | os.PathLike) -> None:
         os.close(fd)
 
 
+def _flush_open_flags() -> int:
+    """``os.open`` flags for a descriptor ``os.fsync`` accepts: read-only on
+    POSIX (fsync flushes through any descriptor, whatever the file's mode),
+    read-write in binary mode on Windows, where ``os.fsync`` is
+    ``FlushFileBuffers``, which refuses a handle without write access (EBADF)."""
+    if _platform.WINDOWS:
+        return os.O_RDWR | getattr(os, "O_BINARY", 0)
+    return os.O_RDONLY
+
+
 def fsync_file(path: str | os.PathLike) -> None:
-    """Flush a written file's content to the disk (before it is renamed into place)."""
-    fd = os.open(path, os.O_RDONLY)
+    """Flush a written file's content to the disk (before it is renamed into place).
+
+    On Windows the file must still be writable: call this before the file
+    gets a read-only mode (:func:`atomic_path` does).
+    """
+    fd = os.open(path, _flush_open_flags())
     try:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+#: Pauses between the tries of a rename Windows refuses, seconds (0.75 s in all).
+WINDOWS_RENAME_RETRY_S = (0.05, 0.1, 0.2, 0.4)
+
+
+def replace_file(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """``os.replace``; on Windows tried again for a moment when refused.
+
+    A virus scanner or the search indexer opens a file that was just written
+    for a moment, and Windows will not rename a file that is open (nor
+    replace one): ``PermissionError``. A program holding the file for longer
+    (Excel) still gets the error, after :data:`WINDOWS_RENAME_RETRY_S`.
+    """
+    for pause in WINDOWS_RENAME_RETRY_S if _platform.WINDOWS else ():
+        try:
+            os.replace(src, dst)
+            return
+        except PermissionError:
+            time.sleep(pause)
+    os.replace(src, dst)
 
 
 @contextlib.contextmanager
@@ -171,9 +210,11 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     try:
         try:
             yield tmp_path
+            # Flushed while still writable: Windows opens it read-write to
+            # flush, which a read-only target's mode would then forbid.
+            fsync_file(tmp_path)
             # mkstemp makes the file private (0600): give it the target's mode.
             os.chmod(tmp_path, file_mode(target))
-            fsync_file(tmp_path)
         except OSError as exc:
             # A full disk (or quota, or a dying drive) while writing names no
             # file: say which output it was. Other errors are the writer's.
@@ -181,7 +222,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
                 raise OutputError(path, exc) from exc
             raise
         try:
-            os.replace(tmp_path, target)  # a folder in the way, an immutable file: refused
+            replace_file(tmp_path, target)  # a folder in the way, an immutable file: refused
         except OSError as exc:
             raise OutputError(path, exc) from exc
     except BaseException:

@@ -22,6 +22,7 @@ import sys
 
 from .. import __version__
 from .._atomic import OutputError
+from .._platform import tolerant_console
 from .._allocator import tune_allocator
 from .._deprecated import forward_moved_names
 from . import (
@@ -68,6 +69,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
+    # Output redirected on Windows is in the ANSI code page: a "σ" in a help
+    # text or a photo's name in a summary must not end the command.
+    with tolerant_console():
+        return _run(argv)
+
+
+def _run(argv: list[str] | None) -> int:
+    """:func:`main` once the console prints any text."""
     parser = build_parser()
     args, unknown = parser.parse_known_args(argv)
     if unknown:

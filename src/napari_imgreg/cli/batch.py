@@ -46,7 +46,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .._atomic import atomic_write
+from .. import _platform
+from .._atomic import OutputError, atomic_write
 from .._deprecated import forward_moved_names
 from ._common import (
     EXIT_BAD_INPUT,
@@ -224,7 +225,7 @@ def _textures_named_by(mesh_files: list[Path], folder: Path) -> dict[str, str]:
         if mtl.suffix.lower() != ".mtl" or not mtl.is_file():
             continue
         try:
-            text = mtl.read_text(errors="replace")
+            text = mtl.read_text(encoding="utf-8", errors="replace")
         except OSError:
             continue
         for line in text.splitlines():
@@ -235,7 +236,7 @@ def _textures_named_by(mesh_files: list[Path], folder: Path) -> dict[str, str]:
         suffix = mesh.suffix.lower()
         try:
             if suffix == ".gltf":
-                data = json.loads(mesh.read_text(errors="replace"))
+                data = json.loads(mesh.read_text(encoding="utf-8", errors="replace"))
                 for image in data.get("images", []) if isinstance(data, dict) else []:
                     if isinstance(image, dict) and isinstance(image.get("uri"), str) \
                             and not image["uri"].startswith("data:"):
@@ -681,12 +682,26 @@ def _run_photos(args, files, spec, scene, params, cluster, out, names, header, r
                                         else prints_now[row["photo"]])
         return row
 
+    summary_held: list[str] = []  # the refusal last said, while summary.csv is held open
+
     def record(row: dict[str, Any]) -> None:
         nonlocal done
         done += 1
         rows.append(with_print(row))
         rows.sort(key=lambda r: order[r["photo"]])
-        _write_summary(out, header, rows, stale)
+        try:
+            _write_summary(out, header, rows, stale)
+        except OutputError as exc:
+            # On Windows a summary open in Excel (to watch the progress) cannot
+            # be replaced: the photos go on, the summary follows once it is closed.
+            if not _platform.held_open(exc):
+                raise
+            if not summary_held:
+                say(f"  {exc}; the photos go on and the summary is updated once it is closed",
+                    flush=True)
+            summary_held[:] = [str(exc)]
+        else:
+            summary_held.clear()
 
     try:
         todo = []

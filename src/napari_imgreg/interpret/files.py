@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import glob
 import json
 import math
 import os
@@ -40,7 +41,9 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
-from .._atomic import OutputError, atomic_write, fsync_dir, fsync_file, resolve_target
+from .._atomic import (
+    OutputError, atomic_write, fsync_dir, fsync_file, replace_file, resolve_target,
+)
 from .._json import dump as strict_json_dump
 from ..errors import InputError, input_error
 from .project import Feature3D, Interpretation
@@ -809,7 +812,9 @@ def write_features_gis(
                 str(out), np.array(geoms, dtype=object), arrays, names,
                 geometry_type=gtype, crs=crs, **kwargs)
             if suffix == ".shp":
-                written += [(p, path.parent / p.name) for p in tmp_dir.glob(f"{stem}.*")]
+                # Escaped: a name like "map[v2]" is no pattern (it matched nothing).
+                written += [(p, path.parent / p.name)
+                            for p in tmp_dir.glob(f"{glob.escape(stem)}.*")]
         if suffix != ".shp":
             written = [(tmp_dir / path.name, path)]
         _replace_together(written, tmp_dir / ".replaced")
@@ -898,7 +903,7 @@ def _replace_together(moves: Sequence[tuple[Path, Path]], backups: Path) -> None
             except OSError:  # no hard links here: this one cannot be put back
                 backup = None
         try:
-            os.replace(src, target)
+            replace_file(src, target)
         except OSError as exc:
             for done_target, done_backup, done_existed in reversed(done):
                 with contextlib.suppress(OSError):

@@ -3,7 +3,9 @@
 
 Commas, semicolons or tabs separate fields (the header line says which);
 blank lines and lines starting with ``#`` are skipped; a byte-order mark is
-ignored. Rows are numbered by their line in the file (the header being row 1
+ignored. In a table separated by semicolons (what a spreadsheet writes where
+the decimal separator is a comma: most of Europe) a number may have a
+decimal comma, ``12,5``. The text must be UTF-8 (Excel: "CSV UTF-8"). Rows are numbered by their line in the file (the header being row 1
 when it is the first line), so that a message names the line a user sees.
 """
 
@@ -11,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from pathlib import Path
 
 from ..errors import input_error
@@ -18,6 +21,9 @@ from ..errors import input_error
 __all__ = ["read_table_rows", "cell_number", "header_excerpt"]
 
 _DELIMITERS = (",", ";", "\t")
+#: A number written with a decimal comma (``-12,5``, ``1,5e3``).
+_DECIMAL_COMMA = re.compile(r"[+-]?\d*,\d+(?:[eE][+-]?\d+)?")
+
 #: Characters of a header quoted in a message, at most.
 HEADER_EXCERPT_CHARS = 80
 
@@ -69,7 +75,13 @@ def read_table_rows(path: Path, expected: str) -> tuple[list[str], list[tuple[in
         raise input_error(path, "no such file")
     try:
         text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        # Excel's plain "CSV" is in the Windows code page (cp1252): "Störung"
+        # is not UTF-8. Guessing the code page could misread names silently.
+        line = exc.object[:exc.start].count(b"\n") + 1
+        raise input_error(path, f"line {line}: not UTF-8 text; save the table as UTF-8 "
+                                "(Excel: 'CSV UTF-8')") from None
+    except OSError as exc:
         raise input_error(path, f"cannot read ({exc})") from None
     kind = _not_a_table(text)
     if kind is not None:
@@ -84,6 +96,8 @@ def read_table_rows(path: Path, expected: str) -> tuple[list[str], list[tuple[in
     rows = []
     for (number, _), row in zip(lines[1:], parsed[1:]):
         cells = [c.strip() for c in row]
+        if delimiter == ";":  # a decimal-comma spreadsheet's numbers
+            cells = [c.replace(",", ".") if _DECIMAL_COMMA.fullmatch(c) else c for c in cells]
         rows.append((number, cells + [""] * max(0, len(header) - len(cells))))
     return header, rows
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._platform import cache_root
 from ..errors import input_error
 
 __all__ = [
@@ -91,10 +92,10 @@ def mesh_cache_limit_bytes() -> int:
 
 
 def mesh_cache_dir() -> Path:
-    """Where parsed meshes are cached: ``$NAPARI_IMGREG_CACHE/meshes``
-    (default ``~/.cache/napari-imgreg/meshes``)."""
-    root = os.environ.get("NAPARI_IMGREG_CACHE") or Path.home() / ".cache" / "napari-imgreg"
-    return Path(root) / "meshes"
+    """Where parsed meshes are cached: ``meshes`` in
+    :func:`~napari_imgreg._platform.cache_root` (``$NAPARI_IMGREG_CACHE``, or
+    the system's user cache folder)."""
+    return cache_root() / "meshes"
 
 
 @dataclass
@@ -344,7 +345,9 @@ def _companions(path: Path) -> list[Path]:
     out = [path]
     if path.suffix.lower() == ".obj":
         try:
-            head = path.open("rb").read(65536).decode("utf-8", "replace")
+            # Closed at once: on Windows an open file cannot be replaced (a re-export).
+            with path.open("rb") as fh:
+                head = fh.read(65536).decode("utf-8", "replace")
         except OSError:
             head = ""
         for line in head.splitlines():
@@ -352,7 +355,7 @@ def _companions(path: Path) -> list[Path]:
                 mtl = path.parent / line.split(None, 1)[1].strip()
                 if mtl.exists():
                     out.append(mtl)
-                    for mline in mtl.read_text(errors="replace").splitlines():
+                    for mline in mtl.read_text(encoding="utf-8", errors="replace").splitlines():
                         parts = mline.split()
                         if parts and parts[0].lower().startswith("map_"):
                             tex = path.parent / parts[-1]

@@ -435,7 +435,7 @@ def write_orientation_csv(path: str | os.PathLike, table: OrientationTable) -> N
     def fmt(v: float) -> str:
         return "" if not np.isfinite(v) else f"{v:.10g}"
 
-    with atomic_write(path, newline="") as fh:
+    with atomic_write(path, newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(columns)
         for i, photo in enumerate(table.photos):

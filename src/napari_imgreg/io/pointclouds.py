@@ -1055,7 +1055,12 @@ def _check_laz_sizes(path: Path) -> None:
 
 
 def _read_e57(path: Path, p: PointCloudParams, georef) -> PointCloud:
-    import pye57
+    try:
+        import pye57
+    except ImportError:  # not installed on Intel Macs (no wheel; see pyproject.toml)
+        raise input_error(path, "reading E57 needs pye57, which is not installed (it has no "
+                                "wheel for this system): convert the scan to LAZ (CloudCompare, "
+                                "PDAL) or pip install pye57 (builds with Xerces-C)") from None
 
     notes: list[str] = []
     _check_e57_header(path)

@@ -35,6 +35,7 @@ import numpy as np
 
 from .._atomic import atomic_path, atomic_write
 from .._json import dumps as strict_dumps
+from .._platform import portable_name
 from ..errors import InputError, input_error
 from .records import read_json
 
@@ -380,8 +381,17 @@ def fingerprint_difference(saved: Any, now: dict | None) -> str:
 
 
 def photo_key(photo: str | os.PathLike, taken: set[str]) -> str:
-    """A folder name for a photo: its stem, made unique among ``taken`` (added to it)."""
-    stem = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(photo).stem) or "photo"
+    """A folder name for a photo: its stem, made unique among ``taken`` (added to it).
+
+    Letters, digits and ``-_.`` are kept, anything else becomes ``_``; the
+    name is then made one every system accepts
+    (:func:`~napari_imgreg._platform.portable_name`): a photo ``CON.jpg`` or
+    ``IMG..jpg`` gets a folder Windows can make, ``...jpg`` one inside
+    ``photos/`` (not ``photos/..``). Unique ignoring case, as the folders
+    are on Windows' and macOS's disks.
+    """
+    stem = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(photo).stem)
+    stem = portable_name(stem, fallback="photo")
     key, n = stem, 2
     while key.lower() in {t.lower() for t in taken}:
         key, n = f"{stem}_{n}", n + 1
@@ -474,7 +484,10 @@ def _remove_stale_lock(path: Path, stale: bytes | None) -> int:
         except OSError:  # unreadable as before: the caller's grace has passed
             still_stale = stale is None
         if still_stale:
-            path.unlink(missing_ok=True)
+            try:
+                path.unlink(missing_ok=True)
+            except PermissionError:  # Windows: another session is reading it this instant
+                return 0  # the caller reads it again
             return 1
         return 0
     finally:

@@ -52,6 +52,7 @@ import numpy as np
 
 from .._atomic import atomic_path, atomic_write, umask
 from .._json import dump as strict_json_dump
+from .._platform import cache_root
 from ..scene import ray_threads
 from ..camera import Intrinsics, Pose
 from .noise import rng_for
@@ -520,9 +521,13 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
             _refuse_edited_files(out, target, fresh=tmp)
             # File by file: whatever else the user keeps in the folder stays.
             _move_files_into(tmp, target)
+        elif target.is_dir():
+            # An empty folder (one made beforehand in the file manager): its
+            # files moved in. Windows cannot rename a folder over another.
+            _move_files_into(tmp, target)
         else:
             _share(tmp)  # the permissions mkdir would give it
-            os.replace(tmp, target)  # a new name, or over the empty folder
+            os.replace(tmp, target)  # a new name
     finally:
         with contextlib.suppress(OSError):
             shutil.rmtree(tmp)
@@ -620,10 +625,12 @@ def _is_sample_scene_of(folder: Path, size: str, seed: int) -> bool:
 
 # ------------------------------------------------------------------ cache
 def cache_dir() -> Path:
-    """Where generated sample scenes are kept: ``$NAPARI_IMGREG_CACHE`` or
-    ``~/.cache/napari-imgreg``."""
-    env = os.environ.get("NAPARI_IMGREG_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "napari-imgreg"
+    """Where generated sample scenes are kept: ``$NAPARI_IMGREG_CACHE``, or
+    the system's user cache folder (``~/.cache/napari-imgreg`` on Linux,
+    ``~/Library/Caches/napari-imgreg`` on macOS,
+    ``%LOCALAPPDATA%\\napari-imgreg\\Cache`` on Windows); see
+    :func:`~napari_imgreg._platform.cache_root`."""
+    return cache_root()
 
 
 def write_survey(folder: Path, georef, survey_sun_local: np.ndarray,

@@ -364,7 +364,7 @@ def build_rough_scene(scene_dir: str | Path, out_dir: str | Path, spec: RoughSpe
     spec = spec or RoughSpec()
     scene_dir, out_dir = Path(scene_dir), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    manifest = json.loads((scene_dir / "scene.json").read_text())
+    manifest = json.loads((scene_dir / "scene.json").read_text(encoding="utf-8"))
     grid = tuple(manifest["grid"])
     nx, ns = grid
     seed = int(manifest["seed"])
@@ -406,7 +406,7 @@ def build_rough_scene(scene_dir: str | Path, out_dir: str | Path, spec: RoughSpe
         "true_surface": "true_vertices.npy",
     }
     out.pop("size", None)
-    with atomic_write(out_dir / "scene.json") as fh:
+    with atomic_write(out_dir / "scene.json", encoding="utf-8") as fh:
         json.dump(out, fh, indent=1)
     return out_dir
 
@@ -421,7 +421,7 @@ class RoughScene:
 
         folder = Path(folder)
         self.folder = folder
-        self.manifest = json.loads((folder / "scene.json").read_text())
+        self.manifest = json.loads((folder / "scene.json").read_text(encoding="utf-8"))
         m = self.manifest
         self.spec = RoughSpec(**{k: tuple(v) if isinstance(v, list) else v
                                  for k, v in m["rough"]["spec"].items()})
