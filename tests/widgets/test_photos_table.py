@@ -134,3 +134,39 @@ def test_a_photo_register_all_could_not_register_says_why(table):
     row = table.row_of(1)
     assert table.table.item(row, 2).text() == "failed"
     assert "cannot be read" in table.table.item(row, 2).toolTip()
+
+
+def test_one_photos_change_fills_its_row_only(table, monkeypatch):
+    """A registration recorded (a step of Register all), or a switch of photo,
+    refreshes the table: only the rows that show something new are filled
+    again (filling every row grew with the campaign, on the GUI thread)."""
+    from qtpy.QtWidgets import QHeaderView
+
+    ws = table.ws
+    filled = []
+    fill = table._fill
+    monkeypatch.setattr(table, "_fill", lambda row, index, ps, s=None: (
+        filled.append(index), fill(row, index, ps, s)))
+    table.table.sortItems(2, Qt.SortOrder.DescendingOrder)  # rows not in the photos' order
+    second = ws.photos[1]
+    ws.record_registration(_registration(second, 0.8, 3.0), "Auto", second,
+                           pose_if_not_current=True)
+    assert filled == [1]
+    assert table.table.item(table.row_of(1), 3).text() == "good"
+    assert table.table.item(table.row_of(1), 2).text() == "registered"
+    filled.clear()
+    ws.select_photo(2)
+    table.refresh()
+    assert filled == []
+    assert table.table.item(table.row_of(2), 1).isSelected()
+    # Columns are sized to their contents again after a fill.
+    header = table.table.horizontalHeader()
+    assert all(header.sectionResizeMode(k) == QHeaderView.ResizeMode.ResizeToContents
+               for k in range(len(COLUMNS)))
+    # A photo added: every row.
+    third_again = read_photos([ws.photos[2].photo.path.with_name("IMG_0001.jpg")], ws.scene)[0]
+    ws.photos.clear()
+    ws.add_loaded_photos(third_again)
+    assert filled == [0]
+    assert _column(table, 1) == ["● IMG_0001.jpg"]
+
