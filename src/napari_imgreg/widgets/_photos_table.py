@@ -155,6 +155,7 @@ class PhotosTable(QWidget):
         super().__init__(parent)
         self.ctrl = controller
         self.ws = controller.workspace  # the state shown here
+        controller.thumbnail_width = THUMBNAIL_WIDTH  # made ahead when a workspace opens
         self._thumbs: dict[int, QPixmap] = {}
         self._filling = False
         #: What each row shows, by workspace index (see refresh).
