@@ -23,7 +23,7 @@ import pytest
 
 from napari_imgreg import _atomic
 from napari_imgreg._atomic import atomic_write
-from napari_imgreg._json import dumps, strict_json
+from napari_imgreg._json import dump, dumps, strict_json
 from napari_imgreg.cli import main
 from napari_imgreg.cli._common import write_json
 
@@ -61,6 +61,29 @@ def test_strict_json_leaves_clean_data_as_it_is_and_escapes_pointers():
     assert strict_json([math.nan]) == [None]  # no place for reasons in a list
     assert strict_json({"x": math.nan}, reasons={"/x": "no pose"})["null_reasons"] == {
         "/x": "no pose (was not a number (NaN))"}
+
+
+def test_dump_writes_what_json_dump_writes_at_once():
+    """The text json.dump writes (made by json.dumps, whose C encoder is
+    several times faster), in one write."""
+    import io
+    import json
+
+    data = {"a": [1, 2.5, None, "é", {"b": np.float64(0.1), "c": math.inf}], "d": (True, 3)}
+    for kwargs in ({}, {"indent": 1}, {"indent": 2, "ensure_ascii": False},
+                   {"separators": (",", ":")}):
+        expected = io.StringIO()
+        json.dump(strict_json(data), expected, allow_nan=False, **kwargs)
+        writes = []
+
+        class Recording(io.StringIO):
+            def write(self, text):
+                writes.append(text)
+                return super().write(text)
+
+        got = Recording()
+        dump(data, got, **kwargs)
+        assert got.getvalue() == expected.getvalue() and len(writes) == 1
 
 
 def test_strict_json_refuses_objects_with_their_place():

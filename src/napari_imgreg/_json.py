@@ -130,6 +130,11 @@ def dumps(data: Any, **kwargs: Any) -> str:
 
 
 def dump(data: Any, fh: IO[str], **kwargs: Any) -> None:
-    """:func:`json.dump` of :func:`strict_json` ``(data)``, ``allow_nan=False``."""
+    """:func:`json.dump` of :func:`strict_json` ``(data)``, ``allow_nan=False``.
+
+    The same text as :func:`json.dump` writes, made by :func:`json.dumps`
+    and written at once: ``json.dump`` never uses the C encoder (several
+    times faster; used without ``indent``) and writes every token apart.
+    """
     kwargs.setdefault("allow_nan", False)
-    json.dump(strict_json(data), fh, **kwargs)
+    fh.write(json.dumps(strict_json(data), **kwargs))

@@ -698,6 +698,8 @@ class Workspace:
         self._mesh_fingerprint: dict | None = None
         #: Per photo, :func:`_projection_input` of what the last projection was made from.
         self._projected_from: dict[PhotoState, str] | None = None
+        #: (features_3d, its length, features per source photo): see _mapped_by_source.
+        self._mapped_counted: tuple | None = None
 
     # -------------------------------------------------------------- scene
     def load_scene(self, scene: Scene, terrain: adjust.TerrainMap | None = None,
@@ -1712,12 +1714,26 @@ class Workspace:
         unc = getattr(reg, "uncertainty", None) if reg is not None else None
         reproj = float(unc.reprojection_px) if unc is not None else math.nan
         secs = float(reg.timings_s.get("total", math.nan)) if reg is not None else math.nan
-        mapped = sum(f.source == ps.name for f in self.features_3d)
+        mapped = self._mapped_by_source().get(ps.name, 0)
         return PhotoSummary(name=ps.name, status=self.photo_status(ps), grade=grade, q=q,
                             reprojection_px=reproj, time_s=secs,
                             attention=self.needs_attention(ps),
                             drawn=len(ps.interpretations), mapped=mapped,
                             mapped_out_of_date=self.projection_out_of_date_for(ps))
+
+    def _mapped_by_source(self) -> dict[str, int]:
+        """How many features of the last projection came from each photo (by
+        name), counted once per projection: the photos table asks for every
+        photo, and counting for each grew with photos × features."""
+        features = self.features_3d
+        counted = self._mapped_counted
+        if counted is None or counted[0] is not features or counted[1] != len(features):
+            counts: dict[str, int] = {}
+            for f in features:
+                counts[f.source] = counts.get(f.source, 0) + 1
+            # The list itself is held (its id could be reused by a new one).
+            self._mapped_counted = counted = (features, len(features), counts)
+        return counted[2]
 
     def needs_attention(self, ps: PhotoState) -> bool:
         """True while a photo waits for the user: not accepted and not
@@ -2328,6 +2344,8 @@ class _FolderStore:
         photos that could not be read."""
         self.ws = ws
         self.keys: dict[PhotoState, str] = dict(keys or {})
+        #: The photo folder names in use (see _key); None: not listed yet.
+        self._taken: set[str] | None = None
         #: Manifest entries of photos that could not be read when opened: kept.
         self.unavailable: list[dict] = list(unavailable or [])
         #: Their places in the manifest's list (kept there: the campaign keeps its order).
@@ -2415,6 +2433,7 @@ class _FolderStore:
         # A new scene clears the photos: their folders stay on disk, unlisted.
         self.unavailable, self.keys, self.fingerprints = [], {}, {}
         self.unavailable_at = []
+        self._taken = None
         self._guarded(self.save_manifest)
 
     def _on_photos(self, *_) -> None:
@@ -2460,11 +2479,15 @@ class _FolderStore:
     def _key(self, ps: PhotoState) -> str:
         key = self.keys.get(ps)
         if key is None:
-            taken = set(self.keys.values()) | {e.get("key", "") for e in self.unavailable}
-            photos_dir = self.folder / wsfiles.PHOTOS_DIR
-            if photos_dir.is_dir():  # never reuse another photo's folder, even an orphan
-                taken |= {p.name for p in photos_dir.iterdir()}
-            key = wsfiles.photo_key(ps.photo.path or ps.name, taken)
+            if self._taken is None:
+                # Listed once, then grown with each key given: listing the
+                # folder for every new photo grew with the square of the photos.
+                self._taken = set(self.keys.values()) | {e.get("key", "")
+                                                         for e in self.unavailable}
+                photos_dir = self.folder / wsfiles.PHOTOS_DIR
+                if photos_dir.is_dir():  # never reuse another photo's folder, even an orphan
+                    self._taken |= {p.name for p in photos_dir.iterdir()}
+            key = wsfiles.photo_key(ps.photo.path or ps.name, self._taken)  # (added to it)
             self.keys[ps] = key
         return key
 

@@ -134,3 +134,81 @@ def test_a_photo_register_all_could_not_register_says_why(table):
     row = table.row_of(1)
     assert table.table.item(row, 2).text() == "failed"
     assert "cannot be read" in table.table.item(row, 2).toolTip()
+
+
+def test_one_photos_change_fills_its_row_only(table, monkeypatch):
+    """A registration recorded (a step of Register all), or a switch of photo,
+    refreshes the table: only the rows that show something new are filled
+    again (filling every row grew with the campaign, on the GUI thread)."""
+    from qtpy.QtWidgets import QHeaderView
+
+    ws = table.ws
+    filled = []
+    fill = table._fill
+    monkeypatch.setattr(table, "_fill", lambda row, index, ps, s=None: (
+        filled.append(index), fill(row, index, ps, s)))
+    table.table.sortItems(2, Qt.SortOrder.DescendingOrder)  # rows not in the photos' order
+    second = ws.photos[1]
+    ws.record_registration(_registration(second, 0.8, 3.0), "Auto", second,
+                           pose_if_not_current=True)
+    assert filled == [1]
+    assert table.table.item(table.row_of(1), 3).text() == "good"
+    assert table.table.item(table.row_of(1), 2).text() == "registered"
+    filled.clear()
+    ws.select_photo(2)
+    table.refresh()
+    assert filled == []
+    assert table.table.item(table.row_of(2), 1).isSelected()
+    # Columns are sized to their contents again after a fill.
+    header = table.table.horizontalHeader()
+    assert all(header.sectionResizeMode(k) == QHeaderView.ResizeMode.ResizeToContents
+               for k in range(len(COLUMNS)))
+    # A photo added: every row.
+    third_again = read_photos([ws.photos[2].photo.path.with_name("IMG_0001.jpg")], ws.scene)[0]
+    ws.photos.clear()
+    ws.add_loaded_photos(third_again)
+    assert filled == [0]
+    assert _column(table, 1) == ["● IMG_0001.jpg"]
+
+
+def test_opening_a_workspace_makes_the_thumbnails_in_its_worker(tmp_path, monkeypatch, qapp):
+    """The worker that opens a workspace makes the table's thumbnails: the GUI
+    thread decodes none of them (hundreds took it seconds)."""
+    from napari_imgreg.io import photos as photos_module
+    from napari_imgreg.widgets._controller import _open_workspace_warm
+
+    folder = sample_scene("small")
+    ws = Workspace()
+    ws.open_scene(folder / "outcrop.obj", dem=folder / "dem.tif")
+    ws.add_photos(sorted(folder.glob("IMG_*.jpg")))
+    ws.save(tmp_path / "campaign.imgreg")
+    ws.detach()
+    opened = _open_workspace_warm(tmp_path / "campaign.imgreg", THUMBNAIL_WIDTH)
+    opened.detach()
+
+    def no_decoding(*args, **kwargs):
+        raise AssertionError("a photo decoded on the GUI thread")
+
+    monkeypatch.setattr(photos_module, "_read_rgb", no_decoding)
+    for ps in opened.photos:
+        assert _thumbnail(ps.photo).width() == THUMBNAIL_WIDTH
+        assert not ps.photo.decoded
+
+
+def test_several_layers_removed_in_one_batch(make_napari_viewer):
+    """napari collects garbage once per batch of removals, not once per layer;
+    a batch within a batch adds none (napari's do not nest)."""
+    from napari_imgreg.widgets._layers import layers_batched, remove_layers
+
+    viewer = make_napari_viewer()
+    layers = [viewer.add_points(np.zeros((1, 2)), name=f"p{k}") for k in range(5)]
+    ends = []
+    viewer.layers.events.end_batch.connect(lambda event: ends.append(event))
+    remove_layers(viewer, layers[:2])
+    assert len(ends) == 1 and [layer.name for layer in viewer.layers] == ["p2", "p3", "p4"]
+    with layers_batched(viewer):
+        remove_layers(viewer, layers[2:4])
+        assert not ends[1:]  # the inner removals did not end the batch
+    assert len(ends) == 2 and [layer.name for layer in viewer.layers] == ["p4"]
+    remove_layers(viewer, [layers[4], layers[0]])  # one still there: no batch
+    assert len(ends) == 2 and len(viewer.layers) == 0

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -237,11 +238,15 @@ def _photo_named(ws: Workspace, folder: str, name: str):
     raise input_error(folder, f"no photo named {name!r} in the workspace")
 
 
-def _label(ws: Workspace, ps) -> str:
+def _label(ws: Workspace, ps, names: Counter | None = None) -> str:
     """The photo's file name, with its folder name in the workspace when
-    another photo has the same file name (two cameras' ``IMG_0001.jpg``)."""
-    shared = sum(other.name == ps.name for other in ws.photos) > 1
-    return f"{ps.name} ({ws.photo_key(ps)})" if shared else ps.name
+    another photo has the same file name (two cameras' ``IMG_0001.jpg``).
+
+    ``names``: how many photos have each file name (counted once by a caller
+    labelling every photo: counting for each grew with the square of the photos).
+    """
+    names = names if names is not None else Counter(other.name for other in ws.photos)
+    return f"{ps.name} ({ws.photo_key(ps)})" if names[ps.name] > 1 else ps.name
 
 
 def _create(args: argparse.Namespace) -> int:
@@ -362,6 +367,7 @@ def _register_photos(args: argparse.Namespace, ws: Workspace, asked: list[int],
                       for k in asked)
         return EXIT_FAILED if (failed or missing) else EXIT_OK
     failed = 0
+    names = Counter(ps.name for ps in ws.photos)
     for n, k in enumerate(todo, 1):
         ws.select_photo(k)
         ps = ws.current
@@ -372,11 +378,11 @@ def _register_photos(args: argparse.Namespace, ws: Workspace, asked: list[int],
         except KeyboardInterrupt:
             raise  # the photos done are saved; a rerun goes on from this one
         except Exception as exc:  # noqa: BLE001 - one photo's crash does not stop the campaign
-            say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: not registered: {one_line(exc)}")
+            say(f"  [{n}/{len(todo)}] {_label(ws, ps, names)}: not registered: {one_line(exc)}")
             failed += 1
             continue
         failed += not reg.registered
-        say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — "
+        say(f"  [{n}/{len(todo)}] {_label(ws, ps, names)}: {reg.status} — "
             f"{outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}), {len(reg.trials)} "
             f"trial(s), {time.perf_counter() - start:.1f} s")
     missing = sum(ws.photos[k].registration is None or not ws.photos[k].registration.registered
@@ -407,19 +413,20 @@ def _register_on_cluster(ws: Workspace, todo: list[int], auto: bool, cluster) ->
         tasks.append((str(k), backend.register_prior,
                       (spec, ps.photo, ws.registration_prior(ps), params, ps.name)))
     failed = 0
+    names = Counter(ps.name for ps in ws.photos)
     with backend.PhotoRunner(cluster, len(todo)) as runner:
         say(f"  on the {runner.description}", flush=True)
         for n, (tag, reg) in enumerate(runner.run(tasks, lambda message: say(f"  {message}")),
                                        1):
             ps = ws.photos[int(tag)]
             if isinstance(reg, BaseException):
-                say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: not registered: {one_line(reg)}")
+                say(f"  [{n}/{len(todo)}] {_label(ws, ps, names)}: not registered: {one_line(reg)}")
                 failed += 1
                 continue
             # Its pose becomes the photo's pose though another photo is current.
             ws.record_registration(reg, kind, ps, pose_if_not_current=True)
             failed += not reg.registered
-            say(f"  [{n}/{len(todo)}] {_label(ws, ps)}: {reg.status} — "
+            say(f"  [{n}/{len(todo)}] {_label(ws, ps, names)}: {reg.status} — "
                 f"{outcome_words(reg.status, reg.grade)} (Q = {reg.q:+.2f}), "
                 f"{len(reg.trials)} trial(s), "
                 f"{reg.timings_s.get('total', 0.0):.1f} s")
@@ -529,7 +536,8 @@ def _export(args: argparse.Namespace) -> int:
 
 def _out_of_date(ws: Workspace) -> str:
     """The projection is older than what some photos hold now, in words."""
-    stale = [_label(ws, ps) for ps in ws.projection_out_of_date()]
+    names = Counter(ps.name for ps in ws.photos)
+    stale = [_label(ws, ps, names) for ps in ws.projection_out_of_date()]
     names = ", ".join(stale[:5]) + (", ..." if len(stale) > 5 else "")
     return (f"the projection is older than the drawings or poses of {len(stale)} photo(s) "
             f"({names}): run 'workspace project' to bring it up to date")
@@ -542,11 +550,12 @@ def _info(args: argparse.Namespace) -> int:
     mesh = ws.scene_files.get("mesh") or "(none)"
     say(f"{args.folder}: version {manifest.get('version', 0)}, model {mesh}, "
         f"{len(ws.photos)} photo(s)")
+    names = Counter(ps.name for ps in ws.photos)
     for ps in ws.photos:
         reg = ps.registration
         state = "not registered" if reg is None else (
             f"{reg.status}, {outcome_words(reg.status, reg.grade)}, Q = {reg.q:+.2f}")
-        say(f"  {_label(ws, ps)}: {state}; {len(ps.trials)} trial(s), "
+        say(f"  {_label(ws, ps, names)}: {state}; {len(ps.trials)} trial(s), "
             f"{len(ps.interpretations)} drawn")
     _say_open_problems(ws)
     if ws.features_3d:

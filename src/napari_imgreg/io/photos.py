@@ -148,19 +148,35 @@ class Photo:
     def thumbnail(self, width: int) -> np.ndarray:
         """A small RGB copy, ``width`` pixels wide, without keeping the full
         pixels of a photo read from a file (a JPEG is decoded at a reduced
-        scale: much faster than ``image``)."""
+        scale: much faster than ``image``).
+
+        The last one made is kept (a few kB): a campaign's photos table asks
+        for each photo's, and a worker can make them ahead of it.
+        """
         import cv2
 
         width = max(1, int(width))
+        kept = getattr(self, "_thumbnail", None)  # (absent in a photo pickled before)
+        if kept is not None and kept[0] == width and kept[1] is self._image_source():
+            return kept[2]
         w, h = self._size
         height = max(1, int(round(h * width / max(w, 1))))
         image = self._image
+        source = self._image_source()
         if image is None and self._decode is not None:
             image = _read_rgb(self.path, reduce_to=(width, height))
         if image is None:
             image = self.image
-        return np.ascontiguousarray(cv2.resize(np.ascontiguousarray(image), (width, height),
-                                               interpolation=cv2.INTER_AREA), np.uint8)
+        small = np.ascontiguousarray(cv2.resize(np.ascontiguousarray(image), (width, height),
+                                                interpolation=cv2.INTER_AREA), np.uint8)
+        small.setflags(write=False)  # shared by every caller
+        self._thumbnail = (width, source, small)
+        return small
+
+    def _image_source(self):
+        """What the pixels come from: the file's decoder, or the array given
+        (a thumbnail kept is made again when the photo is given another array)."""
+        return self._decode if self._decode is not None else self._image
 
     def _read_pixels(self) -> np.ndarray:
         image = _read_rgb(self.path)
@@ -179,6 +195,7 @@ class Photo:
         state = self.__dict__.copy()
         state.pop("_lock", None)
         state.pop("__weakref__", None)
+        state.pop("_thumbnail", None)  # holds the decoder, a bound method; made again
         if state.get("_decode") is not None:
             state["_decode"] = True  # a bound method: made again when unpickled
         return state

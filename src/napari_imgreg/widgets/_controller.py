@@ -28,6 +28,7 @@ import logging
 import threading
 import time
 import weakref
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -62,9 +63,11 @@ from ._layers import (
     cloud_layer_data,
     fit_camera_2d,
     frustum_segments,
+    layers_batched,
     napari_from_pixels,
     napari_from_world,
     pixels_from_napari,
+    remove_layers,
     surface_layer_data,
     view_from_camera,
     viewer_camera,
@@ -222,10 +225,17 @@ def warm_napari() -> None:
         log.debug("numba triangulation not warmed: %s", exc)
 
 
-def _open_workspace_warm(folder: Path) -> Workspace:
-    """Open a workspace folder, then warm napari for showing it (worker thread)."""
+def _open_workspace_warm(folder: Path, thumbnail_width: int | None = None) -> Workspace:
+    """Open a workspace folder, then warm napari for showing it and make the
+    photos' thumbnails ``thumbnail_width`` pixels wide (worker thread: for
+    hundreds of photos they took seconds of the GUI thread)."""
     opened = Workspace.open(folder)
     warm_napari()
+    for ps in opened.photos if thumbnail_width else ():
+        try:
+            ps.photo.thumbnail(thumbnail_width)  # kept by the photo
+        except Exception:  # noqa: BLE001 - met again where the table makes it, as before
+            pass
     return opened
 
 
@@ -371,11 +381,13 @@ class _Layers:
 
     def clear_photos(self) -> None:
         """Remove the photos' layers (a new model was opened)."""
-        for key in [k for k in self._refs if k.startswith("photo:")]:
-            layer = self._refs.pop(key)
-            if layer in self.viewer.layers:
-                self.viewer.layers.remove(layer)
+        remove_layers(self.viewer, [self._refs.pop(key) for key in list(self._refs)
+                                     if key.startswith("photo:")])
         self._refs.pop("photo", None)
+
+    def has_photos(self) -> bool:
+        """Photos are shown (their layers go when another workspace or model is opened)."""
+        return any(key.startswith("photo:") and self.get(key) is not None for key in self._refs)
 
     def set_camera(self, ps: PhotoState) -> None:
         """Keep the photo layer's camera and pose current (read by the interpretation tools)."""
@@ -516,12 +528,16 @@ class _Layers:
         cloud = getattr(scene, "is_cloud", False)  # a lidar scan: a Points layer
         data, kwargs, _ = (cloud_layer_data if cloud else surface_layer_data)(
             scene, name="outcrop")
-        old = self.get("surface")
-        if old is not None:
-            self.viewer.layers.remove(old)
+        self.remove_surface()
         kwargs["visible"] = self.viewer.dims.ndisplay == 3
         kwargs["metadata"] = {**kwargs.get("metadata", {}), WORKBENCH_MODEL: True}
         self._put("surface", self._add("add_points" if cloud else "add_surface", data, **kwargs))
+
+    def remove_surface(self) -> None:
+        """Remove the model's layer (another model is opened)."""
+        old = self.get("surface")
+        if old is not None:
+            self.viewer.layers.remove(old)
 
     def show_cameras(self, centers: np.ndarray, segments: np.ndarray, current: int,
                      marker_m: float = 5.0) -> None:
@@ -672,6 +688,9 @@ class WorkbenchController(QObject):
         #: The photo decoding ahead (see _prefetch_neighbours), when one runs.
         self._prefetching: threading.Thread | None = None
         self._asked: dict[str, float] = {}  # time of the latest request per job
+        #: Width (pixels) of the photos' thumbnails a dock shows (the photos
+        #: table): made in the worker that opens a workspace. None: none shown.
+        self.thumbnail_width: int | None = None
         self._full_timer = QTimer(self)
         self._full_timer.setSingleShot(True)
         self._full_timer.setInterval(FULL_RENDER_DELAY_MS)
@@ -739,6 +758,9 @@ class WorkbenchController(QObject):
         if self.viewer.dims.ndisplay == 3:
             self.layers.show_surface(self.scene)
         else:
+            # The old model goes now, with the photos' layers (in one batch,
+            # when a workspace is opened over another); the new one is made later.
+            self.layers.remove_surface()
             # Hidden in 2D: made on the event loop's next turn, after the
             # photo is shown — a workspace opening then freezes the window
             # twice briefly instead of once for both (busy until it is made).
@@ -1024,7 +1046,9 @@ class WorkbenchController(QObject):
             if opened is None:
                 return
             self.jobs.cancel("registration", "manual", "sun", "reference")
-            self.workspace.adopt(opened)
+            # The old workspace's layers (its photos, projections, model) go as one batch.
+            with layers_batched(self.viewer) if self.layers.has_photos() else nullcontext():
+                self.workspace.adopt(opened)
             ws = self.workspace
             self.status.emit(f"opened {folder.name}: {len(ws.photos)} photo(s), "
                              f"{sum(ws.photo_status(p) in ('registered', 'accepted') for p in ws.photos)}"
@@ -1043,6 +1067,7 @@ class WorkbenchController(QObject):
         self.loading.emit(message)
         # pyproj is touched (georeference, DEM): in a thread Python owns.
         self._start("open workspace", in_python_thread, _open_workspace_warm, folder,
+                    self.thumbnail_width,
                     on_returned=done, on_failed=lambda msg: self.loading.emit(""),
                     progress={"desc": f"Opening {folder.name}", "total": 0})
 

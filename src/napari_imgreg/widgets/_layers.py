@@ -15,6 +15,7 @@ The one place where the package's axis orders and cameras meet napari's:
 
 from __future__ import annotations
 
+import contextlib
 import math
 from typing import Any
 
@@ -35,6 +36,8 @@ __all__ = [
     "NAPARI_AXIS_LABELS",
     "only_height_slider",
     "viewer_camera",
+    "layers_batched",
+    "remove_layers",
     "fit_camera_2d",
     "INTERPRETATION_OF",
     "REDUCED_BY",
@@ -54,6 +57,43 @@ def viewer_camera(viewer):
     if scene is not None and hasattr(scene, "camera"):
         return scene.camera
     return viewer.camera
+
+
+#: The layer lists (by id) within a batch of :func:`layers_batched` now.
+_IN_BATCH: set[int] = set()
+
+
+@contextlib.contextmanager
+def layers_batched(viewer):
+    """A context in which the viewer's layers change as one batch
+    (``viewer.layers.batched_update``; a napari without it: no batch).
+
+    napari collects garbage (``gc.collect``, 0.2–0.5 s with a campaign in
+    memory) after each layer removed, except within a batch, which does it
+    once at its end (even when no layer was removed: enter one only for
+    removals). napari's batches do not nest (the inner one's end ends the
+    batch): within one, this adds none.
+    """
+    layers = viewer.layers
+    batched = getattr(layers, "batched_update", None)
+    if not callable(batched) or id(layers) in _IN_BATCH:
+        yield
+        return
+    _IN_BATCH.add(id(layers))
+    try:
+        with batched():
+            yield
+    finally:
+        _IN_BATCH.discard(id(layers))
+
+
+def remove_layers(viewer, layers) -> None:
+    """Remove ``layers`` (those still in the viewer), several as one batch
+    (see :func:`layers_batched`)."""
+    layers = [layer for layer in layers if layer in viewer.layers]
+    with layers_batched(viewer) if len(layers) > 1 else contextlib.nullcontext():
+        for layer in layers:
+            viewer.layers.remove(layer)
 
 
 def fit_camera_2d(camera, lo, hi, canvas_hw) -> None:

@@ -17,6 +17,8 @@ before the next starts, so a cancelled batch resumes where it stopped.
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
+from dataclasses import fields
 
 import cv2
 import numpy as np
@@ -37,7 +39,7 @@ from qtpy.QtWidgets import (
 )
 
 from ..registration.quality import GRADES
-from ..workspace import PhotoState
+from ..workspace import PhotoState, PhotoSummary
 from ._signals import follow_while_alive
 from ._controller import WorkbenchController
 from ._shortcuts import key_of
@@ -110,6 +112,41 @@ def _thumbnail(photo) -> QPixmap:
     return QPixmap.fromImage(qimage.copy())  # copy: the array is freed
 
 
+def _row_shown(s: PhotoSummary, ps: PhotoState) -> tuple:
+    """What a row shows, comparable: the photo (by identity: a new photo may
+    reuse an old one's id) and its cells' content (a missing number, NaN, as
+    None: NaN equals nothing)."""
+    values = tuple(None if isinstance(v, float) and math.isnan(v) else v
+                   for v in vars(s).values())
+    return _Identity(ps), values + (ps.error,)
+
+
+#: The fields of a PhotoSummary that the "lines" cell shows.
+_LINES_FIELDS = ("drawn", "mapped", "mapped_out_of_date")
+
+
+def _but_lines(shown: tuple | None) -> tuple | None:
+    """What :func:`_row_shown` says of a row but its "lines" cell."""
+    if shown is None:
+        return None
+    photo, values = shown
+    names = [f.name for f in fields(PhotoSummary)]
+    kept = tuple(v for name, v in zip(names, values) if name not in _LINES_FIELDS)
+    return photo, kept + values[len(names):]  # (and what follows the summary: its error)
+
+
+class _Identity:
+    """Equal to another only when holding the same object."""
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj) -> None:
+        self.obj = obj
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _Identity) and other.obj is self.obj
+
+
 class PhotosTable(QWidget):
     """The photos of the workspace with their status, and Register all (see the
     module docstring)."""
@@ -118,8 +155,11 @@ class PhotosTable(QWidget):
         super().__init__(parent)
         self.ctrl = controller
         self.ws = controller.workspace  # the state shown here
+        controller.thumbnail_width = THUMBNAIL_WIDTH  # made ahead when a workspace opens
         self._thumbs: dict[int, QPixmap] = {}
         self._filling = False
+        #: What each row shows, by workspace index (see refresh).
+        self._shown: list[tuple | None] = []
 
         self.register_all_button = QPushButton("Register all")
         self.register_all_button.setToolTip(
@@ -231,7 +271,14 @@ class PhotosTable(QWidget):
         row = self.row_of(self.ws.photos.index(ps))
         item = None if row is None else self.table.item(row, LINES_COLUMN)
         if item is not None:
-            _show_lines(item, self.ws.photo_summary(ps))
+            s = self.ws.photo_summary(ps)
+            _show_lines(item, s)
+            index = self.ws.photos.index(ps)
+            shown = _row_shown(s, ps)
+            # The row is up to date if nothing but its lines cell changed; else
+            # the next refresh fills it.
+            if index < len(self._shown) and _but_lines(self._shown[index]) == _but_lines(shown):
+                self._shown[index] = shown
 
     # ------------------------------------------------------------- rows
     def thumbnail(self, ps: PhotoState) -> QPixmap:
@@ -241,25 +288,62 @@ class PhotosTable(QWidget):
         return self._thumbs[key]
 
     def refresh(self) -> None:
-        """Rebuild the rows from the workspace (keeping the sort order)."""
+        """Bring the rows up to date with the workspace (keeping the sort order).
+
+        Only the rows whose photo, or what they show of it, changed are filled
+        again: a switch of photo or one photo's registration (which refresh
+        the table) costs a row, not the whole campaign's.
+        """
         photos = self.ws.photos
         live = {id(ps) for ps in photos}
         self._thumbs = {k: v for k, v in self._thumbs.items() if k in live}
-        self._filling = True
-        sorting = self.table.isSortingEnabled()
-        self.table.setSortingEnabled(False)  # rows move while filled otherwise
-        try:
-            self.table.setRowCount(len(photos))
-            for row, ps in enumerate(photos):
-                self._fill(row, row, ps)
-        finally:
-            self.table.setSortingEnabled(sorting)
-            self._filling = False
+        summaries = [self.ws.photo_summary(ps) for ps in photos]
+        shown = [_row_shown(s, ps) for ps, s in zip(photos, summaries)]
+        rows = self._rows_by_index() if len(self._shown) == len(photos) else None
+        with self._rows_changing():
+            if rows is None or len(rows) != len(photos):
+                # Photos added or removed: every row (in the workspace's order, sorted after).
+                self.table.setRowCount(len(photos))
+                rows = {index: index for index in range(len(photos))}
+                self._shown = [None] * len(photos)
+            for index, (ps, s) in enumerate(zip(photos, summaries)):
+                if self._shown[index] != shown[index]:
+                    self._fill(rows[index], index, ps, s)
+                    self._shown[index] = shown[index]
         self._select_current()
         self._summarise()
 
-    def _fill(self, row: int, index: int, ps: PhotoState) -> None:
-        s = self.ws.photo_summary(ps)
+    @contextmanager
+    def _rows_changing(self):
+        """Cells set in bulk: sorting off (rows move while filled otherwise),
+        and the columns sized to their contents once at the end (sized at
+        every cell set, each set measured its whole column: a fill of the
+        table grew with the square of its rows, 12 s for 300 photos)."""
+        header = self.table.horizontalHeader()
+        sorting = self.table.isSortingEnabled()
+        self._filling = True
+        self.table.setSortingEnabled(False)
+        header.setSectionResizeMode(QHeaderView.ResizeMode.Interactive)
+        try:
+            yield
+        finally:
+            self.table.resizeColumnsToContents()
+            header.setSectionResizeMode(QHeaderView.ResizeMode.ResizeToContents)
+            self.table.setSortingEnabled(sorting)
+            self._filling = False
+
+    def _rows_by_index(self) -> dict[int, int]:
+        """The table row of each workspace photo index, as the rows are sorted now."""
+        rows = {}
+        for row in range(self.table.rowCount()):
+            index = self.photo_index_at(row)
+            if index is not None:
+                rows[index] = row
+        return rows
+
+    def _fill(self, row: int, index: int, ps: PhotoState, s: PhotoSummary | None = None) -> None:
+        """Fill table row ``row`` with photo ``index`` (``s``: its summary, if known)."""
+        s = self.ws.photo_summary(ps) if s is None else s
         thumb = _Item()
         thumb.setIcon(QIcon(self.thumbnail(ps)))
         thumb.setData(SORT_ROLE, index)

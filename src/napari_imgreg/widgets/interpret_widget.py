@@ -94,6 +94,7 @@ from ._layers import (
     napari_from_world,
     photo_pixel_frame,
     pixels_from_napari,
+    remove_layers,
     viewer_camera,
 )
 
@@ -1249,9 +1250,9 @@ class InterpretWidget(QWidget):
             by_source.setdefault(f.source, []).append(f)
         # Every earlier projection goes: a photo whose lines were all deleted
         # since has no feature now, and its old 3D lines must not stay.
-        for layer in [lay for lay in self.viewer.layers if PROJECTED_KEY in lay.metadata]:
-            if replace_all or layer.metadata[PROJECTED_KEY] in by_source:
-                self.viewer.layers.remove(layer)
+        remove_layers(self.viewer, [
+            layer for layer in self.viewer.layers if PROJECTED_KEY in layer.metadata
+            and (replace_all or layer.metadata[PROJECTED_KEY] in by_source)])
         extent = float(np.ptp(surface.vertices, axis=0).max()) if len(surface.vertices) else 100.0
         width = max(extent / 400.0, 0.05)  # visible at the whole-outcrop zoom
         for source, feats in by_source.items():
