@@ -21,10 +21,10 @@ import os
 import sys
 
 from .. import __version__
-from .._atomic import OutputError
-from .._platform import tolerant_console
 from .._allocator import tune_allocator
+from .._atomic import OutputError
 from .._deprecated import forward_moved_names
+from .._platform import tolerant_console
 from . import (
     batch,
     demo,
