@@ -13,22 +13,11 @@ import pytest
 
 from napari_imgreg.interpret.project import Interpretation
 from napari_imgreg.io import workspace_files as wsfiles
-from napari_imgreg.registration.params import RegistrationParams
-from napari_imgreg.registration.pipeline import Registration, Trial
 from napari_imgreg.sample import sample_scene
 from napari_imgreg.workspace import Workspace
+from widgets._workbench import registered_on_truth  # (the photos' poses: copies, no truth)
 
 N_PHOTOS = 300
-
-
-def _registration(ps) -> Registration:
-    trial = Trial(index=0, params=RegistrationParams(), metrics={"inliers_3d": 100}, q=1.3,
-                  grade="excellent", hints=[], pose=ps.pose, start_pose=ps.pose, rounds=1,
-                  converged=True, verified=True, residual_flow_px=0.5)
-    return Registration(status="registered", photo=ps.name, intrinsics=ps.intrinsics,
-                        pose=ps.pose, prior=ps.prior, metrics=trial.metrics, q=1.3,
-                        grade="excellent", hints=[], trials=[trial], timings_s={"total": 1.0},
-                        best_trial=0)
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +67,7 @@ def test_a_300_photo_workspace_round_trips(campaign_scene, tmp_path, monkeypatch
     line = Interpretation("LineString", np.array([[10.0, 20.0], [200.0, 40.0]]), {"label": "bed"})
     for k, ps in enumerate(ws.photos):
         if k % 10 == 0:
-            ws.record_registration(_registration(ps), "Auto", ps, pose_if_not_current=True)
+            ws.record_registration(registered_on_truth(ps, pose=ps.pose), "Auto", ps, pose_if_not_current=True)
         if k % 50 == 0:
             ws.set_interpretations([line], ps=ps)
     ws.select_photo(N_PHOTOS - 7)

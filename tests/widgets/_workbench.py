@@ -36,20 +36,22 @@ def save_and_reopen(wb, qtbot, folder):
     return ctrl.workspace
 
 
-def registered_on_truth(ps):
-    """A registration of a sample photo that found its true pose, without
-    running the pipeline (a verified, excellent trial and a 1.2 px estimate)."""
+def registered_on_truth(ps, pose=None):
+    """A registration of a sample photo that found its true pose (or ``pose``),
+    without running the pipeline (a verified, excellent trial and a 1.2 px
+    estimate)."""
     from napari_imgreg.registration.params import RegistrationParams
     from napari_imgreg.registration.pipeline import Registration, Trial
     from napari_imgreg.registration.uncertainty import Uncertainty
     from napari_imgreg.sample import load_truth
 
-    truth = load_truth(ps.photo.path)
+    if pose is None:
+        pose = load_truth(ps.photo.path).pose
     trial = Trial(index=0, params=RegistrationParams(), metrics={"inliers_3d": 200}, q=1.4,
-                  grade="excellent", hints=[], pose=truth.pose, start_pose=ps.pose, rounds=1,
+                  grade="excellent", hints=[], pose=pose, start_pose=ps.pose, rounds=1,
                   converged=True, verified=True, residual_flow_px=0.4)
     return Registration(status="registered", photo=ps.name, intrinsics=ps.intrinsics,
-                        pose=truth.pose, prior=ps.prior, metrics=trial.metrics, q=1.4,
+                        pose=pose, prior=ps.prior, metrics=trial.metrics, q=1.4,
                         grade="excellent", hints=[], trials=[trial], timings_s={"total": 1.0},
                         best_trial=0, uncertainty=Uncertainty(1.2, 0.12, 0.06, 4))
 
