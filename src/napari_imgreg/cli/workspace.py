@@ -538,9 +538,9 @@ def _out_of_date(ws: Workspace) -> str:
     """The projection is older than what some photos hold now, in words."""
     names = Counter(ps.name for ps in ws.photos)
     stale = [_label(ws, ps, names) for ps in ws.projection_out_of_date()]
-    names = ", ".join(stale[:5]) + (", ..." if len(stale) > 5 else "")
+    listed = ", ".join(stale[:5]) + (", ..." if len(stale) > 5 else "")
     return (f"the projection is older than the drawings or poses of {len(stale)} photo(s) "
-            f"({names}): run 'workspace project' to bring it up to date")
+            f"({listed}): run 'workspace project' to bring it up to date")
 
 
 def _info(args: argparse.Namespace) -> int:
