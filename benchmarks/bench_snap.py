@@ -318,8 +318,8 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
         + (" --before FILE` (FILE: the `--json` of the earlier version, for the bracketed "
            "ratios; " if before else "` (")
         + "the drawings and the true-pose rows are deterministic; the registered poses can "
-          "differ by a few thousandths of a degree between machines (multithreaded "
-          "registration), which moves the registered-pose rows by a few per cent: on a fresh "
+          "differ by a few thousandths of a degree between machines (cause not traced; "
+          "e.g. thread scheduling), which moves the registered-pose rows by a few per cent: on a fresh "
           "machine the small scene gave 1.89 against 1.82 here; "
         + f"Python {platform.python_version()}, NumPy {np.__version__}).",
         MARK_END,
