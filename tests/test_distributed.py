@@ -24,7 +24,8 @@ from pathlib import Path
 
 import pytest
 
-from napari_imgreg.cli import main
+from napari_imgreg.cli import build_parser, main
+from napari_imgreg.cli.batch import cluster_params
 from napari_imgreg.registration import batch as backend
 
 distributed = pytest.importorskip("distributed")
@@ -263,12 +264,12 @@ SIGTERM_RUNNER = """
 """
 
 
-def _batch_until_started(scene, out, address, marks, photo) -> subprocess.Popen:
+def _batch_until_started(scene, out, address, marks, photo, *options: str) -> subprocess.Popen:
     """``batch`` on the scheduler in a child process, once ``photo`` has started
     on a worker (the stand-in marks it)."""
     proc = subprocess.Popen(
         [sys.executable, "-c", textwrap.dedent(SIGTERM_RUNNER), "batch", str(scene), "--out",
-         str(out), "--scheduler", address],
+         str(out), "--scheduler", address, *options],
         env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.PIPE,
         stderr=subprocess.PIPE, text=True)
     marker = marks / f"started-{photo}"
@@ -302,12 +303,13 @@ def test_sigterm_on_a_cluster_gives_a_valid_interrupted_summary(scene, stand_in,
     assert "--skip-existing" in stdout
 
 
-@pytest.mark.slow  # Dask tries to reconnect for 30 s before the command may give up
 def test_a_scheduler_that_goes_away_mid_run_is_one_line_and_a_valid_summary(scene, tmp_path):
     """The scheduler stopped during a run (restarted, its job ended): the
     command crashed with a traceback ('FutureCancelledError' object is not
     subscriptable) and left the summary as it was before. Now: one line
-    naming the scheduler, exit 2, and the summary of an interrupted run."""
+    naming the scheduler, exit 2, and the summary of an interrupted run,
+    once Dask has tried to reconnect for ``--connect-timeout`` (3 s here,
+    30 by default)."""
     local = distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                      dashboard_address=":0")
     client = distributed.Client(local)
@@ -317,10 +319,13 @@ def test_a_scheduler_that_goes_away_mid_run_is_one_line_and_a_valid_summary(scen
     address = local.scheduler_address
     out = tmp_path / "results"
     try:
-        proc = _batch_until_started(scene, out, address, marks, "IMG_0003.jpg")
+        proc = _batch_until_started(scene, out, address, marks, "IMG_0003.jpg",
+                                    "--connect-timeout", "3")
         client.close()
         local.close()  # the scheduler and its worker go away
+        t_gone = time.monotonic()
         stdout, stderr = proc.communicate(timeout=120)
+        waited_s = time.monotonic() - t_gone
     finally:
         (marks / "release").write_text("")
         client.close()
@@ -338,9 +343,10 @@ def test_a_scheduler_that_goes_away_mid_run_is_one_line_and_a_valid_summary(scen
     assert listed == {p.name for p in out.glob("*.result.json")}
     assert "--skip-existing" in stdout
     assert not (out / "batch.lock").exists()
-    # Said at once, before Dask's 30 s of trying to reconnect.
+    # Said at once, before Dask's seconds of trying to reconnect, which the option sets.
     assert (f"lost the connection to the scheduler at {address}: trying to reconnect for up "
-            "to 30 s") in stdout
+            "to 3 s") in stdout
+    assert waited_s < 25, waited_s
 
 
 def test_a_dropped_connection_to_the_scheduler_is_survived(scene, stand_in, tmp_path):
@@ -619,7 +625,8 @@ def test_cluster_shape_defaults_and_ranges(monkeypatch):
     assert backend.ClusterParams(workers=5).local_shape(9) == (5, 1)
     assert backend.ClusterParams(workers=0).in_process
     assert not backend.ClusterParams(workers=0, scheduler="tcp://x:8786").in_process
-    for bad in ({"workers": -1}, {"threads_per_worker": 0}, {"allowed_failures": 101}):
+    for bad in ({"workers": -1}, {"threads_per_worker": 0}, {"allowed_failures": 101},
+                {"connect_timeout_s": 0}, {"connect_timeout_s": float("nan")}):
         with pytest.raises(ValueError):
             backend.ClusterParams(**bad)
 
@@ -629,7 +636,8 @@ def test_cluster_options_on_the_command_line(capsys):
         main(["batch", "--help"])
     assert exc.value.code == 0
     text = capsys.readouterr().out
-    for option in ("--workers", "--threads-per-worker", "--scheduler", "--allowed-failures"):
+    for option in ("--workers", "--threads-per-worker", "--scheduler", "--allowed-failures",
+                   "--connect-timeout"):
         assert option in text
     with pytest.raises(SystemExit) as exc:
         main(["batch", "scene", "--out", "r", "--workers", "many"])
@@ -639,6 +647,14 @@ def test_cluster_options_on_the_command_line(capsys):
         main(["workspace", "register", "ws", "--threads-per-worker", "0"])
     assert exc.value.code == 2
     assert "--threads-per-worker must be 1-256, not 0" in capsys.readouterr().err
+    for bad, said in (("0", "must be 1-3600 s, not 0"), ("nan", "must be 1-3600 s, not nan"),
+                      ("soon", "must be a number of seconds, not 'soon'")):
+        with pytest.raises(SystemExit) as exc:
+            main(["batch", "scene", "--out", "r", "--connect-timeout", bad])
+        assert exc.value.code == 2
+        assert f"--connect-timeout {said}" in capsys.readouterr().err
+    args = build_parser().parse_args(["batch", "scene", "--out", "r", "--connect-timeout", "5"])
+    assert cluster_params(args).connect_timeout_s == 5.0
 
 
 def test_a_scheduler_that_does_not_answer_is_one_line_of_bad_input():

@@ -146,6 +146,22 @@ def _count(low: int, high: int, what: str):
     return parse
 
 
+def _seconds(low: float, high: float, what: str):
+    """An argparse type: a number of seconds in [low, high]."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be a number of seconds, not {text!r}") \
+                from None
+        if not low <= value <= high:  # also refuses nan
+            raise argparse.ArgumentTypeError(f"{what} must be {low:g}-{high:g} s, not {text}")
+        return value
+
+    return parse
+
+
 def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
     """The Dask options of ``batch`` and ``workspace register`` (docs/batch.md)."""
     g = p.add_argument_group(
@@ -164,6 +180,10 @@ def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--allowed-failures", type=_count(0, 100, "--allowed-failures"), default=2,
                    metavar="K", help="give a photo up after its worker died K+1 times "
                    "(default 2; local clusters)")
+    g.add_argument("--connect-timeout", type=_seconds(1.0, 3600.0, "--connect-timeout"),
+                   default=30.0, metavar="SECONDS",
+                   help="with --scheduler: how long to wait for it to answer, and to reconnect "
+                   "when the connection drops mid-run (default 30)")
 
 
 def cluster_params(args: argparse.Namespace) -> ClusterParams:
@@ -171,7 +191,8 @@ def cluster_params(args: argparse.Namespace) -> ClusterParams:
     from ..registration.batch import ClusterParams
 
     return ClusterParams(workers=args.workers, threads_per_worker=args.threads_per_worker,
-                         scheduler=args.scheduler, allowed_failures=args.allowed_failures)
+                         scheduler=args.scheduler, allowed_failures=args.allowed_failures,
+                         connect_timeout_s=args.connect_timeout)
 
 
 # ------------------------------------------------------------------ scene

@@ -127,7 +127,9 @@ class ClusterParams:
         this process (no start-up cost, but one GIL; for tests and
         debugging).
     connect_timeout_s : float
-        How long to wait for ``scheduler`` to answer, seconds (default 30).
+        How long to wait for ``scheduler`` to answer, and for Dask's client to
+        reconnect when the connection drops mid-run, seconds (default 30;
+        ``--connect-timeout``).
     """
 
     workers: int | None = None
@@ -144,6 +146,8 @@ class ClusterParams:
             raise ValueError(f"threads_per_worker must be 1-256, not {self.threads_per_worker}")
         if not 0 <= int(self.allowed_failures) <= 100:
             raise ValueError(f"allowed_failures must be 0-100, not {self.allowed_failures}")
+        if not 0 < float(self.connect_timeout_s) <= 3600:  # also refuses nan
+            raise ValueError(f"connect_timeout_s must be in (0, 3600], not {self.connect_timeout_s}")
 
     @property
     def in_process(self) -> bool:
