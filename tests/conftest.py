@@ -164,6 +164,14 @@ def run_cli(capsys):
 
 
 @pytest.fixture
+def no_sample_cache(monkeypatch, tmp_path_factory):
+    """An empty sample cache (``NAPARI_IMGREG_CACHE``, outside ``tmp_path``):
+    ``sample --out`` then generates the scene (the generator a test stands in
+    for) instead of copying the cached one."""
+    monkeypatch.setenv("NAPARI_IMGREG_CACHE", str(tmp_path_factory.mktemp("empty_cache")))
+
+
+@pytest.fixture
 def sample_reference():
     """``sample_reference(photo_name) -> (workspace, truth)``: the small sample
     scene with one photo, its reference render made from its pose (the Manual

@@ -607,7 +607,8 @@ def test_stale_lock_being_read_by_another_session_is_taken_a_moment_later(tmp_pa
 
 
 # ------------------------------------------------------------------ folders
-def test_sample_into_an_empty_folder_made_beforehand_on_windows(tmp_path, monkeypatch, run_cli):
+def test_sample_into_an_empty_folder_made_beforehand_on_windows(tmp_path, monkeypatch, run_cli,
+                                                                no_sample_cache):
     """Windows cannot rename a folder over another, even an empty one: the
     sample command into a folder made beforehand (in Explorer) failed there."""
     import napari_imgreg.sample as sample

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 from napari_imgreg import Scene, render
 from napari_imgreg.geo import DEM, Georef
 from napari_imgreg.sample import (
+    CACHE_MANIFEST,
     GENERATOR_VERSION,
     OutcropSpec,
     PhotoConditions,
@@ -33,9 +35,9 @@ CHEAP = OutcropSpec.for_size(
 
 
 @pytest.fixture(scope="session")
-def small(tmp_path_factory) -> Path:
-    """The small scene, generated once for the whole session."""
-    return generate_outcrop(tmp_path_factory.mktemp("outcrop_small"), "small", seed=0)
+def small() -> Path:
+    """The small scene (the cached one the other tests use; read only)."""
+    return sample_scene("small")
 
 
 @pytest.fixture(scope="session")
@@ -59,6 +61,7 @@ def test_same_seed_same_geometry_and_records(cheap_pair, small):
     from napari_imgreg.sample.outcrop import build_geometry, quantize_vertices
 
     a, b = cheap_pair
+    assert not list(a.glob(".*")), "temporary files left behind"
     assert _vertex_hash(a / "outcrop.obj") == _vertex_hash(b / "outcrop.obj")
     # The written small model is the generator's geometry for seed 0.
     g = build_geometry(SMALL, 0)
@@ -102,7 +105,7 @@ def test_manifest_lists_the_files(small):
     for name in m["examples"]["orient"].values():
         assert (small / name).is_file(), name
     assert m["survey_sun"]["azimuth_deg"] == SMALL.survey_sun_azimuth_deg
-    assert not list(small.glob(".*")), "temporary files left behind"
+    assert [p.name for p in small.glob(".*")] == [CACHE_MANIFEST], "temporary files left behind"
 
 
 def test_obj_reloads_with_texture(small):
@@ -385,7 +388,7 @@ def test_the_example_drawing_maps_onto_the_true_traces(small):
 
 
 def test_cli_sample_writes_the_drawings_and_the_orientation_example(tmp_path, monkeypatch,
-                                                                     run_cli):
+                                                                     run_cli, no_sample_cache):
     """`napari-imgreg sample` writes what the docs run: the drawings beside
     the photos and orient/; written again, the user's files in orient/ stay."""
     import napari_imgreg.sample as sample
@@ -552,7 +555,37 @@ def _fake_outcrop(calls, interrupt=False):
     return generate
 
 
-def test_cli_sample_refuses_a_folder_of_other_files(tmp_path, monkeypatch, run_cli):
+def test_cli_sample_copies_the_cached_scene(tmp_path, monkeypatch, run_cli, small):
+    """With the scene in the cache, `sample --out` copies it (the generation
+    is deterministic) instead of generating it again: the same files, in a
+    second instead of about twenty."""
+    import napari_imgreg.sample as sample
+
+    monkeypatch.setattr(sample, "generate_outcrop", lambda *a, **k: pytest.fail("generated"))
+    out = tmp_path / "scene"
+    run = run_cli(["sample", "--out", out])
+    assert run.code == 0, run.err
+    assert run.out.startswith(f"copying the small sample outcrop (seed 0) from the cache {small}")
+    cached = sorted(p.relative_to(small) for p in small.rglob("*") if p.is_file())
+    assert sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file()) == cached
+    for rel in cached:
+        if rel.name != CACHE_MANIFEST:
+            assert (out / rel).read_bytes() == (small / rel).read_bytes(), rel
+    assert sample.verify_sample_scene(out) is None  # its own manifest, for the next run
+    assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+    # A damaged cache is not copied: the scene is generated.
+    calls = []
+    monkeypatch.setenv("NAPARI_IMGREG_CACHE", str(tmp_path / "cache"))
+    damaged = tmp_path / "cache" / small.name
+    shutil.copytree(small, damaged)
+    (damaged / "outcrop.obj").write_text("v 0 0 0\n")
+    monkeypatch.setattr(sample, "generate_outcrop", _fake_outcrop(calls))
+    run = run_cli(["sample", "--out", tmp_path / "again"])
+    assert run.code == 0 and run.out.startswith("generating the small sample outcrop") and calls
+
+
+def test_cli_sample_refuses_a_folder_of_other_files(tmp_path, monkeypatch, run_cli,
+                                                    no_sample_cache):
     import napari_imgreg.sample as sample
 
     calls = []
@@ -572,7 +605,8 @@ def test_cli_sample_refuses_a_folder_of_other_files(tmp_path, monkeypatch, run_c
     assert run_cli(["sample", "--out", folder]).code == 2 and calls == []
 
 
-def test_cli_sample_writes_the_scene_into_place_whole(tmp_path, monkeypatch, run_cli):
+def test_cli_sample_writes_the_scene_into_place_whole(tmp_path, monkeypatch, run_cli,
+                                                      no_sample_cache):
     import napari_imgreg.sample as sample
 
     calls = []
@@ -590,7 +624,8 @@ def test_cli_sample_writes_the_scene_into_place_whole(tmp_path, monkeypatch, run
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
 
 
-def test_cli_sample_interrupted_leaves_no_half_scene(tmp_path, monkeypatch, run_cli):
+def test_cli_sample_interrupted_leaves_no_half_scene(tmp_path, monkeypatch, run_cli,
+                                                     no_sample_cache):
     import napari_imgreg.sample as sample
 
     monkeypatch.setattr(sample, "generate_outcrop", _fake_outcrop([], interrupt=True))

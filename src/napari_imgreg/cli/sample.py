@@ -44,14 +44,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Run ``sample``: generate the outcrop into ``--out``."""
-    from ..sample import check_outcrop_folder, write_outcrop_folder
+    from ..sample import cached_sample_scene, check_outcrop_folder, write_outcrop_folder
 
     check_writable(args.out, folder=True)
     check_option(args.seed, "--seed", 0, 2**32 - 1)  # NumPy's seed range
     check_outcrop_folder(args.out, args.size, args.seed)  # refused before the progress line
     t0 = time.perf_counter()
     # Said first: the folder appears only when the scene is complete.
-    say(f"generating the {args.size} sample outcrop (seed {args.seed}) for {args.out} ...")
+    cached = cached_sample_scene(args.size, args.seed)
+    say(f"copying the {args.size} sample outcrop (seed {args.seed}) from the cache {cached} to "
+        f"{args.out} ..." if cached is not None else
+        f"generating the {args.size} sample outcrop (seed {args.seed}) for {args.out} ...")
     out = write_outcrop_folder(Path(args.out), size=args.size, seed=args.seed)
     print(f"sample outcrop ({args.size}, seed {args.seed}) written to {out} "
           f"in {time.perf_counter() - t0:.1f} s")

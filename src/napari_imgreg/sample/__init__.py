@@ -490,6 +490,11 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
     of them was changed since: the folder's hidden manifest records their
     hashes), and files the user put beside it stay.
 
+    When the cache holds this size and seed's scene (:func:`sample_scene`,
+    verified file by file), it is copied instead: generation is
+    deterministic, so the files are the same, in a second instead of a
+    minute.
+
     Parameters
     ----------
     out_dir : path-like
@@ -513,7 +518,13 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
-        generate_outcrop(tmp, size=size, seed=seed)
+        cached = cached_sample_scene(size, seed)
+        if cached is not None:
+            # The generation is deterministic: the cache holds the same files.
+            shutil.copytree(cached, tmp, dirs_exist_ok=True, copy_function=shutil.copyfile,
+                            ignore=shutil.ignore_patterns(CACHE_MANIFEST))
+        else:
+            generate_outcrop(tmp, size=size, seed=seed)
         # The hashes of what was written: the next run into the folder tells
         # the user's edits from the sample's own files by them.
         write_cache_manifest(tmp)
@@ -654,6 +665,17 @@ def write_survey(folder: Path, georef, survey_sun_local: np.ndarray,
     })
 
 
+def _cache_entry(size: str, seed: int) -> Path:
+    return cache_dir() / f"outcrop-{size}-seed{int(seed)}-v{GENERATOR_VERSION}"
+
+
+def cached_sample_scene(size: str = "small", seed: int = 0) -> Path | None:
+    """The cache's folder of this size and seed's scene, when it is there whole
+    (every file as the cache's manifest lists it); None otherwise."""
+    target = _cache_entry(size, seed)
+    return target if target.is_dir() and verify_sample_scene(target) is None else None
+
+
 def sample_scene(size: str = "small", seed: int = 0) -> Path:
     """The sample scene's folder, generated on first use and cached.
 
@@ -674,7 +696,7 @@ def sample_scene(size: str = "small", seed: int = 0) -> Path:
     if size not in SIZES:
         raise ValueError(f"size must be one of {SIZES}, not {size!r}")
     root = cache_dir()
-    target = root / f"outcrop-{size}-seed{int(seed)}-v{GENERATOR_VERSION}"
+    target = _cache_entry(size, seed)
     if target.exists():
         problem = verify_sample_scene(target)
         if problem is None:
