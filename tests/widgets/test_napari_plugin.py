@@ -78,8 +78,8 @@ def test_reader_opens_a_lidar_scan_as_points(tmp_path, suffix):
     assert kind == "points" and len(data) == 5000
 
 
-# napari's 3D reset divides by the wall's extent across the view, 0 for this
-# test's perfectly flat wall seen edge-on before the camera is turned to it.
+# napari's 3D reset divides by the extent along each axis, and this test's wall
+# is perfectly flat (no extent along y); a real outcrop model has relief.
 @pytest.mark.filterwarnings("ignore:divide by zero encountered in divide:RuntimeWarning")
 def test_opened_mesh_is_displayed_unmirrored(make_napari_viewer, tmp_path):
     """Seen from the south, looking north with z up, the red quadrant must be at
