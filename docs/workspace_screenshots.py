@@ -76,8 +76,8 @@ def main() -> None:
     # 4. Saved as a workspace folder: the bar says where, and that it autosaves.
     tmp = Path(tempfile.mkdtemp(prefix="imgreg-shots-"))
     folder = tmp / "campaign.imgreg"
-    ctrl.save_workspace(folder)
-    pump(0.5)
+    ctrl.save_workspace(folder)  # written in a worker behind a modal dialog
+    wait(lambda: not ctrl.saving)
     shot("saved")
 
     # 5. The File menu's entries (File → IO utilities).

@@ -265,3 +265,94 @@ def test_only_a_json_true_accepts_a_pose(scene_dir, tmp_path, written, accepted)
     state_file.write_text(json.dumps(state))
     opened = Workspace.open(folder, autosave=False)
     assert opened.photos[0].accepted is accepted
+
+
+# ------------------------------------------------------- save as, in steps
+def _pose_equal(a, b) -> bool:
+    import numpy as np
+
+    return np.allclose(a.R, b.R) and np.allclose(a.t, b.t)
+
+
+def test_a_save_as_in_steps_keeps_the_old_folder_until_it_is_finished(scene_dir, tmp_path):
+    old, new = tmp_path / "old.imgreg", tmp_path / "new.imgreg"
+    ws = _campaign(scene_dir, old)
+    saving = ws.begin_save(new)
+    assert saving.total == 2 and saving.folder == new
+    assert (new / wsfiles.LOCK).exists()  # taken at once: nobody else saves there meanwhile
+    progress = list(saving.steps())
+    assert progress == [(1, 2), (2, 2)]
+    # Written, not yet bound: the workspace is still saved where it was.
+    assert ws.folder == old and (old / wsfiles.LOCK).exists()
+    assert not saving.edited_meanwhile
+    assert saving.finish() == new / "workspace.json"
+    assert ws.folder == new and not (old / wsfiles.LOCK).exists()
+    ws.nudge("turn right 1", d_trend=1.0)  # saved in the new folder from now on
+    pose = ws.current.pose
+    ws.detach()
+    back = Workspace.open(new, autosave=False)
+    assert [p.name for p in back.photos] == [p.name for p in ws.photos]
+    assert _pose_equal(back.current.pose, pose)
+    assert not _pose_equal(Workspace.open(old, autosave=False).current.pose, pose)
+
+
+def test_an_edit_made_while_a_save_as_writes_is_in_the_folder_when_it_finishes(scene_dir,
+                                                                                 tmp_path):
+    """The workbench keeps the workspace still while its worker writes; an
+    edit that happens all the same is written when the save finishes."""
+    old, new = tmp_path / "old.imgreg", tmp_path / "new.imgreg"
+    ws = _campaign(scene_dir, old)
+    saving = ws.begin_save(new)
+    steps = saving.steps()
+    next(steps)  # the first photo written
+    ws.nudge("turn right 2", d_trend=2.0)  # the current (first) photo, written already
+    ws.record_registration(_registration(ws.photos[1]), "Auto", ws.photos[1],
+                           pose_if_not_current=True)
+    for _ in steps:
+        pass
+    assert saving.edited_meanwhile
+    saving.finish()
+    pose = ws.current.pose
+    ws.detach()
+    back = Workspace.open(new, autosave=False)
+    assert _pose_equal(back.current.pose, pose)
+    assert back.current.history.label == "turn right 2"
+    assert back.photo_status(back.photos[1]) == "registered"
+
+
+def test_a_failed_or_abandoned_save_as_leaves_the_workspace_saved_where_it_was(
+        scene_dir, tmp_path, monkeypatch):
+    old, new = tmp_path / "old.imgreg", tmp_path / "new.imgreg"
+    ws = _campaign(scene_dir, old)
+    with pytest.raises(InputError, match="saved already"):
+        ws.begin_save(old)
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="not empty"):
+        ws.begin_save(tmp_path / "full")
+
+    write_text = wsfiles.write_text
+
+    def disk_full(path, text, *args, **kwargs):
+        if str(new) in str(path):
+            raise OSError(28, "No space left on device", str(path))
+        return write_text(path, text, *args, **kwargs)
+
+    monkeypatch.setattr(wsfiles, "write_text", disk_full)
+    saving = ws.begin_save(new)
+    with pytest.raises(OSError, match="No space"):
+        saving.write()
+    assert ws.folder == old and (old / wsfiles.LOCK).exists()
+    assert not (new / wsfiles.LOCK).exists()  # let go: another save may take it
+    with pytest.raises(RuntimeError):
+        saving.finish()
+    monkeypatch.setattr(wsfiles, "write_text", write_text)
+
+    saving = ws.begin_save(new)  # abandoned halfway (the workbench closing)
+    next(saving.steps())
+    saving.abandon()
+    assert ws.folder == old and not (new / wsfiles.LOCK).exists()
+    ws.nudge("look up 1", d_plunge=-1.0)  # still saved into the old folder
+    pose = ws.current.pose
+    ws.detach()
+    assert _pose_equal(Workspace.open(old, autosave=False).current.pose, pose)

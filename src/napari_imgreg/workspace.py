@@ -53,7 +53,7 @@ import weakref
 import warnings
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import cv2
 import numpy as np
@@ -105,6 +105,7 @@ __all__ = [
     "PhotoState",
     "TrialRecord",
     "Job",
+    "SaveAs",
     "PhotoSummary",
     "BatchStep",
     "BatchSummary",
@@ -1980,24 +1981,61 @@ class Workspace:
             ``folder`` is a file, or a non-empty folder that is not a workspace.
         OSError
             It cannot be written (nothing already saved there is lost).
+
+        See Also
+        --------
+        begin_save : the same in steps, for writing in a worker thread.
+        """
+        saving = self._save_as(Path(folder), detach_first=True)
+        saving.write()
+        return saving.finish()
+
+    def begin_save(self, folder: str | Path) -> SaveAs:
+        """Start a "save as" whose writing may run in another thread (the
+        workbench's worker): :meth:`save` in steps.
+
+        The folder is checked and locked here; the workspace stays saved
+        where it was (if anywhere) until :meth:`SaveAs.finish` binds it to
+        ``folder``, so a save that fails or is abandoned leaves it as it was.
+
+        Parameters
+        ----------
+        folder : path-like
+            As for :meth:`save`, but not the folder the workspace is saved
+            into already (it is saved there as it changes).
+
+        Returns
+        -------
+        SaveAs
+            Call its :meth:`~SaveAs.write` (any thread; the workspace must
+            not be edited meanwhile), then :meth:`~SaveAs.finish` or
+            :meth:`~SaveAs.abandon` where the workspace lives.
+
+        Raises
+        ------
+        InputError
+            As for :meth:`save`; or ``folder`` is the workspace's own folder,
+            or another live workspace of this session saves into it.
+        OSError
+            The folder cannot be made or locked.
         """
         folder = Path(folder)
+        if self.folder is not None and Path(os.path.abspath(folder)) == self.folder:
+            raise input_error(folder, "is where this workspace is saved already: every "
+                                      "change is saved there as it happens")
+        return self._save_as(folder, detach_first=False)
+
+    def _save_as(self, folder: Path, detach_first: bool) -> SaveAs:
         if folder.exists() and not folder.is_dir():
             raise input_error(folder, "is a file, not a workspace folder")
         if (folder.is_dir() and any(folder.iterdir()) and not wsfiles.is_workspace(folder)):
             raise input_error(
                 folder, "is not empty and holds no workspace.json: choose a new folder")
-        self.detach()
+        if detach_first:
+            self.detach()
         store = _FolderStore(self, folder)
         store.lock()
-        try:
-            store.save_all()
-        except BaseException:
-            store.unlock()
-            raise
-        self._store = store
-        store.connect()
-        return wsfiles.manifest_path(folder)
+        return SaveAs(self, store, folder)
 
     def flush_manifest(self) -> None:
         """Write the manifest (the parameters edited in place) into the workspace
@@ -2377,16 +2415,7 @@ class _FolderStore:
 
     # ------------------------------------------------------------- events
     def connect(self) -> None:
-        ws = self.ws
-        for signal, slot in (
-                (ws.scene_changed, self._on_scene), (ws.photos_changed, self._on_photos),
-                (ws.photo_changed, self._on_manifest), (ws.params_changed, self._on_manifest),
-                (ws.projection_changed, self._on_projection),
-                (ws.pose_changed, self._on_current), (ws.pairs_changed, self._on_current),
-                (ws.reference_changed, self._on_current), (ws.trial_selected, self._on_current),
-                (ws.sun_changed, self._on_photo), (ws.interpretations_changed, self._on_photo),
-                (ws.accepted_changed, self._on_accepted),
-                (ws.trials_changed, self._on_trials)):
+        for signal, slot in self.signals():
             signal.connect(slot)
             self._connected.append((signal, slot))
 
@@ -2602,15 +2631,123 @@ class _FolderStore:
 
     def save_all(self) -> None:
         """Every photo, the projection, then the manifest."""
-        for ps in self.ws.photos:
+        for _ in self.saving_all():
+            pass
+
+    def saving_all(self) -> Iterator[int]:
+        """:meth:`save_all`, yielding the number of photos written after each."""
+        photos = list(self.ws.photos)
+        for done, ps in enumerate(photos, 1):
             self.save_photo(ps)
+            yield done
         if self.ws.features_3d or self.ws.measurements:
             self.save_projection()
         self.save_manifest()
 
+    def signals(self) -> list[tuple[Any, Callable]]:
+        """The workspace's events and what each writes (see :meth:`connect`)."""
+        ws = self.ws
+        return [(ws.scene_changed, self._on_scene), (ws.photos_changed, self._on_photos),
+                (ws.photo_changed, self._on_manifest), (ws.params_changed, self._on_manifest),
+                (ws.projection_changed, self._on_projection),
+                (ws.pose_changed, self._on_current), (ws.pairs_changed, self._on_current),
+                (ws.reference_changed, self._on_current), (ws.trial_selected, self._on_current),
+                (ws.sun_changed, self._on_photo), (ws.interpretations_changed, self._on_photo),
+                (ws.accepted_changed, self._on_accepted), (ws.trials_changed, self._on_trials)]
+
 
 #: The folders saved into by a live store of this process.
 _BOUND: weakref.WeakValueDictionary[str, _FolderStore] = weakref.WeakValueDictionary()
+
+
+class SaveAs:
+    """A "save as" of a workspace in steps (:meth:`Workspace.begin_save`):
+    the folder is locked, :meth:`write` writes everything, :meth:`finish`
+    binds the workspace to it (or :meth:`abandon` lets it go).
+
+    :meth:`write` may run in a worker thread, the others where the workspace
+    lives. The workspace must not be edited while :meth:`write` reads it (the
+    workbench holds its window and its jobs' results meanwhile); an edit that
+    happens all the same is written by :meth:`finish`, which then saves
+    again every file that differs from what was written.
+
+    Attributes
+    ----------
+    folder : Path
+        The folder written into (absolute).
+    total : int
+        The photos to write.
+    """
+
+    def __init__(self, ws: Workspace, store: _FolderStore, asked: Path) -> None:
+        self.ws, self._store = ws, store
+        self.folder = store.folder
+        self._asked = asked  # as the caller named it: the manifest returned is named so
+        self.total = len(ws.photos)
+        self._written = False
+        self._over = False
+        #: Set by an event of the workspace during the write: an edit it may have missed.
+        self.edited_meanwhile = False
+        self._listening = [(signal, self._on_edit) for signal, _slot in store.signals()]
+        for signal, slot in self._listening:
+            signal.connect(slot)
+
+    def _on_edit(self, *_) -> None:
+        self.edited_meanwhile = True
+
+    def _stop_listening(self) -> None:
+        for signal, slot in self._listening:
+            signal.disconnect(slot)
+        self._listening = []
+
+    def steps(self) -> Iterator[tuple[int, int]]:
+        """Write every photo, the projection, then the manifest (as
+        :meth:`Workspace.save` does), yielding (photos written, total) after
+        each photo. When it raises (or is not run to its end), call
+        :meth:`abandon` where the workspace lives."""
+        if self._over:
+            raise RuntimeError("this save is over")
+        for done in self._store.saving_all():
+            yield done, self.total
+        self._written = True
+
+    def write(self, on_progress: Callable[[int, int], None] | None = None) -> None:
+        """Run :meth:`steps` to the end, calling ``on_progress(done, total)``
+        after each photo; the folder is let go when it fails."""
+        try:
+            for done, total in self.steps():
+                if on_progress is not None:
+                    on_progress(done, total)
+        except BaseException:
+            self.abandon()
+            raise
+
+    def finish(self) -> Path:
+        """Bind the workspace to the folder written (releasing the folder it was
+        saved into): every later change is saved there. Returns the manifest."""
+        if not self._written or self._over:
+            raise RuntimeError("finish() follows a complete write()")
+        self._over = True
+        self._stop_listening()
+        ws, store = self.ws, self._store
+        ws.detach()
+        ws._store = store
+        store.connect()
+        if self.edited_meanwhile:
+            # Something changed the workspace while the files were written (it
+            # should not have): every file that differs is written again now.
+            store.fingerprints.clear()
+            store._guarded(store.save_all)
+        return wsfiles.manifest_path(self._asked)
+
+    def abandon(self) -> None:
+        """Let the folder go (what was written stays); the workspace stays
+        saved where it was. Nothing happens once finished."""
+        if self._over:
+            return
+        self._over = True
+        self._stop_listening()
+        self._store.unlock()
 
 
 def _version() -> str:

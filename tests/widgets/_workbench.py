@@ -11,6 +11,11 @@ def idle(wb, qtbot, timeout: int = 30_000) -> None:
     qtbot.waitUntil(lambda: not wb.controller.busy, timeout=timeout)
 
 
+def wait_saved(wb, qtbot, timeout: int = 60_000) -> None:
+    """Wait until the workbench's *Save workspace as…* (written in a worker) is over."""
+    qtbot.waitUntil(lambda: not wb.controller.saving, timeout=timeout)
+
+
 def load_sample(wb, qtbot):
     """Open the bundled sample in the workbench; returns its controller."""
     wb.scene_panel.sample_button.click()
@@ -27,6 +32,7 @@ def save_and_reopen(wb, qtbot, folder):
     ctrl = wb.controller
     ctrl.save_workspace(folder)
     saved = Path(str(folder) + ".imgreg")
+    wait_saved(wb, qtbot)
     idle(wb, qtbot)
     ctrl.workspace.detach()
     ctrl.open_workspace(saved)

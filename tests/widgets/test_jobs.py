@@ -82,3 +82,35 @@ def test_a_script_that_ends_while_a_job_runs_exits_cleanly(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "has been deleted" not in done.stderr, done.stderr
     assert time.monotonic() - t0 < 15  # cancelled, not run to its end
+
+
+def test_held_results_come_in_their_order_when_the_hold_ends(qtbot):
+    """While a job that reads the whole workspace runs (a save), the other
+    jobs' progress, results and failures wait; the holding job's do not."""
+    from napari_imgreg.widgets._jobs import hold_results, results_held
+
+    jobs = JobRunner()
+    seen = []
+
+    def steps():
+        yield "step"
+        return "result"
+
+    def fails():
+        raise OSError("disk gone")
+
+    release = hold_results()
+    assert results_held()
+    jobs.start("held", steps, on_yielded=seen.append, on_returned=seen.append)
+    qtbot.waitUntil(lambda: not jobs.worker("held").is_running, timeout=5000)
+    jobs.start("fails", fails, on_returned=seen.append, on_failed=seen.append, notify=False)
+    holder = []
+    jobs.start("holder", lambda: "saved", on_returned=holder.append, held=False)
+    qtbot.waitUntil(lambda: holder == ["saved"], timeout=5000)
+    qtbot.wait(100)
+    assert seen == [] and jobs.busy  # delivered to the GUI thread, and kept
+    release()
+    release()  # a second release is nothing
+    assert not results_held()
+    assert seen == ["step", "result", "OSError: disk gone"]
+    qtbot.waitUntil(lambda: not jobs.busy, timeout=5000)

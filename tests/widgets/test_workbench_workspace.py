@@ -35,7 +35,13 @@ from napari_imgreg.widgets.workbench import (
 )
 from napari_imgreg.workspace import Workspace
 
-from ._workbench import LOAD_S, idle as _idle, load_sample as _load_sample, save_and_reopen
+from ._workbench import (
+    LOAD_S,
+    idle as _idle,
+    load_sample as _load_sample,
+    save_and_reopen,
+    wait_saved,
+)
 
 
 def _true_registration(ps, q=1.4, reproj=1.2, secs=2.0) -> Registration:
@@ -82,6 +88,7 @@ def test_save_then_open_the_workspace_again_by_the_reader(workbench, qtbot, tmp_
     ctrl.nudge("turn right 2", d_trend=2.0)
     ctrl.workspace.accept()
     manifest = ctrl.save_workspace(tmp_path / "campaign")  # ".imgreg" is added
+    wait_saved(wb, qtbot)  # written in a worker
     folder = tmp_path / "campaign.imgreg"
     assert manifest == folder / "workspace.json" and manifest.exists()
     assert ctrl.workspace_folder == folder.resolve()
@@ -210,6 +217,7 @@ def test_cancel_register_all_leaves_a_consistent_workspace_and_resumes(
     ctrl = _load_sample(wb, qtbot)
     ws = ctrl.workspace
     ctrl.save_workspace(tmp_path / "c.imgreg")
+    wait_saved(wb, qtbot)
     calls = []
     _stand_in_pipeline(monkeypatch, ws, delay_s=1.5, calls=calls)
     table = wb.photos_table
@@ -413,6 +421,7 @@ pipeline.register_photo = register_photo
 ctrl.open_sample()
 wait(lambda: ctrl.current is not None and not ctrl.busy)
 ctrl.save_workspace(folder)
+wait(lambda: not ctrl.saving)
 ctrl.register_all()
 wait(lambda: not ctrl.is_running("register all"))
 print("registered", flush=True)

@@ -25,11 +25,12 @@ the state and its rules the workspace's.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 import weakref
 from contextlib import nullcontext
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -53,7 +54,7 @@ from ..registration.pipeline import Trial
 from ..registration.stages.relight import render_sunlit
 from ..render import RenderResult, render
 from ..sample import sample_scene
-from ._jobs import JobRunner, in_python_thread
+from ._jobs import JobRunner, hold_results, in_python_thread
 from ._dims_bar import HeightSliderHider
 from ._layers import (
     INTERPRETATION_OF,
@@ -78,6 +79,7 @@ from ..workspace import (
     BatchSummary,
     Job,
     PhotoState,
+    SaveAs,
     WorkbenchError,
     Workspace,
     one_line,
@@ -607,6 +609,32 @@ def _rgba(color: str) -> np.ndarray:
     return np.array(to_rgba(color), np.float32)
 
 
+@dataclass
+class _SaveProgress:
+    """A step of a save in its worker (as :class:`~napari_imgreg.registration.pipeline.Progress`)."""
+
+    done: int
+    total: int
+
+    @property
+    def fraction(self) -> float:
+        return self.done / max(self.total, 1)
+
+    @property
+    def message(self) -> str:
+        return (f"{self.done} of {self.total} photo(s) written"
+                + ("; writing the manifest…" if self.done >= self.total else "…"))
+
+
+@dataclass
+class _SaveInProgress:
+    """A save of :meth:`WorkbenchController.save_workspace` under way."""
+
+    steps: SaveAs
+    dialog: Any  # ModalProgress
+    release: Callable[[], None]  # ends the hold of the jobs' results
+
+
 # -------------------------------------------------------------- controller
 class WorkbenchController(QObject):
     """The workbench's Qt side for one viewer: it builds the :class:`Workspace`,
@@ -677,6 +705,10 @@ class WorkbenchController(QObject):
         self._shown_full_pose: Pose | None = None
         self._closed = False
         self._docks = 0  # docks using this controller (see attach)
+        #: A dock of ours in the viewer's window: the window a modal dialog blocks.
+        self._window_anchor = None
+        #: The save in progress (see save_workspace): its steps, dialog and hold.
+        self._saving: _SaveInProgress | None = None
         self._pairs_busy = False  # the pair layers are being written: not an edit
         self._pairs_from_layers = False  # the workspace takes an edit of the pair layers
         self.latency: dict[str, float] = {}
@@ -917,8 +949,14 @@ class WorkbenchController(QObject):
         """A dock uses this controller; when the last one is gone, it shuts down."""
         self._docks += 1
         widget.destroyed.connect(self._detach)
+        if self._window_anchor is None and hasattr(widget, "window"):
+            self._window_anchor = widget
+            widget.destroyed.connect(self._forget_anchor)
         if self._dims_bar.anchor is None and hasattr(widget, "window"):
             self._dims_bar.anchor = widget
+
+    def _forget_anchor(self, *_args) -> None:
+        self._window_anchor = None
 
     def _detach(self, *_args) -> None:
         self._docks -= 1
@@ -935,6 +973,8 @@ class WorkbenchController(QObject):
             self._params_timer.stop()
             self._save_params()
         self.jobs.shutdown()
+        if self._saving is not None:  # its worker stops at its next photo
+            self._end_save(None)
         for event, handler in self._followed:  # the workspace may live on (a script's)
             event.disconnect(handler)
         if self._owns_workspace:
@@ -1015,19 +1055,109 @@ class WorkbenchController(QObject):
         self.workspace.flush_manifest()
 
     def save_workspace(self, folder: str | Path) -> Path | None:
-        """Save the whole workspace into ``folder`` (a new ``*.imgreg`` folder,
-        or the one it came from) and keep saving every change there."""
+        """Save the whole workspace into ``folder`` (a new ``*.imgreg`` folder)
+        and keep saving every change there.
+
+        The files are written in a worker, behind a dialog modal to the
+        viewer's window that shows the photos written; meanwhile the window
+        takes no input and what running jobs deliver (a registration's
+        result, Register all's steps) waits (:func:`~._jobs.hold_results`):
+        it is recorded once the folder is complete, and so saved there. When
+        it is done, the status line says so and ``workspace_folder_changed``
+        is emitted. A failure is one line (:meth:`notify_error`), and the
+        workspace stays saved where it was.
+
+        Parameters
+        ----------
+        folder : path-like
+            ``.imgreg`` is added to a name without it (unless it is a
+            workspace folder already).
+
+        Returns
+        -------
+        Path or None
+            The manifest the save writes (it exists once the save is done,
+            see :attr:`saving`); None when the save could not start.
+        """
         folder = Path(folder)
         if folder.suffix != ".imgreg" and not (folder / "workspace.json").exists():
             folder = folder.with_name(folder.name + ".imgreg")
+        manifest = folder / "workspace.json"
+        if self._saving is not None:
+            self.notify_error(f"{self._saving.steps.folder.name} is being saved: wait for it.")
+            return None
+        if self.workspace.folder == Path(os.path.abspath(folder)):
+            self.status.emit(f"{folder.name} is where the workspace is saved already: every "
+                             "change is saved there as it happens")
+            return manifest
+        # A parameter edit waiting for its autosave goes where it was made.
+        if self._params_timer.isActive():
+            self._params_timer.stop()
+            self._save_params()
         try:
-            manifest = self.workspace.save(folder)
+            steps = self.workspace.begin_save(folder)
         except (InputError, OSError) as exc:
             self.notify_error(one_line(exc))
             return None
-        self.status.emit(f"saved {folder.name}: every change is now saved there as it happens")
-        self.workspace_folder_changed.emit()
+        from ._progress_dialog import ModalProgress  # Qt widgets: imported when needed
+
+        total = steps.total
+        dialog = ModalProgress(
+            self._window_anchor, "Save workspace as",
+            f"Saving {folder.name}: 0 of {total} photo(s) written…", total,
+            hint="The window waits until the folder is complete; running jobs go on, and "
+                 "what they find is recorded (and saved there) then.")
+        self._saving = _SaveInProgress(steps, dialog, hold_results())
+        dialog.show()
+        self.status.emit(f"saving {folder.name}: {total} photo(s)…")
+
+        def write():
+            for done, total in steps.steps():
+                yield _SaveProgress(done, total)
+            return steps.folder  # (None would say it was cancelled)
+
+        def written(progress):
+            if self._saving is not None and self._saving.steps is steps:
+                dialog.set_progress(progress.done, f"Saving {folder.name}: {progress.message}")
+
+        # Not held: it is the job the others wait for.
+        self._start("save workspace", write, held=False, notify=False,
+                    on_returned=lambda value: self._end_save(
+                        steps, finished=value is not None),
+                    on_yielded=written,
+                    on_failed=lambda message: self._end_save(steps, error=message))
         return manifest
+
+    @property
+    def saving(self) -> bool:
+        """True while :meth:`save_workspace` writes a folder."""
+        return self._saving is not None
+
+    def _end_save(self, steps: SaveAs | None, finished: bool = False, error: str = "") -> None:
+        """The end of a save: bind the workspace to its folder (``finished``) or
+        let the folder go, close its dialog, deliver the jobs' results held."""
+        saving = self._saving
+        if saving is None or (steps is not None and saving.steps is not steps):
+            return
+        self._saving = None
+        finished = finished and not self._closed
+        try:
+            try:
+                if finished:
+                    saving.steps.finish()
+                else:
+                    saving.steps.abandon()
+            finally:
+                saving.dialog.finish()
+            if finished:
+                self.status.emit(f"saved {saving.steps.folder.name}: every change is now saved "
+                                 "there as it happens")
+                self.workspace_folder_changed.emit()
+            elif error:
+                self.notify_error(error)
+        finally:
+            # Last: what they record is saved in the folder just written.
+            saving.release()
 
     def open_workspace(self, folder: str | Path) -> None:
         """Open a workspace folder in a worker (its model, photos, poses,

@@ -13,6 +13,11 @@ that a failure is seen even when the status line is out of sight.
 Workers run functions, or generator functions that yield progress (as
 :func:`~napari_imgreg.registration.pipeline.register_photo` does): napari
 wraps those in a worker that can be stopped between two yields.
+
+While a worker reads the whole workspace (the workbench's *Save workspace
+as…*), :func:`hold_results` keeps every other job's results, progress and
+failures from reaching the GUI thread, where they would edit the workspace
+under the worker; they are delivered in order when the hold ends.
 """
 
 from __future__ import annotations
@@ -31,7 +36,8 @@ from ..errors import InputError
 from ..registration.pipeline import Cancelled
 from ..workspace import WorkbenchError, one_line
 
-__all__ = ["JobRunner", "CANCELLED", "guarded", "in_python_thread", "enough_worker_threads"]
+__all__ = ["JobRunner", "CANCELLED", "guarded", "in_python_thread", "enough_worker_threads",
+           "hold_results", "results_held"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +50,58 @@ _RUNNERS: "weakref.WeakSet[JobRunner]" = weakref.WeakSet()
 
 #: How long the interpreter's exit waits for cancelled jobs to stop, ms.
 EXIT_WAIT_MS = 15_000
+
+#: What jobs delivered to the GUI thread while held (see hold_results), in order.
+_HELD: list[Callable[[], None]] = []
+#: The holds in force.
+_HOLDS = [0]
+
+
+def hold_results() -> Callable[[], None]:
+    """Hold back what every runner's jobs deliver to the GUI thread (results,
+    progress, failures, ends) until the returned ``release`` is called.
+
+    For a job that reads the whole workspace in its worker (a *Save workspace
+    as…*): a registration that ends meanwhile must not edit the workspace
+    under it. Its result is recorded when the hold ends, in the order the
+    jobs delivered theirs. Jobs started with ``held=False`` (the one that
+    holds) are never held. Holds nest; ``release`` may be called more than
+    once (only the first counts).
+    """
+    _HOLDS[0] += 1
+    released = []
+
+    def release() -> None:
+        if released:
+            return
+        released.append(True)
+        _HOLDS[0] -= 1
+        # Delivered one by one: one that starts another hold leaves the rest to it.
+        while _HELD and not _HOLDS[0]:
+            deliver = _HELD.pop(0)
+            try:
+                deliver()
+            except Exception:  # noqa: BLE001 - as a Qt slot's error: the others still come
+                log.exception("a held job result raised")
+
+    return release
+
+
+def results_held() -> bool:
+    """Whether jobs' results are held (see :func:`hold_results`)."""
+    return _HOLDS[0] > 0
+
+
+def _holdable(callback: Callable) -> Callable:
+    """``callback``, kept for later while results are held."""
+
+    def deliver(*args) -> None:
+        if _HOLDS[0]:
+            _HELD.append(functools.partial(callback, *args))
+        else:
+            callback(*args)
+
+    return deliver
 
 
 @atexit.register
@@ -242,7 +300,8 @@ class JobRunner(QObject):
               on_yielded: Callable[[Any], None] | None = None,
               on_failed: Callable[[str], None] | None = None,
               on_finished: Callable[[], None] | None = None,
-              progress: dict | None = None, notify: bool = True, **kwargs):
+              progress: dict | None = None, notify: bool = True, held: bool = True,
+              **kwargs):
         """Run ``fn(*args, **kwargs)`` in a napari thread worker named ``job``.
 
         Parameters
@@ -266,6 +325,9 @@ class JobRunner(QObject):
         notify : bool
             Raise a napari notification when it fails (False: ``on_failed``
             notifies itself).
+        held : bool
+            Its results, progress and failure wait while :func:`hold_results`
+            holds (default); False for the job that holds them.
 
         Returns
         -------
@@ -336,6 +398,8 @@ class JobRunner(QObject):
         if inspect.isgeneratorfunction(fn):
             connect["yielded"] = yielded
             connect["aborted"] = aborted  # quit() between two yields
+        if held:
+            connect = {name: _holdable(callback) for name, callback in connect.items()}
         extra = {"_progress": progress} if progress else {}
         worker = create_worker(guarded(fn), *args, _connect=connect, _start_thread=False,
                                **extra, **kwargs)
