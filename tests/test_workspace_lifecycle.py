@@ -356,3 +356,45 @@ def test_a_failed_or_abandoned_save_as_leaves_the_workspace_saved_where_it_was(
     pose = ws.current.pose
     ws.detach()
     assert _pose_equal(Workspace.open(old, autosave=False).current.pose, pose)
+
+
+def test_save_into_its_own_folder_writes_what_changed_and_moves_nothing(scene_dir, tmp_path):
+    """``ws.save(ws.folder)`` made a second set of photo folders (IMG_0001_2, ...)
+    beside the first, which stayed as orphans."""
+    folder = tmp_path / "campaign.imgreg"
+    ws = _campaign(scene_dir, folder)
+    photo_dirs = sorted(p.name for p in (folder / wsfiles.PHOTOS_DIR).iterdir())
+    assert ws.save(folder) == folder / "workspace.json"
+    assert ws.folder == folder and (folder / wsfiles.LOCK).exists()
+    assert sorted(p.name for p in (folder / wsfiles.PHOTOS_DIR).iterdir()) == photo_dirs
+    ws.nudge("turn left 1", d_trend=-1.0)  # still autosaved there
+    pose = ws.current.pose
+    ws.detach()
+    assert _pose_equal(Workspace.open(folder, autosave=False).current.pose, pose)
+
+
+def test_a_failed_save_leaves_the_workspace_saved_where_it_was(scene_dir, tmp_path, monkeypatch):
+    """The API's save detached first: a save that failed left the workspace
+    saved nowhere, silently."""
+    old, new = tmp_path / "old.imgreg", tmp_path / "new.imgreg"
+    ws = _campaign(scene_dir, old)
+    write_text = wsfiles.write_text
+
+    def disk_full(path, text, *args, **kwargs):
+        if str(new) in str(path):
+            raise OSError(28, "No space left on device", str(path))
+        return write_text(path, text, *args, **kwargs)
+
+    monkeypatch.setattr(wsfiles, "write_text", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        ws.save(new)
+    assert ws.folder == old and (old / wsfiles.LOCK).exists()
+    assert not (new / wsfiles.LOCK).exists()
+    monkeypatch.setattr(wsfiles, "write_text", write_text)
+    ws.nudge("look down 1", d_plunge=1.0)
+    pose = ws.current.pose
+    assert ws.save(new) == new / "workspace.json" and ws.folder == new
+    assert not (old / wsfiles.LOCK).exists()
+    ws.detach()
+    assert _pose_equal(Workspace.open(old, autosave=False).current.pose, pose)
+    assert _pose_equal(Workspace.open(new, autosave=False).current.pose, pose)

@@ -1962,7 +1962,9 @@ class Workspace:
 
         From then on every change is written as its event is emitted (see
         the module docstring). Saving into another folder later moves the
-        binding there ("save as"); the old folder stays as it was.
+        binding there ("save as") once that folder is complete; the old
+        folder stays as it was, and stays bound when the save fails. Saving
+        into the folder it is bound to writes what changed.
 
         Parameters
         ----------
@@ -1980,15 +1982,26 @@ class Workspace:
         InputError
             ``folder`` is a file, or a non-empty folder that is not a workspace.
         OSError
-            It cannot be written (nothing already saved there is lost).
+            It cannot be written (nothing already saved there is lost, and
+            the workspace stays saved where it was).
 
         See Also
         --------
         begin_save : the same in steps, for writing in a worker thread.
         """
-        saving = self._save_as(Path(folder), detach_first=True)
+        folder = Path(folder)
+        if self._is_own_folder(folder):
+            # Saved there already: what changed is written, nothing is moved.
+            self._store.save_all()
+            return wsfiles.manifest_path(folder)
+        # The old folder stays bound until the new one is complete, so a
+        # failure leaves the workspace saved where it was.
+        saving = self._save_as(folder)
         saving.write()
         return saving.finish()
+
+    def _is_own_folder(self, folder: Path) -> bool:
+        return self.folder is not None and Path(os.path.abspath(folder)) == self.folder
 
     def begin_save(self, folder: str | Path) -> SaveAs:
         """Start a "save as" whose writing may run in another thread (the
@@ -2020,19 +2033,17 @@ class Workspace:
             The folder cannot be made or locked.
         """
         folder = Path(folder)
-        if self.folder is not None and Path(os.path.abspath(folder)) == self.folder:
+        if self._is_own_folder(folder):
             raise input_error(folder, "is where this workspace is saved already: every "
                                       "change is saved there as it happens")
-        return self._save_as(folder, detach_first=False)
+        return self._save_as(folder)
 
-    def _save_as(self, folder: Path, detach_first: bool) -> SaveAs:
+    def _save_as(self, folder: Path) -> SaveAs:
         if folder.exists() and not folder.is_dir():
             raise input_error(folder, "is a file, not a workspace folder")
         if (folder.is_dir() and any(folder.iterdir()) and not wsfiles.is_workspace(folder)):
             raise input_error(
                 folder, "is not empty and holds no workspace.json: choose a new folder")
-        if detach_first:
-            self.detach()
         store = _FolderStore(self, folder)
         store.lock()
         return SaveAs(self, store, folder)
