@@ -268,6 +268,20 @@ def test_only_a_json_true_accepts_a_pose(scene_dir, tmp_path, written, accepted)
 
 
 # ------------------------------------------------------- save as, in steps
+def _disk_full_under(folder, monkeypatch):
+    """Writes of the workspace's text files under ``folder`` fail as on a full
+    disk; returns the real writer, to put back."""
+    write_text = wsfiles.write_text
+
+    def disk_full(path, text, *args, **kwargs):
+        if str(folder) in str(path):
+            raise OSError(28, "No space left on device", str(path))
+        return write_text(path, text, *args, **kwargs)
+
+    monkeypatch.setattr(wsfiles, "write_text", disk_full)
+    return write_text
+
+
 def _pose_equal(a, b) -> bool:
     import numpy as np
 
@@ -331,14 +345,7 @@ def test_a_failed_or_abandoned_save_as_leaves_the_workspace_saved_where_it_was(
     with pytest.raises(InputError, match="not empty"):
         ws.begin_save(tmp_path / "full")
 
-    write_text = wsfiles.write_text
-
-    def disk_full(path, text, *args, **kwargs):
-        if str(new) in str(path):
-            raise OSError(28, "No space left on device", str(path))
-        return write_text(path, text, *args, **kwargs)
-
-    monkeypatch.setattr(wsfiles, "write_text", disk_full)
+    write_text = _disk_full_under(new, monkeypatch)
     saving = ws.begin_save(new)
     with pytest.raises(OSError, match="No space"):
         saving.write()
@@ -378,14 +385,7 @@ def test_a_failed_save_leaves_the_workspace_saved_where_it_was(scene_dir, tmp_pa
     saved nowhere, silently."""
     old, new = tmp_path / "old.imgreg", tmp_path / "new.imgreg"
     ws = _campaign(scene_dir, old)
-    write_text = wsfiles.write_text
-
-    def disk_full(path, text, *args, **kwargs):
-        if str(new) in str(path):
-            raise OSError(28, "No space left on device", str(path))
-        return write_text(path, text, *args, **kwargs)
-
-    monkeypatch.setattr(wsfiles, "write_text", disk_full)
+    write_text = _disk_full_under(new, monkeypatch)
     with pytest.raises(OSError, match="No space"):
         ws.save(new)
     assert ws.folder == old and (old / wsfiles.LOCK).exists()

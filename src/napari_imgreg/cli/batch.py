@@ -130,36 +130,29 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
-def _count(low: int, high: int, what: str):
-    """An argparse type: an integer in [low, high]."""
+def _ranged(convert, noun: str, unit: str, low, high, what: str):
+    """An argparse type: a number (``convert``: int or float) in [low, high]."""
 
-    def parse(text: str) -> int:
+    def parse(text: str):
         try:
-            value = int(text)
+            value = convert(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{what} must be a whole number, not {text!r}") \
-                from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"{what} must be {low}-{high}, not {value}")
+            raise argparse.ArgumentTypeError(f"{what} must be {noun}, not {text!r}") from None
+        if not low <= value <= high:  # also refuses nan
+            raise argparse.ArgumentTypeError(f"{what} must be {low:g}-{high:g}{unit}, not {text}")
         return value
 
     return parse
+
+
+def _count(low: int, high: int, what: str):
+    """An argparse type: an integer in [low, high]."""
+    return _ranged(int, "a whole number", "", low, high, what)
 
 
 def _seconds(low: float, high: float, what: str):
     """An argparse type: a number of seconds in [low, high]."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{what} must be a number of seconds, not {text!r}") \
-                from None
-        if not low <= value <= high:  # also refuses nan
-            raise argparse.ArgumentTypeError(f"{what} must be {low:g}-{high:g} s, not {text}")
-        return value
-
-    return parse
+    return _ranged(float, "a number of seconds", " s", low, high, what)
 
 
 def add_cluster_arguments(p: argparse.ArgumentParser) -> None:
