@@ -195,6 +195,24 @@ def _figures(rs: list[dict], suffix: str) -> dict:
             "vs_hand": float(np.median(s) / np.median(hd))}
 
 
+def _span(shares: list[float]) -> str:
+    """'12 %' or '10–13 %' (rounded percentages, lowest to highest)."""
+    lo, hi = round(100 * min(shares)), round(100 * max(shares))
+    return f"{lo} %" if lo == hi else f"{lo}–{hi} %"
+
+
+def _compared(photo: list[float], colours: list[float]) -> str:
+    """How often the traces on the model's colours stray against those on the photos."""
+    diff = [c - p for p, c in zip(photo, colours)]
+    if all(d > 0.02 for d in diff):
+        return f"more often still ({_span(colours)})"
+    if all(abs(d) <= 0.02 for d in diff):
+        return f"about as often ({_span(colours)})"
+    if all(d < -0.02 for d in diff):
+        return f"less often ({_span(colours)})"
+    return f"{_span(colours)} of the time"
+
+
 def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
     """The markdown section. ``before``: {(size, pose): (perfect, snapped) median
     metres} of the previous snapping, shown beside the new figures."""
@@ -276,10 +294,13 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
         "photo, one waypoint added where a trace strayed: off the contact | clicks per contact |",
         "|---|---|---|---|---|---|---|---|",
     ]
+    stray, stray_colours = [], []
     for size in dict.fromkeys(r["size"] for r in rows):
         rs = [r for r in rows if r["size"] == size]
         op = np.concatenate([r["off_photo"] for r in rs])
         oc = np.concatenate([r["off_colours"] for r in rs])
+        stray.append(float(np.mean(op > OFF_CONTACT_PX)))
+        stray_colours.append(float(np.mean(oc > OFF_CONTACT_PX)))
         ow = np.concatenate([r["off_waypoint"] for r in rs])
         lines.append(f"| {size} | {len(op)} | {np.median(op):.2f} px | "
                      f"{np.mean(op > OFF_CONTACT_PX):.0%} | {np.median(oc):.2f} px | "
@@ -289,16 +310,21 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
         "",
         "Most traces sit a quarter to a third of a pixel from the perfect drawing — about "
         "where the photo's own edge is (the ceiling above) — and the distances' median and 95th "
-        "percentile beyond the ceiling are set by the sixth to a fifth that follow another edge "
+        f"percentile beyond the ceiling are set by the {_span(stray)} that follow another edge "
         "(the other side of a thin bed, mottling inside it, a stronger edge beside a weak "
         "contact). The contact's polarity is read along the clicked segment, 8 px inward from "
         "each click (where a visible stretch ends the contact often fades), and where that "
-        "reading is unclear both polarities are traced and the straighter path kept"
-        + ("; read at the two clicks alone, 21–23 % of the traces strayed (the *(before)* "
-           "ratios, same poses)" if before else "") + ". The model's unshaded colours, where every contact is exactly where the truth "
-        "puts it, fail more often still: the limit is the tracer on thin, mottled beds from "
-        "two clicks, not the photo's light. The last columns click once more, where each "
-        "strayed trace is farthest from its contact (±1.5 px), as a user seeing it stray would.",
+        "reading is unclear both polarities are traced and the straighter path kept. On a "
+        "colour photo the edge is also trained on the colour step under the clicks "
+        "(`SnapParams.colour_weight`: the change of chromaticity across the contact, which a "
+        "shadow, a lit ledge, mottling of one colour and the other side of a thin bed lack)"
+        + ("; on the luminance edge alone 15–21 % of the traces strayed (the *(before)* "
+           "ratios, same poses)" if before else "") + ". On the model's unshaded colours, where "
+        "every contact is exactly where the truth puts it, the traces stray "
+        + _compared(stray, stray_colours)
+        + ": the limit is the tracer on thin, mottled beds from two clicks, not the photo's "
+        "light. The last columns click once more, where each strayed trace is farthest from its "
+        "contact (±1.5 px), as a user seeing it stray would.",
         "",
         "Per photo (median distance, registered pose; true pose in brackets):",
         "",
@@ -319,8 +345,8 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
            "ratios; " if before else "` (")
         + "the drawings and the true-pose rows are deterministic; the registered poses can "
           "differ by a few thousandths of a degree between machines (cause not traced; "
-          "e.g. thread scheduling), which moves the registered-pose rows by a few per cent: on a fresh "
-          "machine the small scene gave 1.89 against 1.82 here; "
+          "e.g. thread scheduling), which moves the registered-pose rows by a few per cent: with "
+          "the luminance-only tracer the small scene gave 1.82 on one machine and 1.89 on another; "
         + f"Python {platform.python_version()}, NumPy {np.__version__}).",
         MARK_END,
     ]

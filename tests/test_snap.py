@@ -106,6 +106,107 @@ def test_where_the_contact_fades_under_the_clicks_the_straighter_polarity_wins()
     assert _polarity(gx, gy, np.array([0.0, 1.0]), clicks)[1] is False
 
 
+SAND = np.array([200.0, 170.0, 120.0])  # warm and bright
+MUD = np.array([120.0, 115.0, 110.0])   # neutral grey, darker
+
+
+def _layered(bounds, colours, supersample: int = 8) -> np.ndarray:
+    """A uint8 RGB image of level beds, anti-aliased: bed ``i`` (``colours[i](cols)``,
+    (W, 3)) lies below row ``bounds[i - 1]`` and above row ``bounds[i]``."""
+    sub = (np.arange(supersample) + 0.5) / supersample - 0.5
+    rr = np.arange(H)[:, None] + sub[None, :]
+    k = sum((rr > row).astype(int) for row in bounds)  # (H, supersample): the bed index
+    cols = np.arange(W, dtype=np.float64)
+    img = np.zeros((H, W, 3))
+    for i, colour in enumerate(colours):
+        img += (k == i).mean(axis=1)[:, None, None] * colour(cols)[None]
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _flat(rgb):
+    return lambda cols: np.broadcast_to(np.asarray(rgb, np.float64), (len(cols), 3))
+
+
+def _fading(rgb_ends, rgb_middle):
+    """``rgb_ends`` near the image's sides, ``rgb_middle`` over its middle third."""
+    def colour(cols):
+        w = np.clip((np.minimum(cols, W - 1 - cols) - 40) / 30.0, 0, 1)[:, None]
+        return (1 - w) * np.asarray(rgb_ends, np.float64) + w * np.asarray(rgb_middle, np.float64)
+    return colour
+
+
+def _middle_rows(px: np.ndarray, lo: float = 70, hi: float = 170) -> np.ndarray:
+    dense = np.concatenate([np.linspace(a, b, 20, endpoint=False) for a, b in zip(px[:-1], px[1:])])
+    return dense[(dense[:, 0] > lo) & (dense[:, 0] < hi), 1]
+
+
+CLICKS_ON_60 = np.array([[10.0, 60.0], [230.0, 60.0]])
+
+
+def test_trained_colour_keeps_to_a_contact_whose_luminance_fades_beside_a_shadow():
+    """Sandstone over mudstone at row 60; a shadow (every channel × 0.6) 4 px
+    below. Over the middle third the mudstone is lit as bright as the
+    sandstone: the contact is only a change of colour there, the shadow the
+    only luminance edge. On the luminance alone the trace follows the shadow;
+    trained on the colour step under the clicks (warm to grey), which the
+    shadow lacks, it keeps to the contact, to a hundredth of a pixel."""
+    lit = MUD * SAND.mean() / MUD.mean()
+    img = _layered([60.0, 64.0], [_flat(SAND), _fading(MUD, lit), _fading(0.6 * MUD, 0.6 * lit)])
+    assert np.median(np.abs(_middle_rows(snap_trace(img, CLICKS_ON_60, SnapParams(colour_weight=0)))
+                            - 64.0)) < 0.1
+    rows = _middle_rows(snap_trace(img, CLICKS_ON_60))
+    assert len(rows) and np.all(np.abs(rows - 60.0) < 0.05)
+
+
+def test_trained_colour_keeps_to_the_clicked_side_of_a_thin_bed_of_one_polarity():
+    """A grey bed 5 px thick between a warm sandstone above and a dark brown
+    bed below: both of its contacts darken downwards (one polarity), but the
+    colour steps differ (warm to grey, grey to brown). The upper contact is
+    clicked; over the middle third the grey bed is lit as bright as the
+    sandstone, so only the lower contact shows in luminance there. On the
+    luminance alone the trace crosses to the lower contact; trained on the
+    clicked colour pair it keeps to the upper one."""
+    grey, brown = np.array([140.0, 140.0, 140.0]), np.array([110.0, 78.0, 45.0])
+    img = _layered([60.0, 65.0], [_flat(SAND), _fading(grey, grey * SAND.mean() / grey.mean()),
+                                  _flat(brown)])
+    assert np.median(np.abs(_middle_rows(snap_trace(img, CLICKS_ON_60, SnapParams(colour_weight=0)))
+                            - 65.0)) < 0.1
+    rows = _middle_rows(snap_trace(img, CLICKS_ON_60))
+    assert len(rows) and np.all(np.abs(rows - 60.0) < 0.05)
+
+
+def test_trained_colour_ignores_mottling_of_one_colour_beside_a_weak_contact():
+    """Dark mottles (the upper bed's own colour × 0.6, so no change of colour
+    at their rims) 4–8 px above a contact that keeps 15 % of its luminance
+    contrast over the middle: on the luminance alone the trace runs along the
+    mottles' upper rims; trained on the colour step, along the contact."""
+    top, bottom = np.array([185.0, 160.0, 118.0]), np.array([115.0, 112.0, 108.0])
+    weak = bottom * (0.85 * top.mean() + 0.15 * bottom.mean()) / bottom.mean()
+    img = _layered([60.0], [_flat(top), _fading(bottom, weak)]).astype(np.float64)
+    rng = np.random.default_rng(1)
+    for c0 in range(30, 210, 14):
+        img[53:57, c0:c0 + rng.integers(10, 18)] *= 0.6
+    img = np.round(img).astype(np.uint8)
+    luminance_only = snap_trace(img, CLICKS_ON_60, SnapParams(colour_weight=0))
+    assert np.median(np.abs(_middle_rows(luminance_only, 40, 200) - 60)) > 4.0
+    rows = _middle_rows(snap_trace(img, CLICKS_ON_60), 40, 200)
+    assert len(rows) and np.all(np.abs(rows - 60.0) < 0.05)
+
+
+def test_without_a_colour_step_the_trace_is_the_luminance_ones():
+    """A grey photo, and a colour photo whose beds differ only in brightness:
+    nothing to train on, the trace is exactly the luminance-only one."""
+    grey = _area_image(_contact_row)
+    cols = np.array([10.0, 230.0])
+    clicks = np.stack([cols, _contact_row(cols)], axis=1)
+    for img in (grey[..., 0], grey):
+        np.testing.assert_array_equal(snap_trace(img, clicks),
+                                      snap_trace(img, clicks, SnapParams(colour_weight=0)))
+    assert SnapParams().colour_weight == 1.0
+    with pytest.raises(ValueError, match="colour_weight"):
+        SnapParams(colour_weight=-1)
+
+
 def test_a_waypoint_on_the_photos_border_continues_the_trace():
     """A waypoint clicked on the last column or row: the piece that ends there
     is refined up to a pixel and a half past the border; the next piece must
