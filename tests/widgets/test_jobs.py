@@ -91,19 +91,29 @@ def test_held_results_come_in_their_order_when_the_hold_ends(qtbot):
 
     jobs = JobRunner()
     seen = []
+    ran = {"held": threading.Event(), "fails": threading.Event()}
 
     def steps():
-        yield "step"
-        return "result"
+        try:
+            yield "step"
+            return "result"
+        finally:
+            ran["held"].set()
 
     def fails():
+        ran["fails"].set()
         raise OSError("disk gone")
 
     release = hold_results()
     assert results_held()
+    # One after the other (is_running is False too before a worker starts),
+    # with time for each one's signals to reach the GUI thread.
     jobs.start("held", steps, on_yielded=seen.append, on_returned=seen.append)
-    qtbot.waitUntil(lambda: not jobs.worker("held").is_running, timeout=5000)
+    qtbot.waitUntil(ran["held"].is_set, timeout=5000)
+    qtbot.wait(100)
     jobs.start("fails", fails, on_returned=seen.append, on_failed=seen.append, notify=False)
+    qtbot.waitUntil(ran["fails"].is_set, timeout=5000)
+    qtbot.wait(100)
     holder = []
     jobs.start("holder", lambda: "saved", on_returned=holder.append, held=False)
     qtbot.waitUntil(lambda: holder == ["saved"], timeout=5000)
