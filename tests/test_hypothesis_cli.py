@@ -237,7 +237,9 @@ def _stubs():
 
     patches = [mock.patch.object(pipeline, "register", register),
                mock.patch("napari_imgreg.sample.generate_outcrop", generate_outcrop),
-               mock.patch("napari_imgreg.sample.sample_scene", lambda *a, **k: DEMO_SCENE)]
+               mock.patch("napari_imgreg.sample.sample_scene", lambda *a, **k: DEMO_SCENE),
+               # `sample --out` would copy the real cached scene for every example.
+               mock.patch("napari_imgreg.sample.cached_sample_scene", lambda *a, **k: None)]
     # batch on a local Dask cluster would register in worker processes, out of
     # the stubs' reach and the time bound: a local run stays in this process
     # (clusters are tested in tests/test_distributed.py; --scheduler is still fuzzed).
