@@ -271,6 +271,7 @@ def _valid_geotiff() -> bytes:
 @SUITE
 @given(st.lists(st.tuples(st.integers(0, 10_000), st.integers(0, 255)), min_size=1, max_size=6))
 @example(flips=[(117, 94)])  # a strip byte count of 1.5 GB in a 408-byte file (found by CI)
+@example(flips=[(1256, 252)])  # 16.5 M rows of which one strip is listed (20 s to decode)
 def test_dem_geotiff_bytes(flips):
     from napari_imgreg.geo import DEM
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import subprocess
 import sys
@@ -337,3 +338,35 @@ def test_render_with_a_truncated_dem_prints_only_our_line(wall, tmp_path):
     assert proc.stderr.splitlines() == [
         f"napari-imgreg render: error: {cut}: its image data runs past the end of the file "
         "(truncated or corrupt)"]
+
+
+def test_a_dem_whose_size_needs_more_strips_than_it_lists_is_refused_at_once(tmp_path):
+    """One byte of a 3×4 DEM flipped (found by the readers' fuzz): its height
+    read 16.5 million rows, of which the file held one strip; tifffile filled
+    the rest with zeros, and the DEM loaded as 66 million cells of height 0
+    after 20 s. Now: one line, before decoding."""
+    import time
+
+    import tifffile
+
+    from napari_imgreg.geo import DEM
+    from napari_imgreg.io.rasters import GeoError, write_dem_geotiff
+
+    whole = tmp_path / "dem.tif"
+    write_dem_geotiff(whole, np.arange(12.0).reshape(3, 4), 500000.0, 5000030.0, 10.0, 10.0,
+                      "EPSG:32632")
+    data = bytearray(whole.read_bytes())
+    with tifffile.TiffFile(whole) as tf:
+        length_tag = tf.pages[0].tags["ImageLength"]
+        assert length_tag.dtype in (3, 4)  # SHORT or LONG, its value inline
+        at = length_tag.valueoffset
+        strips = math.ceil(60000 / tf.pages[0].rowsperstrip)
+    data[at:at + 2] = (60000).to_bytes(2, "little")  # 60000 rows, the strip list unchanged
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(bytes(data))
+    t0 = time.perf_counter()
+    with pytest.raises(GeoError) as exc:
+        DEM.load(bad)
+    assert time.perf_counter() - t0 < 2.0
+    assert str(exc.value) == (f"{bad}: its size (4×60000) needs {strips:,} strips or tiles of "
+                              "image data and the file lists 1 (truncated or corrupt)")
