@@ -90,6 +90,21 @@ def edge_at_contact(gx: np.ndarray, gy: np.ndarray, perfect: np.ndarray) -> np.n
     sign = 1.0 if np.median(along) >= 0 else -1.0
     return _subpixel(np.clip(sign * (gx * n0[0] + gy * n0[1]), 0, None), px, reach=1.5)
 
+def refined_edge_at_contact(image: np.ndarray, perfect: np.ndarray) -> np.ndarray:
+    """The photo's edge where the contact is, found as the tracer finishes a trace.
+
+    The perfect drawing (every pixel) moved across itself, within 1.5 px, by
+    the snapped traces' own last step (``snap._refine_across``: the steepest
+    step of the unsmoothed luminance, the shifts smoothed along the contact).
+    It starts on the truth and never strays: what is left is where the photo
+    shows the contact and how well that step finds it.
+    """
+    from napari_imgreg.interpret.snap import _gray, _refine_across, _unit
+
+    return _refine_across(_gray(_unit(image)), _dense(perfect, 1.0),
+                          SnapParams(refine_reach_px=1.5, simplify_px=0.0))
+
+
 #: A snapped trace whose median distance from the perfect drawing is more than
 #: this (pixels) followed another edge for much of its length.
 OFF_CONTACT_PX = 1.5
@@ -123,7 +138,7 @@ def run(sizes: list[str], photos_limit: int | None, cost: str,
             colours = render(scene, pt.intrinsics, pt.pose, mode="color").rgb
             rng = np.random.default_rng(len(rows))
             gx, gy = _luminance_derivatives(image, params.smoothing_px)
-            edge = [(Interpretation("LineString", edge_at_contact(gx, gy, item.pixels),
+            edge = [(Interpretation("LineString", refined_edge_at_contact(image, item.pixels),
                                     item.properties), k) for item, k in drawn]
             snapped, seconds, clicks = [], 0.0, 0
             off_photo, off_colours, off_waypoint = [], [], []
@@ -230,17 +245,18 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
         "trace is measured, with two poses: the photo's **registered** pose (the pipeline's, "
         "from its sensor prior — the benchmark's photos as a user has them; the must-show's "
         "definition) and the **true** pose (the drawings alone, without the registration's "
-        "error). The fourth drawing is the ceiling of any tracer: the **photo's edge at the "
-        "contact** — the perfect drawing moved across itself, within 1.5 px, to the sub-pixel "
-        "peak of the edge the photo shows there, with the polarity the photo has along it "
-        "(`bench_snap.edge_at_contact`). It starts on the truth and never strays; what is "
-        "left is where the photo draws the contact (blur, noise, lamination and stain beside "
-        "it), not where it is.",
+        "error). The fourth drawing is a reference for the tracer's accuracy where it does not "
+        "stray: the **photo's edge at the contact** — the perfect drawing moved across itself, "
+        "within 1.5 px, by the snapped traces' own last step (the steepest step of the "
+        "unsmoothed luminance, the shifts smoothed along the contact; "
+        "`bench_snap.refined_edge_at_contact`). It starts on the truth and never strays; what "
+        "is left is where the photo shows the contact (blur, noise, what lies beside it) and "
+        "how well that step finds it.",
         "",
         "| scene | pose | photos | contacts (clicks) | drawn length | perfect: median / 95th pct. | "
         "hand-drawn ±1.5 px: median / 95th pct. | snapped: median / 95th pct. | "
         "snapped / perfect" + (" (before)" if before else "") + " | target | "
-        "photo's edge at the contact: median | its ratio to perfect (ceiling) | "
+        "photo's edge at the contact: median | its ratio to perfect | "
         "snapped / photo's edge | snapped / hand-drawn | time per trace |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -272,14 +288,14 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
         "definition. With the **true** pose the perfect drawing is the true trace's own "
         "projection, exact to a few hundredths of a pixel, so its distances are the mesh's and "
         "the ray caster's alone (0.1–0.7 cm); no tracer that reads the photo comes within 1.2× "
-        "of that. Both definitions are reported. The ceiling column says how close a tracer "
-        "can come at all on these photos: the photo's own edge at the contact sits "
+        "of that. Both definitions are reported. The photo's-edge columns say how close the "
+        "tracer comes where it follows the contact: started on the truth, it sits "
         + ", ".join(f"{np.median(np.concatenate([r['off_edge'] for r in rows if r['size'] == z])):.2f} px"
                     for z in dict.fromkeys(r["size"] for r in rows))
-        + " (median per contact) from the true trace, and that alone is the ceiling ratio "
-        "above: 1.2 × the perfect drawing is beyond what the photos show. Measured against "
-        "that edge instead — the drawing of a hand that follows exactly what the photo shows — "
-        "the snapped traces are "
+        + " (median per contact) from the true trace, which gives the ratio in that column; "
+        "what the snapped traces lose beyond it comes from the strays below. Measured against "
+        "that edge instead — a hand that follows exactly what the photo shows — the snapped "
+        "traces are "
         + ", ".join(f"{_figures([r for r in rows if r['size'] == z and r['registered']], '_r')['vs_edge']:.2f}×"
                     for z in dict.fromkeys(r["size"] for r in rows))
         + " (registered pose); that is a reading beside the must-show, not its definition, "
@@ -308,9 +324,9 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
                      f"{2 + np.mean(op > OFF_CONTACT_PX):.2f} |")
     lines += [
         "",
-        "Most traces sit a quarter to a third of a pixel from the perfect drawing — about "
-        "where the photo's own edge is (the ceiling above) — and the distances' median and 95th "
-        f"percentile beyond the ceiling are set by the {_span(stray)} that follow another edge "
+        "Most traces sit about a quarter of a pixel from the perfect drawing — about where "
+        "the photo's edge at the contact is (above) — and the distances' median and 95th "
+        f"percentile beyond that are set by the {_span(stray)} that follow another edge "
         "(the other side of a thin bed, mottling inside it, a stronger edge beside a weak "
         "contact). The contact's polarity is read along the clicked segment, 8 px inward from "
         "each click (where a visible stretch ends the contact often fades), and where that "
@@ -318,8 +334,10 @@ def report(rows: list[dict], cost: str, before: dict | None = None) -> str:
         "colour photo the edge is also trained on the colour step under the clicks "
         "(`SnapParams.colour_weight`: the change of chromaticity across the contact, which a "
         "shadow, a lit ledge, mottling of one colour and the other side of a thin bed lack)"
-        + ("; on the luminance edge alone 15–21 % of the traces strayed (the *(before)* "
-           "ratios, same poses)" if before else "") + ". On the model's unshaded colours, where "
+        + ". The finished trace is then moved across itself onto the steepest step of the "
+        "unsmoothed luminance, the shifts smoothed along it (`SnapParams.refine_reach_px`)"
+        + ("; the *(before)* ratios are the same tracer without that last step (same poses "
+           "and clicks)" if before else "") + ". On the model's unshaded colours, where "
         "every contact is exactly where the truth puts it, the traces stray "
         + _compared(stray, stray_colours)
         + ": the limit is the tracer on thin, mottled beds from two clicks, not the photo's "

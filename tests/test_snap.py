@@ -188,7 +188,7 @@ def test_trained_colour_ignores_mottling_of_one_colour_beside_a_weak_contact():
         img[53:57, c0:c0 + rng.integers(10, 18)] *= 0.6
     img = np.round(img).astype(np.uint8)
     luminance_only = snap_trace(img, CLICKS_ON_60, SnapParams(colour_weight=0))
-    assert np.median(np.abs(_middle_rows(luminance_only, 40, 200) - 60)) > 4.0
+    assert np.median(np.abs(_middle_rows(luminance_only, 40, 200) - 60)) > 3.0
     rows = _middle_rows(snap_trace(img, CLICKS_ON_60), 40, 200)
     assert len(rows) and np.all(np.abs(rows - 60.0) < 0.05)
 
@@ -313,3 +313,31 @@ def test_subpixel_refinement_is_exact_on_a_clean_edge():
     errors = np.concatenate(errors)
     assert np.median(np.abs(errors)) < 0.03 and np.abs(errors).max() < 0.1
     assert abs(errors.mean()) < 0.01  # no bias across the edge
+
+
+def test_the_last_refinement_finds_a_step_whose_surroundings_differ_on_its_two_sides():
+    """A contact at row 60.3 whose upper bed brightens towards it (a ramp over
+    3 px) and a camera blur of 0.7 px: the smoothed gradient's peak, which
+    placed the trace, lies off the step towards the ramp; the unsmoothed
+    step, smoothed along the trace (``_refine_across``), lies on it."""
+    from scipy import ndimage
+
+    from napari_imgreg.interpret.snap import (_luminance_derivatives, _refine_across,
+                                              _subpixel)
+
+    y0 = 60.3
+    # Rendered finely, then area-averaged (pixel centres at integers).
+    fine = np.arange(-0.475, 119.5, 0.05)[:, None]
+    above = fine < y0
+    profile = np.where(above, 0.35 + 0.15 * np.exp(-(y0 - fine) / 1.5), 0.75)
+    lum = profile.reshape(120, 20).mean(axis=1)[:, None] * np.ones((1, 240))
+    lum = ndimage.gaussian_filter(lum, 0.7)
+    rng = np.random.default_rng(3)
+    img = np.clip(np.round((lum + rng.normal(0, 0.004, lum.shape)) * 255), 0, 255).astype(np.uint8)
+    path = np.stack([np.arange(20.0, 220.0), np.full(200, 60.0)], axis=1)
+    gx, gy = _luminance_derivatives(img, 0.7)
+    smoothed_peak = _subpixel(np.clip(gy, 0, None), path)
+    refined = _refine_across(img / 255.0, path, SnapParams(simplify_px=0.0))
+    assert np.median(smoothed_peak[:, 1]) - y0 < -0.15  # towards the ramp: the bias removed
+    assert abs(np.median(refined[20:-20, 1]) - y0) < 0.05
+    assert np.ptp(refined[20:-20, 1]) < 0.1  # smoothed along the trace

@@ -119,6 +119,15 @@ class SnapParams:
         side of a thin bed. Default 1.5 (on the snapping benchmark: traces
         more than 1.5 px off their contact 23.1 → 20.8 % of the small scene's,
         25.8 → 24.5 % of the large scene's).
+    refine_reach_px : float
+        ``"gradient"`` cost: the finished trace is moved across itself, by at
+        most this many pixels (0–3; 0: not), onto the steepest step of the
+        luminance itself — read at 1/8 px on the unsmoothed photo, the
+        shifts then smoothed along the trace (:func:`_refine_across`). The
+        smoothed gradient's peak, which places the path, lies 0.2–0.3 px to
+        one side of a contact whose surroundings differ on its two sides.
+        Default 1 (on the snapping benchmark: snapped/perfect 1.81 → 1.62 on
+        the small scene, 1.34 → 1.22 on the large).
     colour_weight : float
         Oriented ``"gradient"`` on a colour photo: weight (0–5) of the colour
         step trained under the clicks (module docstring, "Trained colour
@@ -143,6 +152,7 @@ class SnapParams:
     corridor_px: float = 10.0
     polarity_px: float = 1.5
     colour_weight: float = 1.0
+    refine_reach_px: float = 1.0
 
     def __post_init__(self) -> None:
         if self.cost not in COSTS:
@@ -151,7 +161,8 @@ class SnapParams:
                              ("margin_px", 10, 500), ("snap_radius_px", 0, 10),
                              ("simplify_px", 0, 3), ("saturation", 0.1, 2),
                              ("stiffness", 0, 1), ("corridor_px", 1, 200),
-                             ("polarity_px", 0.5, 10), ("colour_weight", 0, 5)):
+                             ("polarity_px", 0.5, 10), ("colour_weight", 0, 5),
+                             ("refine_reach_px", 0, 3)):
             value = getattr(self, name)
             if not lo <= value <= hi:
                 raise ValueError(f"snap {name} must be in [{lo}, {hi}], got {value}")
@@ -428,7 +439,10 @@ def snap_trace(image: np.ndarray, clicks: np.ndarray, params: SnapParams = SnapP
     sub = img[r0:r1, c0:c1]
     local_clicks = clicks - (c0, r0)
     if params.cost == "gradient" and params.oriented:
-        px = _snap_oriented(sub, local_clicks, params) + (c0, r0)
+        px = _snap_oriented(sub, local_clicks, params)
+        if params.subpixel and params.refine_reach_px > 0:
+            px = _refine_across(_gray(_unit(sub)), px, params)
+        px = px + (c0, r0)
     else:
         ref = None
         if params.cost == "colour":
@@ -440,6 +454,97 @@ def snap_trace(image: np.ndarray, clicks: np.ndarray, params: SnapParams = SnapP
         px = snap_path(cost, local_clicks, params, strength=strength) + (c0, r0)
     # The sub-pixel refinement may push a vertex on the border past it.
     return np.clip(px, 0, [w - 1, h - 1])
+
+
+#: σ (pixels along the trace) of the smoothing of :func:`_refine_across`'s shifts.
+REFINE_ALONG_PX = 4.0
+
+#: Step (pixels) at which :func:`_refine_across` reads the luminance across the trace.
+REFINE_STEP_PX = 0.125
+
+#: A point whose luminance step is weaker than this share of the trace's
+#: median step is not moved by :func:`_refine_across`.
+REFINE_MIN_STEP = 0.5
+
+
+def _resample(px: np.ndarray, spacing: float = 1.0) -> np.ndarray:
+    """The polyline ``px`` with a vertex every ``spacing`` pixels (ends kept)."""
+    seg = np.linalg.norm(np.diff(px, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] <= 0:
+        return px.copy()
+    at = np.linspace(0.0, s[-1], max(int(np.ceil(s[-1] / spacing)) + 1, 2))
+    return np.stack([np.interp(at, s, px[:, 0]), np.interp(at, s, px[:, 1])], axis=1)
+
+
+def _refine_across(lum: np.ndarray, px: np.ndarray, params: SnapParams) -> np.ndarray:
+    """Move a finished trace across itself onto the steepest step of ``lum``.
+
+    The trace is resampled every pixel; at each point the luminance is read
+    across it every :data:`REFINE_STEP_PX` (cubic, unsmoothed), its slope
+    taken with the polarity the trace has, and the point moved to the
+    slope's parabolic peak within ``params.refine_reach_px`` — unless the
+    peak is at the reach's edge or weaker than :data:`REFINE_MIN_STEP` of the
+    trace's median (no step of its own there: the point stays). The shifts are
+    smoothed along the trace (a median of 5, then a Gaussian of σ
+    :data:`REFINE_ALONG_PX`): a contact bends smoothly, the read is noisy.
+    Then thinned again by ``params.simplify_px``.
+
+    Why: the path is placed on the peak of the luminance's *smoothed*
+    gradient, and where what lies beside a contact differs on its two sides
+    (a bed's grain, the light on a ledge) smoothing moves that peak off the
+    contact — on the sample photos 0.2–0.3 px, mostly to one side. The
+    unsmoothed slope is unbiased but noisy; the smoothing along the trace
+    takes the noise out.
+
+    Parameters
+    ----------
+    lum : (H, W) array
+        The photo's luminance (``[0, 1]``).
+    px : (N, 2) array
+        The trace, ``[col, row]``.
+    params : SnapParams
+
+    Returns
+    -------
+    (M, 2) array
+    """
+    from skimage.measure import approximate_polygon
+
+    pts = _resample(np.asarray(px, np.float64))
+    if len(pts) < 4:
+        return px
+    tangent = np.gradient(pts, axis=0)
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    reach, step = params.refine_reach_px, REFINE_STEP_PX
+    offsets = np.arange(-reach - 1.0, reach + 1.0 + 1e-9, step)
+    across = pts[:, None, :] + offsets[None, :, None] * normal[:, None, :]
+    values = ndimage.map_coordinates(lum, [across[..., 1].ravel(), across[..., 0].ravel()],
+                                     order=3, mode="nearest").reshape(len(pts), len(offsets))
+    slope = np.gradient(values, step, axis=1)
+    centre = len(offsets) // 2
+    if np.median(slope[:, centre]) < 0:  # the trace's polarity: darker on the normal's side
+        slope = -slope
+    inside = np.abs(offsets) <= reach + 1e-9
+    k = np.clip(np.argmax(np.where(inside[None, :], slope, -np.inf), axis=1), 1, len(offsets) - 2)
+    i = np.arange(len(pts))
+    a, b, c = slope[i, k - 1], slope[i, k], slope[i, k + 1]
+    denom = a - 2 * b + c
+    delta = np.where(denom < 0, 0.5 * (a - c) / np.where(denom < 0, denom, 1.0), 0.0)
+    shift = offsets[k] + np.clip(delta, -0.5, 0.5) * step
+    # No step of its own there (a stretch where only the colour changes, a
+    # fading contact), or the steepest step at the edge of the reach (another
+    # edge beside): the point stays where the path put it.
+    peak = slope[i, k]
+    keep = (np.abs(offsets[k]) < reach - step / 2) & (peak >= REFINE_MIN_STEP * np.median(peak))
+    shift = np.where(keep, shift, 0.0)
+    shift = ndimage.gaussian_filter1d(ndimage.median_filter(shift, 5, mode="nearest"),
+                                      REFINE_ALONG_PX, mode="nearest")
+    out = pts + shift[:, None] * normal
+    if params.simplify_px > 0 and len(out) > 2:
+        out = approximate_polygon(out, tolerance=params.simplify_px)
+    return out
 
 
 #: Pixels along the clicked segment, inward from each click, over which the
