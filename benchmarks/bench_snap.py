@@ -59,15 +59,15 @@ POSES = Path(__file__).parent / "_cache" / "interpret_poses.json"
 
 
 def edge_at_contact(gx: np.ndarray, gy: np.ndarray, perfect: np.ndarray) -> np.ndarray:
-    """The photo's own edge where the contact is: the ceiling of any tracer.
+    """The peak of the photo's *smoothed* gradient where the contact is.
 
     Starts *on* the true trace (the perfect drawing, every pixel), with the
     polarity the photo has along it, and moves each point across the trace to
-    the sub-pixel peak of that edge within 1.5 px (``snap._subpixel``), as the
-    snapped traces are refined. What remains is where the photo shows the
-    contact — its blur, noise, lamination and staining beside the contact —
-    not where the truth puts it: no tracer that reads the photo, nor a hand
-    that follows it, can do better.
+    the sub-pixel peak of that edge within 1.5 px (``snap._subpixel``, the
+    path's own sub-pixel step). Once taken for the ceiling of any tracer, it
+    lies 0.2–0.3 px off contacts whose surroundings differ on their two
+    sides (``diag_edge_bias.py``); the report's column is now
+    :func:`refined_edge_at_contact`. Kept for the diagnostics.
 
     Parameters
     ----------
