@@ -284,11 +284,16 @@ def measure_gui(folders: dict[int, Path], work: Path) -> dict[int, dict]:
         table = wb.photos_table
         wb.show_tab("Photos")
         m: dict = {}
-        folder_open = folder.resolve()
-        m["open"] = step(lambda: ctrl.open_workspace(folder),
-                         lambda: (ctrl.workspace.folder == folder_open
-                                  and table.table.rowCount() == len(ctrl.photos)
-                                  and not ctrl.busy))
+
+        def open_step(path: Path) -> dict:
+            """Open ``path`` in the workbench, until its photos fill the table."""
+            resolved = path.resolve()
+            return step(lambda: ctrl.open_workspace(path),
+                        lambda: (ctrl.workspace.folder == resolved
+                                 and table.table.rowCount() == len(ctrl.photos)
+                                 and not ctrl.busy))
+
+        m["open"] = open_step(folder)
         pump(0.5)
         n = len(ctrl.photos)
         switches = []
@@ -310,17 +315,14 @@ def measure_gui(folders: dict[int, Path], work: Path) -> dict[int, dict]:
         m["nudge"] = step(lambda: ctrl.nudge("turn right 0.1", d_trend=0.1))
         target = work / f"gui_{n_photos}_saved_as.imgreg"
         shutil.rmtree(target, ignore_errors=True)
-        m["save_as"] = step(lambda: ctrl.save_workspace(target))
+        # Written in a worker behind its dialog: done when the folder is complete.
+        m["save_as"] = step(lambda: ctrl.save_workspace(target), lambda: not ctrl.saving)
         # Another workspace over this one (the photos visited have layers to replace).
         again = work / f"gui_{n_photos}_copy.imgreg"
         shutil.rmtree(again, ignore_errors=True)
         ctrl.workspace.detach()
         shutil.copytree(folder, again)
-        again_open = again.resolve()
-        m["open_over"] = step(lambda: ctrl.open_workspace(again),
-                              lambda: (ctrl.workspace.folder == again_open
-                                       and table.table.rowCount() == len(ctrl.photos)
-                                       and not ctrl.busy))
+        m["open_over"] = open_step(again)
         pump(0.3)
         ctrl.workspace.detach()
         viewer.close()
