@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     say(f"copying the {args.size} sample outcrop (seed {args.seed}) from the cache {cached} to "
         f"{args.out} ..." if cached is not None else
         f"generating the {args.size} sample outcrop (seed {args.seed}) for {args.out} ...")
-    out = write_outcrop_folder(Path(args.out), size=args.size, seed=args.seed)
+    out = write_outcrop_folder(Path(args.out), size=args.size, seed=args.seed, cached=cached)
     print(f"sample outcrop ({args.size}, seed {args.seed}) written to {out} "
           f"in {time.perf_counter() - t0:.1f} s")
     if args.scan:

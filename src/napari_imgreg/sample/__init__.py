@@ -479,7 +479,12 @@ def _write_example_pairs(path: Path, checks: list[dict[str, Any]], intr: Intrins
                              f"{h:.3f}"])
 
 
-def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: int = 0) -> Path:
+#: ``write_outcrop_folder``'s ``cached`` default: look the scene up in the cache.
+_LOOK_UP = Path("<look up>")
+
+
+def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: int = 0,
+                         cached: Path | None = _LOOK_UP) -> Path:
     """Write the sample outcrop into a folder of the user's (``napari-imgreg sample``).
 
     The scene is generated into a hidden temporary folder beside ``out_dir``
@@ -501,6 +506,9 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
         The folder: new, empty, or holding this size and seed's scene.
     size : {"small", "large"}
     seed : int
+    cached : Path or None, optional
+        :func:`cached_sample_scene`'s answer, when the caller has it already
+        (each asking hashes every file of the cached scene); None generates.
 
     Returns
     -------
@@ -518,7 +526,8 @@ def write_outcrop_folder(out_dir: str | os.PathLike, size: str = "small", seed: 
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
-        cached = cached_sample_scene(size, seed)
+        if cached is _LOOK_UP:
+            cached = cached_sample_scene(size, seed)
         if cached is not None:
             # The generation is deterministic: the cache holds the same files.
             shutil.copytree(cached, tmp, dirs_exist_ok=True, copy_function=shutil.copyfile,
