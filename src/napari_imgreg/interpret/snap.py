@@ -468,7 +468,13 @@ REFINE_MIN_STEP = 0.5
 
 
 def _resample(px: np.ndarray, spacing: float = 1.0) -> np.ndarray:
-    """The polyline ``px`` with a vertex every ``spacing`` pixels (ends kept)."""
+    """The polyline ``px`` with a vertex every ``spacing`` pixels (ends kept).
+
+    Evenly along its length, unlike ``project.densify`` (every vertex kept,
+    segments split at most ``step`` apart): :func:`_refine_across` smooths
+    along the samples, in pixels. With ``densify`` the snapping benchmark
+    gave 1.63 and 1.24 instead of 1.62 and 1.22.
+    """
     seg = np.linalg.norm(np.diff(px, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     if s[-1] <= 0:
