@@ -18,8 +18,17 @@ the true pose (no search; all edge kinds, then skyline and occluding contours
 alone), and reports where that ends and where the mean of the area and edge
 poses is.
 
+With ``--sunshift`` it tests a sun-shift nuisance (``_sunshift.py``): at the
+true pose, one length ``b`` fitted to the block shifts (how much of them
+``b s(x)`` explains), then the pose alone and the pose with ``b`` solved from
+the same blocks. ``--sunshift-trials`` runs area-matching trials with ``b``
+solved in every round, from the true pose and from the pose the pipeline
+registers on the untextured tier (cached in ``--poses``).
+
     .venv/bin/python benchmarks/diag_shading_bias.py --seeds 1 3 5 --photos 1 2
     .venv/bin/python benchmarks/diag_shading_bias.py --seeds 1 3 5 --photos 1 2 3 --edges
+    .venv/bin/python benchmarks/diag_shading_bias.py --seeds 1 3 5 --photos 1 2 3 --sunshift
+    .venv/bin/python benchmarks/diag_shading_bias.py --seeds 1 3 5 --photos 1 2 3 --sunshift-trials
 
 Needs the scenes cached by ``bench_register.py --tiers rough_changed_untextured``.
 """
@@ -46,7 +55,7 @@ from napari_imgreg.registration.stages.area import (  # noqa: E402
     match_blocks, prepare_photo, prepare_render)
 from napari_imgreg.registration.stages.edges import EdgeParams, align_edges  # noqa: E402
 from napari_imgreg.registration.stages.relight import render_sunlit  # noqa: E402
-from napari_imgreg.registration.stages import sunshift as SS  # noqa: E402
+import _sunshift as SS  # noqa: E402
 from napari_imgreg.registration.pose import estimate_pose  # noqa: E402
 from napari_imgreg.camera import pixels_to_full  # noqa: E402
 from napari_imgreg.sample import load_truth  # noqa: E402
@@ -238,8 +247,8 @@ def _load(seed: int, cache: Path):
 
 
 def sunshift_main(args, params) -> int:
-    print("| scene | photo | sun elev. | blocks near / accepted: median shift vector, along the sun, "
-          "median length (px at 1024) | tangent: b, the same after removing b s(x), variance "
+    print("| scene | photo | sun elev. | blocks near / accepted: median shift vector, along "
+          "the sun, median length (px at 1024) | tangent: b, the same after removing b s(x), variance "
           "explained | shadow: same | pose alone RANSAC "
           "(cp px) | pose alone LS | pose + b tangent | pose + b shadow | blocks |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
@@ -262,7 +271,6 @@ def sunshift_trials_main(args, params) -> int:
     the pose the pipeline registers on the untextured tier (median
     check-point error, px at 1632; the trial's last ``b``)."""
     import json
-    from dataclasses import replace
 
     from napari_imgreg.registration.pipeline import register
 
@@ -288,12 +296,12 @@ def sunshift_trials_main(args, params) -> int:
             for label, start in (("true", truth.pose), ("pipeline", own)):
                 cells = []
                 for mode in modes:
-                    p = params.copy()
-                    p.area = replace(p.area, sun_shift=mode)
-                    ctx = P._Context(bare, photo.image, truth.intrinsics, p, lambda: None)
+                    ctx = P._Context(bare, photo.image, truth.intrinsics, params, lambda: None)
                     ctx.sun = prior.sun
-                    t = P.run_to_end(P._run_trial(ctx, 0, start, p, "diagnostic", mode="sunlit",
-                                                  matcher="area", far_start=False))
+                    with SS.patched(mode):
+                        t = P.run_to_end(P._run_trial(ctx, 0, start, params, "diagnostic",
+                                                      mode="sunlit", matcher="area",
+                                                      far_start=False))
                     b = t.metrics.get("sun_shift_m")
                     unc = t.uncertainty.reprojection_px if t.uncertainty is not None else None
                     cells.append(f"{br._trial_cp(t, truth):.2f}"

@@ -536,50 +536,8 @@ def score_round(
     cv2.setRNGSeed(int(params.seed))
     matched = match_round(source, pose, params, width, matcher=matcher, near=near,
                           search_px=search_px, mode=mode)
-    sun = getattr(source, "sun", None)
-    if (matcher == "area" and solve and params.area.sun_shift != "off" and mode == "sunlit"
-            and sun is not None and (matched.rendered.shading_share or 0.0) > 0.0):
-        return _sun_shift_round(matched, source, params, sun)
     return pose_round(matched, source.intrinsics, params.pose, None if solve else pose,
                       source.timings, rng_seed=int(params.seed))
-
-
-def _sun_shift_round(matched: MatchedRound, source: RoundSource, params: RegistrationParams,
-                     sun: np.ndarray) -> Round:
-    """:func:`pose_round` with the sun-shift nuisance (``AreaParams.sun_shift``):
-    RANSAC EPnP, then the pose and ``b`` refined together on its inliers."""
-    from ..camera import pixels_to_scaled
-    from .stages.sunshift import block_normals, solve_pose_sun_shift, sun_shift_directions
-
-    rnd = pose_round(matched, source.intrinsics, params.pose, None, source.timings,
-                     rng_seed=int(params.seed))
-    if not rnd.estimate.ok:
-        return rnd
-    t0 = perf_counter()
-    m = matched
-    rr = m.rendered
-    scale = rr.shape[1] / source.intrinsics.width
-    nrm = block_normals(rr.normal, rr.mask, params.area.template_px)
-    ij = np.clip(np.round(pixels_to_scaled(m.render_points[m.lifted], scale)).astype(int),
-                 0, [rr.shape[1] - 1, rr.shape[0] - 1])
-    dirs = sun_shift_directions(nrm[ij[:, 1], ij[:, 0]], sun, params.area.sun_shift)
-    xyz, uv = m.xyz[m.lifted], m.photo_points[m.lifted]
-    fit = solve_pose_sun_shift(source.intrinsics, rnd.estimate.pose, xyz, uv, dirs,
-                               threshold_px=params.pose.reprojection_error_px)
-    source.timings["pose"] += perf_counter() - t0
-    if fit.inliers.sum() < 4:
-        return rnd
-    estimate = PoseEstimate(True, fit.pose, fit.inliers, fit.errors_px, solver="epnp+sun")
-    metrics, pose_inlier = round_metrics(m.points_photo, m.points_render, m.feature_inlier,
-                                         m.lifted, estimate, m.rendered)
-    metrics.update(m.extra_metrics)
-    metrics["sun_shift_m"] = round(fit.b, 4)
-    metrics["sun_shift_sigma_m"] = round(fit.b_sigma, 4) if math.isfinite(fit.b_sigma) else None
-    metrics["sun_shift_confounding"] = (round(fit.correlation, 4)
-                                        if math.isfinite(fit.correlation) else None)
-    corr = Correspondences(m.photo_points, m.render_points, m.feature_inlier, m.lifted,
-                           pose_inlier, m.xyz)
-    return Round(estimate, metrics, corr, m.rendered)
 
 
 def round_metrics(points_photo: int, points_render: int, inlier: np.ndarray,

@@ -76,12 +76,6 @@ class AreaParams(StageParams):
     min_coverage : float
         Fraction of a block that must show the model (the rest is sky or
         background, filled with a bright level so the skyline correlates).
-    sun_shift : {"off", "tangent", "shadow"}
-        Experimental (issue 13): on a render relit for the photo's sun, solve
-        each round's pose with one more unknown, a length ``b`` by which the
-        photo's shading is displaced away from the sun along the surface
-        (:mod:`napari_imgreg.registration.stages.sunshift`). ``"off"``
-        (default): the pose alone.
     """
 
     KIND: ClassVar[str] = "area"
@@ -96,7 +90,6 @@ class AreaParams(StageParams):
     max_second_ratio: float = 0.9
     min_texture: float = 1.0
     min_coverage: float = 0.6
-    sun_shift: str = "off"
 
     #: Inclusive valid range of each numeric field.
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
@@ -120,8 +113,6 @@ class AreaParams(StageParams):
             raise ValueError("stride_px, search_px and far_search_px must be positive")
         if self.width < 64:
             raise ValueError(f"width must be at least 64 px, not {self.width}")
-        if self.sun_shift not in ("off", "tangent", "shadow"):
-            raise ValueError(f"sun_shift must be off, tangent or shadow, not {self.sun_shift!r}")
 
 
 @dataclass

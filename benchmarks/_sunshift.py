@@ -1,4 +1,4 @@
-"""A sun-shift nuisance for area matching on a relit model (issue 13, experimental).
+"""A sun-shift nuisance for area matching on a relit model (issue 13; tried, no-go).
 
 Under a low sun, relief the model lacks (beds standing proud, gullies) casts
 shadows the relit render does not: the photo's band-passed shading sits a
@@ -11,23 +11,29 @@ unit step under the local sun, ``cot`` of the sun's elevation above the
 surface, clipped (``"shadow"``), and ``b`` one unknown length (metres) per
 photo, solved with the pose.
 
-This module is backend only: no Qt or napari imports.
+Measured by ``diag_shading_bias.py --sunshift`` and ``--sunshift-trials``
+(docs/benchmarks.md, the notes after the rough section): one ``b`` is nearly
+confounded with the pose (multiple correlation 0.96-0.99 for "tangent",
+0.86-0.96 for "shadow") and even the ``b``
+fitted at the true pose leaves poses 1.8-4.5 px off, so the pipeline does not
+use it. :func:`patched` puts it into the area rounds for the diagnostic.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
+from time import perf_counter
 
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from ...camera import Intrinsics, Pose
-from ..pose import reprojection_errors
-
-__all__ = ["SUN_SHIFT_MODES", "sun_shift_directions", "SunShiftFit", "solve_pose_sun_shift",
-           "fit_shift_scalar"]
+from napari_imgreg.camera import Intrinsics, Pose, pixels_to_scaled
+from napari_imgreg.registration import pipeline as P
+from napari_imgreg.registration import round as R
+from napari_imgreg.registration.pose import PoseEstimate, reprojection_errors
 
 #: Values of the nuisance's model (``"off"``: none).
 SUN_SHIFT_MODES = ("off", "tangent", "shadow")
@@ -193,3 +199,72 @@ def solve_pose_sun_shift(intrinsics: Intrinsics, start: Pose, xyz: np.ndarray,
         except np.linalg.LinAlgError:
             pass
     return SunShiftFit(pose, b, b_sigma, err < threshold_px, err, corr)
+
+
+def sun_shift_round(matched: R.MatchedRound, source, params, sun: np.ndarray,
+                    mode: str) -> R.Round:
+    """:func:`~napari_imgreg.registration.round.pose_round` with the nuisance:
+    RANSAC EPnP, then the pose and ``b`` refined together on its inliers. The
+    round's metrics get ``sun_shift_m``, ``sun_shift_sigma_m`` and
+    ``sun_shift_confounding`` (:attr:`SunShiftFit.correlation`)."""
+    rnd = R.pose_round(matched, source.intrinsics, params.pose, None, source.timings,
+                       rng_seed=int(params.seed))
+    if not rnd.estimate.ok:
+        return rnd
+    t0 = perf_counter()
+    m = matched
+    rr = m.rendered
+    scale = rr.shape[1] / source.intrinsics.width
+    nrm = block_normals(rr.normal, rr.mask, params.area.template_px)
+    ij = np.clip(np.round(pixels_to_scaled(m.render_points[m.lifted], scale)).astype(int),
+                 0, [rr.shape[1] - 1, rr.shape[0] - 1])
+    dirs = sun_shift_directions(nrm[ij[:, 1], ij[:, 0]], sun, mode)
+    xyz, uv = m.xyz[m.lifted], m.photo_points[m.lifted]
+    fit = solve_pose_sun_shift(source.intrinsics, rnd.estimate.pose, xyz, uv, dirs,
+                               threshold_px=params.pose.reprojection_error_px)
+    source.timings["pose"] += perf_counter() - t0
+    if fit.inliers.sum() < 4:
+        return rnd
+    estimate = PoseEstimate(True, fit.pose, fit.inliers, fit.errors_px, solver="epnp+sun")
+    metrics, pose_inlier = R.round_metrics(m.points_photo, m.points_render, m.feature_inlier,
+                                           m.lifted, estimate, m.rendered)
+    metrics.update(m.extra_metrics)
+    metrics["sun_shift_m"] = round(fit.b, 4)
+    metrics["sun_shift_sigma_m"] = round(fit.b_sigma, 4) if math.isfinite(fit.b_sigma) else None
+    metrics["sun_shift_confounding"] = (round(fit.correlation, 4)
+                                        if math.isfinite(fit.correlation) else None)
+    corr = R.Correspondences(m.photo_points, m.render_points, m.feature_inlier, m.lifted,
+                             pose_inlier, m.xyz)
+    return R.Round(estimate, metrics, corr, m.rendered)
+
+
+@contextlib.contextmanager
+def patched(model: str):
+    """The pipeline's rounds with the nuisance (``model`` "tangent" or "shadow";
+    "off": unchanged) on area rounds matched on a render relit for the
+    photo's sun. The error estimate still sees the shifted matches as they
+    are (it does not know ``b``)."""
+    if model == "off":
+        yield
+        return
+    original = P.score_round
+
+    def score_round(source, pose, params, width, *, matcher="keypoints", near=False,
+                    search_px=None, mode="plain", solve=True):
+        sun = getattr(source, "sun", None)
+        if not (matcher == "area" and solve and mode == "sunlit" and sun is not None):
+            return original(source, pose, params, width, matcher=matcher, near=near,
+                            search_px=search_px, mode=mode, solve=solve)
+        cv2.setRNGSeed(int(params.seed))
+        matched = R.match_round(source, pose, params, width, matcher=matcher, near=near,
+                                search_px=search_px, mode=mode)
+        if not (matched.rendered.shading_share or 0.0) > 0.0:
+            return R.pose_round(matched, source.intrinsics, params.pose, None, source.timings,
+                                rng_seed=int(params.seed))
+        return sun_shift_round(matched, source, params, sun, model)
+
+    P.score_round = score_round
+    try:
+        yield
+    finally:
+        P.score_round = original
