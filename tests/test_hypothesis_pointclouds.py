@@ -258,6 +258,49 @@ def test_las_known_gap_5_lazrs_panic_is_one_line():
     _read("panic.laz", bytes(data))
 
 
+
+def _laz_table(data: bytearray) -> int:
+    """Where the chunk table of a LAZ starts (the 64-bit offset before its points)."""
+    offset = struct.unpack_from("<I", data, 96)[0]
+    return struct.unpack_from("<q", data, offset)[0]
+
+
+def test_las_known_gap_6_a_chunk_table_that_misses_points_is_refused():
+    """A LAZ whose chunk table no longer describes its chunks (bytes inserted
+    in the points moved the table; CI's fuzz found it): the decompressor read
+    the first chunk anyway, and a layer size of 2.9 GB in it aborted the
+    process (Rust's failed allocation) instead of giving one line."""
+    data = bytearray(VALID[".laz"])
+    table = _laz_table(data)
+    start = struct.unpack_from("<I", data, 96)[0] + 8  # the first chunk
+    point_size = struct.unpack_from("<H", data, 105)[0]
+    struct.pack_into("<I", data, start + point_size + 4 + 6 * 4, 2_914_812_416)  # layer 7
+    moved = bytearray(data)
+    struct.pack_into("<I", moved, table, 8_491_171)  # the table's version
+    err = _read("table_version.laz", bytes(moved))
+    assert "chunk table has version 8491171" in str(err), err
+    emptied = bytearray(data)
+    struct.pack_into("<I", emptied, table + 4, 0)  # no chunks
+    err = _read("table_empty.laz", bytes(emptied))
+    assert "chunk table holds 0 of its 40 points" in str(err), err
+    # The 6 bytes at 548 that CI's fuzz drew.
+    raw = bytes(VALID[".laz"])
+    _read("insert.laz", raw[:548] + bytes.fromhex("82bcadae3a95") + raw[548:])
+
+
+def test_las_known_gap_7_a_laszip_record_named_with_trailing_bytes_is_checked():
+    """laspy reads a VLR's user id up to its first NUL, so "laszip encoded\\0\\x9f"
+    is the LASzip record to it; the size checks skipped it and a layer size
+    of 1.66 GB aborted the process (CI's fuzz, one byte flipped in the name)."""
+    data = bytearray(VALID[".laz"])
+    header_size = struct.unpack_from("<H", data, 94)[0]
+    data[header_size + 2 + 15] = 159  # the user id's last byte (the LASzip record is the first VLR)
+    start = struct.unpack_from("<I", data, 96)[0] + 8
+    point_size = struct.unpack_from("<H", data, 105)[0]
+    struct.pack_into("<I", data, start + point_size + 4 + 2 * 4, 1_660_944_384)  # layer 3
+    err = _read("laszip_name.laz", bytes(data))
+    assert "layers larger than itself" in str(err), err
+
 def test_a_bound_the_reader_swallows_still_fails():
     """A reader's ``except Exception`` turned the bound's exception into
     ``InputError("… cannot read LAS (BoundExceeded: …)")``: call_bounded

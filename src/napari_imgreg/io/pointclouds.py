@@ -978,9 +978,11 @@ def _check_laz_sizes(path: Path) -> None:
 
     lazrs allocates what the file's chunk table and chunk headers declare,
     and a failed allocation aborts the whole process (Rust), so a corrupt LAZ
-    would take napari down. The chunk count, the chunk byte counts and the
-    layer sizes of the layered formats are therefore checked against the
-    file's size first; a LAS that is not compressed is left to laspy.
+    would take napari down. The chunk table's version, the chunk count, the
+    points the chunks hold (at least the header's count), the chunk byte
+    counts and the layer sizes of the layered formats are therefore checked
+    against the header and the file's size first; a LAS that is not
+    compressed is left to laspy.
     """
     import struct
 
@@ -1005,7 +1007,7 @@ def _check_laz_sizes(path: Path) -> None:
             vlr = fh.read(54)
             if len(vlr) < 54:
                 break
-            user_id = vlr[2:18].rstrip(b"\0")
+            user_id = vlr[2:18].split(b"\0")[0]  # as laspy reads it: up to the first NUL
             record_id, length = struct.unpack_from("<HH", vlr, 18)
             if user_id == b"laszip encoded" and record_id == 22204:
                 record = fh.read(length)
@@ -1023,7 +1025,9 @@ def _check_laz_sizes(path: Path) -> None:
         if not (offset + 8 <= table_at <= size - 8):
             bad("its chunk table lies outside the file")
         fh.seek(table_at)
-        _version, n_chunks = struct.unpack("<II", fh.read(8))
+        version, n_chunks = struct.unpack("<II", fh.read(8))
+        if version != 0:  # LASzip's chunk table has version 0
+            bad(f"its chunk table has version {version}")
         if n_chunks > (table_at - offset):  # every chunk takes at least one byte
             bad(f"it declares {n_chunks} chunks in {table_at - offset} bytes")
         import lazrs
@@ -1035,6 +1039,14 @@ def _check_laz_sizes(path: Path) -> None:
             bad(f"unreadable chunk table, {_why(exc)}")
         if table is None or sum(int(b) for _, b in table) > table_at - offset - 8:
             bad("its chunks are larger than the file")
+        # The decompressor reads the chunks in order whatever the table says:
+        # a table that accounts for fewer points than the header (a moved or
+        # overwritten table) would leave chunks whose sizes nobody checked.
+        n_points = struct.unpack_from("<I", head, 107)[0]
+        if not n_points and header_size >= 375:  # LAS 1.4: the 64-bit count
+            n_points = struct.unpack_from("<Q", head, 247)[0]
+        if sum(int(n) for n, _ in table) < n_points:
+            bad(f"its chunk table holds {sum(int(n) for n, _ in table)} of its {n_points} points")
         n_layers = sum(_LAZ_LAYERS.get(t, 0) if t != _LAZ_BYTE14 else s for t, s in items)
         if not n_layers:
             return
