@@ -69,7 +69,9 @@ def test_photo_without_overlap_fails_cleanly_with_hints(sample):
     prior = prior_for_photo(photo, scene)
     # Another subject altogether: nothing in it is on the model.
     other = cv2.resize(np.ascontiguousarray(astronaut()), photo.size)
-    params = RegistrationParams(n_search=4, max_trials=2)
+    # Mutual information off: it and the trials from its pose add 9 s here and are
+    # graded to failure in test_pipeline_robust (stage poses never above poor).
+    params = RegistrationParams(n_search=4, max_trials=2, dense_refine=False)
     reg = register(scene, other, prior, params)
     assert reg.status == "failed" and reg.grade in ("failed", "poor")
     assert reg.hints and all(isinstance(h, str) and h for h in reg.hints)
