@@ -258,7 +258,6 @@ def test_las_known_gap_5_lazrs_panic_is_one_line():
     _read("panic.laz", bytes(data))
 
 
-
 def _laz_table(data: bytearray) -> int:
     """Where the chunk table of a LAZ starts (the 64-bit offset before its points)."""
     offset = struct.unpack_from("<I", data, 96)[0]
@@ -300,6 +299,7 @@ def test_las_known_gap_7_a_laszip_record_named_with_trailing_bytes_is_checked():
     struct.pack_into("<I", data, start + point_size + 4 + 2 * 4, 1_660_944_384)  # layer 3
     err = _read("laszip_name.laz", bytes(data))
     assert "layers larger than itself" in str(err), err
+
 
 def test_a_bound_the_reader_swallows_still_fails():
     """A reader's ``except Exception`` turned the bound's exception into

@@ -1045,8 +1045,9 @@ def _check_laz_sizes(path: Path) -> None:
         n_points = struct.unpack_from("<I", head, 107)[0]
         if not n_points and header_size >= 375:  # LAS 1.4: the 64-bit count
             n_points = struct.unpack_from("<Q", head, 247)[0]
-        if sum(int(n) for n, _ in table) < n_points:
-            bad(f"its chunk table holds {sum(int(n) for n, _ in table)} of its {n_points} points")
+        held = sum(int(n) for n, _ in table)
+        if held < n_points:
+            bad(f"its chunk table holds {held} of its {n_points} points")
         n_layers = sum(_LAZ_LAYERS.get(t, 0) if t != _LAZ_BYTE14 else s for t, s in items)
         if not n_layers:
             return
