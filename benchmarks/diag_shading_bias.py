@@ -64,16 +64,24 @@ WIDTH = 1024
 RADIUS_PX = 12
 
 
-def block_shift(ctx, scene, truth, sun, params) -> tuple[np.ndarray, float, int]:
-    """Median block shift (px at ``WIDTH``), its component along the sun, blocks matched."""
+def _true_pose_blocks(ctx, scene, truth, sun, params):
+    """The sun-lit render from the true pose (at ``WIDTH``), its scale, and
+    its blocks matched in the photo as area matching does."""
     ap = params.area
     small, scale = ctx.photo_at(WIDTH)
     r = render_sunlit(scene, truth.intrinsics, truth.pose, sun, scale=scale)
-    b = match_blocks(prepare_photo(small, ap.band_sigma_px),
-                     prepare_render(r.rgb, r.mask, ap.band_sigma_px), r.mask,
-                     template_px=ap.template_px, search_px=RADIUS_PX, stride_px=ap.stride_px,
-                     min_score=ap.min_score, max_second_ratio=ap.max_second_ratio,
-                     min_texture=ap.min_texture, min_coverage=ap.min_coverage)
+    blocks = match_blocks(prepare_photo(small, ap.band_sigma_px),
+                          prepare_render(r.rgb, r.mask, ap.band_sigma_px), r.mask,
+                          template_px=ap.template_px, search_px=RADIUS_PX,
+                          stride_px=ap.stride_px, min_score=ap.min_score,
+                          max_second_ratio=ap.max_second_ratio, min_texture=ap.min_texture,
+                          min_coverage=ap.min_coverage)
+    return r, scale, blocks
+
+
+def block_shift(ctx, scene, truth, sun, params) -> tuple[np.ndarray, float, int]:
+    """Median block shift (px at ``WIDTH``), its component along the sun, blocks matched."""
+    r, scale, b = _true_pose_blocks(ctx, scene, truth, sun, params)
     s = b.shift[b.accepted]
     # The sun's direction in the image, at a point 100 m ahead.
     ahead = truth.pose.center + 100.0 * truth.pose.R[2]
@@ -122,13 +130,7 @@ def sunshift_cells(ctx, scene, truth, sun, params) -> list[str]:
     (uncentred) variance it explains; then the pose alone and the pose with
     ``b`` solved from the same blocks (median check-point error, px at 1632)."""
     ap = params.area
-    small, scale = ctx.photo_at(WIDTH)
-    r = render_sunlit(scene, truth.intrinsics, truth.pose, sun, scale=scale)
-    bm = match_blocks(prepare_photo(small, ap.band_sigma_px),
-                      prepare_render(r.rgb, r.mask, ap.band_sigma_px), r.mask,
-                      template_px=ap.template_px, search_px=RADIUS_PX, stride_px=ap.stride_px,
-                      min_score=ap.min_score, max_second_ratio=ap.max_second_ratio,
-                      min_texture=ap.min_texture, min_coverage=ap.min_coverage)
+    r, scale, bm = _true_pose_blocks(ctx, scene, truth, sun, params)
     xyz, ok = r.lift(bm.render_points)
     ok &= bm.accepted
     rp, pp, xyz = bm.render_points[ok], bm.photo_points[ok], xyz[ok]
