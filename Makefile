@@ -41,7 +41,9 @@ demo: venv
 	$(VENV)/bin/napari-imgreg demo --out demo_output
 
 test: system-deps venv
-	xvfb-run -a -s "-screen 0 1600x1000x24" $(PY) -m pytest -q --durations=15
+	# One worker per core, at most 4 (each holds a napari viewer and the sample
+	# scenes); they share the one Xvfb display.
+	xvfb-run -a -s "-screen 0 1600x1000x24" $(PY) -m pytest -q -n auto --maxprocesses 4 --durations=15
 
 bench: venv
 	$(PY) benchmarks/bench_render.py --report docs/benchmarks.md
