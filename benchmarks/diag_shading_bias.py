@@ -213,31 +213,26 @@ def main() -> int:
     print("| scene | photo | sun elevation | model: median shift (px at 1024) | along the sun | "
           "true surface: median shift | along the sun | area trial from the true pose |" + extra)
     print("|---|---|---|---|---|---|---|---|" + ("---|---|---|" if args.edges else ""))
-    for seed in args.seeds:
-        root = args.cache / f"large-seed{seed}-n8-g3-b2" / f"rough-r{br.ROUGH_VERSION}"
-        model = Scene.load(root / "model" / "outcrop.obj")
-        model.build_engine()
-        bare = br.untextured(model)
-        true_bare = Scene(np.load(root / "model" / "true_vertices.npy"), model.faces,
-                          name="true surface")
-        true_bare.build_engine()
-        for k in args.photos:
-            path = root / "rough_changed_light" / f"IMG_{k:04d}.jpg"
-            truth, photo = load_truth(path), load_photo(path)
-            prior = prior_for_photo(photo, bare)
-            ctx = P._Context(bare, photo.image, truth.intrinsics, params, lambda: None)
-            ctx.sun = prior.sun
-            m_shift, m_along, _ = block_shift(ctx, bare, truth, prior.sun, params)
-            t_shift, t_along, _ = block_shift(ctx, true_bare, truth, prior.sun, params)
-            trial = P.run_to_end(P._run_trial(ctx, 0, truth.pose, params, "diagnostic",
-                                              mode="sunlit", matcher="area", far_start=False))
-            elev = float(np.degrees(np.arcsin(prior.sun[2])))
-            cells = ""
-            if args.edges:
-                cells = " " + " | ".join(_edge_cells(bare, photo, truth, trial.pose)) + " |"
-            print(f"| {seed} | {path.name} | {elev:.0f}° | ({m_shift[0]:+.2f}, {m_shift[1]:+.2f}) "
-                  f"| {m_along:+.2f} | ({t_shift[0]:+.2f}, {t_shift[1]:+.2f}) | {t_along:+.2f} | "
-                  f"{br._trial_cp(trial, truth):.2f} px |{cells}", flush=True)
+    true_bare, true_seed = None, None
+    for seed, root, bare, path, truth, photo, prior in _photos(args):
+        if seed != true_seed:  # the surface the photos were rendered from, once per scene
+            true_bare = Scene(np.load(root / "model" / "true_vertices.npy"), bare.faces,
+                              name="true surface")
+            true_bare.build_engine()
+            true_seed = seed
+        ctx = P._Context(bare, photo.image, truth.intrinsics, params, lambda: None)
+        ctx.sun = prior.sun
+        m_shift, m_along, _ = block_shift(ctx, bare, truth, prior.sun, params)
+        t_shift, t_along, _ = block_shift(ctx, true_bare, truth, prior.sun, params)
+        trial = P.run_to_end(P._run_trial(ctx, 0, truth.pose, params, "diagnostic",
+                                          mode="sunlit", matcher="area", far_start=False))
+        elev = float(np.degrees(np.arcsin(prior.sun[2])))
+        cells = ""
+        if args.edges:
+            cells = " " + " | ".join(_edge_cells(bare, photo, truth, trial.pose)) + " |"
+        print(f"| {seed} | {path.name} | {elev:.0f}° | ({m_shift[0]:+.2f}, {m_shift[1]:+.2f}) "
+              f"| {m_along:+.2f} | ({t_shift[0]:+.2f}, {t_shift[1]:+.2f}) | {t_along:+.2f} | "
+              f"{br._trial_cp(trial, truth):.2f} px |{cells}", flush=True)
     return 0
 
 
@@ -248,23 +243,29 @@ def _load(seed: int, cache: Path):
     return root, br.untextured(model)
 
 
+def _photos(args):
+    """Per chosen photo of the changed-light tier: (seed, root, bare model, path,
+    truth, photo, prior); each scene is loaded once."""
+    for seed in args.seeds:
+        root, bare = _load(seed, args.cache)
+        for k in args.photos:
+            path = root / "rough_changed_light" / f"IMG_{k:04d}.jpg"
+            truth, photo = load_truth(path), load_photo(path)
+            yield seed, root, bare, path, truth, photo, prior_for_photo(photo, bare)
+
+
 def sunshift_main(args, params) -> int:
     print("| scene | photo | sun elev. | blocks near / accepted: median shift vector, along "
           "the sun, median length (px at 1024) | tangent: b, the same after removing b s(x), variance "
           "explained | shadow: same | pose alone RANSAC "
           "(cp px) | pose alone LS | pose + b tangent | pose + b shadow | blocks |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for seed in args.seeds:
-        root, bare = _load(seed, args.cache)
-        for k in args.photos:
-            path = root / "rough_changed_light" / f"IMG_{k:04d}.jpg"
-            truth, photo = load_truth(path), load_photo(path)
-            prior = prior_for_photo(photo, bare)
-            ctx = P._Context(bare, photo.image, truth.intrinsics, params, lambda: None)
-            elev = float(np.degrees(np.arcsin(prior.sun[2])))
-            cells = sunshift_cells(ctx, bare, truth, prior.sun, params)
-            print(f"| {seed} | {path.name} | {elev:.0f}° | " + " | ".join(cells) + " |",
-                  flush=True)
+    for seed, _, bare, path, truth, photo, prior in _photos(args):
+        ctx = P._Context(bare, photo.image, truth.intrinsics, params, lambda: None)
+        elev = float(np.degrees(np.arcsin(prior.sun[2])))
+        cells = sunshift_cells(ctx, bare, truth, prior.sun, params)
+        print(f"| {seed} | {path.name} | {elev:.0f}° | " + " | ".join(cells) + " |",
+              flush=True)
     return 0
 
 
@@ -281,37 +282,32 @@ def sunshift_trials_main(args, params) -> int:
     print("| scene | photo | start | start cp (px) | " + " | ".join(
         f"trial, sun_shift {m}" for m in modes) + " |")
     print("|---|---|---|---|" + "---|" * len(modes))
-    for seed in args.seeds:
-        root, bare = _load(seed, args.cache)
-        for k in args.photos:
-            path = root / "rough_changed_light" / f"IMG_{k:04d}.jpg"
-            truth, photo = load_truth(path), load_photo(path)
-            prior = prior_for_photo(photo, bare)
-            key = f"{seed}/{path.name}"
-            if key not in cache:
-                reg = register(bare, photo.image, prior, params, path.name)
-                cache[key] = {"R": reg.pose.R.tolist(), "t": reg.pose.t.tolist(),
-                              "status": reg.status}
-                if args.poses:
-                    args.poses.write_text(json.dumps(cache, indent=1))
-            own = Pose(np.array(cache[key]["R"]), np.array(cache[key]["t"]))
-            for label, start in (("true", truth.pose), ("pipeline", own)):
-                cells = []
-                for mode in modes:
-                    ctx = P._Context(bare, photo.image, truth.intrinsics, params, lambda: None)
-                    ctx.sun = prior.sun
-                    with SS.patched(mode):
-                        t = P.run_to_end(P._run_trial(ctx, 0, start, params, "diagnostic",
-                                                      mode="sunlit", matcher="area",
-                                                      far_start=False))
-                    b = t.metrics.get("sun_shift_m")
-                    unc = t.uncertainty.reprojection_px if t.uncertainty is not None else None
-                    cells.append(f"{br._trial_cp(t, truth):.2f}"
-                                 + ("" if b is None else f" (b={b:+.2f}, "
-                                    f"ρ={t.metrics.get('sun_shift_confounding')})")
-                                 + ("" if unc is None else f", est {unc:.1f}"))
-                print(f"| {seed} | {path.name} | {label} | {_cp_px(start, truth):.2f} | "
-                      + " | ".join(cells) + " |", flush=True)
+    for seed, _, bare, path, truth, photo, prior in _photos(args):
+        key = f"{seed}/{path.name}"
+        if key not in cache:
+            reg = register(bare, photo.image, prior, params, path.name)
+            cache[key] = {"R": reg.pose.R.tolist(), "t": reg.pose.t.tolist(),
+                          "status": reg.status}
+            if args.poses:
+                args.poses.write_text(json.dumps(cache, indent=1))
+        own = Pose(np.array(cache[key]["R"]), np.array(cache[key]["t"]))
+        for label, start in (("true", truth.pose), ("pipeline", own)):
+            cells = []
+            for mode in modes:
+                ctx = P._Context(bare, photo.image, truth.intrinsics, params, lambda: None)
+                ctx.sun = prior.sun
+                with SS.patched(mode):
+                    t = P.run_to_end(P._run_trial(ctx, 0, start, params, "diagnostic",
+                                                  mode="sunlit", matcher="area",
+                                                  far_start=False))
+                b = t.metrics.get("sun_shift_m")
+                unc = t.uncertainty.reprojection_px if t.uncertainty is not None else None
+                cells.append(f"{br._trial_cp(t, truth):.2f}"
+                             + ("" if b is None else f" (b={b:+.2f}, "
+                                f"ρ={t.metrics.get('sun_shift_confounding')})")
+                             + ("" if unc is None else f", est {unc:.1f}"))
+            print(f"| {seed} | {path.name} | {label} | {_cp_px(start, truth):.2f} | "
+                  + " | ".join(cells) + " |", flush=True)
     return 0
 
 
