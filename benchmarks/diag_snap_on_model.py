@@ -1,4 +1,10 @@
-"""Snapping onto the model's own colour edge (issue 14, measured and not adopted).
+"""Snapping onto the model's own colour edge (issue 14): the first try, superseded.
+
+Shipped since as ``SnapParams.model_reach_px`` (``snap._follow_model``), which
+reads the render with the tracer's own last step instead of :func:`refine_on`
+here (the smoothed gradient's biased peak, one polarity direction for the
+whole trace, every point moved): see ``bench_snap.py`` and the notes in
+``docs/benchmarks.md``. Kept as the record of that first measurement.
 
 Does refining a snapped trace onto the contact as the model's texture shows it,
 rendered from the registered pose and projected back through the same pose,

@@ -341,3 +341,66 @@ def test_the_last_refinement_finds_a_step_whose_surroundings_differ_on_its_two_s
     assert np.median(smoothed_peak[:, 1]) - y0 < -0.15  # towards the ramp: the bias removed
     assert abs(np.median(refined[20:-20, 1]) - y0) < 0.05
     assert np.ptp(refined[20:-20, 1]) < 0.1  # smoothed along the trace
+
+
+def _shifted_row(by: float):
+    return lambda col: _contact_row(col) + by
+
+
+def test_the_trace_follows_the_models_contact_where_the_model_shows_it():
+    """A registered pose 0.8 px off: the model's render shows the contact
+    0.8 px below where the photo does. Followed (``reference``), the trace
+    lies on the render's contact — where the projection finds the model's —
+    to within a few hundredths of a pixel; without it, on the photo's."""
+    photo = _area_image(_contact_row)
+    render = _area_image(_shifted_row(0.8))
+    clicks = np.array([[10.0, _contact_row(np.array(10.0))], [230.0, _contact_row(np.array(230.0))]])
+    alone = snap_trace(photo, clicks)
+    followed = snap_trace(photo, clicks, reference=render)
+    assert _median_offset(alone, _contact_row) < 0.1
+    assert _median_offset(followed, _shifted_row(0.8)) < 0.08
+    # Off by the model's reach (1.5 px) or more: not followed (another edge).
+    far = snap_trace(photo, clicks, reference=_area_image(_shifted_row(2.5)))
+    assert _median_offset(far, _contact_row) < 0.1
+    assert np.allclose(snap_trace(photo, clicks, SnapParams(model_reach_px=0), reference=render),
+                       alone)
+
+
+def test_a_model_that_does_not_show_the_contact_is_not_followed():
+    """The render with the opposite polarity (another contact, a shadow), or
+    with no step at all but its own texture (an untextured model's shading,
+    an intensity blind to the contact): the trace stays on the photo's."""
+    photo = _area_image(_contact_row)
+    clicks = np.array([[10.0, _contact_row(np.array(10.0))], [230.0, _contact_row(np.array(230.0))]])
+    alone = snap_trace(photo, clicks)
+    flipped = _area_image(_shifted_row(0.8), dark_above=False)
+    assert np.allclose(snap_trace(photo, clicks, reference=flipped), alone)
+    rng = np.random.default_rng(5)
+    from scipy import ndimage
+
+    texture = ndimage.gaussian_filter(rng.normal(128, 40, (H, W)), 1.5)
+    texture = np.repeat(np.clip(texture, 0, 255)[..., None], 3, axis=2).astype(np.uint8)
+    assert np.allclose(snap_trace(photo, clicks, reference=texture), alone)
+    with pytest.raises(ValueError, match="render"):
+        snap_trace(photo, clicks, reference=texture[:-1])
+
+
+def test_the_model_reference_is_its_colours_or_none(tmp_path):
+    """A textured model gives its unshaded colours at the photo's size; an
+    untextured one none (its shading is no contact)."""
+    from napari_imgreg import Scene
+    from napari_imgreg.camera import Intrinsics, Pose
+    from napari_imgreg.interpret.snap import model_reference
+
+    verts = np.array([[-50.0, 0, -50], [50, 0, -50], [50, 0, 50], [-50, 0, 50]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0.0, 0], [1, 0], [1, 1], [0, 1]])
+    tex = np.zeros((64, 64, 3), np.uint8)
+    tex[:32] = (200, 150, 100)  # the upper half (v ≥ 0.5) of the texture
+    intr = Intrinsics(80, 60, 60.0, 60.0, 39.5, 29.5)
+    # Looking north (+y) at the wall from 30 m, z up.
+    pose = Pose.from_center(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.array([0, -30.0, 0]))
+    textured = model_reference(Scene(verts, faces, uv=uv, texture=tex), intr, pose)
+    assert textured.shape == (60, 80, 3)
+    assert (textured[5, 40] == (200, 150, 100)).all() and (textured[55, 40] == 0).all()
+    assert model_reference(Scene(verts, faces), intr, pose) is None

@@ -266,6 +266,47 @@ def test_snapped_line_from_two_clicks_follows_the_contact(widget, sample, qtbot)
     assert [len(d) for d in shapes.data][1] == 2
 
 
+def _median_px(line: np.ndarray, contact: np.ndarray) -> float:
+    dense = np.concatenate([np.linspace(a, b, 10, endpoint=False)
+                            for a, b in zip(contact[:-1], contact[1:])])
+    return float(np.median(cKDTree(dense).query(line)[0]))
+
+
+def test_snapping_follows_the_models_contact_from_the_registered_pose(widget, sample, qtbot):
+    """A registered pose 0.06° off (about a pixel, pitched): the model seen
+    from it shows the contact a pixel from where the photo does. Followed,
+    the snapped line lies on the model's contact; unticked, on the photo's."""
+    from napari_imgreg.camera import Pose
+
+    folder, scene, truth = sample
+    px, xyz = _true_bed_on_photo(sample)
+    pt = truth.photos["IMG_0001.jpg"]
+    a = np.radians(0.06)
+    pitch = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    registered = Pose(pitch @ pt.pose.R, pitch @ pt.pose.t)  # turned about its centre
+    photo_layer = widget.viewer.layers["IMG_0001"]
+    photo_layer.metadata["result"]["pose"] = registered.to_dict()
+    model_contact = registered.project(pt.intrinsics, xyz)
+    assert _median_px(px, model_contact) > 0.7
+    widget.snap_check.setChecked(True)
+    shapes = widget.new_interpretation_layer()
+    _draw_by_clicks(shapes, napari_from_pixels(px[[0, -1]]))
+    qtbot.waitUntil(lambda: len(shapes.data) == 1 and len(shapes.data[0]) > 2, timeout=10000)
+    assert "following the model where it shows" in widget.status_label.text()
+    followed = interpretations_from_shapes(shapes)[0].pixels
+    assert _median_px(followed, model_contact) < 0.35 < _median_px(followed, px)
+    widget.follow_model_check.setChecked(False)
+    _draw_by_clicks(shapes, napari_from_pixels(px[[0, -1]]))
+    qtbot.waitUntil(lambda: len(shapes.data) == 2 and len(shapes.data[1]) > 2, timeout=10000)
+    assert "following the model" not in widget.status_label.text()
+    alone = interpretations_from_shapes(shapes)[1].pixels
+    assert _median_px(alone, px) < 0.35 < _median_px(alone, model_contact)
+    # A photo that is not registered (its sensor prior, metres off) is not followed.
+    photo_layer.metadata["result"]["status"] = "not registered"
+    widget.follow_model_check.setChecked(True)
+    assert widget._snap_reference(photo_layer, photo_layer.data) is None
+
+
 def test_choosing_the_next_label_does_not_relabel_the_line_just_drawn(widget):
     """napari leaves a drawn line selected: choosing the label of the next line
     while drawing must not relabel it; with the select tool it relabels."""

@@ -66,9 +66,11 @@ def test_a_hidden_photo_is_drawn_and_snapped_on_at_its_own_pixels(workbench, qtb
     seen_shapes = []
     real = iw.snap_trace
 
-    def spy(image, clicks, params):
+    def spy(image, clicks, params, reference=None):
         seen_shapes.append(image.shape)
-        return real(image, clicks, params)
+        if reference is not None:  # the model's render: the photo's own size too
+            seen_shapes.append(reference.shape)
+        return real(image, clicks, params, reference=reference)
 
     monkeypatch.setattr(iw, "snap_trace", spy)
     assert widget.snap_shape(shapes, 0)

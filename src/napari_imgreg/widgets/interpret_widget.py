@@ -70,7 +70,7 @@ from ..interpret.files import (
     write_measurements_csv,
 )
 from ..interpret.project import LABEL_COLORS, Feature3D, Interpretation, label_color
-from ..interpret.snap import COSTS, SnapParams, snap_trace
+from ..interpret.snap import COSTS, SnapParams, model_reference, snap_trace
 from ..interpret.uncertainty import PoseUncertainty
 from ..interpret.structural import (  # the three-point plane moved there (issue 14); kept importable
     THREE_POINT_MIN_VIEW_ANGLE_DEG,  # noqa: F401
@@ -310,6 +310,9 @@ class InterpretWidget(QWidget):
         self._pose_timer.setSingleShot(True)
         self._pose_timer.setInterval(300)
         self._pose_timer.timeout.connect(lambda: self._say_out_of_date())
+        #: The model rendered from a photo's pose for snapping (:meth:`_snap_reference`):
+        #: ``(key, image)`` of the last one, rendered once per photo and pose.
+        self._reference_cache: tuple[tuple, np.ndarray | None] | None = None
 
         # ---- inputs
         self.photo_combo = QComboBox()
@@ -339,6 +342,13 @@ class InterpretWidget(QWidget):
             "What the snapped line follows: gradient (an edge along the clicks, with their "
             "polarity), colour_edge (any colour boundary), darkness (dark lines: fractures, "
             "partings), brightness (veins), colour (a band of the clicked colour)")
+        self.follow_model_check = QCheckBox("Follow the model")
+        self.follow_model_check.setChecked(True)
+        self.follow_model_check.setToolTip(
+            "gradient on a registered photo: the snapped line is moved (at most 1.5 px) onto "
+            "the contact where the model's own colours show it from the photo's pose, so the "
+            "projected line carries less of the registration's error; where the model does "
+            "not show that contact (an untextured model, another edge) it stays on the photo's")
         self.comment_edit = QLineEdit()
         self.comment_edit.setPlaceholderText("note")
         self.above_edit = QLineEdit()
@@ -368,7 +378,7 @@ class InterpretWidget(QWidget):
         form.addRow("Label", self.label_combo)
         form.addRow("", _row(self.new_label_edit, add_label, stretch=(1, 0)))
         form.addRow("Lines", _row(self.snap_check, self.three_point_check))
-        form.addRow("Snap cost", self.cost_combo)
+        form.addRow("Snap cost", _row(self.cost_combo, self.follow_model_check))
         form.addRow("Note", self.comment_edit)
         form.addRow("Units", _row(self.above_edit, self.below_edit))
         form.addRow("Contact", _row(self.contact_edit, apply_text, stretch=(1, 0)))
@@ -736,8 +746,55 @@ class InterpretWidget(QWidget):
             self._say_out_of_date(edited=True)  # the table and the exports are older
 
     def snap_params(self) -> SnapParams:
-        """The snapping settings the widget uses (the chosen cost, defaults otherwise)."""
-        return SnapParams(cost=self.cost_combo.currentText() or "gradient")
+        """The snapping settings the widget uses (the chosen cost, whether to
+        follow the model, defaults otherwise)."""
+        follow = SnapParams.model_reach_px if self.follow_model_check.isChecked() else 0.0
+        return SnapParams(cost=self.cost_combo.currentText() or "gradient",
+                          model_reach_px=follow)
+
+    def _registered_camera(self, photo_layer) -> tuple[Intrinsics, Pose] | None:
+        """The camera and pose of a photo layer when they are a registration's
+        (not a sensor prior, metres off): the workspace's photo when it is
+        registered or accepted, else the layer's registration or RESULT.json."""
+        ps = self._photo_state(photo_layer)
+        if ps is not None:
+            ws = self.workspace
+            if ws.photo_status(ps) in ("registered", "accepted"):
+                return ps.intrinsics, ps.pose
+            return None
+        meta = photo_layer.metadata or {}
+        reg = meta.get("imgreg_registration")
+        result = meta.get("result")
+        if reg is not None and getattr(reg, "status", "registered") != "registered":
+            return None
+        if reg is None and isinstance(result, dict) and result.get("status") != "registered":
+            return None
+        cam = camera_of_layer(photo_layer)
+        return None if cam is None else (cam[0], cam[1])
+
+    def _snap_reference(self, photo_layer, image: np.ndarray) -> np.ndarray | None:
+        """The model's own colours from the photo's registered pose, the
+        photo's size, for following the model's contact (None: not followed).
+
+        Rendered on the first snap on a photo and pose (0.3–0.5 s for a
+        1.2 M-triangle model at 1632×1224), then reused.
+        """
+        params = self.snap_params()
+        scene = self.scene
+        if params.model_reach_px <= 0 or params.cost != "gradient" or scene is None:
+            return None
+        cam = self._registered_camera(photo_layer)
+        if cam is None or (cam[0].height, cam[0].width) != image.shape[:2]:
+            return None
+        intr, pose = cam
+        key = (id(scene), json.dumps(intr.to_dict(), sort_keys=True), pose.matrix.tobytes())
+        if self._reference_cache is None or self._reference_cache[0] != key:
+            try:
+                reference = model_reference(scene, intr, pose)
+            except (InputError, ValueError):
+                reference = None  # snapped on the photo alone
+            self._reference_cache = (key, reference)
+        return self._reference_cache[1]
 
     def snap_shape(self, layer, index: int) -> bool:
         """Replace path ``index`` of an interpretation layer by its snapped trace.
@@ -763,8 +820,9 @@ class InterpretWidget(QWidget):
                            "show the photo and snap again.")
                 return False
         clicks = pixels_from_napari(np.asarray(layer.data[index])[:, -2:])
+        reference = self._snap_reference(photo_layer, image)
         try:
-            px = snap_trace(image, clicks, self.snap_params())
+            px = snap_trace(image, clicks, self.snap_params(), reference=reference)
         except ValueError as exc:
             self._fail(f"Not snapped: {exc}.")
             return False
@@ -777,8 +835,10 @@ class InterpretWidget(QWidget):
         self._keep_in_workspace(layer)
         self.status_label.setText(
             f"Snapped: {len(clicks)} clicks -> {len(px)} vertices along the contact "
-            f"({self.snap_params().cost}). Edit it with the vertex tools, or remove it "
-            "(select tool, then Delete) and click again.")
+            f"({self.snap_params().cost}"
+            f"{'; following the model where it shows the contact' if reference is not None else ''}"
+            "). Edit it with the vertex tools, or remove it (select tool, then Delete) and "
+            "click again.")
         self.status_label.setStyleSheet("")
         return True
 
