@@ -289,6 +289,9 @@ def test_snapping_follows_the_models_contact_from_the_registered_pose(widget, sa
     model_contact = registered.project(pt.intrinsics, xyz)
     assert _median_px(px, model_contact) > 0.7
     widget.snap_check.setChecked(True)
+    # Rendered ahead, in the background, once snapping is on.
+    qtbot.waitUntil(lambda: widget._reference_cache is not None, timeout=10000)
+    assert widget._reference_cache[1].shape == (pt.intrinsics.height, pt.intrinsics.width, 3)
     shapes = widget.new_interpretation_layer()
     _draw_by_clicks(shapes, napari_from_pixels(px[[0, -1]]))
     qtbot.waitUntil(lambda: len(shapes.data) == 1 and len(shapes.data[0]) > 2, timeout=10000)

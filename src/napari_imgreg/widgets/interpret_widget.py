@@ -33,6 +33,7 @@ stands alone.
 from __future__ import annotations
 
 import json
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -313,6 +314,8 @@ class InterpretWidget(QWidget):
         #: The model rendered from a photo's pose for snapping (:meth:`_snap_reference`):
         #: ``(key, image)`` of the last one, rendered once per photo and pose.
         self._reference_cache: tuple[tuple, np.ndarray | None] | None = None
+        #: The thread rendering it ahead (:meth:`_prepare_snap_reference`), when one runs.
+        self._reference_thread: threading.Thread | None = None
 
         # ---- inputs
         self.photo_combo = QComboBox()
@@ -443,6 +446,11 @@ class InterpretWidget(QWidget):
         add_label.clicked.connect(self._add_label_clicked)
         apply_text.clicked.connect(lambda: self.set_selected_text())
         self.snap_check.toggled.connect(self._snap_toggled)
+        for signal in (self.snap_check.toggled, self.follow_model_check.toggled,
+                       self.cost_combo.currentTextChanged, self.photo_combo.currentTextChanged,
+                       self.surface_combo.currentTextChanged):
+            # Once the change has settled (a photo chosen also picks its model).
+            signal.connect(lambda *_args: QTimer.singleShot(0, self._prepare_snap_reference))
         self.three_point_check.toggled.connect(self._snap_toggled)
         self.label_combo.currentTextChanged.connect(self._label_changed)
         load_button.clicked.connect(self._load_dialog)
@@ -772,29 +780,70 @@ class InterpretWidget(QWidget):
         cam = camera_of_layer(photo_layer)
         return None if cam is None else (cam[0], cam[1])
 
+    def _reference_source(self, photo_layer) -> tuple | None:
+        """What the model's view for following it is rendered from: ``(key,
+        scene, intrinsics, pose)``, or None when snapping does not follow the
+        model (unticked, another cost, no model, a photo not registered)."""
+        params = self.snap_params()
+        scene = self.scene
+        if (params.model_reach_px <= 0 or params.cost != "gradient" or scene is None
+                or photo_layer is None):
+            return None
+        cam = self._registered_camera(photo_layer)
+        if cam is None:
+            return None
+        intr, pose = cam
+        key = (id(scene), json.dumps(intr.to_dict(), sort_keys=True), pose.matrix.tobytes())
+        return key, scene, intr, pose
+
+    def _render_reference(self, key: tuple, scene, intr: Intrinsics, pose: Pose) -> None:
+        """Render the model's own colours from a pose into the one-entry cache
+        (any thread: the cache is replaced in one assignment)."""
+        try:
+            reference = model_reference(scene, intr, pose)
+        except (InputError, ValueError):
+            reference = None  # snapped on the photo alone
+        self._reference_cache = (key, reference)
+
+    def _prepare_snap_reference(self, *_args) -> None:
+        """While snapping is on, render the model from the chosen photo's
+        registered pose in a background thread, so that the first snap on a
+        photo does not wait for it (0.1–0.5 s for a mesh, 1–3 s for a large
+        point cloud). One at a time; a snap that finds none ready renders it."""
+        if not self.snap_check.isChecked():
+            return
+        source = self._reference_source(self.photo_layer)
+        if source is None or (self._reference_cache is not None
+                              and self._reference_cache[0] == source[0]):
+            return
+        running = self._reference_thread
+        if running is not None and running.is_alive():
+            return
+        # A plain daemon thread, not a job: nothing the user waits for yet (no
+        # busy state or progress bar), and a render needs no cancel.
+        self._reference_thread = threading.Thread(
+            target=self._render_reference, args=source, name="imgreg-snap-reference", daemon=True)
+        self._reference_thread.start()
+
     def _snap_reference(self, photo_layer, image: np.ndarray) -> np.ndarray | None:
         """The model's own colours from the photo's registered pose, the
         photo's size, for following the model's contact (None: not followed).
 
-        Rendered on the first snap on a photo and pose (0.3–0.5 s for a
-        1.2 M-triangle model at 1632×1224), then reused.
+        Rendered once per photo and pose (ahead, by :meth:`_prepare_snap_reference`,
+        or here on the first snap), then reused.
         """
-        params = self.snap_params()
-        scene = self.scene
-        if params.model_reach_px <= 0 or params.cost != "gradient" or scene is None:
+        source = self._reference_source(photo_layer)
+        if source is None:
             return None
-        cam = self._registered_camera(photo_layer)
-        if cam is None or (cam[0].height, cam[0].width) != image.shape[:2]:
+        running = self._reference_thread
+        if running is not None and running.is_alive():
+            running.join()  # most likely this photo's, started when it was chosen
+        if self._reference_cache is None or self._reference_cache[0] != source[0]:
+            self._render_reference(*source)
+        reference = self._reference_cache[1]
+        if reference is None or reference.shape[:2] != image.shape[:2]:
             return None
-        intr, pose = cam
-        key = (id(scene), json.dumps(intr.to_dict(), sort_keys=True), pose.matrix.tobytes())
-        if self._reference_cache is None or self._reference_cache[0] != key:
-            try:
-                reference = model_reference(scene, intr, pose)
-            except (InputError, ValueError):
-                reference = None  # snapped on the photo alone
-            self._reference_cache = (key, reference)
-        return self._reference_cache[1]
+        return reference
 
     def snap_shape(self, layer, index: int) -> bool:
         """Replace path ``index`` of an interpretation layer by its snapped trace.
