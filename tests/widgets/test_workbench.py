@@ -156,6 +156,19 @@ def test_the_docks_are_views_of_the_workspace(workbench, qtbot):
         iw.project()
     assert ws.features_3d == iw.features and ws.features_3d[0].source == "IMG_0002.jpg"
     assert ws.measurements == iw.measurements
+    # Snapping follows the model only from a registered (or accepted) pose.
+    photo_layer = iw.photo_layer
+    registered = ws.photo_status(ws.current) in ("registered", "accepted")
+    assert (iw._registered_camera(photo_layer) is not None) == registered
+    ws.accept()
+    intr, pose = iw._registered_camera(photo_layer)
+    assert pose is ws.current.pose and intr is ws.current.intrinsics
+    iw.snap_check.setChecked(True)
+    qtbot.waitUntil(lambda: iw._reference_cache is not None, timeout=20_000)
+    image = np.asarray(photo_layer.data)
+    reference = iw._snap_reference(photo_layer, image)
+    assert reference is not None and reference.shape[:2] == image.shape[:2]
+    iw.snap_check.setChecked(False)
 
     # An unverified pose with a high Q: the banner says why it is only fair.
     from napari_imgreg.registration.round import Trial
