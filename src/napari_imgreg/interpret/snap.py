@@ -667,9 +667,13 @@ def _follow_model(photo_lum: np.ndarray, model_lum: np.ndarray, px: np.ndarray,
     ``params.model_reach_px``) puts the projected line on the contact as the
     model has it. Only where the render steps the way the photo does along
     the trace (same polarity on at least :data:`MODEL_MIN_AGREEMENT` of the
-    points, both read just beyond the reach): an untextured model's shading,
-    an intensity that does not show the contact or another edge nearby leave
-    the trace where the photo put it.
+    points, both read just beyond the reach): an intensity or a texture that
+    does not show the contact, or shows another contact there (the other
+    side of a bed), leaves the trace where the photo put it; so does a point
+    whose steepest step lies at the reach's edge. A render of grey shading
+    passes this test on a third of the snapping benchmark's traces (the
+    photo's own shading agrees with it), which is why :func:`model_reference`
+    gives no render of an untextured model.
 
     Parameters
     ----------
