@@ -231,8 +231,7 @@ def _figures(rs: list[dict], suffix: str) -> dict:
     out = {"p": p, "s": s, "h": hd, "e": e, "a": a, "ratio": float(np.median(s) / np.median(p)),
            "alone_ratio": float(np.median(a) / np.median(p)),
            "edge_ratio": float(np.median(e) / np.median(p)),
-           "vs_edge": float(np.median(a) / np.median(e)),
-           "vs_hand": float(np.median(s) / np.median(hd))}
+           "vs_edge": float(np.median(a) / np.median(e))}
     if suffix == "_r":
         pf = np.concatenate([r["perfect_followed_r"] for r in rs])
         out["followed_ratio"] = float(np.median(pf) / np.median(p))
