@@ -404,3 +404,25 @@ def test_the_model_reference_is_its_colours_or_none(tmp_path):
     assert textured.shape == (60, 80, 3)
     assert (textured[5, 40] == (200, 150, 100)).all() and (textured[55, 40] == 0).all()
     assert model_reference(Scene(verts, faces), intr, pose) is None
+
+
+def test_a_point_clouds_reference_is_its_intensity():
+    """A scan with intensity gives its intensity as grey (the beds show);
+    bare points give none."""
+    from napari_imgreg.camera import Intrinsics, Pose
+    from napari_imgreg.cloud import CloudScene
+    from napari_imgreg.interpret.snap import model_reference
+
+    rng = np.random.default_rng(2)
+    xz = rng.uniform(-5, 5, (60_000, 2))
+    xyz = np.c_[xz[:, 0], np.zeros(len(xz)), xz[:, 1]]  # a wall in the x–z plane
+    upper = xyz[:, 2] > 0.0
+    intr = Intrinsics(80, 60, 60.0, 60.0, 39.5, 29.5)
+    pose = Pose.from_center(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]), np.array([0, -8.0, 0]))
+    scan = CloudScene(xyz, intensity=np.where(upper, 0.9, 0.2), name="wall",
+                      viewpoints=np.array([[0.0, -8.0, 0.0]]))
+    reference = model_reference(scan, intr, pose)
+    assert reference.shape == (60, 80, 3)
+    assert reference[10, 40, 0] > reference[50, 40, 0] + 60  # the bright bed above
+    bare = CloudScene(xyz, name="bare", viewpoints=np.array([[0.0, -8.0, 0.0]]))
+    assert model_reference(bare, intr, pose) is None
