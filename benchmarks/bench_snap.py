@@ -121,17 +121,24 @@ def _offset_px(perfect: np.ndarray, traced: np.ndarray) -> float:
     return float(np.median(cKDTree(_dense(perfect, 4.0)).query(_dense(traced, 4.0))[0]))
 
 
+def load_scene(size: str):
+    """A sample scene for the snapping figures: its truth, the scene with its
+    ray engine, and a KD-tree of each true 3D trace (every 1 m)."""
+    folder = sample_scene(size)
+    truth = load_truth(folder)
+    scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
+    scene.build_engine()
+    trees = [cKDTree(_dense(np.asarray(f["geometry"]["coordinates"], np.float64)))
+             for f in truth.lines["features"]]
+    return truth, scene, trees
+
+
 def run(sizes: list[str], photos_limit: int | None, cost: str,
         params: SnapParams | None = None) -> list[dict]:
     rows = []
     params = params or SnapParams(cost=cost)
     for size in sizes:
-        folder = sample_scene(size)
-        truth = load_truth(folder)
-        scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
-        scene.build_engine()
-        trees = [cKDTree(_dense(np.asarray(f["geometry"]["coordinates"], np.float64)))
-                 for f in truth.lines["features"]]
+        truth, scene, trees = load_scene(size)
         names = sorted(truth.photos)[:photos_limit] if photos_limit else sorted(truth.photos)
         for name in names:
             pt = truth.photos[name]

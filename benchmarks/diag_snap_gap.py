@@ -32,17 +32,14 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).parent))
 
 import bench_snap as bs  # noqa: E402
-from bench_interpret import _dense, _register, drawn_lines  # noqa: E402
-from napari_imgreg import Scene  # noqa: E402
+from bench_interpret import _register, drawn_lines  # noqa: E402
 from napari_imgreg.interpret import snap as S  # noqa: E402
 from napari_imgreg.interpret.project import Interpretation  # noqa: E402
 from napari_imgreg.io.photos import load_photo  # noqa: E402
-from napari_imgreg.sample import load_truth, sample_scene  # noqa: E402
 
 
 def _both_polarities(image: np.ndarray, ends: np.ndarray, params: S.SnapParams):
@@ -84,12 +81,7 @@ def main() -> int:
           "from 0.3 px to one side | to the other |")
     print("|---|---|---|---|---|---|---|---|")
     for size in args.sizes:
-        folder = sample_scene(size)
-        truth = load_truth(folder)
-        scene = Scene.load(folder / "outcrop.obj", dem=folder / "dem.tif")
-        scene.build_engine()
-        trees = [cKDTree(_dense(np.asarray(f["geometry"]["coordinates"], np.float64)))
-                 for f in truth.lines["features"]]
+        truth, scene, trees = bs.load_scene(size)
         dist = {key: [] for key in ("perfect", "snapped", "no_strays", "hindsight",
                                     "edge0", "edge+", "edge-")}
         off_shipped, off_hindsight = [], []

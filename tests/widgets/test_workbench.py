@@ -168,6 +168,11 @@ def test_the_docks_are_views_of_the_workspace(workbench, qtbot):
     image = np.asarray(photo_layer.data)
     reference = iw._snap_reference(photo_layer, image)
     assert reference is not None and reference.shape[:2] == image.shape[:2]
+    # A new pose (here nudged, then accepted): its view is rendered ahead once the edits pause.
+    ws.nudge(d_trend=0.05)
+    ws.accept()
+    key = iw._reference_source(photo_layer)[0]
+    qtbot.waitUntil(lambda: iw._reference_cache[0] == key, timeout=20_000)
     iw.snap_check.setChecked(False)
 
     # An unverified pose with a high Q: the banner says why it is only fair.

@@ -470,14 +470,15 @@ def snap_trace(image: np.ndarray, clicks: np.ndarray, params: SnapParams = SnapP
     local_clicks = clicks - (c0, r0)
     if params.cost == "gradient" and params.oriented:
         px = _snap_oriented(sub, local_clicks, params)
+        lum = _gray(_unit(sub))
         if params.subpixel and params.refine_reach_px > 0:
-            px = _refine_across(_gray(_unit(sub)), px, params)
+            px = _refine_across(lum, px, params)
         if reference is not None and params.subpixel and params.model_reach_px > 0:
             ref = np.asarray(reference)
             if ref.shape[:2] != (h, w):
                 raise ValueError(f"the model's render is {ref.shape[1]}×{ref.shape[0]} px, "
                                  f"the photo {w}×{h} px")
-            px = _follow_model(_gray(_unit(sub)), _gray(_unit(ref[r0:r1, c0:c1])), px, params)
+            px = _follow_model(lum, _gray(_unit(ref[r0:r1, c0:c1])), px, params)
         px = px + (c0, r0)
     else:
         ref = None

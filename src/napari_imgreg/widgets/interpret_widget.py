@@ -311,6 +311,7 @@ class InterpretWidget(QWidget):
         self._pose_timer.setSingleShot(True)
         self._pose_timer.setInterval(300)
         self._pose_timer.timeout.connect(lambda: self._say_out_of_date())
+        self._pose_timer.timeout.connect(lambda: self._prepare_snap_reference())
         #: The model rendered from a photo's pose for snapping (:meth:`_snap_reference`):
         #: ``(key, image)`` of the last one, rendered once per photo and pose.
         self._reference_cache: tuple[tuple, np.ndarray | None] | None = None
@@ -705,8 +706,9 @@ class InterpretWidget(QWidget):
                 "Project again.")
 
     def _pose_edited(self, *_args) -> None:
-        """A photo's pose changed: once the edits pause, say what that made out of date."""
-        if self.features or self.measurements:
+        """A photo's pose changed: once the edits pause, say what that made out
+        of date and render the model's view for snapping from the new pose."""
+        if self.features or self.measurements or self.snap_check.isChecked():
             self._pose_timer.start()
 
     def _say_out_of_date(self, *_args, edited: bool = False) -> None:
@@ -1132,6 +1134,7 @@ class InterpretWidget(QWidget):
             layer.metadata["result"] = data
             self.status_label.setText(f"{layer.name}: registration from {Path(path).name}.")
             self.status_label.setStyleSheet("")
+            self._prepare_snap_reference()  # a registered pose: the model's view for snapping
             return kind
         # Not "registered": the pose's expected error is the sensor prior's (50 px, 5 m, 3°).
         layer.metadata["result"] = {"status": "prior", "photo": photo or layer.name,
