@@ -307,7 +307,44 @@ def test_snapping_follows_the_models_contact_from_the_registered_pose(widget, sa
     # A photo that is not registered (its sensor prior, metres off) is not followed.
     photo_layer.metadata["result"]["status"] = "not registered"
     widget.follow_model_check.setChecked(True)
-    assert widget._snap_reference(photo_layer, photo_layer.data) is None
+    assert widget._snap_reference(photo_layer, photo_layer.data) == (None, False)
+
+
+def test_a_snap_never_waits_for_the_models_view(widget, sample, qtbot, monkeypatch):
+    """A line snapped while the model's view is still rendering (seconds for a
+    large point cloud) is placed at once on the photo alone, without waiting on
+    the GUI thread, and follows the model's contact when the render is ready."""
+    import time
+
+    from napari_imgreg.camera import Pose
+    from napari_imgreg.widgets import interpret_widget as module
+
+    folder, scene, truth = sample
+    px, xyz = _true_bed_on_photo(sample)
+    pt = truth.photos["IMG_0001.jpg"]
+    a = np.radians(0.06)
+    pitch = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    registered = Pose(pitch @ pt.pose.R, pitch @ pt.pose.t)
+    widget.viewer.layers["IMG_0001"].metadata["result"]["pose"] = registered.to_dict()
+    model_contact = registered.project(pt.intrinsics, xyz)
+    real = module.model_reference
+    monkeypatch.setattr(module, "model_reference",
+                        lambda *args: (time.sleep(3.0), real(*args))[1])  # a slow render
+    widget.snap_check.setChecked(True)
+    qtbot.waitUntil(lambda: widget._reference_thread is not None, timeout=5000)
+    shapes = widget.new_interpretation_layer()
+    start = time.perf_counter()
+    _draw_by_clicks(shapes, napari_from_pixels(px[[0, -1]]))
+    qtbot.waitUntil(lambda: len(shapes.data) == 1 and len(shapes.data[0]) > 2, timeout=10000)
+    assert time.perf_counter() - start < 2.0 and widget._reference_thread.is_alive()
+    assert "still rendering" in widget.status_label.text()
+    first = interpretations_from_shapes(shapes)[0].pixels
+    assert _median_px(first, px) < 0.35 < _median_px(first, model_contact)  # the photo's
+    # Then, once rendered, the line follows the model's contact.
+    qtbot.waitUntil(lambda: "now follows the model" in widget.status_label.text(), timeout=15000)
+    followed = interpretations_from_shapes(shapes)[0].pixels
+    assert _median_px(followed, model_contact) < 0.35 < _median_px(followed, px)
+    assert widget._pending_follow == []
 
 
 def test_choosing_the_next_label_does_not_relabel_the_line_just_drawn(widget):

@@ -166,8 +166,8 @@ def test_the_docks_are_views_of_the_workspace(workbench, qtbot):
     iw.snap_check.setChecked(True)
     qtbot.waitUntil(lambda: iw._reference_cache is not None, timeout=20_000)
     image = np.asarray(photo_layer.data)
-    reference = iw._snap_reference(photo_layer, image)
-    assert reference is not None and reference.shape[:2] == image.shape[:2]
+    reference, pending = iw._snap_reference(photo_layer, image)
+    assert not pending and reference is not None and reference.shape[:2] == image.shape[:2]
     # A new pose (here nudged, then accepted): its view is rendered ahead once the edits pause.
     ws.nudge(d_trend=0.05)
     ws.accept()

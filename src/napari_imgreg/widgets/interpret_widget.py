@@ -289,6 +289,8 @@ class InterpretWidget(QWidget):
 
     projection_done = Signal(object)  # list of Feature3D
     projection_failed = Signal(str)
+    #: The model's view for snapping has been rendered (emitted from its thread).
+    _reference_rendered = Signal()
 
     def __init__(self, napari_viewer: napari.viewer.Viewer, parent: QWidget | None = None, *,
                  workspace: Workspace | None = None) -> None:
@@ -317,6 +319,10 @@ class InterpretWidget(QWidget):
         self._reference_cache: tuple[tuple, np.ndarray | None] | None = None
         #: The thread rendering it ahead (:meth:`_prepare_snap_reference`), when one runs.
         self._reference_thread: threading.Thread | None = None
+        #: Traces snapped while that view was still rendering, to follow the model
+        #: once it is ready: ``(layer, index, clicks, image, snapped data)``.
+        self._pending_follow: list[tuple] = []
+        self._reference_rendered.connect(self._on_reference_rendered)
 
         # ---- inputs
         self.photo_combo = QComboBox()
@@ -799,53 +805,103 @@ class InterpretWidget(QWidget):
         return key, scene, intr, pose
 
     def _render_reference(self, key: tuple, scene, intr: Intrinsics, pose: Pose) -> None:
-        """Render the model's own colours from a pose into the one-entry cache
-        (any thread: the cache is replaced in one assignment)."""
+        """Render the model's own colours from a pose into the one-entry cache,
+        in the reference thread (the cache is replaced in one assignment), then
+        say so to the GUI thread (:meth:`_on_reference_rendered`)."""
         try:
             reference = model_reference(scene, intr, pose)
         except (InputError, ValueError):
             reference = None  # snapped on the photo alone
         self._reference_cache = (key, reference)
+        try:
+            self._reference_rendered.emit()  # queued to the GUI thread
+        except RuntimeError:  # the widget was closed meanwhile
+            pass
 
-    def _prepare_snap_reference(self, *_args) -> None:
-        """While snapping is on, render the model from the chosen photo's
-        registered pose in a background thread, so that the first snap on a
-        photo does not wait for it (0.1–0.5 s for a mesh, 1–3 s for a large
-        point cloud). One at a time; a snap that finds none ready renders it."""
-        if not self.snap_check.isChecked():
-            return
-        source = self._reference_source(self.photo_layer)
+    def _start_reference_render(self, source: tuple | None) -> bool:
+        """Render the model's view of ``source`` (:meth:`_reference_source`) in a
+        background thread unless it is cached or another render runs (one at a
+        time; the next starts when it ends). Returns whether it is on the way."""
         if source is None or (self._reference_cache is not None
                               and self._reference_cache[0] == source[0]):
-            return
+            return False
         running = self._reference_thread
         if running is not None and running.is_alive():
-            return
+            return True
         # A plain daemon thread, not a job: nothing the user waits for yet (no
         # busy state or progress bar), and a render needs no cancel.
         self._reference_thread = threading.Thread(
             target=self._render_reference, args=source, name="imgreg-snap-reference", daemon=True)
         self._reference_thread.start()
+        return True
 
-    def _snap_reference(self, photo_layer, image: np.ndarray) -> np.ndarray | None:
+    def _prepare_snap_reference(self, *_args) -> None:
+        """While snapping is on, render the model from the chosen photo's
+        registered pose in a background thread, so that the first snap on a
+        photo does not wait for it (0.1–0.5 s for a mesh, 1–3 s for a large
+        point cloud)."""
+        if self.snap_check.isChecked():
+            self._start_reference_render(self._reference_source(self.photo_layer))
+
+    def _snap_reference(self, photo_layer, image: np.ndarray) -> tuple[np.ndarray | None, bool]:
         """The model's own colours from the photo's registered pose, the
-        photo's size, for following the model's contact (None: not followed).
+        photo's size, for following the model's contact, and whether it is
+        still rendering.
 
         Rendered once per photo and pose (ahead, by :meth:`_prepare_snap_reference`,
-        or here on the first snap), then reused.
+        or started here), then reused. Never waits for a render: ``(None, True)``
+        means the trace is snapped on the photo alone for now and should follow
+        the model once the render is ready; ``(None, False)``, never followed.
         """
         source = self._reference_source(photo_layer)
         if source is None:
-            return None
-        running = self._reference_thread
-        if running is not None and running.is_alive():
-            running.join()  # most likely this photo's, started when it was chosen
-        if self._reference_cache is None or self._reference_cache[0] != source[0]:
-            self._render_reference(*source)
-        reference = self._reference_cache[1]
+            return None, False
+        cache = self._reference_cache
+        if cache is None or cache[0] != source[0]:
+            self._start_reference_render(source)
+            return None, True
+        reference = cache[1]
         if reference is None or reference.shape[:2] != image.shape[:2]:
-            return None
-        return reference
+            return None, False
+        return reference, False
+
+    def _on_reference_rendered(self) -> None:
+        """A render of the model's view has ended (GUI thread): traces snapped
+        while it was on the way now follow the model, unless they were edited
+        or removed since; then the view of the photo chosen now, if that
+        changed meanwhile, is rendered in turn."""
+        waiting = []
+        for item in self._pending_follow:
+            layer, index, clicks, image, snapped = item
+            if (index >= len(layer.data) or not np.array_equal(layer.data[index], snapped)
+                    or layer.metadata.get(INTERP_KEY) not in self.viewer.layers):
+                continue  # edited, removed, or its photo closed: left as it is
+            photo_layer = self.viewer.layers[layer.metadata[INTERP_KEY]]
+            reference, pending = self._snap_reference(photo_layer, image)
+            if pending:
+                waiting.append(item)
+            elif reference is not None:
+                try:
+                    px = snap_trace(image, clicks, self.snap_params(), reference=reference)
+                except ValueError:
+                    continue
+                self._set_snapped(layer, index, px)
+                self.status_label.setText(
+                    "The model's view is ready: the line just snapped now follows the "
+                    "model where it shows the contact.")
+                self.status_label.setStyleSheet("")
+        self._pending_follow = waiting
+        self._prepare_snap_reference()
+
+    def _set_snapped(self, layer, index: int, px: np.ndarray) -> None:
+        """Put a snapped trace (pixels, (N, 2)) in place of path ``index``."""
+        data = list(layer.data)
+        data[index] = napari_from_pixels(px)
+        features = layer.features.copy()
+        layer.data = data
+        layer.features = features
+        self._reset_defaults(layer)
+        self._keep_in_workspace(layer)
 
     def snap_shape(self, layer, index: int) -> bool:
         """Replace path ``index`` of an interpretation layer by its snapped trace.
@@ -871,25 +927,22 @@ class InterpretWidget(QWidget):
                            "show the photo and snap again.")
                 return False
         clicks = pixels_from_napari(np.asarray(layer.data[index])[:, -2:])
-        reference = self._snap_reference(photo_layer, image)
+        reference, pending = self._snap_reference(photo_layer, image)
         try:
             px = snap_trace(image, clicks, self.snap_params(), reference=reference)
         except ValueError as exc:
             self._fail(f"Not snapped: {exc}.")
             return False
-        data = list(layer.data)
-        data[index] = napari_from_pixels(px)
-        features = layer.features.copy()
-        layer.data = data
-        layer.features = features
-        self._reset_defaults(layer)
-        self._keep_in_workspace(layer)
+        self._set_snapped(layer, index, px)
+        if pending:  # follows the model when its view is ready (_on_reference_rendered)
+            self._pending_follow.append((layer, index, clicks, image, layer.data[index]))
+        follow = ("; following the model where it shows the contact" if reference is not None
+                  else "; the model's view is still rendering: the line will follow the "
+                       "model's contact when it is ready" if pending else "")
         self.status_label.setText(
             f"Snapped: {len(clicks)} clicks -> {len(px)} vertices along the contact "
-            f"({self.snap_params().cost}"
-            f"{'; following the model where it shows the contact' if reference is not None else ''}"
-            "). Edit it with the vertex tools, or remove it (select tool, then Delete) and "
-            "click again.")
+            f"({self.snap_params().cost}{follow}). Edit it with the vertex tools, or remove "
+            "it (select tool, then Delete) and click again.")
         self.status_label.setStyleSheet("")
         return True
 
