@@ -808,15 +808,17 @@ class InterpretWidget(QWidget):
         """Render the model's own colours from a pose into the one-entry cache,
         in the reference thread (the cache is replaced in one assignment), then
         say so to the GUI thread (:meth:`_on_reference_rendered`)."""
+        reference = None  # none: snapped on the photo alone
         try:
             reference = model_reference(scene, intr, pose)
         except (InputError, ValueError):
-            reference = None  # snapped on the photo alone
-        self._reference_cache = (key, reference)
-        try:
-            self._reference_rendered.emit()  # queued to the GUI thread
-        except RuntimeError:  # the widget was closed meanwhile
             pass
+        finally:  # even after an unexpected error, so that no trace waits for ever
+            self._reference_cache = (key, reference)
+            try:
+                self._reference_rendered.emit()  # queued to the GUI thread
+            except RuntimeError:  # the widget was closed meanwhile
+                pass
 
     def _start_reference_render(self, source: tuple | None) -> bool:
         """Render the model's view of ``source`` (:meth:`_reference_source`) in a
