@@ -333,10 +333,9 @@ def test_a_snap_never_waits_for_the_models_view(widget, sample, qtbot, monkeypat
     widget.snap_check.setChecked(True)
     qtbot.waitUntil(lambda: widget._reference_thread is not None, timeout=5000)
     shapes = widget.new_interpretation_layer()
-    start = time.perf_counter()
     _draw_by_clicks(shapes, napari_from_pixels(px[[0, -1]]))
     qtbot.waitUntil(lambda: len(shapes.data) == 1 and len(shapes.data[0]) > 2, timeout=10000)
-    assert time.perf_counter() - start < 2.0 and widget._reference_thread.is_alive()
+    assert widget._reference_thread.is_alive()  # placed while the render still runs
     assert "still rendering" in widget.status_label.text()
     first = interpretations_from_shapes(shapes)[0].pixels
     assert _median_px(first, px) < 0.35 < _median_px(first, model_contact)  # the photo's
