@@ -183,6 +183,10 @@ def main() -> None:
                 if 200 < length < 450 and (best is None or bend > best[1]):
                     best = (px, bend)
         iw.snap_check.setChecked(True)
+        for _ in range(200):  # the model's view, rendered ahead, for the snap to follow
+            if iw._reference_cache is not None:
+                break
+            pump(0.05)
         shapes = iw.new_interpretation_layer()
         clicks = best[0][[0, -1]]
         shapes.add(napari_from_pixels(clicks), shape_type="path")
