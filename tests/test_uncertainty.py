@@ -422,6 +422,27 @@ def test_a_pose_matched_on_synthetic_light_gets_a_hint_that_says_so():
     assert not any("halves of the photo disagree" in h for h in trial.hints)
 
 
+def test_the_hint_of_an_uncertain_pose_names_its_likely_cause():
+    """Halves that disagree on a render's synthetic light (a bare mesh: the
+    shared error is most of the estimate) say that the computed sun is the
+    likely cause and what reduces it; on photographed colours they point to
+    the overlay and control points."""
+    from napari_imgreg.registration.round import uncertainty_hint
+
+    bare = uncertainty_hint(Uncertainty(6.8, 1.8, 1.3, 4, halves_px=6.5, shared_px=6.5), W)
+    assert "halves of the photo disagree" in bare and "computed sun" in bare
+    assert "expected error ≈ 6.8 px" in bare and "capture time" in bare
+    textured = uncertainty_hint(Uncertainty(6.8, 1.8, 1.3, 4, halves_px=6.5, shared_px=0.0), W)
+    assert "halves of the photo disagree" in textured and "computed sun" not in textured
+    assert "Check the overlay" in textured
+    shared = uncertainty_hint(Uncertainty(4.6, 0.8, 0.3, 4, halves_px=2.0, shared_px=4.4), W)
+    assert "synthetic light" in shared and "halves" not in shared
+    loose = uncertainty_hint(Uncertainty(4.6, 0.8, 0.3, 4, halves_px=2.0, shared_px=0.0), W)
+    assert "too few separate areas" in loose
+    none = uncertainty_hint(Uncertainty(math.inf, math.inf, math.inf, 0, halves_px=math.inf), W)
+    assert "could not be solved separately" in none and "too few matches" in none
+
+
 def test_a_render_without_the_photos_light_counts_as_synthetic_light(make_box, make_quad):
     """The pipeline's plain render of an untextured mesh is grey shading under
     a made-up light, and a scan's intensity holds no light at all: either way

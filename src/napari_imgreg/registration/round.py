@@ -655,6 +655,52 @@ def grade_pose(q: float, *, pose_found: bool, verified: bool,
     return grade_of(q, pose_found)
 
 
+def uncertainty_hint(uncertainty: Uncertainty, image_width: int) -> str:
+    """What to make of a pose whose error estimate is too large to call it
+    registered: the expected error, the likely cause and what to do.
+
+    Parameters
+    ----------
+    uncertainty : Uncertainty
+        The pose's estimate (not small at ``image_width``).
+    image_width : int
+        Width of the photo, px (the thresholds are set at 1632 px).
+
+    Returns
+    -------
+    str
+        One hint.
+    """
+    if math.isfinite(uncertainty.reprojection_px):
+        expected = (f"expected error ≈ {uncertainty.reprojection_px:.1f} px, camera "
+                    f"≈ {uncertainty.position_m:.2f} m, {uncertainty.rotation_deg:.2f}°")
+    else:
+        expected = "too few matches to estimate the error"
+    shading = ("the model was shaded by a computed sun, which reproduces only the relief the "
+               "model resolves — an error every match shares and no check can see. Photographed "
+               "colours on the model (a texture, or the scan's RGB) and the photo's capture time "
+               "reduce it; where both are given already, add control points by hand.")
+    shared = (math.isfinite(uncertainty.reprojection_px)
+              and uncertainty.shared_px >= 0.5 * uncertainty.reprojection_px)
+    if not math.isfinite(uncertainty.halves_px) and not math.isfinite(uncertainty.reprojection_px):
+        return (f"Independent check: the halves of the photo could not be solved separately "
+                f"({expected}): the pose rests on too few matches to be checked, so it is not "
+                "verified — add control points by hand.")
+    if uncertainty.halves_disagree(image_width) or not math.isfinite(uncertainty.halves_px):
+        # On a render's synthetic light (a bare mesh) its shared error is the likely cause.
+        return (f"Independent check: poses solved from separate halves of the photo disagree "
+                f"({expected}): the matches share an error or are partly wrong — a wrong focal "
+                "length, shading under another sun, matches in one part of the photo only, or "
+                "a wrong pose altogether. "
+                + (f"Here {shading}" if shared else
+                   "Check the overlay at a few control points, or add control points by hand."))
+    if shared:
+        return (f"Independent check: the render was matched on its synthetic light ({expected}): "
+                + shading)
+    return (f"Independent check: the matches leave the pose loose ({expected}): too few "
+            "separate areas of the photo were matched — add control points by hand.")
+
+
 def trial_from_round(
     last: Round,
     *,
@@ -775,35 +821,7 @@ def trial_from_round(
             f"Focal length estimated with the pose: fx = {intrinsics.fx:.1f}{spread} px (a "
             f"{intrinsics.hfov_deg:.1f}° horizontal view); the uncertainty includes its error.")
     if uncertain:
-        if math.isfinite(uncertainty.reprojection_px):
-            expected = (f"expected error ≈ {uncertainty.reprojection_px:.1f} px, camera "
-                        f"≈ {uncertainty.position_m:.2f} m, {uncertainty.rotation_deg:.2f}°")
-        else:
-            expected = "too few matches to estimate the error"
-        if not math.isfinite(uncertainty.halves_px) and not math.isfinite(
-                uncertainty.reprojection_px):
-            hints.append(
-                f"Independent check: the halves of the photo could not be solved separately "
-                f"({expected}): the pose rests on too few matches to be checked, so it is not "
-                "verified — add control points by hand.")
-        elif uncertainty.halves_disagree(image_width) or not math.isfinite(uncertainty.halves_px):
-            hints.append(
-                f"Independent check: poses solved from separate halves of the photo disagree "
-                f"({expected}): the matches share an error or are partly wrong — a wrong focal "
-                "length, shading under another sun, matches in one part of the photo only, or "
-                "a wrong pose altogether. Check the overlay at a few control points, or add "
-                "control points by hand.")
-        elif uncertainty.shared_px >= 0.5 * uncertainty.reprojection_px:
-            hints.append(
-                f"Independent check: the render was matched on its synthetic light ({expected}): "
-                "the model was shaded by a computed sun, which reproduces only the relief the "
-                "model resolves — an error every match shares and no check can see. Photographed "
-                "colours on the model (a texture, or the scan's RGB) and the photo's capture time "
-                "reduce it; where both are given already, add control points by hand.")
-        else:
-            hints.append(
-                f"Independent check: the matches leave the pose loose ({expected}): too few "
-                "separate areas of the photo were matched — add control points by hand.")
+        hints.append(uncertainty_hint(uncertainty, image_width))
     return Trial(
         index=index,
         params=params.copy(),
