@@ -154,6 +154,26 @@ def _cp(reg, truth) -> np.ndarray:
     return np.where(np.isfinite(err), err, 1e6) * br.REFERENCE_WIDTH / cam.width
 
 
+_ON_SCAN: dict[Path, np.ndarray] = {}
+
+
+def on_scan(scene, photo_path: Path, truth) -> np.ndarray:
+    """(C,) bool: which check points lie on the scan's surface (the scan, rendered
+    from the true camera, shows a point within 1 m of them at their pixel). The
+    frame's check points include near ground a scan from the cliff's foot may
+    not cover: a user maps only where the model is. Cached per photo."""
+    if photo_path not in _ON_SCAN:
+        r = render(scene, truth.intrinsics, truth.pose, scale=1.0, mode="color")
+        h, w = r.mask.shape
+        px = np.round(truth.check_pixels).astype(int)
+        inside = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < w) & (px[:, 1] < h)
+        near = np.zeros(len(px), bool)
+        seen = r.xyz[px[inside, 1], px[inside, 0]]
+        near[inside] = np.linalg.norm(seen - truth.check_xyz[inside], axis=1) < 1.0  # NaN: False
+        _ON_SCAN[photo_path] = near
+    return _ON_SCAN[photo_path]
+
+
 def evaluate(scene, photo_path: Path, method: str, tmp: Path) -> dict | None:
     """One registration and its scores; None when the method cannot run here."""
     import bench_unknown_focal as buf
@@ -175,6 +195,7 @@ def evaluate(scene, photo_path: Path, method: str, tmp: Path) -> dict | None:
     seconds = time.perf_counter() - t0
     cp = _cp(reg, truth)
     cp_med = float(np.median(cp))
+    scan_cp = on_scan(scene, photo_path, truth)
     registered = reg.status == "registered"
     claims = registered or reg.grade in ("good", "excellent")
     return {
@@ -185,6 +206,9 @@ def evaluate(scene, photo_path: Path, method: str, tmp: Path) -> dict | None:
         "success": bool(registered and cp_med < br.SUCCESS_PX),
         "false_verdict": bool(claims and cp_med >= br.SUCCESS_PX),
         "cp_median_px": round(cp_med, 3),
+        # The same over the check points on the scan's own surface (see on_scan).
+        "cp_on_scan_px": (round(float(np.median(cp[scan_cp])), 3) if scan_cp.any() else None),
+        "check_points_on_scan": f"{int(scan_cp.sum())}/{len(scan_cp)}",
         "rotation_error_deg": round(reg.pose.rotation_error_deg(truth.pose), 4),
         "position_error_m": round(float(np.linalg.norm(reg.pose.center - truth.pose.center)), 4),
         "focal_error": round(reg.intrinsics.fx / truth.intrinsics.fx - 1.0, 6),
@@ -695,6 +719,7 @@ def main(argv: list[str] | None = None) -> int:
                             save()
                             print(f"{tier:19s} seed {seed} {photo_path.name} {method:13s} "
                                   f"{row['status']:10s} {row['grade']:9s} cp {row['cp_median_px']:9.2f} px "
+                                  f"(on the scan {row['cp_on_scan_px'] or float('nan'):6.2f}) "
                                   f"focal {100 * row['focal_error']:+6.2f} % {row['seconds']:6.1f} s "
                                   f"trials {row['n_trials']}"
                                   + (" SUCCESS" if row["success"] else "")
