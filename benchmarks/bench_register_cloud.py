@@ -28,7 +28,9 @@ other, from the same sensor prior:
 Success: status ``registered`` and median check-point error < 4 px at 1632 px
 width, the check points projected through the camera the result reports;
 false verdict: ``registered`` or graded good/excellent with an error ≥ 4 px
-(``bench_register.py``'s rules). Per photo the benchmark also measures, at
+(``bench_register.py``'s rules). The rows also give the median over the
+check points on the scan's own surface (``cp_on_scan_px``): a scan from the
+cliff's foot may not cover the frame's near ground. Per photo the benchmark also measures, at
 the true camera and the matching width (768 px), how alike the scan's
 intensity render and the photo are: the correlation coefficient of their grey
 levels and of their gradient magnitudes over the rendered surface, and how
