@@ -344,6 +344,15 @@ def test_a_snap_never_waits_for_the_models_view(widget, sample, qtbot, monkeypat
     followed = interpretations_from_shapes(shapes)[0].pixels
     assert _median_px(followed, model_contact) < 0.35 < _median_px(followed, px)
     assert widget._pending_follow == []
+    # A line whose layer is closed before the render arrives is left alone.
+    widget.viewer.layers["IMG_0001"].metadata["result"]["pose"] = pt.pose.to_dict()  # a new pose
+    _draw_by_clicks(shapes, napari_from_pixels(px[[0, -1]]))
+    qtbot.waitUntil(lambda: len(shapes.data) == 2 and len(shapes.data[1]) > 2, timeout=10000)
+    assert len(widget._pending_follow) == 1
+    placed = np.array(shapes.data[1])
+    widget.viewer.layers.remove(shapes)
+    qtbot.waitUntil(lambda: not widget._pending_follow, timeout=15000)
+    np.testing.assert_array_equal(shapes.data[1], placed)  # left as it was
 
 
 def test_choosing_the_next_label_does_not_relabel_the_line_just_drawn(widget):

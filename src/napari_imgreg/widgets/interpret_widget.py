@@ -875,9 +875,10 @@ class InterpretWidget(QWidget):
         waiting = []
         for item in self._pending_follow:
             layer, index, clicks, image, snapped = item
-            if (index >= len(layer.data) or not np.array_equal(layer.data[index], snapped)
+            if (layer not in self.viewer.layers or index >= len(layer.data)
+                    or not np.array_equal(layer.data[index], snapped)
                     or layer.metadata.get(INTERP_KEY) not in self.viewer.layers):
-                continue  # edited, removed, or its photo closed: left as it is
+                continue  # edited, removed, or its layer or photo closed: left as it is
             photo_layer = self.viewer.layers[layer.metadata[INTERP_KEY]]
             reference, pending = self._snap_reference(photo_layer, image)
             if pending:
